@@ -1,0 +1,264 @@
+"""RobotSystem: robots R_i, task types T_j, task sets Gamma_i and willingness d_ij (paper §4, eqs 5-6).
+
+A system file (``conf/system/*.yaml``) is plain data::
+
+    name: system1
+    robots:                  # robot -> task types it can do (willingness 1.0) ...
+      R1: [T1, T4, T5]
+      R2: {T2: 0.9, T4: 1.0} # ... or task type -> willingness d in (0, 1]
+    task_types:              # optional per-type duration ranges overriding the env defaults
+      T2: {duration_low: [3, 6], duration_high: [6, 12]}
+    env: {arrival_rate: 2.0} # optional per-system environment parameters
+
+or describes a reproducible random team (``n_robots``, ``n_task_types``, ``density``, ``seed``).
+Every check runs at construction, so a malformed file fails before any work starts.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import Any
+
+import numpy as np
+
+from mrta_rl.types import RobotId, TaskType
+
+_ROBOT_RE = re.compile(r"^R[1-9][0-9]*$")
+_TASK_RE = re.compile(r"^T[1-9][0-9]*$")
+_DURATION_KEYS = ("duration_low", "duration_high")
+
+
+class SystemConfigError(ValueError):
+    """A system description is malformed; the message names the robot or task type at fault."""
+
+
+@dataclass(frozen=True)
+class DurationRange:
+    """Integer duration range ``[lo, hi]`` (both ends included) of one task type and priority."""
+
+    lo: int
+    hi: int
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.lo, int) and isinstance(self.hi, int)) or not 1 <= self.lo <= self.hi:
+            raise SystemConfigError(f"duration range must be integers 1 <= lo <= hi, got [{self.lo}, {self.hi}]")
+
+
+@dataclass(frozen=True, eq=False)
+class RobotSystem:
+    """A heterogeneous robot team.
+
+    Attributes:
+        name: System name (``system1``...).
+        robots: Robot ids in order, ``("R1", ...)``; robot index ``i`` is position in this tuple.
+        task_types: Task type ids ``("T1", ..., "Tn")`` in numeric order.
+        willingness: ``[m, n]`` float array, ``d_ij`` in (0, 1] where ``R_i`` can do ``T_j``, else 0.
+        durations: Per task type overrides ``{"T2": {"duration_low": DurationRange, ...}}``.
+        env_overrides: Per-system environment parameters (see ``AuctionParams``).
+    """
+
+    name: str
+    robots: tuple[RobotId, ...]
+    task_types: tuple[TaskType, ...]
+    willingness: np.ndarray  # d_ij, [m, n]
+    durations: Mapping[TaskType, Mapping[str, DurationRange]] = field(default_factory=dict)
+    env_overrides: Mapping[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        d = np.asarray(self.willingness, dtype=np.float64)
+        if d.shape != (len(self.robots), len(self.task_types)):
+            raise SystemConfigError(
+                f"willingness has shape {d.shape}, expected ({len(self.robots)}, {len(self.task_types)})"
+            )
+        if len(set(self.robots)) != len(self.robots):
+            raise SystemConfigError(f"system {self.name!r}: duplicate robot id in {self.robots}")
+        for i, robot in enumerate(self.robots):
+            if not _ROBOT_RE.match(robot):
+                raise SystemConfigError(f"robot {robot!r}: ids must look like R1, R2, ...")
+            bad = [self.task_types[j] for j in range(d.shape[1]) if not (0.0 <= d[i, j] <= 1.0)]
+            if bad or np.isnan(d[i]).any():
+                raise SystemConfigError(f"robot {robot}: willingness for {bad} is outside (0, 1]")
+            if not (d[i] > 0).any():
+                raise SystemConfigError(f"robot {robot} has no task type")
+        for j, task in enumerate(self.task_types):
+            if task != f"T{j + 1}":
+                raise SystemConfigError(f"task types must be T1..Tn in order, got {task!r} at {j + 1}")
+            if not (d[:, j] > 0).any():
+                raise SystemConfigError(f"task type {task}: no robot can do it")
+        for task, ranges in self.durations.items():
+            if task not in self.task_types:
+                raise SystemConfigError(f"task type {task!r} in task_types is unknown")
+        d.setflags(write=False)
+        object.__setattr__(self, "willingness", d)
+        object.__setattr__(self, "durations", MappingProxyType(dict(self.durations)))
+        object.__setattr__(self, "env_overrides", MappingProxyType(dict(self.env_overrides)))
+
+    @property
+    def n_robots(self) -> int:
+        """Number of robots ``m``."""
+        return len(self.robots)
+
+    @property
+    def n_task_types(self) -> int:
+        """Number of task types ``n``."""
+        return len(self.task_types)
+
+    @property
+    def rtm(self) -> np.ndarray:
+        """Robot-task relation matrix ``M`` (paper eq. 6), ``[m, n]`` int 0/1."""
+        return (self.willingness > 0).astype(np.int64)
+
+    def task_set(self, robot: RobotId) -> dict[TaskType, float]:
+        """Gamma_i of one robot: ``{task type: willingness d_iz}`` (paper eq. 5)."""
+        i = self.robots.index(robot)
+        return {t: float(self.willingness[i, j]) for j, t in enumerate(self.task_types) if self.willingness[i, j] > 0}
+
+    @classmethod
+    def from_table(
+        cls,
+        name: str,
+        robots: Mapping[str, Any],
+        task_types: Mapping[str, Any] | None = None,
+        env: Mapping[str, Any] | None = None,
+    ) -> RobotSystem:
+        """Build a system from the yaml table format (module docstring).
+
+        Args:
+            name: System name.
+            robots: ``{robot: [task types]}`` or ``{robot: {task type: willingness}}``.
+            task_types: Optional ``{task type: {duration_low: [lo, hi], duration_high: [lo, hi]}}``.
+            env: Optional per-system environment parameters.
+
+        Returns:
+            The validated system.
+
+        Raises:
+            SystemConfigError: naming the robot or task type at fault.
+        """
+        if not isinstance(robots, Mapping) or not robots:
+            raise SystemConfigError(f"system {name!r}: 'robots' must be a non-empty mapping robot -> task types")
+        entries: dict[str, dict[str, float]] = {}
+        for robot, spec in robots.items():
+            robot = str(robot)
+            if not _ROBOT_RE.match(robot):
+                raise SystemConfigError(f"robot {robot!r}: ids must look like R1, R2, ...")
+            if spec is None or (hasattr(spec, "__len__") and len(spec) == 0):
+                raise SystemConfigError(f"robot {robot} has no task type")
+            if isinstance(spec, Mapping):
+                pairs = {str(k): v for k, v in spec.items()}
+            elif isinstance(spec, (list, tuple)) or hasattr(spec, "__iter__") and not isinstance(spec, str):
+                pairs = {str(k): 1.0 for k in spec}
+            else:
+                raise SystemConfigError(f"robot {robot}: expected a list of task types or a mapping, got {spec!r}")
+            for task, d in pairs.items():
+                if not _TASK_RE.match(task):
+                    raise SystemConfigError(f"robot {robot}: unknown task type name {task!r} (expected T1, T2, ...)")
+                if isinstance(d, bool) or not isinstance(d, (int, float)) or not 0.0 < float(d) <= 1.0:
+                    raise SystemConfigError(f"robot {robot}: willingness {d!r} for {task} is outside (0, 1]")
+            entries[robot] = {t: float(d) for t, d in pairs.items()}
+        durations_cfg = dict(task_types or {})
+        for task in durations_cfg:
+            if not _TASK_RE.match(str(task)):
+                raise SystemConfigError(f"task_types: unknown task type name {task!r} (expected T1, T2, ...)")
+        numbers = {int(t[1:]) for pairs in entries.values() for t in pairs} | {int(str(t)[1:]) for t in durations_cfg}
+        names = tuple(f"T{k}" for k in range(1, max(numbers) + 1))
+        capable = {t for pairs in entries.values() for t in pairs}
+        for task in names:
+            if task not in capable:
+                raise SystemConfigError(f"task type {task}: no robot can do it")
+        willingness = np.zeros((len(entries), len(names)))
+        for i, pairs in enumerate(entries.values()):
+            for task, d in pairs.items():
+                willingness[i, int(task[1:]) - 1] = d
+        durations = {str(t): _parse_durations(str(t), spec) for t, spec in durations_cfg.items()}
+        return cls(name, tuple(entries), names, willingness, durations, dict(env or {}))
+
+
+def _parse_durations(task: str, spec: Any) -> dict[str, DurationRange]:
+    if not isinstance(spec, Mapping):
+        raise SystemConfigError(f"task type {task}: expected {{duration_low: [lo, hi], duration_high: [lo, hi]}}")
+    out = {}
+    for key, value in spec.items():
+        if key not in _DURATION_KEYS:
+            raise SystemConfigError(f"task type {task}: unknown key {key!r} (allowed: {_DURATION_KEYS})")
+        try:
+            lo, hi = value
+            out[key] = DurationRange(lo, hi)
+        except (TypeError, ValueError, SystemConfigError) as err:
+            raise SystemConfigError(f"task type {task}: {key} must be [lo, hi] integers, got {value!r}") from err
+    return out
+
+
+def random_system(
+    n_robots: int, n_task_types: int, density: float, seed: int, name: str = "random", env: Mapping[str, Any] | None = None
+) -> RobotSystem:
+    """A reproducible random team for scaling studies (willingness 1.0).
+
+    Each robot can do each task type with probability ``density``; then every robot with no
+    task type gets one at random, and every task type nobody can do gets one random robot, so the
+    result is always a valid system.
+
+    Args:
+        n_robots: Number of robots ``m`` (>= 1).
+        n_task_types: Number of task types ``n`` (>= 1).
+        density: Probability of each robot-task pair, in [0, 1].
+        seed: Seed of the generator; the same arguments give the same system.
+        name: System name.
+        env: Optional per-system environment parameters.
+
+    Returns:
+        The system.
+
+    Raises:
+        SystemConfigError: on arguments out of range.
+    """
+    if n_robots < 1 or n_task_types < 1:
+        raise SystemConfigError(f"random system needs n_robots >= 1 and n_task_types >= 1, got {n_robots}, {n_task_types}")
+    if not 0.0 <= density <= 1.0:
+        raise SystemConfigError(f"random system: density {density} is outside [0, 1]")
+    rng = np.random.default_rng(seed)
+    rtm = rng.random((n_robots, n_task_types)) < density
+    for i in np.flatnonzero(~rtm.any(axis=1)):
+        rtm[i, rng.integers(n_task_types)] = True
+    for j in np.flatnonzero(~rtm.any(axis=0)):
+        rtm[rng.integers(n_robots), j] = True
+    robots = tuple(f"R{i + 1}" for i in range(n_robots))
+    tasks = tuple(f"T{j + 1}" for j in range(n_task_types))
+    return RobotSystem(name, robots, tasks, rtm.astype(np.float64), {}, dict(env or {}))
+
+
+_TABLE_KEYS = {"name", "robots", "task_types", "env"}
+_RANDOM_KEYS = {"name", "n_robots", "n_task_types", "density", "seed", "env"}
+
+
+def build_system(cfg: Mapping[str, Any]) -> RobotSystem:
+    """Build a system from a system config (table or random form, see module docstring).
+
+    Args:
+        cfg: The ``system`` config group content (a dict or OmegaConf mapping).
+
+    Returns:
+        The validated system.
+
+    Raises:
+        SystemConfigError: on unknown keys or malformed content, naming the culprit.
+    """
+    cfg = dict(cfg)
+    name = str(cfg.get("name", "unnamed"))
+    if "robots" in cfg:
+        unknown = set(cfg) - _TABLE_KEYS
+        if unknown:
+            raise SystemConfigError(f"system {name!r}: unknown keys {sorted(unknown)} (allowed: {sorted(_TABLE_KEYS)})")
+        return RobotSystem.from_table(name, cfg["robots"], cfg.get("task_types"), cfg.get("env"))
+    if "n_robots" in cfg:
+        unknown = set(cfg) - _RANDOM_KEYS
+        if unknown:
+            raise SystemConfigError(f"system {name!r}: unknown keys {sorted(unknown)} (allowed: {sorted(_RANDOM_KEYS)})")
+        return random_system(
+            int(cfg["n_robots"]), int(cfg.get("n_task_types", 8)), float(cfg.get("density", 0.3)),
+            int(cfg.get("seed", 0)), name, cfg.get("env"),
+        )
+    raise SystemConfigError(f"system {name!r}: needs either 'robots' (a table) or 'n_robots' (a random team)")
