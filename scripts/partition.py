@@ -1,0 +1,29 @@
+"""Print the subG-CQL partition (paper §4) of a system.
+
+Usage: ``python scripts/partition.py system=system1 [format=json]``.
+"""
+
+from __future__ import annotations
+
+import json
+
+import hydra
+from omegaconf import DictConfig, OmegaConf
+
+from mrta_rl.partition import format_partition, subg_partition
+from mrta_rl.systems import build_system
+
+
+@hydra.main(config_path="../conf", config_name="partition", version_base=None)
+def main(cfg: DictConfig) -> None:
+    partition = subg_partition(build_system(OmegaConf.to_container(cfg.system, resolve=True)))
+    if cfg.format == "json":
+        print(json.dumps(partition.to_json()))
+    elif cfg.format == "table":
+        print(format_partition(partition))
+    else:
+        raise ValueError(f"format must be 'table' or 'json', got {cfg.format!r}")
+
+
+if __name__ == "__main__":
+    main()
