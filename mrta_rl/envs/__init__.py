@@ -1,0 +1,8 @@
+"""Environments: the batched auction dynamics (auction.py) and its TorchRL / PettingZoo / Gymnasium views."""
+
+from __future__ import annotations
+
+from mrta_rl.envs.auction import AuctionEnv, EpisodeStats, StepResult
+from mrta_rl.envs.params import AuctionParams
+
+__all__ = ["AuctionEnv", "AuctionParams", "EpisodeStats", "StepResult"]
