@@ -1,0 +1,147 @@
+"""Learner: the one interface every allocation policy implements, fixed, tabular or neural.
+
+The runner (``mrta_rl.runners``) drives every learner with the same loop over the batched
+auction env (``shared/spec/auction_env.md``)::
+
+    view = learner.encode(env)                       # decision point of tick t
+    actions = learner.act(view, env.action_mask, explore=True)
+    result = env.step(actions)
+    next_view = learner.encode(env)                  # decision point of tick t + 1
+    learner.update(view, actions, result, next_view, env.action_mask)
+    # when every copy is done: read env.stats, env.reset(), learner.end_episode()
+
+Learners never build envs and envs never import learners: the runner builds the env (with the
+partition's ``Lambda_i`` when :attr:`Learner.requires_partition`) and hands it to the learner's
+constructor, which may read its sizes and keep a reference to it.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from pathlib import Path
+from typing import Any, ClassVar, Literal
+
+import numpy as np
+
+from mrta_rl.envs import AuctionEnv, StepResult
+from mrta_rl.partition import Partition
+
+LearnerKind = Literal["fixed", "tabular", "neural"]
+
+
+class Learner(ABC):
+    """Base class of every learner; subclasses implement at least :meth:`act`.
+
+    Hyperparameters are typed keyword-only ``__init__`` arguments with defaults, so the signature
+    is the schema of ``conf/learner/<name>.yaml``. A learner with epsilon-greedy exploration
+    exposes its current value as a float attribute ``epsilon``; the runner shows it when present.
+
+    Attributes:
+        kind: Selects the runner: ``"fixed"`` (no training), ``"tabular"`` or ``"neural"``.
+        requires_partition: True if the learner needs the subG partition (paper §4); the runner
+            then builds the env with ``Lambda_i = partition.active_tasks(system)``.
+        env: The env the learner acts in (built by the runner).
+        rng: The learner's only source of randomness.
+        partition: The subG partition, or None.
+        n_robots: Number of robots ``m``.
+        n_actions: Actions per robot, ``K + 1`` (0 = wait, k = bid for slot k).
+    """
+
+    kind: ClassVar[LearnerKind]
+    requires_partition: ClassVar[bool] = False
+
+    def __init__(
+        self, *, env: AuctionEnv, rng: np.random.Generator, partition: Partition | None = None
+    ) -> None:
+        """Keep the env, the generator and the partition.
+
+        Args:
+            env: The (training or evaluation) env, built by the runner.
+            rng: Generator for every random choice of the learner (exploration, ties).
+            partition: The subG partition (paper §4); required if :attr:`requires_partition`.
+
+        Raises:
+            ValueError: if the learner requires a partition and none is given.
+        """
+        if self.requires_partition and partition is None:
+            raise ValueError(f"{type(self).__name__} requires a subG partition (paper §4)")
+        self.env = env
+        self.rng = rng
+        self.partition = partition
+        self.n_robots = env.n_robots
+        self.n_actions = env.n_actions
+
+    def encode(self, env: AuctionEnv) -> Any:
+        """The learner's view of the env's current decision point.
+
+        Called before acting and again after stepping, so the view must not alias arrays that
+        :meth:`AuctionEnv.step` changes in place (copy them).
+
+        Args:
+            env: The env at a decision point.
+
+        Returns:
+            Whatever :meth:`act` and :meth:`update` consume; the default is None (the policy
+            needs only the action mask).
+        """
+        return None
+
+    @abstractmethod
+    def act(self, view: Any, mask: np.ndarray, *, explore: bool) -> np.ndarray:
+        """Choose one action per robot and copy.
+
+        Args:
+            view: Output of :meth:`encode` at this decision point.
+            mask: ``[B, m, K + 1]`` bool, valid actions (spec step 4; action 0 always valid).
+            explore: True while training (e.g. epsilon-greedy); False for evaluation (greedy).
+
+        Returns:
+            ``[B, m]`` int actions, each valid under ``mask``.
+        """
+
+    def update(
+        self,
+        view: Any,
+        actions: np.ndarray,
+        result: StepResult,
+        next_view: Any,
+        next_mask: np.ndarray,
+    ) -> dict[str, float]:
+        """Learn from one tick of every copy (default: no learning).
+
+        Args:
+            view: View before acting.
+            actions: ``[B, m]`` actions taken.
+            result: Team and robot rewards and done flags of the tick.
+            next_view: View after the step.
+            next_mask: ``[B, m, K + 1]`` valid actions after the step.
+
+        Returns:
+            Scalar diagnostics, keys slash-namespaced (``learner/G1/td_error``); may be empty.
+        """
+        return {}
+
+    def end_episode(self) -> None:  # noqa: B027 - optional hook, deliberately a no-op
+        """Advance per-episode schedules (epsilon, learning-rate decay); default: nothing."""
+
+    def learning_space(self) -> dict[str, int]:
+        """Learning space dimension (paper eqs. 10-16) and table entries visited.
+
+        Returns:
+            ``{"analytic": ..., "visited": ...}`` for learning policies; ``{}`` for fixed ones.
+        """
+        return {}
+
+    def save(self, directory: Path) -> None:  # noqa: B027 - optional hook, deliberately a no-op
+        """Write the learner's state to ``directory`` in safe formats (npz without pickle, json).
+
+        Args:
+            directory: Target folder; created by the learner if missing.
+        """
+
+    def load(self, directory: Path) -> None:  # noqa: B027 - optional hook, deliberately a no-op
+        """Restore the state written by :meth:`save`.
+
+        Args:
+            directory: Folder written by :meth:`save`.
+        """
