@@ -12,7 +12,10 @@ auction env (``shared/spec/auction_env.md``)::
 
 Learners never build envs and envs never import learners: the runner builds the env (with the
 partition's ``Lambda_i`` when :attr:`Learner.requires_partition`) and hands it to the learner's
-constructor, which may read its sizes and keep a reference to it.
+constructor, which may read its sizes (robots, types, slots, active tasks). The batch size is not
+fixed: :meth:`Learner.encode`, :meth:`Learner.act` and :meth:`Learner.update` must work for any
+``B``, because the runner evaluates on a separate env with the evaluation batch size (same system,
+parameters and active tasks) and reads ``B`` from the arrays it passes.
 """
 
 from __future__ import annotations
