@@ -1,0 +1,194 @@
+"""Tests of the observation encodings (mrta_rl/envs/observations.py)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from mrta_rl.envs import AuctionEnv, AuctionParams
+from mrta_rl.envs import observations as ob
+from mrta_rl.systems import RobotSystem, build_system, random_system
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def load_system(name: str) -> RobotSystem:
+    return build_system(yaml.safe_load((ROOT / "conf" / "system" / f"{name}.yaml").read_text()))
+
+
+@pytest.fixture
+def quiet_env() -> AuctionEnv:
+    """R1: {T1, T3}, R2: {T2}, R3: {T1, T2}; no random arrivals, so tasks are injected by hand."""
+    system = RobotSystem.from_table("tiny", {"R1": ["T1", "T3"], "R2": ["T2"], "R3": ["T1", "T2"]})
+    return AuctionEnv(system, AuctionParams(arrival_rate=0.0, horizon=50), batch_size=2)
+
+
+def task(ttype: int, high: int, tid: int, due: int = 0, rnd: int = 1) -> dict[str, int]:
+    return dict(type=ttype, high=high, due=due, id=tid, duration=5, round=rnd)
+
+
+def random_rollout(env: AuctionEnv, ticks: int, seed: int = 0):
+    """Yield after each random (valid) joint action."""
+    rng = np.random.default_rng(seed)
+    for _ in range(ticks):
+        logits = rng.random(env.action_mask.shape) * env.action_mask
+        env.step(logits.argmax(axis=2))
+        yield
+
+
+def test_hand_built_local_and_group_view(quiet_env):
+    env = quiet_env
+    # queue order H first, then by id: slot 1 = T1 H, slot 2 = T2 L, slot 3 = T3 L
+    env.inject_tasks(0, [task(1, 0, 1), task(0, 1, 0), task(2, 0, 2), task(0, 0, 3)])
+    assert env.slot_type[0].tolist() == [0, 1, 2] and env.slot_high[0].tolist() == [1, 0, 0]
+    env.last_high_arrival[0] = [-3, -100, -(1 << 30)]  # T1 H three ticks ago (t = 0)
+    index = ob.local_state_index(env)
+    decode = ob.LocalView(env).decode
+    # R1 sees T1 (rank 0) H -> 2, nothing in slot 2, T3 (rank 1) L -> 3; recency over {T1, T3} = 0
+    assert decode(0, index[0, 0]) == {"idle": 1, "slots": [2, 0, 3], "battery": 0, "recency": 0}
+    # R2 sees only T2 (rank 0) L -> 1 in slot 2; its type's last H was 100 ticks ago -> level 2
+    assert decode(1, index[0, 1]) == {"idle": 1, "slots": [0, 1, 0], "battery": 0, "recency": 2}
+    # R3 {T1, T2}: T1 H -> 2, T2 L -> 3; recency over {T1, T2} = 0
+    assert decode(2, index[0, 2]) == {"idle": 1, "slots": [2, 3, 0], "battery": 0, "recency": 0}
+    # explicit mixed radix for R2: radices (2, 3, 3, 3, 2, 3)
+    assert index[0, 1] == 1 + 1 * 2 * 3 + 2 * (2 * 27 * 2)
+    # group {R1, R2}: T_g = {T1, T2, T3}; codes 1 + 2 rank + high
+    group = ob.GroupView(env, [0, 1])
+    g_index = ob.group_state_index(env, [0, 1])
+    assert group.decode(g_index[0]) == {"slots": [2, 3, 5], "robots": [1, 1], "recency": 0}
+    assert ob.group_state_index(env, ["R1", "R2"])[0] == g_index[0]  # ids work as well
+    # group {R2}: T_g = {T2}
+    assert ob.GroupView(env, [1]).decode(ob.group_state_index(env, [1])[0]) == {
+        "slots": [0, 1, 0], "robots": [1], "recency": 2,
+    }
+
+
+def test_busy_and_battery_levels(quiet_env):
+    env = quiet_env
+    env.inject_tasks(0, [task(0, 0, 0)])
+    # longest duration of R1's types is 12 (H default [6, 12]); threshold 20: low iff battery < 32
+    env.battery[0] = [31.0, 32.0, 100.0]
+    env.busy_until[0, 2] = 5
+    env._select_slots()
+    assert ob.battery_level(env)[0].tolist() == [1, 0, 0]
+    index = ob.local_state_index(env)
+    decode = ob.LocalView(env).decode
+    assert decode(0, index[0, 0])["battery"] == 1
+    assert decode(2, index[0, 2])["idle"] == 0
+    # group states: 0 busy, 1 idle ok, 2 idle low
+    group = ob.GroupView(env, [0, 1, 2])
+    assert group.decode(ob.group_state_index(env, [0, 1, 2])[0])["robots"] == [2, 1, 0]
+    # the other copy is untouched
+    assert ob.battery_level(env)[1].tolist() == [0, 0, 0]
+
+
+@pytest.mark.parametrize(("ago", "level"), [(0, 0), (3, 0), (4, 1), (10, 1), (11, 2), (None, 2)])
+def test_recency_thresholds(quiet_env, ago, level):
+    env = quiet_env
+    env.t[:] = 20
+    env.last_high_arrival[0, 0] = -(1 << 30) if ago is None else 20 - ago  # T1 only
+    assert ob.recency_level(env, np.array([True, False, False]))[0] == level
+    per_robot = ob.recency_level(env, env.active_tasks)  # R1 has T1, R2 does not
+    assert per_robot.shape == (2, 3) and per_robot[0, 0] == level and per_robot[0, 1] == 2
+
+
+def test_recency_takes_latest_type(quiet_env):
+    env = quiet_env
+    env.t[:] = 30
+    env.last_high_arrival[0] = [5, 25, 29]
+    assert ob.recency_level(env, np.array([True, True, False]))[0] == 1
+    assert ob.recency_level(env, np.array([True, True, True]))[0] == 0
+    with pytest.raises(ValueError, match="types_mask"):
+        ob.recency_level(env, np.ones(4, bool))
+
+
+@pytest.mark.parametrize("name", ["system1", "system2"])
+def test_counts_match_formula(name):
+    env = AuctionEnv(load_system(name))
+    K = env.n_slots
+    lam = env.active_tasks.sum(axis=1)
+    assert ob.local_state_count(env) == [2 * (1 + 2 * int(x)) ** K * 2 * 3 for x in lam]
+    m, n = env.n_robots, env.n_task_types
+    assert ob.group_state_count(env, list(range(m))) == (1 + 2 * n) ** K * 3**m * 3
+
+
+@pytest.mark.parametrize("name", ["system1", "system2"])
+def test_indices_in_range_and_decode_to_env_fields(name):
+    """Decoding recovers the env's fields, so distinct states get distinct indices."""
+    env = AuctionEnv(load_system(name), AuctionParams(horizon=200), batch_size=16, seed=3)
+    view = ob.LocalView(env)
+    groups = [[0, 1], list(range(env.n_robots))]
+    gviews = [ob.GroupView(env, g) for g in groups]
+    counts = np.array(ob.local_state_count(env))
+    seen: dict[int, tuple] = {}
+    for _ in random_rollout(env, 60):
+        index = ob.local_state_index(env)
+        assert index.dtype == np.int64 and (index >= 0).all() and (index < counts).all()
+        battery, active = ob.battery_level(env), env.active_tasks
+        recency = ob.recency_level(env, active)
+        for b in range(0, 16, 5):
+            for i in range(env.n_robots):
+                fields = view.decode(i, index[b, i])
+                assert fields["idle"] == env.idle[b, i]
+                assert fields["battery"] == battery[b, i] and fields["recency"] == recency[b, i]
+                for k, code in enumerate(fields["slots"]):
+                    ttype = env.slot_type[b, k]
+                    if ttype < 0 or not active[i, ttype]:
+                        assert code == 0
+                    else:
+                        rank = int(active[i, :ttype].sum())
+                        assert code == 1 + 2 * rank + env.slot_high[b, k]
+        for g, gview in zip(groups, gviews, strict=True):
+            g_index = ob.group_state_index(env, g)
+            assert ((g_index >= 0) & (g_index < gview.count)).all()
+            for b in range(16):
+                key = (tuple(g), int(g_index[b]))
+                state = (tuple(env.slot_type[b]), tuple(env.slot_high[b]),
+                         tuple(env.idle[b, g]), tuple(battery[b, g] * env.idle[b, g]),
+                         int(ob.recency_level(env, gview.types_mask)[b]))
+                if len(g) == env.n_robots:  # whole system: every slot type is in T_g
+                    assert seen.setdefault(key, state) == state  # same index -> same state
+
+
+def test_group_overflow_is_a_clear_error():
+    env = AuctionEnv(random_system(60, 6, 0.5, 0))
+    count = ob.group_state_count(env, list(range(60)))
+    assert count == (1 + 2 * 6) ** 3 * 3**60 * 3  # exact Python int
+    with pytest.raises(OverflowError, match="2\\*\\*63"):
+        ob.group_state_index(env, list(range(60)))
+    with pytest.raises(ValueError):
+        ob.GroupView(env, [])
+
+
+def test_features_are_one_hot():
+    env = AuctionEnv(load_system("system2"), batch_size=8, seed=1)
+    for _ in random_rollout(env, 20):
+        pass
+    m, n, K = env.n_robots, env.n_task_types, env.n_slots
+    local = ob.local_features(env)
+    assert local.shape == (8, m, ob.local_feature_size(env)) and local.dtype == np.float32
+    c = 1 + 2 * n
+    slots = local[..., 1 : 1 + K * c].reshape(8, m, K, c)
+    assert (slots.sum(-1) == 1).all()
+    np.testing.assert_array_equal(local[..., 0], env.idle)
+    base = 1 + K * c
+    np.testing.assert_array_equal(local[..., base], ob.battery_level(env))
+    np.testing.assert_array_equal(local[..., base + 1 : base + 4].argmax(-1),
+                                  ob.recency_level(env, env.active_tasks))
+    np.testing.assert_array_equal(local[..., base + 4 :], np.broadcast_to(np.eye(m), (8, m, m)))
+    # a robot's slot one-hot is nonzero only for types in Lambda_i
+    codes = slots.argmax(-1)  # [B, m, K]
+    visible = codes > 0
+    types = (codes - 1) // 2
+    assert env.active_tasks[np.arange(m)[None, :, None], types][visible].all()
+    glob = ob.global_features(env)
+    assert glob.shape == (8, ob.global_feature_size(env)) and glob.dtype == np.float32
+    g_slots = glob[:, : K * c].reshape(8, K, c)
+    assert (g_slots.sum(-1) == 1).all()
+    expected = np.where(env.slot_type >= 0, 1 + 2 * env.slot_type + env.slot_high, 0)
+    np.testing.assert_array_equal(g_slots.argmax(-1), expected)
+    rec = glob[:, K * c + 2 * m :].reshape(8, n, 3)
+    assert (rec.sum(-1) == 1).all()
