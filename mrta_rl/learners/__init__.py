@@ -3,5 +3,6 @@
 from __future__ import annotations
 
 from mrta_rl.learners.base import Learner, LearnerKind
+from mrta_rl.learners.fixed import GreedyLearner, HighOnlyLearner, RandomLearner
 
-__all__ = ["Learner", "LearnerKind"]
+__all__ = ["GreedyLearner", "HighOnlyLearner", "Learner", "LearnerKind", "RandomLearner"]

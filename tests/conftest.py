@@ -1,0 +1,62 @@
+"""Shared fixtures: a seeded generator, a tiny system and params, and Hydra config composition."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hydra import compose, initialize_config_dir
+from hydra.core.global_hydra import GlobalHydra
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig, open_dict
+
+from mrta_rl.envs import AuctionParams
+from mrta_rl.systems import RobotSystem, build_system
+
+ROOT = Path(__file__).resolve().parents[1]
+CONF = ROOT / "conf"
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    return np.random.default_rng(12345)
+
+
+@pytest.fixture
+def tiny_system() -> RobotSystem:
+    """Two robots, two task types: R1 does T1 and T2, R2 does T2 only."""
+    return build_system({"name": "tiny", "robots": {"R1": ["T1", "T2"], "R2": ["T2"]}})
+
+
+@pytest.fixture
+def tiny_params() -> AuctionParams:
+    return AuctionParams(horizon=20)
+
+
+def _compose(overrides: list[str], config_name: str = "config") -> DictConfig:
+    """Compose ``conf/<config_name>.yaml`` with overrides, as ``@hydra.main`` would.
+
+    Without a ``learner=`` override the train config uses ``learner=greedy``, so tests do not
+    depend on any particular trained learner. The Hydra node is kept and registered, so that
+    ``HydraConfig.get().runtime.choices`` works as in a real run; the caller passes ``run_dir``.
+    """
+    overrides = list(overrides)
+    keys = {o.split("=")[0].lstrip("+~") for o in overrides}
+    if config_name == "config" and "learner" not in keys:
+        overrides.insert(0, "learner=greedy")
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=str(CONF), version_base=None):
+        cfg = compose(config_name=config_name, overrides=overrides, return_hydra_config=True)
+    HydraConfig.instance().set_config(cfg)
+    with open_dict(cfg):
+        del cfg["hydra"]  # as in a real run: cfg holds the job config, HydraConfig the rest
+    return cfg
+
+
+@pytest.fixture
+def compose_cfg() -> Iterator[Callable[..., DictConfig]]:
+    """``compose_cfg(["system=system1", ...], config_name="config")`` -> composed config."""
+    yield _compose
+    GlobalHydra.instance().clear()
