@@ -1,0 +1,26 @@
+"""Metrics of the spec and paper §5.2 (CTR, ITR eq. 9, team return) and the curve logger."""
+
+from __future__ import annotations
+
+from mrta_rl.metrics.episode import (
+    EpisodeSummary,
+    concat_stats,
+    ctr,
+    ctr_overall,
+    format_percent,
+    itr,
+    summarize,
+)
+from mrta_rl.metrics.logger import CURVE_COLUMNS, CSVLogger
+
+__all__ = [
+    "CURVE_COLUMNS",
+    "CSVLogger",
+    "EpisodeSummary",
+    "concat_stats",
+    "ctr",
+    "ctr_overall",
+    "format_percent",
+    "itr",
+    "summarize",
+]
