@@ -204,6 +204,7 @@ class AuctionEnv:
                 rng = system.durations.get(name, {}).get(key)
                 lo, hi = (rng.lo, rng.hi) if rng is not None else getattr(p, key)
                 self._dur_lo[j, prio], self._dur_span[j, prio] = lo, hi - lo + 1
+        self._dur_lo, self._dur_span = self._dur_lo.reshape(-1), self._dur_span.reshape(-1)  # index 2 * type + high
         self._assign_reward = np.array([p.reward_assign_low, p.reward_assign_high])
         self._drop_penalty = np.array([p.penalty_drop_low, p.penalty_drop_high])
         # spec step 8: a dropped task's penalty is shared by the robots whose Lambda holds its type
@@ -296,33 +297,37 @@ class AuctionEnv:
         n_new = np.searchsorted(self._poisson_cdf, unit_float(tick_key), side="right")
         n_new[~rows] = 0
         width = int(n_new.max())
-        queue = self._queue[:, : self._queue_width]
         self._pending_team[rows] = 0.0
         self._pending_robot[rows] = 0.0
+        end = self._queue_width + width
+        if end > self._queue.shape[1] - 1:  # grow the spare columns (the last one stays empty)
+            grow = np.full((self.batch_size, end + 1 - self._queue.shape[1] + 8), _EMPTY)
+            self._queue = np.concatenate([self._queue, grow], axis=1)
         if width:
             k = np.arange(1, width + 1, dtype=np.uint64)
             h_prio = mix64(tick_key[:, None] + k * _GOLDEN)  # [B, W]
             h_kind = mix64(h_prio ^ _M2)  # [B, W]: type in the high 32 bits, duration in the low 32
             high = (unit_float(h_prio) < p.p_high).astype(np.int64)  # priority H with probability p_high
             ttype = bounded_int(h_kind >> _S32, self.n_task_types)  # type uniform over all n types
-            duration = self._dur_lo[ttype, high] + bounded_int(h_kind, self._dur_span[ttype, high])
+            kind = 2 * ttype + high
+            duration = self._dur_lo[kind] + bounded_int(h_kind, self._dur_span[kind])  # uniform, ends included
             arrived = np.arange(width) < n_new[:, None]  # [B, W]
             ids = self._next_id[:, None] + np.arange(width)
             new = np.where(arrived, pack_tasks(high, t[:, None], ids, ttype, duration, 0), _EMPTY)
             self._next_id += n_new
             b_h, k_h = np.nonzero(arrived & (high == 1))
             self.last_high_arrival[b_h, ttype[b_h, k_h]] = t[b_h]
-            queue = np.concatenate([queue, new], axis=1)
-        queue = np.sort(queue, axis=1)  # spec step 2: (H before L, due tick, id); empties last
-        if queue.shape[1] > Q:  # spec step 2: overflow drops the last tasks
-            overflow = queue[:, Q:]
+            self._queue[:, self._queue_width : end] = new  # places past the width are empty
+        queue = self._queue[:, :end]
+        queue.sort(axis=1)  # spec step 2: (H before L, due tick, id); empties last
+        if end > Q:  # spec step 2: overflow drops the last tasks
+            overflow = queue[:, Q:end]
             if (overflow != _EMPTY).any():
                 team, robot = self._drop(overflow)
                 self._pending_team -= team
                 self._pending_robot -= robot
-            queue = queue[:, :Q]
-        self._queue_width = int((queue != _EMPTY).sum(axis=1).max())
-        self._queue[:, : queue.shape[1]] = queue
+                overflow[:] = _EMPTY
+        self._queue_width = int((queue[:, :Q] != _EMPTY).sum(axis=1).max())
         self._select_slots()
 
     def _select_slots(self) -> None:
