@@ -1,0 +1,197 @@
+"""Shared evaluation of every learner kind, the greedy baseline, checkpoints and the summary text.
+
+Evaluation plays ``eval.episodes`` episodes, ``eval.batch_size`` copies at a time, on an env whose
+copy ``b`` is seeded ``eval.seed + b``; each round starts with a fresh reset, which advances every
+copy's episode counter deterministically. Task arrivals depend only on the seed and the episode
+counter, never on actions or active task sets, so the learner and the greedy baseline, and every
+learner and training seed, are scored on identical task streams. The learner acts with
+``explore=False`` and does not update.
+
+The greedy baseline is the plain auction: it runs on the *unpartitioned* system (every robot bids
+with its full task set ``Gamma_i``), even when the learner uses a subG partition's ``Lambda_i``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from omegaconf import DictConfig, OmegaConf
+
+from mrta_rl.envs import AuctionEnv, EpisodeStats
+from mrta_rl.learners import GreedyLearner, Learner
+from mrta_rl.metrics import EpisodeSummary, format_percent, summarize
+
+if TYPE_CHECKING:
+    from mrta_rl.runners.train import RunSetup
+
+logger = logging.getLogger(__name__)
+
+
+def evaluate_policy(learner: Learner, env: AuctionEnv, episodes: int, seed: int) -> EpisodeSummary:
+    """Play ``episodes`` evaluation episodes without exploration or learning.
+
+    Args:
+        learner: The policy.
+        env: Evaluation env; reseeded here so that copy ``b`` uses ``seed + b``.
+        episodes: Episodes in total; rounds of ``env.batch_size`` copies, the last one trimmed.
+        seed: Evaluation seed.
+
+    Returns:
+        CTR, ITR and team return pooled over the episodes.
+    """
+    env.reset(seed=seed)
+    snapshots: list[EpisodeStats] = []
+    played = 0
+    while played < episodes:
+        view = learner.encode(env)
+        while not env.done.any():  # copies share the horizon: all finish at the same tick
+            env.step(learner.act(view, env.action_mask, explore=False))
+            view = learner.encode(env)
+        keep = min(env.batch_size, episodes - played)
+        stats = env.stats.copy()
+        snapshots.append(
+            EpisodeStats(*(getattr(stats, f)[:keep] for f in EpisodeStats.__dataclass_fields__))
+        )
+        played += keep
+        env.reset()
+    return summarize(snapshots, env.system.robots, env.system.task_types)
+
+
+def evaluate_run(run: RunSetup, cfg: DictConfig) -> dict[str, Any]:
+    """Evaluate the run's learner and the greedy baseline on the same evaluation seeds.
+
+    Args:
+        run: The built (and trained) run.
+        cfg: The run config (``eval`` group, ``seed``).
+
+    Returns:
+        ``{"eval": {...}, "baseline_greedy": {...}}``, each as :meth:`EpisodeSummary.to_json`.
+    """
+    batch = min(cfg.eval.batch_size, cfg.eval.episodes)
+    env = AuctionEnv(
+        run.system, run.params, batch_size=batch, active_tasks=run.active_tasks, seed=cfg.eval.seed
+    )
+    learned = evaluate_policy(run.learner, env, cfg.eval.episodes, cfg.eval.seed)
+    # the plain auction uses the full task sets Gamma_i (active_tasks=None), see module docstring
+    plain_env = AuctionEnv(run.system, run.params, batch_size=batch, seed=cfg.eval.seed)
+    greedy = GreedyLearner(env=plain_env, rng=np.random.default_rng(cfg.seed))
+    baseline = evaluate_policy(greedy, plain_env, cfg.eval.episodes, cfg.eval.seed)
+    logger.info(
+        "eval team return %.1f (greedy %.1f) over %d episodes",
+        learned.team_return_mean,
+        baseline.team_return_mean,
+        learned.episodes,
+    )
+    return {"eval": learned.to_json(), "baseline_greedy": baseline.to_json()}
+
+
+def evaluate_checkpoint(checkpoint: Path | str, episodes: int | None = None) -> dict[str, Any]:
+    """Re-evaluate a finished run: rebuild it from its ``.hydra/config.yaml``, load the learner.
+
+    Writes ``eval_metrics.json`` in the run dir.
+
+    Args:
+        checkpoint: The run dir of ``scripts/train.py`` (holding ``.hydra/`` and ``learner/``).
+        episodes: Evaluation episodes; default: the run's ``eval.episodes``.
+
+    Returns:
+        The content of ``eval_metrics.json`` (as metrics.json, without the training block).
+
+    Raises:
+        FileNotFoundError: if the run dir has no ``.hydra/config.yaml``.
+        ValueError: on an invalid run config.
+    """
+    from mrta_rl.runners.train import build_run, write_json  # train imports this module
+
+    run_dir = Path(checkpoint)
+    config_path = run_dir / ".hydra" / "config.yaml"
+    if not config_path.is_file():
+        raise FileNotFoundError(f"{run_dir} is not a run dir of scripts/train.py: no {config_path}")
+    cfg = OmegaConf.load(config_path)
+    if episodes is not None:
+        cfg.eval.episodes = int(episodes)
+    choices = _run_choices(run_dir)
+    run = build_run(cfg, name=choices.get("learner"))
+    if run.learner.kind != "fixed":
+        state = run_dir / "learner"
+        if not state.is_dir():
+            raise FileNotFoundError(f"{run_dir}: no saved learner state in {state}")
+        run.learner.load(state)
+    metrics = {
+        "learner": run.name,
+        "system": choices.get("system", run.system.name),
+        "seed": int(cfg.seed),
+        "checkpoint": str(run_dir),
+        **evaluate_run(run, cfg),
+        "learning_space": {k: int(v) for k, v in run.learner.learning_space().items()},
+    }
+    write_json(run_dir / "eval_metrics.json", metrics)
+    return metrics
+
+
+def _run_choices(run_dir: Path) -> dict[str, str]:
+    """Config-group choices recorded in ``.hydra/hydra.yaml`` (``learner`` -> ``greedy``)."""
+    path = run_dir / ".hydra" / "hydra.yaml"
+    if not path.is_file():
+        return {}
+    choices = OmegaConf.select(OmegaConf.load(path), "hydra.runtime.choices", default={})
+    return {str(k): str(v) for k, v in dict(choices).items() if v is not None}
+
+
+def format_summary(metrics: dict[str, Any]) -> str:
+    """Readable summary of a metrics.json dict: CTR, ITR, team return, learning space, wall time.
+
+    Args:
+        metrics: Content of ``metrics.json`` or ``eval_metrics.json``.
+
+    Returns:
+        Plain aligned text (``-`` where a CTR is undefined).
+    """
+    learned, greedy = metrics["eval"], metrics["baseline_greedy"]
+    name = metrics["learner"]
+    width = max(len(name), 6)
+    lines = [
+        f"{name} on {metrics['system']} (seed {metrics['seed']}), {learned['episodes']} evaluation "
+        "episodes; baseline: greedy auction on the full task sets",
+        "",
+        f"{'team return':<12} {name:>{width}} {_mean_std(learned['team_return'])}   "
+        f"greedy {_mean_std(greedy['team_return'])}",
+        "",
+        f"{'CTR %':<6} {name:>{2 * width + 1}} | {'greedy':>13}",
+        f"{'type':<6} {'L':>{width}} {'H':>{width}} | {'L':>6} {'H':>6}",
+    ]
+    pct = format_percent
+    for task in [*learned["ctr"], "all"]:
+        mine = learned["ctr_overall"] if task == "all" else learned["ctr"][task]
+        base = greedy["ctr_overall"] if task == "all" else greedy["ctr"][task]
+        lines.append(
+            f"{task:<6} {pct(mine['L']):>{width}} {pct(mine['H']):>{width}} | "
+            f"{pct(base['L']):>6} {pct(base['H']):>6}"
+        )
+    lines += ["", f"{'ITR %':<6} {name:>{width}} | {'greedy':>6}"]
+    for robot, value in learned["itr"].items():
+        lines.append(f"{robot:<6} {pct(value):>{width}} | {pct(greedy['itr'][robot]):>6}")
+    space = metrics.get("learning_space") or {}
+    lines += [
+        "",
+        "learning space: "
+        + (", ".join(f"{k} {v:,}" for k, v in space.items()) or "- (fixed policy)"),
+    ]
+    if "train" in metrics:
+        info = metrics["train"]
+        lines.append(
+            f"training: {info['episodes']} episodes, {info['env_ticks']:,} env ticks, "
+            f"{info['wall_s']:.1f} s"
+        )
+    return "\n".join(lines)
+
+
+def _mean_std(block: dict[str, float | None]) -> str:
+    mean, std = block["mean"], block["std"]
+    if mean is None or (isinstance(mean, float) and math.isnan(mean)):
+        return "-"
+    return f"{mean:.1f} ± {std:.1f}"

@@ -1,0 +1,96 @@
+"""Training loop of numpy learners (kind "tabular"), and the no-training path of fixed policies.
+
+The loop is the one of ``mrta_rl.learners.base`` (shared interface 2): encode, act with
+exploration, step all ``B`` copies, encode again, update; when the copies are done (they share
+the horizon, so they finish together) read the stats, reset and call ``end_episode``. One
+training episode is one horizon of all copies; curve.csv gets one row per episode.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import numbers
+import time
+from collections import deque
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from hydra.utils import instantiate
+from omegaconf import DictConfig
+from tqdm.auto import tqdm
+
+if TYPE_CHECKING:
+    from mrta_rl.runners.train import RunSetup
+
+logger = logging.getLogger(__name__)
+
+RECENT_EPISODES = 10  # the progress bar shows the mean team return over this many episodes
+
+
+def skip_training(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
+    """Fixed policies do not train; write an empty curve.csv (header only) for uniform outputs.
+
+    Args:
+        run: The built run.
+        cfg: The run config (``logger`` group).
+        run_dir: Output folder.
+
+    Returns:
+        ``{"env_ticks": 0, "wall_s": 0.0, "episodes": 0}``.
+    """
+    instantiate(cfg.logger)(run_dir=run_dir).close()
+    return {"env_ticks": 0, "wall_s": 0.0, "episodes": 0}
+
+
+def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
+    """Train ``run.learner`` on ``run.env`` for ``cfg.train.episodes`` episodes.
+
+    Args:
+        run: The built run (training env and learner).
+        cfg: The run config (``train`` and ``logger`` groups).
+        run_dir: Output folder of curve.csv.
+
+    Returns:
+        ``{"env_ticks": copy-ticks played, "wall_s": seconds, "episodes": episodes}``.
+    """
+    env, learner = run.env, run.learner
+    horizon, batch = run.params.horizon, env.batch_size
+    recent: deque[float] = deque(maxlen=RECENT_EPISODES)
+    env_ticks = 0
+    start = time.perf_counter()
+    env.reset()
+    with (
+        instantiate(cfg.logger)(run_dir=run_dir) as curve,
+        tqdm(
+            total=cfg.train.episodes * horizon,
+            unit="tick",
+            desc=f"train {run.name}",
+            disable=not cfg.train.progress_bar,
+            dynamic_ncols=True,
+        ) as bar,
+    ):
+        for episode in range(1, cfg.train.episodes + 1):
+            view = learner.encode(env)
+            while not env.done.any():  # copies share the horizon: all finish at the same tick
+                actions = learner.act(view, env.action_mask, explore=True)
+                result = env.step(actions)
+                next_view = learner.encode(env)
+                learner.update(view, actions, result, next_view, env.action_mask)
+                view = next_view
+                bar.update(1)
+            env_ticks += horizon * batch  # ticks x copies: transitions per robot
+            team_return = float(env.stats.team_return.mean())
+            env.reset()
+            learner.end_episode()
+            recent.append(team_return)
+            curve.log({"env_ticks": env_ticks, "episode": episode, "team_return_mean": team_return})
+            postfix = {"return": f"{sum(recent) / len(recent):.1f}"}
+            epsilon = getattr(learner, "epsilon", None)
+            if isinstance(epsilon, numbers.Real) and math.isfinite(epsilon):
+                postfix["eps"] = f"{float(epsilon):.3f}"
+            bar.set_postfix(postfix, refresh=False)
+            logger.debug("episode %d: team return %.1f", episode, team_return)
+    wall = time.perf_counter() - start
+    logger.info("trained %d episodes (%d env ticks) in %.1f s", cfg.train.episodes, env_ticks, wall)
+    return {"env_ticks": env_ticks, "wall_s": round(wall, 3), "episodes": int(cfg.train.episodes)}

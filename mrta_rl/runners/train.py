@@ -1,0 +1,246 @@
+"""Run wiring: config -> system, params, partition, env, learner; train, evaluate, write results.
+
+``train(cfg)`` is the single entry point of ``scripts/train.py``. It validates and builds
+everything first (:func:`build_run`), so a bad config fails before any file is written; then the
+training loop of the learner's ``kind`` runs (:data:`TRAINING_LOOPS`), and the shared evaluation
+(``runners/evaluate.py``) scores the learner and the greedy baseline on the same task streams.
+
+Seeds: the learner's generator is ``default_rng(seed)``; training copy ``b`` uses env seed
+``seed * 2**32 + b``, and evaluation copy ``b`` uses ``eval.seed + b`` (kept below ``2**32``), so
+training and evaluation task streams never coincide and every learner and run seed is evaluated
+on identical streams.
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import logging
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from hydra.core.hydra_config import HydraConfig
+from hydra.utils import get_class, instantiate
+from omegaconf import DictConfig, OmegaConf
+
+from mrta_rl.envs import AuctionEnv, AuctionParams
+from mrta_rl.learners import Learner
+from mrta_rl.partition import Partition, subg_partition
+from mrta_rl.runners.evaluate import evaluate_run
+from mrta_rl.systems import RobotSystem, build_system
+
+logger = logging.getLogger(__name__)
+
+# Learner kind -> "module:function" of its training loop, imported only when used. A loop has the
+# signature ``loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict`` and returns
+# ``{"env_ticks": int, "wall_s": float, "episodes": int}``; it writes curve.csv in ``run_dir``.
+TRAINING_LOOPS: dict[str, str] = {
+    "fixed": "mrta_rl.runners.tabular:skip_training",
+    "tabular": "mrta_rl.runners.tabular:train_loop",
+    "neural": "mrta_rl.runners.torchrl:train_loop",
+}
+SEED_STRIDE = 2**32  # training env seed = seed * SEED_STRIDE + copy; eval seeds stay below it
+
+
+@dataclass
+class RunSetup:
+    """Everything a run is built from, validated (see :func:`build_run`).
+
+    Attributes:
+        name: Learner name, the yaml stem (``greedy``, ``subg_cql``...).
+        system: The robot team.
+        params: Resolved dynamics parameters.
+        partition: The subG partition if the learner requires one, else None.
+        active_tasks: ``[m, n]`` bool ``Lambda_i`` of the learner's envs, None = ``Gamma_i``.
+        env: The training env (``train.batch_size`` copies).
+        learner: The learner, built on ``env``.
+    """
+
+    name: str
+    system: RobotSystem
+    params: AuctionParams
+    partition: Partition | None
+    active_tasks: np.ndarray | None
+    env: AuctionEnv
+    learner: Learner
+
+
+def _check(condition: bool, message: str) -> None:
+    if not condition:
+        raise ValueError(f"invalid config: {message}")
+
+
+def _validate_numbers(cfg: DictConfig) -> None:
+    """Ranges of the run-level keys of conf/config.yaml."""
+    _check(
+        isinstance(cfg.seed, int) and 0 <= cfg.seed < 2**31,
+        f"seed must be in [0, 2**31), got {cfg.seed!r}",
+    )
+    _check(
+        isinstance(cfg.train.episodes, int) and cfg.train.episodes >= 0,
+        f"train.episodes must be an integer >= 0, got {cfg.train.episodes!r}",
+    )
+    _check(
+        isinstance(cfg.train.batch_size, int) and cfg.train.batch_size >= 1,
+        f"train.batch_size must be an integer >= 1, got {cfg.train.batch_size!r}",
+    )
+    _check(
+        isinstance(cfg.eval.episodes, int) and cfg.eval.episodes >= 1,
+        f"eval.episodes must be an integer >= 1, got {cfg.eval.episodes!r}",
+    )
+    _check(
+        isinstance(cfg.eval.batch_size, int) and cfg.eval.batch_size >= 1,
+        f"eval.batch_size must be an integer >= 1, got {cfg.eval.batch_size!r}",
+    )
+    _check(
+        isinstance(cfg.eval.seed, int) and 0 <= cfg.eval.seed <= SEED_STRIDE - cfg.eval.batch_size,
+        f"eval.seed must be in [0, 2**32 - eval.batch_size], got {cfg.eval.seed!r}",
+    )
+
+
+def learner_class(cfg_learner: DictConfig) -> type[Learner]:
+    """The learner class named by a ``conf/learner/*.yaml``, checked.
+
+    Args:
+        cfg_learner: The ``learner`` config group content.
+
+    Returns:
+        The :class:`Learner` subclass.
+
+    Raises:
+        ValueError: if ``_target_``/``_partial_`` are missing, the class cannot be imported, is
+            not a :class:`Learner`, or its ``kind`` has no training loop.
+    """
+    target = cfg_learner.get("_target_")
+    _check(target is not None, "the learner config has no _target_")
+    _check(cfg_learner.get("_partial_") is True, f"learner {target}: set `_partial_: true`")
+    try:
+        cls = get_class(target)
+    except Exception as err:  # Hydra wraps import errors in several exception types
+        raise ValueError(f"invalid config: cannot import learner class {target!r}: {err}") from err
+    _check(isinstance(cls, type) and issubclass(cls, Learner), f"{target} is not a mrta_rl Learner")
+    kind = getattr(cls, "kind", None)
+    _check(
+        kind in TRAINING_LOOPS, f"{target}: unknown kind {kind!r} (known: {sorted(TRAINING_LOOPS)})"
+    )
+    return cls
+
+
+def training_loop(kind: str) -> Any:
+    """Import the training loop of a learner kind (see :data:`TRAINING_LOOPS`).
+
+    Raises:
+        ValueError: if the loop's module is missing (e.g. no neural runner installed yet).
+    """
+    module_name, function = TRAINING_LOOPS[kind].split(":")
+    try:
+        module = importlib.import_module(module_name)
+    except ModuleNotFoundError as err:
+        raise ValueError(
+            f"no training loop for learner kind {kind!r}: {module_name} is missing"
+        ) from err
+    return getattr(module, function)
+
+
+def hydra_choice(group: str, default: str) -> str:
+    """The config-group choice of the current Hydra run (``learner`` -> ``greedy``) or default."""
+    if HydraConfig.initialized():
+        choice = HydraConfig.get().runtime.choices.get(group)
+        if choice:
+            return str(choice)
+    return default
+
+
+def build_run(cfg: DictConfig, name: str | None = None) -> RunSetup:
+    """Validate the config and build system, params, partition, training env and learner.
+
+    Args:
+        cfg: The composed run config (conf/config.yaml).
+        name: Learner name; default: the Hydra choice of the ``learner`` group, else the class name.
+
+    Returns:
+        The run's components; nothing has been written yet.
+
+    Raises:
+        ValueError: on any invalid setting (the message names it); ``SystemConfigError`` (a
+            ``ValueError``) on a malformed system.
+    """
+    _validate_numbers(cfg)
+    cls = learner_class(cfg.learner)
+    training_loop(cls.kind)  # fail now, not after building everything, if the loop is missing
+    name = name or hydra_choice("learner", cls.__name__)
+    system = build_system(OmegaConf.to_container(cfg.system, resolve=True))
+    params = AuctionParams.merged(
+        system.env_overrides, OmegaConf.to_container(cfg.env, resolve=True)
+    )
+    partition = subg_partition(system) if cls.requires_partition else None
+    active_tasks = partition.active_tasks(system) if partition is not None else None
+    env = AuctionEnv(
+        system,
+        params,
+        batch_size=cfg.train.batch_size,
+        active_tasks=active_tasks,
+        seed=cfg.seed * SEED_STRIDE,
+    )
+    factory = instantiate(cfg.learner)
+    try:
+        learner = factory(env=env, rng=np.random.default_rng(cfg.seed), partition=partition)
+    except TypeError as err:  # e.g. a hyperparameter the class does not take
+        raise ValueError(f"invalid config: learner {name!r} ({cls.__name__}): {err}") from err
+    return RunSetup(name, system, env.params, partition, active_tasks, env, learner)
+
+
+def write_json(path: Path, payload: dict[str, Any]) -> None:
+    """Write JSON atomically (temporary file then rename), so a file is never half-written."""
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(payload, indent=2, allow_nan=False) + "\n")
+    os.replace(tmp, path)
+
+
+def train(cfg: DictConfig, run_dir: Path | str | None = None) -> dict[str, Any]:
+    """Train the configured learner, evaluate it and greedy, write ``metrics.json``.
+
+    Args:
+        cfg: The composed run config (conf/config.yaml).
+        run_dir: Output folder; default: the Hydra run dir.
+
+    Returns:
+        The content of ``metrics.json``.
+
+    Raises:
+        ValueError: on an invalid config, before anything is written.
+    """
+    run = build_run(cfg)
+    run_dir = Path(run_dir if run_dir is not None else HydraConfig.get().runtime.output_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    logger.info(
+        "learner %s (%s) on %s, seed %d, run dir %s",
+        run.name,
+        type(run.learner).__name__,
+        run.system.name,
+        cfg.seed,
+        run_dir,
+    )
+    start = time.perf_counter()
+    train_info = training_loop(run.learner.kind)(run, cfg, run_dir)
+    train_info["wall_s"] = round(time.perf_counter() - start, 3)
+    if run.learner.kind != "fixed":
+        run.learner.save(run_dir / "learner")
+    results = evaluate_run(run, cfg)
+    metrics = {
+        "learner": run.name,
+        "system": hydra_choice("system", run.system.name),
+        "seed": int(cfg.seed),
+        **results,
+        "train": train_info,
+        "learning_space": {k: int(v) for k, v in run.learner.learning_space().items()},
+    }
+    if run.partition is not None:
+        write_json(run_dir / "partition.json", run.partition.to_json())
+    write_json(run_dir / "metrics.json", metrics)
+    logger.info("wrote %s", run_dir / "metrics.json")
+    return metrics

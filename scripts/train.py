@@ -1,0 +1,22 @@
+"""Train one learner on one system, evaluate it against the greedy auction, print a summary.
+
+Usage: ``python scripts/train.py learner=greedy system=system1 eval.episodes=20 seed=3``
+(see conf/config.yaml; ``debug=smoke`` for a seconds-long run). Results go to the Hydra run dir:
+metrics.json, curve.csv, learner/ (state of trained learners) and .hydra/ (the config).
+"""
+
+from __future__ import annotations
+
+import hydra
+from omegaconf import DictConfig
+
+from mrta_rl.runners import format_summary, train
+
+
+@hydra.main(config_path="../conf", config_name="config", version_base=None)
+def main(cfg: DictConfig) -> None:
+    print(format_summary(train(cfg)))
+
+
+if __name__ == "__main__":
+    main()
