@@ -60,3 +60,4 @@ def compose_cfg() -> Iterator[Callable[..., DictConfig]]:
     """``compose_cfg(["system=system1", ...], config_name="config")`` -> composed config."""
     yield _compose
     GlobalHydra.instance().clear()
+    HydraConfig.instance().cfg = None  # forget this run's choices
