@@ -62,7 +62,9 @@ def test_hand_built_local_and_group_view(quiet_env):
     assert ob.group_state_index(env, ["R1", "R2"])[0] == g_index[0]  # ids work as well
     # group {R2}: T_g = {T2}
     assert ob.GroupView(env, [1]).decode(ob.group_state_index(env, [1])[0]) == {
-        "slots": [0, 1, 0], "robots": [1], "recency": 2,
+        "slots": [0, 1, 0],
+        "robots": [1],
+        "recency": 2,
     }
 
 
@@ -146,9 +148,13 @@ def test_indices_in_range_and_decode_to_env_fields(name):
             assert ((g_index >= 0) & (g_index < gview.count)).all()
             for b in range(16):
                 key = (tuple(g), int(g_index[b]))
-                state = (tuple(env.slot_type[b]), tuple(env.slot_high[b]),
-                         tuple(env.idle[b, g]), tuple(battery[b, g] * env.idle[b, g]),
-                         int(ob.recency_level(env, gview.types_mask)[b]))
+                state = (
+                    tuple(env.slot_type[b]),
+                    tuple(env.slot_high[b]),
+                    tuple(env.idle[b, g]),
+                    tuple(battery[b, g] * env.idle[b, g]),
+                    int(ob.recency_level(env, gview.types_mask)[b]),
+                )
                 if len(g) == env.n_robots:  # whole system: every slot type is in T_g
                     assert seen.setdefault(key, state) == state  # same index -> same state
 
@@ -176,8 +182,9 @@ def test_features_are_one_hot():
     np.testing.assert_array_equal(local[..., 0], env.idle)
     base = 1 + K * c
     np.testing.assert_array_equal(local[..., base], ob.battery_level(env))
-    np.testing.assert_array_equal(local[..., base + 1 : base + 4].argmax(-1),
-                                  ob.recency_level(env, env.active_tasks))
+    np.testing.assert_array_equal(
+        local[..., base + 1 : base + 4].argmax(-1), ob.recency_level(env, env.active_tasks)
+    )
     np.testing.assert_array_equal(local[..., base + 4 :], np.broadcast_to(np.eye(m), (8, m, m)))
     # a robot's slot one-hot is nonzero only for types in Lambda_i
     codes = slots.argmax(-1)  # [B, m, K]

@@ -1,0 +1,199 @@
+"""Tests of the TorchRL view (mrta_rl/envs/torchrl_env.py): specs, and identity with AuctionEnv."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import yaml
+from tensordict import TensorDict
+from torchrl.envs.utils import check_env_specs
+
+from mrta_rl.envs import AuctionEnv, AuctionParams
+from mrta_rl.envs import observations as ob
+from mrta_rl.envs.torchrl_env import AuctionTorchRLEnv, resolve_group_map
+from mrta_rl.partition import subg_partition
+from mrta_rl.systems import RobotSystem, build_system
+
+ROOT = Path(__file__).resolve().parents[2]
+GROUP_MAPS = ["all_in_one_group", "one_group_per_agent", "subg"]
+
+
+def load_system(name: str) -> RobotSystem:
+    return build_system(yaml.safe_load((ROOT / "conf" / "system" / f"{name}.yaml").read_text()))
+
+
+def make(system: RobotSystem, kind: str, batch_size: int, horizon: int = 6, seed: int = 0):
+    """The TorchRL env for a group-map kind; subG also restricts Lambda_i as the runner does."""
+    active, group_map = None, kind
+    if kind == "subg":
+        partition = subg_partition(system)
+        active, group_map = partition.active_tasks(system), partition.group_map()
+    core = AuctionEnv(
+        system, AuctionParams(horizon=horizon), batch_size, active_tasks=active, seed=seed
+    )
+    return AuctionTorchRLEnv(core, group_map)
+
+
+def random_valid(mask: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    return (rng.random(mask.shape) * mask).argmax(axis=2)  # [B, m], a valid action per robot
+
+
+def to_td(env: AuctionTorchRLEnv, actions: np.ndarray) -> TensorDict:
+    B = actions.shape[0]
+    return TensorDict(
+        {
+            g: TensorDict(action=torch.as_tensor(actions[:, idx]), batch_size=(B, len(idx)))
+            for g, idx in env._group_index.items()
+        },
+        batch_size=(B,),
+    )
+
+
+@pytest.mark.parametrize("kind", GROUP_MAPS)
+@pytest.mark.parametrize("batch_size", [1, 64])
+@pytest.mark.parametrize("system", ["system1", "system2"])
+def test_check_env_specs(system, kind, batch_size):
+    env = make(load_system(system), kind, batch_size, horizon=4)
+    check_env_specs(env, break_when_any_done="both")
+
+
+def test_group_maps():
+    robots = ("R1", "R2", "R3")
+    assert resolve_group_map(robots, None) == {"agents": ["R1", "R2", "R3"]}
+    assert resolve_group_map(robots, "one_group_per_agent") == {r: [r] for r in robots}
+    assert resolve_group_map(robots, {"G1": [2, 0], "G2": ["R2"]}) == {
+        "G1": ["R3", "R1"],
+        "G2": ["R2"],
+    }
+    for bad in (
+        {"G1": ["R1", "R2"]},
+        {"G1": ["R1", "R2", "R3", "R1"]},
+        {"G1": ["R9"]},
+        "no_groups",
+    ):
+        with pytest.raises(ValueError):
+            resolve_group_map(robots, bad)
+
+
+@pytest.mark.parametrize("kind", GROUP_MAPS)
+def test_same_results_as_core(kind):
+    """Driving the view and the core with the same seed and actions gives identical data."""
+    system = load_system("system2")
+    env = make(system, kind, batch_size=4, horizon=15, seed=11)
+    core = AuctionEnv(system, env.auction.params, 4, active_tasks=env.auction.active_tasks, seed=11)
+    rng = np.random.default_rng(0)
+    env.set_seed(
+        11
+    )  # reseeding restarts the episode count: the next episode is a fresh core's first
+    td = env.reset()
+    team_return = np.zeros(4)
+    for _ in range(15):
+        mask = core.action_mask
+        for g, idx in env._group_index.items():
+            np.testing.assert_array_equal(td[g, "action_mask"].numpy(), mask[:, idx])
+            np.testing.assert_array_equal(
+                td[g, "observation"].numpy(), ob.local_features(core)[:, idx]
+            )
+        np.testing.assert_array_equal(td["state"].numpy(), ob.global_features(core))
+        actions = random_valid(mask, rng)
+        result = core.step(actions)
+        out = env.step(to_td(env, actions))["next"]
+        np.testing.assert_allclose(out["reward"].numpy()[:, 0], result.team_reward, rtol=1e-6)
+        np.testing.assert_array_equal(out["done"].numpy()[:, 0], result.done)
+        np.testing.assert_array_equal(out["truncated"].numpy()[:, 0], result.done)
+        assert not out["terminated"].any()
+        group_total = torch.zeros(4, 1)
+        for g, idx in env._group_index.items():
+            np.testing.assert_allclose(
+                out[g, "reward"].numpy()[..., 0], result.robot_reward[:, idx], atol=1e-5
+            )
+            # spec step 8: a sub-group's reward is the sum of its robots', repeated per robot
+            expected = out[g, "reward"].sum(dim=1)  # [B, 1]
+            torch.testing.assert_close(
+                out[g, "group_reward"], expected[:, None].expand_as(out[g, "reward"])
+            )
+            group_total += out[g, "group_reward"][:, 0]
+        torch.testing.assert_close(
+            group_total, out["reward"], atol=1e-4, rtol=1e-5
+        )  # groups add up
+        team_return += result.team_reward
+        td = out
+    assert result.done.all()
+    for field in ("assigned", "dropped", "busy_ticks", "team_return", "ticks"):
+        np.testing.assert_array_equal(getattr(env.auction.stats, field), getattr(core.stats, field))
+    np.testing.assert_allclose(core.stats.team_return, team_return)
+
+
+def test_rollout_with_auto_reset_matches_core():
+    """TorchRL's rollout resets finished copies itself; the next episode matches a core reset."""
+    system = load_system("system1")
+    env = make(system, "all_in_one_group", batch_size=2, horizon=5, seed=3)
+    torch.manual_seed(0)
+    env.set_seed(3)
+    data = env.rollout(12, break_when_any_done=False)
+    actions = data["agents", "action"].numpy()  # [B, T, m]
+    core = AuctionEnv(system, env.auction.params, 2, seed=3)
+    rewards = []
+    for tick in range(12):
+        if core.done.any():
+            core.reset(core.done.copy())  # a copy: reset(mask) writes core.done, which would alias
+        rewards.append(core.step(actions[:, tick]).team_reward)
+    np.testing.assert_allclose(
+        data["next", "reward"].numpy()[..., 0], np.stack(rewards, 1), rtol=1e-6
+    )
+
+
+def test_partial_reset_only_touches_masked_copies():
+    env = make(load_system("system1"), "all_in_one_group", batch_size=4, horizon=50, seed=5)
+    td = env.reset()
+    rng = np.random.default_rng(1)
+    for _ in range(7):
+        td = env.step(td.update(to_td(env, random_valid(env.auction.action_mask, rng))))["next"]
+    before = env.auction.stats.copy()
+    # TorchRL's convention: the current data plus "_reset"; unreset copies keep their entries
+    td.set("_reset", torch.tensor([[True], [False], [True], [False]]))
+    td = env.reset(td)
+    np.testing.assert_array_equal(env.auction.t, [0, 7, 0, 7])
+    assert (env.auction.stats.ticks == [0, 7, 0, 7]).all()
+    np.testing.assert_array_equal(env.auction.stats.busy_ticks[[1, 3]], before.busy_ticks[[1, 3]])
+    assert (env.auction.stats.busy_ticks[[0, 2]] == 0).all()
+    np.testing.assert_array_equal(td["agents", "action_mask"].numpy(), env.auction.action_mask)
+
+
+def test_seeding_and_one_hot_and_invalid_actions():
+    system = load_system("system1")
+    env = make(system, "one_group_per_agent", batch_size=3, horizon=20)
+    env.set_seed(42)
+    env.reset()
+    core = AuctionEnv(system, env.auction.params, 3, seed=42)
+    np.testing.assert_array_equal(env.auction.slot_type, core.slot_type)
+    # one-hot actions are accepted: all robots wait
+    one_hot = TensorDict(
+        {
+            g: TensorDict(
+                action=torch.nn.functional.one_hot(torch.zeros(3, 1, dtype=torch.long), 4),
+                batch_size=(3, 1),
+            )
+            for g in env.group_map
+        },
+        batch_size=(3,),
+    )
+    out = env.step(one_hot)["next"]
+    np.testing.assert_allclose(
+        out["reward"].numpy()[:, 0], core.step(np.zeros((3, 6), int)).team_reward
+    )
+    # an invalid bid raises the core's error; rand_action only samples valid bids
+    for _ in range(20):
+        action = env.rand_action()
+        for g, idx in env._group_index.items():
+            assert env.auction.action_mask[
+                np.arange(3)[:, None], idx, action[g, "action"].numpy()
+            ].all()
+    bad = np.zeros((3, 6), int)
+    empty = np.flatnonzero(env.auction.slot_type[0] < 0)
+    bad[0, 0] = empty[0] + 1 if len(empty) else 9
+    with pytest.raises(ValueError, match="invalid action"):
+        env.step(to_td(env, bad))
