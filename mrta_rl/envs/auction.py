@@ -130,13 +130,26 @@ class EpisodeStats:
         return EpisodeStats(*(np.array(getattr(self, f)) for f in self.__dataclass_fields__))
 
 
-@dataclass
 class StepResult:
-    """What one tick returns: ``team_reward`` ``[B]``, ``robot_reward`` ``[B, m]``, ``done`` ``[B]``."""
+    """What one tick returns: ``team_reward`` ``[B]``, ``robot_reward`` ``[B, m]``, ``done`` ``[B]``.
 
-    team_reward: np.ndarray
-    robot_reward: np.ndarray
-    done: np.ndarray
+    Individual rewards (spec step 8) are computed on first access: learners that use only the
+    team reward never pay for sharing drop penalties among robots.
+    """
+
+    __slots__ = ("team_reward", "done", "_assign", "_type_penalty", "_share", "_robot_reward")
+
+    def __init__(self, team_reward, done, assign, type_penalty, share) -> None:
+        self.team_reward, self.done = team_reward, done
+        self._assign, self._type_penalty, self._share = assign, type_penalty, share
+        self._robot_reward = None
+
+    @property
+    def robot_reward(self) -> np.ndarray:
+        """``[B, m]``: the assign reward a robot won minus its share of each dropped task's penalty."""
+        if self._robot_reward is None:
+            self._robot_reward = self._assign - self._type_penalty @ self._share
+        return self._robot_reward
 
 
 class AuctionEnv:
@@ -211,6 +224,7 @@ class AuctionEnv:
         self._penalty_share = np.vstack([(active / active.sum(axis=0)).T, np.zeros(self.n_robots)])  # [n+1, m]
         # lookup tables by slot type; the extra last row answers type -1, an empty slot
         self._willingness_by_type = np.vstack([system.willingness.T, np.zeros(self.n_robots)])  # [n+1, m]
+        self._uniform_willingness = np.ptp(system.willingness[capable]) == 0
         self._can_do_by_type = np.vstack([active.T, np.zeros(self.n_robots, bool)])  # [n+1, m]
         self._poisson_cdf = poisson_cdf(p.arrival_rate)
 
@@ -227,14 +241,16 @@ class AuctionEnv:
         self.last_high_arrival = np.full((B, n), -(1 << 30), np.int64)  # tick of the last H arrival per type
         self.done = np.zeros(B, bool)
         self._pending_team = np.zeros(B)  # overflow penalties of the current tick (spec step 2)
-        self._pending_robot = np.zeros((B, m))
+        self._pending_type_penalty = np.zeros((B, n))  # [B, n], shared among robots lazily
         self.stats = EpisodeStats(
             np.zeros((B, n, 2), np.int64), np.zeros((B, n, 2), np.int64),
             np.zeros((B, m), np.int64), np.zeros(B), np.zeros(B, np.int64),
         )
         self._slot_pos = np.full((B, K), Q, np.int64)
         self._slot_numbers = np.arange(1, K + 1)[None, :, None]  # [1, K, 1]
-        self._mask_offsets = np.arange(B * m).reshape(B, m) * (K + 1)  # flat index of (b, i, 0)
+        # valid actions are stored action-major, [B, K + 1, m], so per-action slices are contiguous
+        self._mask_by_action = np.ones((B, K + 1, m), bool)
+        self._mask_offsets = np.arange(B)[:, None] * ((K + 1) * m) + np.arange(m)  # flat index of (b, 0, i)
         self.seed(seed)
         self.reset()
 
@@ -285,7 +301,7 @@ class AuctionEnv:
                         self.stats.team_return, self.stats.ticks):
             counter[rows] = 0
         self._pending_team[rows] = 0.0
-        self._pending_robot[rows] = 0.0
+        self._pending_type_penalty[rows] = 0.0
         self._begin_tick(rows)
 
     # ------------------------------------------------------------------ spec steps 1-3
@@ -298,7 +314,7 @@ class AuctionEnv:
         n_new[~rows] = 0
         width = int(n_new.max())
         self._pending_team[rows] = 0.0
-        self._pending_robot[rows] = 0.0
+        self._pending_type_penalty[rows] = 0.0
         end = self._queue_width + width
         if end > self._queue.shape[1] - 1:  # grow the spare columns (the last one stays empty)
             grow = np.full((self.batch_size, end + 1 - self._queue.shape[1] + 8), _EMPTY)
@@ -323,9 +339,8 @@ class AuctionEnv:
         if end > Q:  # spec step 2: overflow drops the last tasks
             overflow = queue[:, Q:end]
             if (overflow != _EMPTY).any():
-                team, robot = self._drop(overflow)
-                self._pending_team -= team
-                self._pending_robot -= robot
+                self._pending_type_penalty += self._drop(overflow)
+                self._pending_team[:] = self._pending_type_penalty.sum(axis=1)
                 overflow[:] = _EMPTY
         self._queue_width = int((queue[:, :Q] != _EMPTY).sum(axis=1).max())
         self._select_slots()
@@ -350,9 +365,7 @@ class AuctionEnv:
         self.idle = self.t[:, None] > self.busy_until  # spec step 4, [B, m]
         # spec step 4: a bid for slot k is valid if the robot is idle and may do the slot's type
         can_do = self._can_do_by_type[self.slot_type]  # [B, K, m]; row -1 (empty slot) is all False
-        mask = np.ones((self.batch_size, self.n_robots, self.n_actions), bool)
-        mask[:, :, 1:] = can_do.transpose(0, 2, 1) & self.idle[:, :, None]
-        self.action_mask = mask  # [B, m, K + 1]
+        np.logical_and(can_do, self.idle[:, None, :], out=self._mask_by_action[:, 1:, :])
 
     # ------------------------------------------------------------------ spec steps 4-8
     def step(self, actions: np.ndarray) -> StepResult:
@@ -371,18 +384,21 @@ class AuctionEnv:
         actions = np.asarray(actions)
         self._validate(actions)
         p, t = self.params, self.t
-        team = self._pending_team.copy()  # spec step 8 counts this tick's overflow drops
-        robot = self._pending_robot.copy()
+        team = -self._pending_team  # spec step 8 counts this tick's overflow drops (a new array)
+        type_penalty = self._pending_type_penalty.copy()  # [B, n]
+        robot = np.zeros((self.batch_size, self.n_robots))  # assign rewards won
         keys, slot_type, slot_high = self._slot_keys, self.slot_type, self.slot_high
         # spec step 5: each robot bids for at most one slot, so all slots are settled at once.
         # Per slot, the highest willingness wins; argmax takes the first maximum, so ties go to the
         # lowest robot index.
         bids = actions[:, None, :] == self._slot_numbers  # [B, K, m]
-        score = np.where(bids, self._willingness_by_type[slot_type], -1.0)  # [B, K, m]
         assigned = bids.any(axis=2)  # [B, K]
         b, k = np.nonzero(assigned)
         if len(b):
-            w = score[b, k].argmax(axis=1)
+            if self._uniform_willingness:  # all d equal: the lowest-index bidder wins
+                w = bids[b, k].argmax(axis=1)
+            else:
+                w = np.where(bids[b, k], self._willingness_by_type[slot_type[b, k]], -1.0).argmax(axis=1)
             duration = task_duration(keys[b, k])
             busy_until = t[b] + duration  # executes during ticks t+1 .. t+duration
             battery = self.battery[b, w] - p.drain_per_tick * duration
@@ -408,7 +424,7 @@ class AuctionEnv:
                 self.stats.dropped[rows, slot_type[:, k], slot_high[:, k]] += hit
                 penalty = np.where(hit, self._drop_penalty[slot_high[:, k]], 0.0)  # [B]
                 team -= penalty
-                robot -= penalty[:, None] * self._penalty_share[slot_type[:, k]]
+                type_penalty[rows, slot_type[:, k]] += penalty
         # spec step 7: busy if not idle at step 4, or if it bid (the auction takes its time)
         self.stats.busy_ticks += ~self.idle | (actions > 0)
         self.stats.team_return += team
@@ -416,7 +432,7 @@ class AuctionEnv:
         self.t += 1
         self.done = self.t >= p.horizon
         self._begin_tick(~self.done)
-        return StepResult(team, robot, self.done.copy())
+        return StepResult(team, self.done.copy(), robot, type_penalty, self._penalty_share[:-1])
 
     def _validate(self, actions: np.ndarray) -> None:
         if actions.shape != (self.batch_size, self.n_robots):
@@ -424,8 +440,8 @@ class AuctionEnv:
         if self.done.any():
             raise ValueError(f"copy {int(np.flatnonzero(self.done)[0])} has finished its episode; reset it first")
         in_range = (actions >= 0) & (actions < self.n_actions)
-        flat = self._mask_offsets + np.where(in_range, actions, 0)
-        valid = in_range & self.action_mask.reshape(-1)[flat]
+        flat = self._mask_offsets + np.where(in_range, actions, 0) * self.n_robots
+        valid = in_range & self._mask_by_action.reshape(-1)[flat]
         if not valid.all():
             b, i = (int(x[0]) for x in np.nonzero(~valid))
             a, robot = int(actions[b, i]), self.system.robots[i]
@@ -439,17 +455,22 @@ class AuctionEnv:
                 why = f"{robot} may not do {self.system.task_types[self.slot_type[b, a - 1]]}"
             raise ValueError(f"invalid action {a} for robot {robot} in copy {b} at tick {self.t[b]}: {why}")
 
-    def _drop(self, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Count dropped tasks (``keys`` ``[B, W]``, ``_EMPTY`` = none); return their team and robot penalties."""
+    def _drop(self, keys: np.ndarray) -> np.ndarray:
+        """Count dropped tasks (``keys`` ``[B, W]``, ``_EMPTY`` = none); return their penalties by type ``[B, n]``."""
         b, k = np.nonzero(keys != _EMPTY)
         dropped_keys = keys[b, k]
         ttype, high = task_type(dropped_keys), task_high(dropped_keys)
         np.add.at(self.stats.dropped, (b, ttype, high), 1)
         penalty = np.zeros((self.batch_size, self.n_task_types))  # [B, n]
         np.add.at(penalty, (b, ttype), self._drop_penalty[high])
-        return penalty.sum(axis=1), penalty @ self._penalty_share[:-1]  # [B], [B, m]
+        return penalty
 
     # ------------------------------------------------------------------ introspection
+    @property
+    def action_mask(self) -> np.ndarray:
+        """``[B, m, K + 1]`` bool valid actions (spec step 4): a view, refreshed every tick."""
+        return self._mask_by_action.transpose(0, 2, 1)
+
     @property
     def queue_length(self) -> np.ndarray:
         """``[B]`` tasks waiting in the queue (slot tasks included)."""
