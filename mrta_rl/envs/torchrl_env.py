@@ -153,7 +153,9 @@ class AuctionTorchRLEnv(EnvBase):
         """Observation leaves of the current decision point (fresh arrays, wrapped zero-copy)."""
         core = self.auction
         local = torch.from_numpy(observations.local_features(core))  # [B, m, F]
-        mask = torch.from_numpy(core.action_mask)  # [B, m, K + 1], a new array after every step
+        # [B, m, K + 1]: a view of the core's buffer, overwritten next tick; the per-group
+        # advanced indexing below copies it, so returned data never changes afterwards
+        mask = torch.from_numpy(core.action_mask)
         out: dict[str, torch.Tensor | TensorDict] = {
             "state": torch.from_numpy(observations.global_features(core))
         }

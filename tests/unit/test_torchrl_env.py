@@ -146,6 +146,15 @@ def test_rollout_with_auto_reset_matches_core():
     )
 
 
+def test_returned_data_is_not_aliased_to_the_core():
+    env = make(load_system("system2"), "all_in_one_group", batch_size=8, horizon=30)
+    td = env.reset()
+    kept = td.clone()
+    for _ in range(5):
+        env.step(env.rand_action(td.clone()))
+    assert (td == kept).all()
+
+
 def test_partial_reset_only_touches_masked_copies():
     env = make(load_system("system1"), "all_in_one_group", batch_size=4, horizon=50, seed=5)
     td = env.reset()
