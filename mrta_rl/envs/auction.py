@@ -23,6 +23,7 @@ Design notes:
 from __future__ import annotations
 
 import math
+import sys
 from dataclasses import dataclass
 
 import numpy as np
@@ -40,6 +41,8 @@ _M1, _M2 = np.uint64(0xBF58476D1CE4E5B9), np.uint64(0x94D049BB133111EB)
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
 _S30, _S27, _S31, _S11, _S32 = (np.uint64(s) for s in (30, 27, 31, 11, 32))
 _LO32 = np.uint64(0xFFFFFFFF)
+_ONE = np.uint64(1)
+_BITMASK_ROWS = sys.byteorder == "little"  # 8 packed bytes read as one uint64
 
 
 def mix64(x: np.ndarray) -> np.ndarray:
@@ -95,6 +98,24 @@ def task_type(keys: np.ndarray) -> np.ndarray:
 def task_duration(keys: np.ndarray) -> np.ndarray:
     """Duration of packed tasks."""
     return _field(keys, _DUR_SHIFT, _DUR_BITS)
+
+
+def _first_true_positions(flags: np.ndarray, k: int, buffer: np.ndarray) -> np.ndarray:
+    """Positions of the first ``k`` True places of each row of ``flags`` ``[B, w <= 64]``; 64 = none.
+
+    Each row becomes one uint64 bitmask, and the lowest set bit is peeled off ``k`` times: a few
+    ``[B]`` operations instead of a reduction over a short last axis, which numpy does slowly.
+    """
+    packed = np.packbits(flags, axis=1, bitorder="little")  # [B, ceil(w / 8)]
+    buffer[:, : packed.shape[1]] = packed
+    buffer[:, packed.shape[1] :] = 0
+    bits = buffer.view(np.uint64)[:, 0].copy()  # [B]
+    positions = np.empty((flags.shape[0], k), np.int64)
+    for j in range(k):
+        lowest = bits & (~bits + _ONE)  # isolates the lowest set bit (0 if none)
+        positions[:, j] = np.bitwise_count(lowest - _ONE)  # its index; 64 when bits == 0
+        bits &= bits - _ONE
+    return positions
 
 
 def poisson_cdf(rate: float) -> np.ndarray:
@@ -248,6 +269,7 @@ class AuctionEnv:
         )
         self._slot_pos = np.full((B, K), Q, np.int64)
         self._slot_numbers = np.arange(1, K + 1)[None, :, None]  # [1, K, 1]
+        self._bit_buffer = np.zeros((B, 8), np.uint8)  # one uint64 bitmask per copy
         # valid actions are stored action-major, [B, K + 1, m], so per-action slices are contiguous
         self._mask_by_action = np.ones((B, K + 1, m), bool)
         self._mask_offsets = np.arange(B)[:, None] * ((K + 1) * m) + np.arange(m)  # flat index of (b, 0, i)
@@ -353,10 +375,12 @@ class AuctionEnv:
         width = min(self._queue_width, self.n_slots * (self.params.reauction_delay + 1))
         queue = self._queue[:, :width]
         due_now = (queue != _EMPTY) & (task_due(queue) <= self.t[:, None]) & ~self.done[:, None]
-        count = np.cumsum(due_now, axis=1, dtype=np.int16)  # [B, width], non-decreasing
-        # the k-th due task sits where the count first reaches k: the number of places before it
-        pos = (count[:, None, :] < self._slot_numbers[:, :, 0, None]).sum(axis=2)  # [B, K]
-        self._slot_pos = np.where(pos < width, pos, Q)
+        if width <= 64 and _BITMASK_ROWS:
+            pos = _first_true_positions(due_now, self.n_slots, self._bit_buffer)
+        else:  # the k-th due task sits where the running count first reaches k
+            count = np.cumsum(due_now, axis=1)
+            pos = (count[:, None, :] < self._slot_numbers[:, :, 0, None]).sum(axis=2)
+        self._slot_pos = np.where(pos < width, pos, Q)  # [B, K]; Q = the always-empty place
         keys = np.take_along_axis(self._queue, self._slot_pos, axis=1)  # [B, K]
         self._slot_keys = keys
         filled = keys != _EMPTY
