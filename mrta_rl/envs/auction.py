@@ -309,7 +309,8 @@ class AuctionEnv:
         """
         if seed is not None:
             self.seed(seed)
-        rows = np.ones(self.batch_size, bool) if mask is None else np.asarray(mask, bool)
+        # a copy: the caller may pass self.done itself, which this method overwrites
+        rows = np.ones(self.batch_size, bool) if mask is None else np.array(mask, bool)
         self._episode_key[rows] = mix64(self._seeds[rows] ^ mix64(self._episode[rows] + _GOLDEN))
         self._episode[rows] += np.uint64(1)
         self.t[rows] = 0

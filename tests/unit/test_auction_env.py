@@ -337,3 +337,16 @@ def test_system_env_block_sets_parameters_and_run_layer_wins():
     assert (params.horizon, params.slots, params.p_high) == (30, 2, 0.33)
     with pytest.raises(ValueError, match="unknown environment parameter 'horizn'"):
         AuctionParams.merged({"horizn": 3})
+
+
+def test_reset_with_the_done_array_itself_starts_fresh_episodes():
+    system = build_system(SYSTEM1)
+    params = AuctionParams(horizon=5)
+    env = AuctionEnv(system, params, batch_size=4, seed=2)
+    for _ in range(5):
+        env.step(waits(env))
+    env.reset(env.done)  # aliasing: reset clears env.done while it reads the mask
+    fresh = AuctionEnv(system, params, batch_size=4, seed=2)
+    fresh.reset()  # the second episode of every copy
+    np.testing.assert_array_equal(env.queue_length, fresh.queue_length)
+    assert env.queue_length.sum() > 0
