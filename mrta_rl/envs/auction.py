@@ -390,7 +390,10 @@ class AuctionEnv:
         self.idle = self.t[:, None] > self.busy_until  # spec step 4, [B, m]
         # spec step 4: a bid for slot k is valid if the robot is idle and may do the slot's type
         can_do = self._can_do_by_type[self.slot_type]  # [B, K, m]; row -1 (empty slot) is all False
-        np.logical_and(can_do, self.idle[:, None, :], out=self._mask_by_action[:, 1:, :])
+        mask = np.empty((self.batch_size, self.n_actions, self.n_robots), bool)  # fresh: callers may keep the last one
+        mask[:, 0] = True  # waiting is always valid
+        np.logical_and(can_do, self.idle[:, None, :], out=mask[:, 1:, :])
+        self._mask_by_action = mask
 
     # ------------------------------------------------------------------ spec steps 4-8
     def step(self, actions: np.ndarray) -> StepResult:
@@ -493,7 +496,7 @@ class AuctionEnv:
     # ------------------------------------------------------------------ introspection
     @property
     def action_mask(self) -> np.ndarray:
-        """``[B, m, K + 1]`` bool valid actions (spec step 4): a view, refreshed every tick."""
+        """``[B, m, K + 1]`` bool valid actions (spec step 4), a view of this tick's own array."""
         return self._mask_by_action.transpose(0, 2, 1)
 
     @property
