@@ -1,0 +1,59 @@
+"""CQL (paper §3, §6): one Q-table over the whole system's state and all robots' joint action.
+
+The analytic table is astronomically large for System-II (paper Table 9; here ``|S| 4^10``,
+beyond 64 bits), so the table stores only the states met at decisions and, per state, only its
+valid conflict-free joint actions (``common.JointQTable``).
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import numpy as np
+
+from mrta_rl.envs import AuctionEnv, StepResult
+from mrta_rl.learners.tabular.subg_cql import GroupQLearner
+from mrta_rl.partition import Partition
+
+
+class CQLLearner(GroupQLearner):
+    """Centralized Q-learning (paper §6, after its ref. [28]) over the whole team.
+
+    One group of all robots: Q over the whole-system group state and the joint action of all
+    robots, learned from the team reward (spec step 8).
+
+    Args:
+        env: The env (full task sets).
+        rng: Exploration randomness.
+        partition: Unused.
+        prune_conflicts: Keep only conflict-free joint actions (see ``common``).
+        **hyperparameters: See :class:`~mrta_rl.learners.tabular.common.TabularLearner`.
+    """
+
+    space_name: ClassVar[str] = "cql"
+
+    def __init__(
+        self,
+        *,
+        env: AuctionEnv,
+        rng: np.random.Generator,
+        partition: Partition | None = None,
+        alpha: float = 0.1,
+        alpha_power: float = 0.0,
+        alpha_min: float = 0.0,
+        gamma: float = 0.9,
+        epsilon_start: float = 0.2,
+        epsilon_end: float = 0.0,
+        epsilon_decay_episodes: int = 20,
+        decisions_only: bool = True,
+        prune_conflicts: bool = True,
+    ) -> None:
+        super().__init__(
+            env=env, rng=rng, partition=partition, alpha=alpha, alpha_power=alpha_power,
+            alpha_min=alpha_min, gamma=gamma, epsilon_start=epsilon_start, epsilon_end=epsilon_end,
+            epsilon_decay_episodes=epsilon_decay_episodes, decisions_only=decisions_only,
+        )
+        self._set_groups(["team"], [list(range(env.n_robots))], prune_conflicts)
+
+    def _group_rewards(self, result: StepResult) -> np.ndarray:
+        return np.asarray(result.team_reward, np.float64)[:, None]  # spec step 8: team reward

@@ -1,0 +1,248 @@
+"""subG-CQL (paper §4, §6): one centralized Q-table per sub-group, over its joint action.
+
+:class:`GroupQLearner` is centralized Q-learning (eq. 3) for any list of robot groups: each
+group has a :class:`~mrta_rl.learners.tabular.common.JointQTable` over its group state
+(``GroupView``: slots restricted to the group's task types, each robot's busy / idle / low-battery
+state, recency of H arrivals over the group's types) and the joint action of its robots, and
+learns from the group's reward. :class:`SubGCQLLearner` takes the groups of the subG partition;
+``mrta_rl.learners.tabular.cql.CQLLearner`` takes one group of all robots.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import ClassVar
+
+import numpy as np
+
+from mrta_rl.envs import AuctionEnv, StepResult
+from mrta_rl.envs.observations import group_state_index
+from mrta_rl.learners.tabular.common import (
+    JointQTable,
+    PendingTransitions,
+    TabularLearner,
+    deconflict,
+)
+from mrta_rl.metrics.learning_space import learning_space_dimension
+from mrta_rl.partition import Partition
+
+
+@dataclass
+class GroupObservation:
+    """A decision point as the group learners see it (built by :meth:`GroupQLearner.encode`).
+
+    Attributes:
+        states: Per group, ``[B]`` group state indices.
+        mask: ``[B, m, K + 1]`` valid actions (copied from the env).
+        slot_weight: ``[B, m, K]`` willingness of each robot for each slot's type (conflicts).
+        rows: Per group, ``[B]`` table rows (-1: no decision), filled by ``act``.
+        entries: Per group, ``[B]`` chosen table entries (-1: none), filled by ``act``.
+        actions: The ``[B, m]`` actions ``act`` returned, to check the cache in ``update``.
+    """
+
+    states: list[np.ndarray]
+    mask: np.ndarray
+    slot_weight: np.ndarray
+    rows: list[np.ndarray | None] = field(default_factory=list)
+    entries: list[np.ndarray | None] = field(default_factory=list)
+    actions: np.ndarray | None = None
+
+
+class GroupQLearner(TabularLearner):
+    """Centralized Q-learning per robot group (paper eq. 3 over joint actions).
+
+    Subclasses set the groups in ``__init__`` via :meth:`_set_groups` and define
+    :meth:`_group_rewards` and :attr:`space_name`.
+
+    Args:
+        prune_conflicts: Keep only conflict-free joint actions (see ``common``).
+        **kwargs: Env, generator, partition and the hyperparameters of
+            :class:`~mrta_rl.learners.tabular.common.TabularLearner`.
+    """
+
+    space_name: ClassVar[str]
+
+    def _set_groups(self, names: list[str], groups: list[list[int]], prune_conflicts: bool) -> None:
+        self.group_names = names
+        self.groups = [np.asarray(g, np.int64) for g in groups]
+        self.tables = [JointQTable(len(g), self.n_actions, prune_conflicts) for g in groups]
+        self._pending: list[PendingTransitions] = []
+
+    def _group_rewards(self, result: StepResult) -> np.ndarray:
+        """``[B, G]`` reward of each group."""
+        raise NotImplementedError
+
+    def _decides(self, mask: np.ndarray, robots: np.ndarray) -> np.ndarray:
+        """``[B]`` True where the group learns at this state: it has a choice, or always."""
+        choice = mask[:, robots, 1:].any(axis=(1, 2))  # some robot of the group may bid
+        return choice if self.decisions_only else np.ones(len(mask), bool)
+
+    def encode(self, env: AuctionEnv) -> GroupObservation:
+        """Group state of every group, the mask and the slot willingness (copies)."""
+        states = [group_state_index(env, g) for g in self.groups]
+        return GroupObservation(states, env.action_mask.copy(), self._slot_weight(env))
+
+    def act(self, view: GroupObservation, mask: np.ndarray, *, explore: bool) -> np.ndarray:
+        """Epsilon-greedy joint action per group over its valid joint actions.
+
+        Args:
+            view: Output of :meth:`encode`.
+            mask: ``[B, m, K + 1]`` valid actions.
+            explore: Use epsilon (else greedy in Q, ties to the plain auction).
+
+        Returns:
+            ``[B, m]`` valid actions.
+        """
+        batch = len(mask)
+        actions = np.zeros((batch, self.n_robots), np.int64)
+        epsilon = self.epsilon if explore else 0.0
+        view.rows, view.entries = [], []
+        for g, (robots, table) in enumerate(zip(self.groups, self.tables, strict=True)):
+            rows = np.full(batch, -1, np.int64)
+            entries = np.full(batch, -1, np.int64)
+            decide = np.flatnonzero(self._decides(mask, robots))
+            if len(decide):
+                rows[decide] = table.rows(
+                    view.states[g][decide], mask[decide][:, robots], view.slot_weight[decide][:, robots]
+                )
+                chosen = table.best_entries(rows[decide])
+                if epsilon > 0.0:
+                    explore_now = self.rng.random(len(decide)) < epsilon
+                    if explore_now.any():
+                        chosen[explore_now] = table.random_entries(
+                            rows[decide[explore_now]], self.rng.random(int(explore_now.sum()))
+                        )
+                entries[decide] = chosen
+                actions[np.ix_(decide, robots)] = table.actions_of(chosen)
+            view.rows.append(rows)
+            view.entries.append(entries)
+        view.actions = actions.copy()
+        return actions
+
+    def _chosen_entries(self, view: GroupObservation, actions: np.ndarray, g: int) -> tuple[np.ndarray, np.ndarray]:
+        """``[B]`` rows and entries of the actions taken in ``view`` (-1 where no decision)."""
+        if view.actions is not None and view.rows and np.array_equal(view.actions, actions):
+            return view.rows[g], view.entries[g]
+        robots, table = self.groups[g], self.tables[g]
+        rows = np.full(len(actions), -1, np.int64)
+        entries = np.full(len(actions), -1, np.int64)
+        decide = np.flatnonzero(self._decides(view.mask, robots))
+        if len(decide):
+            weight = view.slot_weight[decide][:, robots]
+            rows[decide] = table.rows(view.states[g][decide], view.mask[decide][:, robots], weight)
+            taken = actions[decide][:, robots]
+            if table.prune_conflicts:
+                taken = deconflict(taken, weight)  # same outcome as the bids taken (spec step 5)
+            entries[decide] = table.entries_of(rows[decide], table.joint.encode(taken))
+        return rows, entries
+
+    def update(
+        self,
+        view: GroupObservation,
+        actions: np.ndarray,
+        result: StepResult,
+        next_view: GroupObservation,
+        next_mask: np.ndarray,
+    ) -> dict[str, float]:
+        """Eq. (3) per group, on decision points (see ``common``), for all copies.
+
+        Args:
+            view: View before acting.
+            actions: ``[B, m]`` actions taken.
+            result: Rewards and done flags.
+            next_view: View after the step.
+            next_mask: ``[B, m, K + 1]`` valid actions after the step.
+
+        Returns:
+            ``learner/<group>/td_error``: mean absolute TD error of the updates of this tick.
+        """
+        batch = len(actions)
+        if not self._pending or self._pending[0].entry.shape[0] != batch:
+            self._pending = [PendingTransitions((batch,)) for _ in self.groups]
+        rewards = self._group_rewards(result)  # [B, G]
+        done = np.asarray(result.done, bool)
+        logs: dict[str, float] = {}
+        for g, (robots, table, pending) in enumerate(zip(self.groups, self.tables, self._pending, strict=True)):
+            _, entries = self._chosen_entries(view, actions, g)
+            pending.start(entries >= 0, entries)
+            pending.accumulate(rewards[:, g], self.gamma)
+            pending.drop(done)  # truncation: no next state to bootstrap from (spec: horizon)
+            closing = self._decides(next_mask, robots) & ~done
+            (pos,), closed, ret, discount = pending.close(closing)
+            if len(pos) == 0:
+                continue
+            next_rows = table.rows(
+                next_view.states[g][pos], next_mask[pos][:, robots], next_view.slot_weight[pos][:, robots]
+            )
+            targets = ret + discount * table.max_q(next_rows)  # eq. (3): r + gamma max_a' Q(s', a')
+            logs[f"learner/{self.group_names[g]}/td_error"] = self._update(table.q, table.visits, closed, targets)
+        return logs
+
+    def learning_space(self) -> dict[str, int]:
+        """Analytic dimension (eqs. 13-16) and the table entries updated at least once."""
+        analytic = learning_space_dimension(self.space_name, self.env, self.partition)
+        return {"analytic": analytic, "visited": sum(t.n_visited() for t in self.tables)}
+
+    def _table_arrays(self) -> dict[str, np.ndarray]:
+        arrays: dict[str, np.ndarray] = {}
+        for name, table in zip(self.group_names, self.tables, strict=True):
+            arrays.update(table.to_arrays(f"{name}."))
+        return arrays
+
+    def _load_table_arrays(self, arrays: dict[str, np.ndarray]) -> None:
+        for name, table in zip(self.group_names, self.tables, strict=True):
+            table.from_arrays(arrays, f"{name}.")
+
+
+class SubGCQLLearner(GroupQLearner):
+    """subG-CQL (paper §4 and §6): centralized Q-learning inside each subG sub-group.
+
+    The runner builds the env with the partition's ``Lambda_i``, so robots bid only for their
+    kept task types. Each sub-group ``G_g`` learns Q over its group state and the joint action of
+    its robots from the sub-group reward, the sum of its robots' individual rewards (spec step 8).
+
+    Args:
+        env: The env built with the partition's active tasks.
+        rng: Exploration randomness.
+        partition: The subG partition (required).
+        prune_conflicts: Keep only conflict-free joint actions (see ``common``).
+        **hyperparameters: See :class:`~mrta_rl.learners.tabular.common.TabularLearner`.
+    """
+
+    requires_partition: ClassVar[bool] = True
+    space_name: ClassVar[str] = "subg_cql"
+
+    def __init__(
+        self,
+        *,
+        env: AuctionEnv,
+        rng: np.random.Generator,
+        partition: Partition | None = None,
+        alpha: float = 0.1,
+        alpha_power: float = 0.0,
+        alpha_min: float = 0.0,
+        gamma: float = 0.9,
+        epsilon_start: float = 0.2,
+        epsilon_end: float = 0.0,
+        epsilon_decay_episodes: int = 20,
+        decisions_only: bool = True,
+        prune_conflicts: bool = True,
+    ) -> None:
+        super().__init__(
+            env=env, rng=rng, partition=partition, alpha=alpha, alpha_power=alpha_power,
+            alpha_min=alpha_min, gamma=gamma, epsilon_start=epsilon_start, epsilon_end=epsilon_end,
+            epsilon_decay_episodes=epsilon_decay_episodes, decisions_only=decisions_only,
+        )
+        assert partition is not None  # checked by Learner.__init__
+        expected = partition.active_tasks(env.system)
+        if not np.array_equal(env.active_tasks, expected):
+            raise ValueError("subG-CQL needs the env built with the partition's active tasks (Lambda_i)")
+        group_map = partition.group_map()
+        robots = env.system.robots
+        self._set_groups(
+            list(group_map), [[robots.index(r) for r in rs] for rs in group_map.values()], prune_conflicts
+        )
+
+    def _group_rewards(self, result: StepResult) -> np.ndarray:
+        # spec step 8: a sub-group's reward is the sum of its robots' individual rewards
+        return np.stack([result.robot_reward[:, g].sum(axis=1) for g in self.groups], axis=1)

@@ -1,0 +1,152 @@
+"""Learning space dimension of the tabular learners, paper §5.2 eqs. (10)-(16), as exact ints.
+
+The state counts come from the project's encodings (``mrta_rl.envs.observations``) and every
+robot has ``|A_i| = K + 1`` actions (wait or bid for one of ``K`` slots, spec step 4):
+
+* DQL, eqs. (10)-(11): ``sum_i |S_i| |A_i|`` with ``S_i`` the local view of robot ``i``.
+* semi-CQL, eq. (11) with each robot's state the whole-system state: ``sum_i |S| |A_i|``.
+* CQL, eqs. (13), (15), (16): ``|S| prod_i |A_i|`` with ``S`` the whole-system group view. The
+  paper bounds ``|S|`` by the sum of the individual spaces (eq. 13); here ``|S|`` is the exact
+  count of the encoding, which holds every robot's idle and battery state.
+* subG-CQL (§5.2, last paragraph): ``sum_g |S_g| prod_{i in g} |A_i|`` over the sub-groups, each
+  with its own group view over its kept task types.
+
+Python ints never overflow, which matters for CQL on System-II.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Literal
+
+from mrta_rl.envs import AuctionEnv, AuctionParams
+from mrta_rl.envs.observations import group_state_count, local_state_count
+from mrta_rl.partition import Partition, subg_partition
+from mrta_rl.systems import RobotSystem
+
+TabularLearnerName = Literal["cql", "semi_cql", "dql", "subg_cql"]
+TABULAR_LEARNERS: tuple[TabularLearnerName, ...] = ("cql", "semi_cql", "dql", "subg_cql")
+
+
+def decentralized_dimension(state_counts: Sequence[int], action_counts: Sequence[int]) -> int:
+    """Eq. (11): ``|U| = sum_i |S_i| |A_i|`` (each term is eq. 10).
+
+    Args:
+        state_counts: ``|S_i|`` per robot.
+        action_counts: ``|A_i|`` per robot.
+
+    Returns:
+        The exact dimension.
+
+    Raises:
+        ValueError: if the two lists differ in length.
+    """
+    if len(state_counts) != len(action_counts):
+        raise ValueError("one state count and one action count per robot")
+    return sum(int(s) * int(a) for s, a in zip(state_counts, action_counts, strict=True))
+
+
+def centralized_dimension(state_count: int, action_counts: Sequence[int]) -> int:
+    """Eqs. (15)-(16): ``|U| = |S| prod_i |A_i|``.
+
+    Args:
+        state_count: ``|S|`` of the joint state.
+        action_counts: ``|A_i|`` of every robot of the group.
+
+    Returns:
+        The exact dimension.
+    """
+    return int(state_count) * math.prod(int(a) for a in action_counts)
+
+
+def subgroup_dimension(groups: Sequence[tuple[int, Sequence[int]]]) -> int:
+    """subG-CQL: the sum over sub-groups of their centralized dimensions (eq. 16 each).
+
+    Args:
+        groups: ``(|S_g|, [|A_i| for i in g])`` per sub-group.
+
+    Returns:
+        The exact dimension.
+    """
+    return sum(centralized_dimension(s, a) for s, a in groups)
+
+
+def learning_space_dimension(
+    learner: TabularLearnerName, env: AuctionEnv, partition: Partition | None = None
+) -> int:
+    """Analytic learning space dimension of one tabular learner on ``env``'s encodings.
+
+    Args:
+        learner: ``"cql"``, ``"semi_cql"``, ``"dql"`` or ``"subg_cql"``.
+        env: The env the learner runs on (for subG-CQL: built with the partition's ``Lambda_i``).
+        partition: The subG partition (required for ``"subg_cql"``).
+
+    Returns:
+        The exact dimension.
+
+    Raises:
+        ValueError: on an unknown learner, or ``"subg_cql"`` without a partition.
+    """
+    m = env.n_robots
+    actions = [env.n_actions] * m  # |A_i| = K + 1
+    if learner == "dql":
+        return decentralized_dimension(local_state_count(env), actions)
+    if learner == "semi_cql":
+        whole = group_state_count(env, list(range(m)))
+        return decentralized_dimension([whole] * m, actions)
+    if learner == "cql":
+        return centralized_dimension(group_state_count(env, list(range(m))), actions)
+    if learner == "subg_cql":
+        if partition is None:
+            raise ValueError("subg_cql needs the partition")
+        groups = []
+        for robots in partition.group_map().values():
+            groups.append((group_state_count(env, robots), [env.n_actions] * len(robots)))
+        return subgroup_dimension(groups)
+    raise ValueError(f"unknown tabular learner {learner!r}; expected one of {TABULAR_LEARNERS}")
+
+
+def learning_space_table(
+    system: RobotSystem, params: AuctionParams | None = None
+) -> dict[TabularLearnerName, int]:
+    """Table-9 analogue for one system: the dimension of every tabular learner.
+
+    Args:
+        system: The robot team.
+        params: Dynamics parameters (default: spec defaults plus the system's overrides); only
+            ``slots`` and the durations matter.
+
+    Returns:
+        ``{learner: dimension}`` in :data:`TABULAR_LEARNERS` order.
+    """
+    env = AuctionEnv(system, params, batch_size=1)
+    partition = subg_partition(system)
+    sub_env = AuctionEnv(system, params, batch_size=1, active_tasks=partition.active_tasks(system))
+    return {
+        name: learning_space_dimension(name, sub_env if name == "subg_cql" else env, partition)
+        for name in TABULAR_LEARNERS
+    }
+
+
+def factorize(value: int) -> str:
+    """Prime factorisation as in paper Table 9 (``2^12 * 3^4 * 17``), for display.
+
+    Args:
+        value: A positive integer.
+
+    Returns:
+        The factorisation, factors in increasing order.
+    """
+    parts, p = [], 2
+    while p * p <= value:
+        k = 0
+        while value % p == 0:
+            value //= p
+            k += 1
+        if k:
+            parts.append(f"{p}^{k}" if k > 1 else str(p))
+        p += 1 if p == 2 else 2
+    if value > 1:
+        parts.append(str(value))
+    return " * ".join(parts) or "1"
