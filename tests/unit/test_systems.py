@@ -1,0 +1,104 @@
+"""System files (paper Tables 1-2, random teams) and their validation errors."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from mrta_rl.systems import SystemConfigError, build_system, random_system
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def load(name: str):
+    return build_system(yaml.safe_load((ROOT / "conf" / "system" / f"{name}.yaml").read_text()))
+
+
+def test_system1_is_paper_table_1():
+    s = load("system1")
+    assert s.robots == ("R1", "R2", "R3", "R4", "R5", "R6")
+    assert s.task_types == ("T1", "T2", "T3", "T4", "T5")
+    assert s.task_set("R6") == {"T1": 1.0, "T3": 1.0, "T5": 1.0}
+    assert s.rtm.sum(axis=1).tolist() == [3, 2, 2, 2, 1, 3]  # r_i
+    assert s.rtm.sum(axis=0).tolist() == [4, 1, 2, 3, 3]  # c_j
+
+
+def test_system2_is_paper_table_2():
+    s = load("system2")
+    assert s.n_robots == 10 and s.n_task_types == 8
+    assert s.task_set("R2") == {t: 1.0 for t in ("T1", "T2", "T5", "T7", "T8")}
+    assert s.rtm.sum(axis=1).tolist() == [2, 5, 3, 4, 4, 2, 3, 3, 3, 3]
+
+
+def test_willingness_mapping_and_duration_override():
+    s = build_system({"name": "w", "robots": {"R1": {"T1": 0.4, "T2": 1}, "R2": ["T2"]},
+                      "task_types": {"T2": {"duration_low": [1, 2]}}})
+    assert s.willingness.tolist() == [[0.4, 1.0], [0.0, 1.0]]
+    assert (s.durations["T2"]["duration_low"].lo, s.durations["T2"]["duration_low"].hi) == (1, 2)
+
+
+@pytest.mark.parametrize(
+    "robots, task_types, message",
+    [
+        ({"R1": ["T1"], "R2": []}, None, "robot R2 has no task type"),
+        ({"R1": ["T1"], "R2": None}, None, "robot R2 has no task type"),
+        ({"R1": ["T1", "T3"]}, None, "task type T2: no robot can do it"),
+        ({"R1": ["T1"]}, {"T2": {"duration_low": [1, 2]}}, "task type T2: no robot can do it"),
+        ({"R1": {"T1": 1.5}}, None, r"robot R1: willingness 1.5 for T1 is outside \(0, 1\]"),
+        ({"R1": {"T1": 0}}, None, r"robot R1: willingness 0 for T1 is outside \(0, 1\]"),
+        ({"R1": {"T1": "high"}}, None, "robot R1: willingness 'high' for T1"),
+        ({"R1": ["T1", "X2"]}, None, "robot R1: unknown task type name 'X2'"),
+        ({"robot1": ["T1"]}, None, "robot 'robot1': ids must look like R1"),
+        ({"R1": ["T1"]}, {"T1": {"duration_low": [5, 2]}}, "task type T1: duration_low must be"),
+        ({"R1": ["T1"]}, {"T1": {"duration": [1, 2]}}, "task type T1: unknown key 'duration'"),
+    ],
+)
+def test_malformed_system_is_a_clear_error_naming_the_culprit(robots, task_types, message):
+    cfg = {"name": "bad", "robots": robots}
+    if task_types:
+        cfg["task_types"] = task_types
+    with pytest.raises(SystemConfigError, match=message):
+        build_system(cfg)
+
+
+def test_unknown_top_level_key_is_named():
+    with pytest.raises(SystemConfigError, match="unknown keys \\['robot'\\]"):
+        build_system({"name": "x", "robots": {"R1": ["T1"]}, "robot": 3})
+
+
+def test_bad_system_file_fails_before_any_run_writes_output(tmp_path):
+    bad_dir = tmp_path / "systems"
+    (bad_dir / "system").mkdir(parents=True)
+    (bad_dir / "system" / "broken.yaml").write_text("name: broken\nrobots:\n  R1: [T1]\n  R2: {T1: 2.0}\n")
+    run_dir = tmp_path / "run"
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "scripts" / "train.py"), "learner=greedy", "system=broken",
+         f"hydra.searchpath=[file://{bad_dir}]", f"hydra.run.dir={run_dir}"],
+        capture_output=True, text=True, cwd=ROOT,
+    )
+    assert proc.returncode != 0
+    assert "robot R2: willingness 2.0 for T1 is outside (0, 1]" in proc.stderr + proc.stdout
+    assert not (run_dir / "metrics.json").exists()
+
+
+@settings(max_examples=40, deadline=None)
+@given(m=st.integers(1, 40), n=st.integers(1, 15), density=st.floats(0, 1), seed=st.integers(0, 10**6))
+def test_random_systems_are_valid_and_reproducible(m, n, density, seed):
+    s = random_system(m, n, density, seed)
+    assert s.rtm.shape == (m, n)
+    assert s.rtm.any(axis=1).all() and s.rtm.any(axis=0).all()  # every robot a type, every type a robot
+    np.testing.assert_array_equal(s.rtm, random_system(m, n, density, seed).rtm)
+
+
+def test_random_system_config_and_scaling_size():
+    s = build_system({"name": "random", "n_robots": 300, "n_task_types": 30, "density": 0.1, "seed": 4})
+    assert s.n_robots == 300 and s.n_task_types == 30
+    with pytest.raises(SystemConfigError, match="density 1.5"):
+        random_system(3, 3, 1.5, 0)
