@@ -35,6 +35,7 @@ from mrta_rl.systems import RobotSystem
 _LOW_SHIFT, _DUE_SHIFT, _ID_SHIFT, _TYPE_SHIFT, _DUR_SHIFT = 62, 42, 20, 10, 1
 _DUE_BITS, _ID_BITS, _TYPE_BITS, _DUR_BITS = 20, 22, 10, 9
 _EMPTY = np.int64(np.iinfo(np.int64).max)  # sorts after every task
+_DUE_FIELD = np.int64(((1 << _DUE_BITS) - 1) << _DUE_SHIFT)
 
 # --- counter-based hashing (splitmix64 finaliser); uint64 arithmetic wraps by design
 _M1, _M2 = np.uint64(0xBF58476D1CE4E5B9), np.uint64(0x94D049BB133111EB)
@@ -256,6 +257,7 @@ class AuctionEnv:
         self.t = np.zeros(B, np.int64)  # current tick per copy
         self._queue = np.full((B, Q + 1), _EMPTY)  # column Q is scratch, always empty
         self._queue_width = 0  # no copy holds more than this many tasks
+        self._queue_row_offsets = np.arange(B)[:, None] * (Q + 1)  # flat index of each row's first place
         self._next_id = np.zeros(B, np.int64)
         self.busy_until = np.full((B, m), -1, np.int64)
         self.battery = np.full((B, m), float(p.battery_capacity))
@@ -270,6 +272,7 @@ class AuctionEnv:
         self._slot_pos = np.full((B, K), Q, np.int64)
         self._slot_numbers = np.arange(1, K + 1)[None, :, None]  # [1, K, 1]
         self._bit_buffer = np.zeros((B, 8), np.uint8)  # one uint64 bitmask per copy
+        self._action_row_offsets = np.arange(B)[:, None] * (K + 1)  # flat (copy, action) index
         # valid actions are stored action-major, [B, K + 1, m], so per-action slices are contiguous
         self._mask_by_action = np.ones((B, K + 1, m), bool)
         self._mask_offsets = np.arange(B)[:, None] * ((K + 1) * m) + np.arange(m)  # flat index of (b, 0, i)
@@ -284,6 +287,7 @@ class AuctionEnv:
             "longest duration": (max(p.duration_low[1], p.duration_high[1],
                                      *(r.hi for d in self.system.durations.values() for r in d.values())), 1 << _DUR_BITS),
             "expected tasks per episode x 4": (4 * p.arrival_rate * p.horizon, 1 << _ID_BITS),
+            "slots + 1 (actions fit in int8)": (p.slots + 1, 128),
         }
         for what, (value, limit) in limits.items():
             if value >= limit:
@@ -342,6 +346,7 @@ class AuctionEnv:
         if end > self._queue.shape[1] - 1:  # grow the spare columns (the last one stays empty)
             grow = np.full((self.batch_size, end + 1 - self._queue.shape[1] + 8), _EMPTY)
             self._queue = np.concatenate([self._queue, grow], axis=1)
+            self._queue_row_offsets = np.arange(self.batch_size)[:, None] * self._queue.shape[1]
         if width:
             k = np.arange(1, width + 1, dtype=np.uint64)
             h_prio = mix64(tick_key[:, None] + k * _GOLDEN)  # [B, W]
@@ -375,14 +380,17 @@ class AuctionEnv:
         # reauction_delay ticks, so the first K eligible tasks lie within K * (delay + 1) places.
         width = min(self._queue_width, self.n_slots * (self.params.reauction_delay + 1))
         queue = self._queue[:, :width]
-        due_now = (queue != _EMPTY) & (task_due(queue) <= self.t[:, None]) & ~self.done[:, None]
+        # _EMPTY's due field is all ones, later than any tick (see _check_limits): no separate test
+        due_now = (queue & _DUE_FIELD) <= (self.t << _DUE_SHIFT)[:, None]  # [B, width]
+        if self.done.any():
+            due_now &= ~self.done[:, None]
         if width <= 64 and _BITMASK_ROWS:
             pos = _first_true_positions(due_now, self.n_slots, self._bit_buffer)
         else:  # the k-th due task sits where the running count first reaches k
             count = np.cumsum(due_now, axis=1)
             pos = (count[:, None, :] < self._slot_numbers[:, :, 0, None]).sum(axis=2)
         self._slot_pos = np.where(pos < width, pos, Q)  # [B, K]; Q = the always-empty place
-        keys = np.take_along_axis(self._queue, self._slot_pos, axis=1)  # [B, K]
+        keys = self._queue.reshape(-1)[self._slot_pos + self._queue_row_offsets]  # [B, K]
         self._slot_keys = keys
         filled = keys != _EMPTY
         self.slot_type = np.where(filled, task_type(keys), -1)  # [B, K], -1 = empty slot
@@ -419,14 +427,15 @@ class AuctionEnv:
         # spec step 5: each robot bids for at most one slot, so all slots are settled at once.
         # Per slot, the highest willingness wins; argmax takes the first maximum, so ties go to the
         # lowest robot index.
-        bids = actions[:, None, :] == self._slot_numbers  # [B, K, m]
-        assigned = bids.any(axis=2)  # [B, K]
+        bid_counts = np.bincount((actions + self._action_row_offsets).ravel(), minlength=self.batch_size * self.n_actions)
+        assigned = bid_counts.reshape(self.batch_size, self.n_actions)[:, 1:] > 0  # [B, K]
         b, k = np.nonzero(assigned)
         if len(b):
+            bids = actions.astype(np.int8)[b] == (k + 1)[:, None]  # [P, m] bidders of each auctioned slot
             if self._uniform_willingness:  # all d equal: the lowest-index bidder wins
-                w = bids[b, k].argmax(axis=1)
+                w = bids.argmax(axis=1)
             else:
-                w = np.where(bids[b, k], self._willingness_by_type[slot_type[b, k]], -1.0).argmax(axis=1)
+                w = np.where(bids, self._willingness_by_type[slot_type[b, k]], -1.0).argmax(axis=1)
             duration = task_duration(keys[b, k])
             busy_until = t[b] + duration  # executes during ticks t+1 .. t+duration
             battery = self.battery[b, w] - p.drain_per_tick * duration
@@ -443,7 +452,7 @@ class AuctionEnv:
         round2 = (keys & 1) == 1
         reauction = unassigned & ~round2
         rekeyed = (keys & ~(((1 << _DUE_BITS) - 1) << _DUE_SHIFT)) | ((t[:, None] + p.reauction_delay) << _DUE_SHIFT) | 1
-        np.put_along_axis(self._queue, self._slot_pos, np.where(reauction, rekeyed, _EMPTY), axis=1)
+        self._queue.reshape(-1)[self._slot_pos + self._queue_row_offsets] = np.where(reauction, rekeyed, _EMPTY)
         dropped = unassigned & round2
         if dropped.any():
             rows = np.arange(self.batch_size)
