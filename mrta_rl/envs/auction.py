@@ -119,6 +119,21 @@ def _first_true_positions(flags: np.ndarray, k: int, buffer: np.ndarray) -> np.n
     return positions
 
 
+def _occupied_width(queue: np.ndarray) -> int:
+    """Number of leading columns holding a task in some row of a row-sorted queue (empties last).
+
+    A binary search over columns: each probe reads one column, instead of counting every place.
+    """
+    lo, hi = 0, queue.shape[1]  # the width lies in [lo, hi]
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if (queue[:, mid] != _EMPTY).any():
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
+
+
 def poisson_cdf(rate: float) -> np.ndarray:
     """CDF table ``P(N <= k)`` of Poisson(rate), long enough that the tail is below 1e-30."""
     k_max = int(math.ceil(rate + 14.0 * math.sqrt(rate) + 30))
@@ -370,7 +385,7 @@ class AuctionEnv:
                 self._pending_type_penalty += self._drop(overflow)
                 self._pending_team[:] = self._pending_type_penalty.sum(axis=1)
                 overflow[:] = _EMPTY
-        self._queue_width = int((queue[:, :Q] != _EMPTY).sum(axis=1).max())
+        self._queue_width = _occupied_width(queue[:, : min(end, Q)])
         self._select_slots()
 
     def _select_slots(self) -> None:
@@ -455,13 +470,12 @@ class AuctionEnv:
         self._queue.reshape(-1)[self._slot_pos + self._queue_row_offsets] = np.where(reauction, rekeyed, _EMPTY)
         dropped = unassigned & round2
         if dropped.any():
-            rows = np.arange(self.batch_size)
-            for k in range(self.n_slots):  # one slot per copy at a time: no repeated index
-                hit = dropped[:, k]
-                self.stats.dropped[rows, slot_type[:, k], slot_high[:, k]] += hit
-                penalty = np.where(hit, self._drop_penalty[slot_high[:, k]], 0.0)  # [B]
-                team -= penalty
-                type_penalty[rows, slot_type[:, k]] += penalty
+            b, k = np.nonzero(dropped)
+            ttype, high = slot_type[b, k], slot_high[b, k]
+            penalty = self._drop_penalty[high]
+            np.add.at(self.stats.dropped, (b, ttype, high), 1)
+            np.add.at(type_penalty, (b, ttype), penalty)
+            np.subtract.at(team, b, penalty)
         # spec step 7: busy if not idle at step 4, or if it bid (the auction takes its time)
         self.stats.busy_ticks += ~self.idle | (actions > 0)
         self.stats.team_return += team
