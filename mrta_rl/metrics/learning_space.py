@@ -150,3 +150,26 @@ def factorize(value: int) -> str:
     if value > 1:
         parts.append(str(value))
     return " * ".join(parts) or "1"
+
+
+def format_learning_space_table(tables: dict[str, dict[TabularLearnerName, int]]) -> str:
+    """Table 9 layout: one row per learner, one column per system, exact value and factors.
+
+    Args:
+        tables: ``{system name: learning_space_table(system)}``.
+
+    Returns:
+        A plain-text table.
+    """
+    names = list(tables)
+    cells = {
+        (learner, s): f"{tables[s][learner]:,} = {factorize(tables[s][learner])}"
+        for learner in TABULAR_LEARNERS
+        for s in names
+    }
+    widths = [max(len(s), *(len(cells[(lr, s)]) for lr in TABULAR_LEARNERS)) for s in names]
+    lines = ["learner   " + "  ".join(s.ljust(w) for s, w in zip(names, widths, strict=True))]
+    for learner in TABULAR_LEARNERS:
+        row = "  ".join(cells[(learner, s)].ljust(w) for s, w in zip(names, widths, strict=True))
+        lines.append(f"{learner:<10}" + row)
+    return "\n".join(line.rstrip() for line in lines)
