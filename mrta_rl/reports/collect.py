@@ -1,0 +1,292 @@
+"""Collect finished runs (metrics.json, curve.csv) and the jobs a sweep expected but lost.
+
+Input: a Hydra multirun dir (``multirun.yaml`` at the top, one job dir per job) or run dirs of
+``scripts/train.py`` (or folders holding them). A run is a folder with ``metrics.json``.
+
+The *expected* grid of a multirun is rebuilt exactly as Hydra's ``BasicSweeper`` built its job
+list: the ``hydra.sweeper.params`` of ``multirun.yaml`` followed by the command-line task
+overrides (``hydra.overrides.task``), expanded as a cartesian product. A job whose dir has no
+``metrics.json`` (it failed: Hydra runs the remaining jobs and reports the error at the end, and
+``train()`` writes metrics.json last and atomically) or has no dir at all is *missing*. Without a
+multirun.yaml the expected grid is the product of the learners, systems and seeds found, so a
+hole in a hand-made set of runs is reported too.
+"""
+
+from __future__ import annotations
+
+import csv
+import itertools
+import json
+import logging
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from omegaconf import OmegaConf
+
+logger = logging.getLogger(__name__)
+
+METRICS_FILE = "metrics.json"
+CURVE_FILE = "curve.csv"
+BASIC_SWEEPER = "hydra._internal.core_plugins.basic_sweeper.BasicSweeper"
+
+
+@dataclass(frozen=True)
+class RunRecord:
+    """One finished run.
+
+    Attributes:
+        run_dir: The run's folder.
+        learner: Learner name (yaml stem), from metrics.json.
+        system: System name (``system1``...), from metrics.json.
+        seed: Run seed, from metrics.json.
+        metrics: The whole metrics.json.
+        curve: Training curve rows ``(env_ticks, team_return_mean)``; empty for fixed policies.
+        config: The run's ``.hydra/config.yaml`` as a plain dict (``{}`` if absent).
+        overrides: The job's ``.hydra/overrides.yaml`` (``()`` if absent).
+    """
+
+    run_dir: Path
+    learner: str
+    system: str
+    seed: int
+    metrics: dict[str, Any]
+    curve: tuple[tuple[int, float], ...]
+    config: dict[str, Any]
+    overrides: tuple[str, ...]
+
+    @property
+    def key(self) -> tuple[str, str, int]:
+        """``(learner, system, seed)``: one cell of the grid."""
+        return (self.learner, self.system, self.seed)
+
+
+@dataclass(frozen=True)
+class MissingJob:
+    """A job of the expected grid without metrics.json.
+
+    Attributes:
+        learner: Learner name of the job.
+        system: System name of the job.
+        seed: Seed of the job (None if not determinable).
+        overrides: The job's overrides (empty for a hole in a hand-made set of runs).
+        job_dir: The job's dir if it exists (a failed job), else None (never started).
+        reason: Short human-readable cause.
+    """
+
+    learner: str
+    system: str
+    seed: int | None
+    overrides: tuple[str, ...]
+    job_dir: Path | None
+    reason: str
+
+
+@dataclass
+class Collection:
+    """Everything the report is built from.
+
+    Attributes:
+        inputs: The paths given.
+        runs: Finished runs, one per ``(learner, system, seed)``.
+        missing: Expected jobs without results.
+        duplicates: Runs dropped because another run had the same ``(learner, system, seed)``.
+        expected_jobs: Size of the expected grid.
+        sweep_source: How the expected grid was found (``multirun.yaml`` path or ``"runs found"``).
+    """
+
+    inputs: list[Path]
+    runs: list[RunRecord] = field(default_factory=list)
+    missing: list[MissingJob] = field(default_factory=list)
+    duplicates: list[RunRecord] = field(default_factory=list)
+    expected_jobs: int = 0
+    sweep_source: str = "runs found"
+
+
+def read_curve(path: Path) -> tuple[tuple[int, float], ...]:
+    """Rows ``(env_ticks, team_return_mean)`` of a curve.csv (``()`` if absent or header-only).
+
+    Args:
+        path: The curve.csv file (columns of ``mrta_rl.metrics.CURVE_COLUMNS``).
+
+    Returns:
+        The rows in file order.
+    """
+    if not path.is_file():
+        return ()
+    with path.open(newline="") as handle:
+        return tuple(
+            (int(float(row["env_ticks"])), float(row["team_return_mean"]))
+            for row in csv.DictReader(handle)
+            if row.get("env_ticks") not in (None, "")
+        )
+
+
+def _load_yaml(path: Path) -> Any:
+    return OmegaConf.to_container(OmegaConf.load(path), resolve=False) if path.is_file() else None
+
+
+def load_run(run_dir: Path) -> RunRecord:
+    """Read one run dir.
+
+    Args:
+        run_dir: Folder holding metrics.json (and curve.csv, .hydra/ if written by Hydra).
+
+    Returns:
+        The record.
+
+    Raises:
+        ValueError: if metrics.json lacks the keys every runner writes.
+    """
+    metrics = json.loads((run_dir / METRICS_FILE).read_text())
+    missing = {"learner", "system", "seed", "eval"} - set(metrics)
+    if missing:
+        raise ValueError(
+            f"{run_dir / METRICS_FILE}: not a run's metrics.json, no {sorted(missing)}"
+        )
+    config = _load_yaml(run_dir / ".hydra" / "config.yaml") or {}
+    overrides = _load_yaml(run_dir / ".hydra" / "overrides.yaml") or []
+    return RunRecord(
+        run_dir=run_dir,
+        learner=str(metrics["learner"]),
+        system=str(metrics["system"]),
+        seed=int(metrics["seed"]),
+        metrics=metrics,
+        curve=read_curve(run_dir / CURVE_FILE),
+        config=config,
+        overrides=tuple(str(o) for o in overrides),
+    )
+
+
+def expected_sweep_jobs(multirun_yaml: Path) -> list[list[str]] | None:
+    """The job list Hydra's BasicSweeper built for a multirun, in job-number order.
+
+    Args:
+        multirun_yaml: The sweep's ``multirun.yaml``.
+
+    Returns:
+        One override list per job, or None if the sweep was not run by the BasicSweeper (another
+        sweeper plugin builds its jobs differently).
+    """
+    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    cfg = OmegaConf.load(multirun_yaml)
+    sweeper = OmegaConf.select(cfg, "hydra.sweeper", default=None)
+    if sweeper is None or sweeper.get("_target_") != BASIC_SWEEPER:
+        return None
+    params = sweeper.get("params") or {}
+    # same order as BasicSweeper.sweep: sweeper params, then the command line (which wins)
+    arguments = [f"{k}={v}" for k, v in params.items()]
+    arguments += [str(o) for o in OmegaConf.select(cfg, "hydra.overrides.task", default=[])]
+    parsed = OverridesParser.create().parse_overrides(arguments)
+    return [list(job) for batch in BasicSweeper.split_arguments(parsed, None) for job in batch]
+
+
+def _override_value(overrides: Sequence[str], key: str) -> str | None:
+    """Value of ``key=value`` (also ``+key=``/``++key=``) in an override list."""
+    for item in overrides:
+        name, _, value = item.partition("=")
+        if name.lstrip("+") == key:
+            return value
+    return None
+
+
+def _job_identity(job: Sequence[str], cfg: Any) -> tuple[str, str, int | None]:
+    """``(learner, system, seed)`` of an expected job: its overrides, else the sweep defaults."""
+    choices = OmegaConf.select(cfg, "hydra.runtime.choices", default={}) or {}
+    learner = _override_value(job, "learner") or str(choices.get("learner", "?"))
+    system = _override_value(job, "system") or str(choices.get("system", "?"))
+    seed_text = _override_value(job, "seed")
+    seed_text = seed_text if seed_text is not None else str(cfg.get("seed", ""))
+    try:
+        seed: int | None = int(seed_text)
+    except ValueError:
+        seed = None
+    return learner, system, seed
+
+
+def _find_run_dirs(path: Path) -> list[Path]:
+    """Folders holding a metrics.json at or below ``path``, sorted."""
+    if (path / METRICS_FILE).is_file():
+        return [path]
+    return sorted(p.parent for p in path.rglob(METRICS_FILE))
+
+
+def _job_dirs(sweep_dir: Path) -> dict[frozenset[str], Path]:
+    """Job dirs of a sweep (any ``.hydra/overrides.yaml`` below it), keyed by their overrides."""
+    found: dict[frozenset[str], Path] = {}
+    for path in sorted(sweep_dir.rglob("overrides.yaml")):
+        if path.parent.name == ".hydra":
+            found[frozenset(str(o) for o in _load_yaml(path) or [])] = path.parent.parent
+    return found
+
+
+def collect_runs(inputs: Iterable[Path | str]) -> Collection:
+    """Gather the runs below the inputs and list the expected jobs that left no results.
+
+    Args:
+        inputs: Multirun dirs, run dirs, or folders holding run dirs.
+
+    Returns:
+        The collection (runs sorted by learner, system, seed).
+
+    Raises:
+        FileNotFoundError: if an input does not exist.
+    """
+    paths = [Path(p) for p in inputs]
+    for path in paths:
+        if not path.exists():
+            raise FileNotFoundError(f"no such run or sweep dir: {path}")
+    collection = Collection(inputs=paths)
+    by_key: dict[tuple[str, str, int], RunRecord] = {}
+    for run_dir in sorted({d.resolve() for p in paths for d in _find_run_dirs(p)}):
+        record = load_run(run_dir)
+        if record.key in by_key:  # e.g. a run repeated by hand; seeds must count once
+            logger.warning(
+                "%s repeats %s; keeping %s", run_dir, record.key, by_key[record.key].run_dir
+            )
+            collection.duplicates.append(record)
+            continue
+        by_key[record.key] = record
+    collection.runs = sorted(by_key.values(), key=lambda r: r.key)
+
+    sweeps = [p / "multirun.yaml" for p in paths if (p / "multirun.yaml").is_file()]
+    expected_found = False
+    for multirun_yaml in sweeps:
+        jobs = expected_sweep_jobs(multirun_yaml)
+        if jobs is None:
+            logger.warning(
+                "%s: not a BasicSweeper sweep, expected grid taken from the runs", multirun_yaml
+            )
+            continue
+        expected_found = True
+        collection.sweep_source = ", ".join(str(s) for s in sweeps)
+        collection.expected_jobs += len(jobs)
+        cfg = OmegaConf.load(multirun_yaml)
+        dirs = _job_dirs(multirun_yaml.parent)
+        for job in jobs:
+            job_dir = dirs.get(frozenset(job))
+            if job_dir is not None and (job_dir / METRICS_FILE).is_file():
+                continue
+            learner, system, seed = _job_identity(job, cfg)
+            reason = (
+                "never started (no job dir)"
+                if job_dir is None
+                else "failed or unfinished: no metrics.json (see train.log, sweep output)"
+            )
+            collection.missing.append(
+                MissingJob(learner, system, seed, tuple(job), job_dir, reason)
+            )
+    if not expected_found:
+        learners = sorted({r.learner for r in collection.runs})
+        systems = sorted({r.system for r in collection.runs})
+        seeds = sorted({r.seed for r in collection.runs})
+        collection.expected_jobs = len(learners) * len(systems) * len(seeds)
+        for key in itertools.product(learners, systems, seeds):
+            if key not in by_key:
+                collection.missing.append(
+                    MissingJob(*key, overrides=(), job_dir=None, reason="no run with this seed")
+                )
+    return collection
