@@ -1,0 +1,187 @@
+"""Reports without Hydra runs: t quantiles, collection of hand-written run dirs, claims, CSVs."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from pathlib import Path
+
+import pytest
+from omegaconf import OmegaConf
+
+from mrta_rl.reports import (
+    build_report,
+    check_claims,
+    collect_runs,
+    mean_ci,
+    summarize_curve,
+    summarize_runs,
+    t_quantile,
+)
+from mrta_rl.reports.collect import expected_sweep_jobs
+
+TYPES, ROBOTS = ("T1", "T2", "T3"), ("R1", "R2")
+ROBOT_TABLE = {"R1": ["T1", "T2", "T3"], "R2": ["T1"]}  # T1: 2 robots, T2/T3: 1
+
+
+def write_run(
+    run_dir: Path,
+    learner: str,
+    seed: int,
+    *,
+    ctr_l: float = 50.0,
+    ctr_h: float = 80.0,
+    itr: float = 20.0,
+    team_return: float = 100.0,
+    space: dict[str, int] | None = None,
+    curve: list[tuple[int, float]] | None = None,
+    system: str = "system1",
+) -> Path:
+    """A run dir as scripts/train.py writes it (metrics.json, curve.csv, .hydra/config.yaml)."""
+    def block(ret: float, low: float, high: float, idle: float) -> dict:
+        return {
+            "episodes": 2,
+            "team_return": {"mean": ret, "std": 1.0},
+            "ctr": {t: {"L": low + j, "H": high + j} for j, t in enumerate(TYPES)},
+            "ctr_overall": {"L": low + 1, "H": high + 1},
+            "itr": {r: idle + i for i, r in enumerate(ROBOTS)},
+        }
+
+    run_dir.mkdir(parents=True)
+    metrics = {
+        "learner": learner,
+        "system": system,
+        "seed": seed,
+        "eval": block(team_return, ctr_l, ctr_h, itr),
+        "baseline_greedy": block(90.0, 40.0, 70.0, 30.0),
+        "train": {"env_ticks": 100, "wall_s": 1.5, "episodes": 2},
+        "learning_space": space or {},
+    }
+    (run_dir / "metrics.json").write_text(json.dumps(metrics))
+    with (run_dir / "curve.csv").open("w") as handle:
+        handle.write("env_ticks,episode,team_return_mean\n")
+        for k, (ticks, ret) in enumerate(curve or []):
+            handle.write(f"{ticks},{k + 1},{ret}\n")
+    (run_dir / ".hydra").mkdir()
+    OmegaConf.save(
+        OmegaConf.create({"seed": seed, "system": {"name": system, "robots": ROBOT_TABLE},
+                          "learner": {"_target_": "x.Y", "_partial_": True, "alpha": 0.1},
+                          "env": {"horizon": 50}, "train": {"episodes": 2},
+                          "eval": {"episodes": 2}}),
+        run_dir / ".hydra" / "config.yaml",
+    )
+    return run_dir
+
+
+@pytest.mark.parametrize(
+    ("df", "expected"), [(1, 12.7062), (2, 4.3027), (4, 2.7764), (9, 2.2622), (30, 2.0423)]
+)
+def test_t_quantile_matches_tables(df, expected):
+    assert t_quantile(df) == pytest.approx(expected, abs=1e-4)
+
+
+def test_mean_ci_ignores_undefined_values():
+    stat = mean_ci([1.0, 2.0, 3.0, None, math.nan])
+    assert (stat.n, stat.mean, stat.std) == (3, 2.0, 1.0)
+    assert stat.ci95 == pytest.approx(t_quantile(2) / math.sqrt(3))
+    assert mean_ci([5.0]).format() == "5.0" and mean_ci([]).format() == "–"
+    with pytest.raises(ValueError):
+        t_quantile(0)
+
+
+def test_collect_reports_holes_and_duplicates(tmp_path):
+    write_run(tmp_path / "a", "cql", 0)
+    write_run(tmp_path / "b", "cql", 1)
+    write_run(tmp_path / "c", "dql", 0)  # dql seed 1 is a hole in learners x systems x seeds
+    write_run(tmp_path / "d", "dql", 0)  # same cell again: counted once
+    collection = collect_runs([tmp_path])
+    assert [r.key for r in collection.runs] == [
+        ("cql", "system1", 0), ("cql", "system1", 1), ("dql", "system1", 0)
+    ]
+    assert [(m.learner, m.system, m.seed) for m in collection.missing] == [("dql", "system1", 1)]
+    assert collection.expected_jobs == 4 and len(collection.duplicates) == 1
+
+
+def test_expected_jobs_follow_the_basic_sweeper(tmp_path):
+    OmegaConf.save(
+        OmegaConf.create({
+            "seed": 0,
+            "hydra": {
+                "sweeper": {
+                    "_target_": "hydra._internal.core_plugins.basic_sweeper.BasicSweeper",
+                    "max_batch_size": None,
+                    "params": {"learner": "cql,dql", "seed": "0,1,2"},
+                },
+                "overrides": {"task": ["experiment=paper", "seed=3,4"]},  # the command line wins
+            },
+        }),
+        tmp_path / "multirun.yaml",
+    )
+    jobs = expected_sweep_jobs(tmp_path / "multirun.yaml")
+    assert jobs[0] == ["learner=cql", "seed=3", "experiment=paper"]
+    assert len(jobs) == 4 and {j[1] for j in jobs} == {"seed=3", "seed=4"}
+    collection = collect_runs([tmp_path])  # no job dir at all: every job is missing
+    assert len(collection.missing) == 4 and collection.missing[0].reason.startswith("never")
+
+
+def test_summaries_and_claims(tmp_path):
+    # CQL best CTR, subG-CQL a bit lower and lowest ITR, DQL lowest L CTR and highest ITR
+    spec = {
+        "cql": dict(ctr_l=70, ctr_h=90, itr=20, space={"analytic": 2**70, "visited": 10}),
+        "semi_cql": dict(ctr_l=60, ctr_h=80, itr=25, space={"analytic": 400, "visited": 5}),
+        "dql": dict(ctr_l=50, ctr_h=85, itr=30, space={"analytic": 400, "visited": 7}),
+        "subg_cql": dict(ctr_l=65, ctr_h=86, itr=10, space={"analytic": 5000, "visited": 8}),
+    }
+    for learner, kwargs in spec.items():
+        for seed in (0, 1):
+            shift = {"ctr_l": kwargs["ctr_l"] + seed, "ctr_h": kwargs["ctr_h"] + seed}
+            write_run(tmp_path / f"{learner}{seed}", learner, seed, **{**kwargs, **shift})
+    summaries = summarize_runs(collect_runs([tmp_path]).runs)
+    assert list(summaries) == [("system1", n) for n in ("cql", "semi_cql", "dql", "subg_cql")]
+    cql = summaries[("system1", "cql")]
+    assert cql.ctr[("T2", "L")].mean == pytest.approx(71.5)  # (70 + 1 + 71 + 1) / 2
+    assert cql.ctr[("T2", "L")].ci95 == pytest.approx(t_quantile(1) * math.sqrt(0.5) / math.sqrt(2))
+    assert cql.itr["mean"].mean == pytest.approx(20.5) and cql.return_gain.mean == 10.0
+    verdicts = {(r.claim, r.system): r.verdict for r in check_claims(summaries)}
+    for claim in ("h_above_l", "cql_best_ctr", "cql_best_each_type", "subg_ctr_bit_lower",
+                  "dql_lowest_ctr_l", "subg_lowest_itr", "dql_highest_itr", "semi_itr_between",
+                  "space_order", "space_semi_eq_dql"):
+        assert verdicts[(claim, "system1")] == "holds", claim
+    # semi-CQL H (80) is below DQL H (85) and its L above: holds; our capable-robot count is
+    # 2 for T1 and 1 for T2/T3 while CTR grows with the type index: does not hold
+    assert verdicts[("semi_vs_dql_ctr", "system1")] == "holds"
+    assert verdicts[("more_robots_higher_ctr", "system1")] == "does not hold"
+    assert verdicts[("space_system2_larger", "all")] == "not evaluable"
+
+    del summaries[("system1", "dql")]  # a learner missing: comparisons over all four cannot be made
+    verdicts = {(r.claim, r.system): r.verdict for r in check_claims(summaries)}
+    assert verdicts[("cql_best_ctr", "system1")] == "not evaluable"
+    assert verdicts[("subg_ctr_bit_lower", "system1")] == "holds"
+
+
+def test_curves_keep_the_common_prefix(tmp_path):
+    runs = collect_runs([
+        write_run(tmp_path / "a", "cql", 0, curve=[(10, 1.0), (20, 3.0), (30, 5.0)]),
+        write_run(tmp_path / "b", "cql", 1, curve=[(10, 3.0), (20, 5.0)]),
+    ]).runs
+    curve = summarize_curve(runs)
+    assert curve.env_ticks.tolist() == [10, 20] and curve.mean.tolist() == [2.0, 4.0]
+    assert curve.seeds == 2 and curve.high[0] > curve.mean[0] > curve.low[0]
+    assert summarize_curve(collect_runs([write_run(tmp_path / "c", "greedy", 0)]).runs) is None
+
+
+def test_report_keeps_big_learning_spaces_exact(tmp_path):
+    for seed in (0, 1):
+        write_run(tmp_path / "runs" / f"s{seed}", "cql", seed,
+                  space={"analytic": 2**70 + 1, "visited": 3 + seed},
+                  curve=[(10, 1.0 + seed), (20, 2.0)])
+    files = build_report([tmp_path / "runs"])
+    assert files.out_dir == (tmp_path / "runs" / "report").resolve()
+    with files.csvs["learning_space"].open() as handle:
+        rows = {row["key"]: row for row in csv.DictReader(handle)}
+    assert rows["analytic"]["exact"] == str(2**70 + 1) and rows["visited"]["exact"] == ""
+    text = files.report.read_text()
+    assert "1.181e+21" in text and "![System-I learning curves](curve_system1.png)" in text
+    assert set(files.figures) >= {"ctr_system1_L", "ctr_system1_H", "itr_system1",
+                                  "curve_system1", "team_return"}
