@@ -1,0 +1,594 @@
+"""Shared parts of the TorchRL learners: features, Q-networks, masked epsilon-greedy, checkpoints.
+
+The neural learners (``subg_dqn``, ``vdn``, ``qmix``, ``iql``) are built from TorchRL parts on the
+keys of :class:`~mrta_rl.envs.torchrl_env.AuctionTorchRLEnv`: per group ``(group,
+"observation")`` ``[*, n_g, F]`` (:func:`~mrta_rl.envs.observations.local_features`), ``(group,
+"action_mask")`` ``[*, n_g, K + 1]`` and ``(group, "action")`` ``[*, n_g]``, root ``"state"``
+(global features) and root team ``"reward"``. The same modules serve
+
+* the TorchRL training loop (``mrta_rl.runners.torchrl``): :attr:`NeuralLearner.explore_policy`
+  (Q-network -> ``QValueModule`` -> ``EGreedyModule`` with the action mask) runs inside a
+  ``Collector``, and :meth:`NeuralLearner.train_step` optimises the TorchRL loss on replayed
+  batches;
+* the shared evaluation of every learner kind (``runners/evaluate.py``): :meth:`encode` builds the
+  same TensorDict from a core :class:`~mrta_rl.envs.AuctionEnv` and :meth:`act` runs the greedy
+  policy, so a neural run is scored exactly like a tabular one.
+
+Auction prior (documented bias, ``auction_prior`` hyperparameter): the Q-value of the plain
+auction's action -- the lowest-numbered valid bid (spec "Fixed policies", greedy) -- gets a fixed
+bonus ``auction_prior`` added to the network output, and the network's last layer starts at zero.
+An untrained network therefore *is* the greedy auction, and Q-learning only has to learn where
+deviating from it pays (wait for an H task, spread bids over slots). The bonus is part of the
+Q-function in the online and the target network alike, so it is an initialisation, not reward
+shaping: the TD fixed point is unchanged, only the function the net must represent is
+``Q* - prior``. ``auction_prior: 0`` turns it off.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import TensorDictModule, TensorDictSequential
+from torch import nn
+from torchrl.data import Categorical
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+from torchrl.modules import MLP, EGreedyModule, MultiAgentMLP, QValueModule
+from torchrl.objectives import HardUpdate, LossModule, SoftUpdate
+
+from mrta_rl.envs import AuctionEnv, observations
+from mrta_rl.learners.base import Learner
+from mrta_rl.partition import Partition
+from mrta_rl.types import GroupMap
+
+logger = logging.getLogger(__name__)
+
+WEIGHTS_FILE = "weights.pt"  # state_dict of the Q-networks (and mixer), torch.load(weights_only)
+META_FILE = "learner.json"  # group map and sizes, to check a checkpoint fits the run
+JOINT = "joint"  # root sub-TensorDict of joint-action keys: (JOINT, group, leaf), batch [*]
+
+
+# ---------------------------------------------------------------------------------- features
+def observation_td(env: AuctionEnv, group_map: GroupMap, mask: np.ndarray) -> TensorDict:
+    """The TorchRL observation of the env's decision point, as ``AuctionTorchRLEnv`` writes it.
+
+    Args:
+        env: The core env at a decision point (any batch size ``B``).
+        group_map: ``{group: [robot ids]}``.
+        mask: ``[B, m, K + 1]`` bool valid actions (copied, the core reuses its buffer).
+
+    Returns:
+        TensorDict of batch ``[B]``: ``state`` ``[B, G]`` and per group ``observation``
+        ``[B, n_g, F]``, ``action_mask`` ``[B, n_g, K + 1]``.
+    """
+    local = torch.from_numpy(observations.local_features(env))  # [B, m, F]
+    mask_t = torch.from_numpy(np.ascontiguousarray(mask, dtype=bool))  # [B, m, K + 1]
+    B = mask_t.shape[0]
+    out: dict[str, Any] = {"state": torch.from_numpy(observations.global_features(env))}
+    robots = env.system.robots
+    for group, ids in group_map.items():
+        idx = torch.tensor([robots.index(r) for r in ids], dtype=torch.int64)
+        out[group] = TensorDict(
+            observation=local[:, idx], action_mask=mask_t[:, idx].clone(), batch_size=(B, len(idx))
+        )
+    return TensorDict(out, batch_size=(B,))
+
+
+def greedy_bid(mask: torch.Tensor) -> torch.Tensor:
+    """One-hot of the plain auction's action (spec "Fixed policies", greedy).
+
+    Args:
+        mask: ``[*, K + 1]`` bool valid actions.
+
+    Returns:
+        ``[*, K + 1]`` float: 1 at the lowest-numbered valid bid, all zero if only wait is valid.
+    """
+    bids = mask[..., 1:]  # [*, K]
+    first = bids.to(torch.uint8).argmax(-1) + 1  # argmax returns the first maximum
+    onehot = nn.functional.one_hot(first, mask.shape[-1]).to(torch.float32)
+    return onehot * bids.any(-1, keepdim=True)
+
+
+def joint_combine(per_robot: torch.Tensor, op: str) -> torch.Tensor:
+    """Combine per-robot vectors into joint-action vectors (robot 0 = least significant digit).
+
+    The joint action ``j = sum_r a_r (K + 1)^r`` of a group is the tuple of its robots' actions
+    (spec "Observations": the joint action of a group).
+
+    Args:
+        per_robot: ``[*, n_g, A]``.
+        op: ``"and"`` (joint mask = product of the robots' masks) or ``"add"`` (sum of values).
+
+    Returns:
+        ``[*, A^n_g]``.
+    """
+    out = per_robot[..., 0, :]
+    for r in range(1, per_robot.shape[-2]):
+        x = per_robot[..., r, :].unsqueeze(-1)  # [*, A, 1]: digit r, more significant
+        y = out.unsqueeze(-2)  # [*, 1, A^r]
+        out = (x & y if op == "and" else x + y).flatten(-2)
+    return out
+
+
+def joint_decode(joint: torch.Tensor, n_robots: int, n_actions: int) -> torch.Tensor:
+    """Per-robot actions of joint actions (inverse of the :func:`joint_combine` order).
+
+    Args:
+        joint: ``[*]`` int joint actions.
+        n_robots: ``n_g``.
+        n_actions: ``A = K + 1``.
+
+    Returns:
+        ``[*, n_g]`` int64 actions.
+    """
+    places = n_actions ** torch.arange(n_robots, device=joint.device)  # [n_g]
+    return (joint.unsqueeze(-1) // places) % n_actions
+
+
+# ---------------------------------------------------------------------------------- modules
+class PerRobotQ(nn.Module):
+    """Per-robot Q-values ``[*, n_g, A]`` from local features, plus the auction prior.
+
+    A TorchRL :class:`MultiAgentMLP` (decentralised inputs); ``share_params=True`` is one network
+    for all robots, told apart by the robot-id one-hot of the local features (VDN/QMIX custom),
+    ``False`` is one independent network per robot (IQL).
+    """
+
+    def __init__(
+        self,
+        n_features: int,
+        n_robots: int,
+        n_actions: int,
+        *,
+        share_params: bool,
+        hidden: int,
+        depth: int,
+        auction_prior: float,
+        device: torch.device,
+    ) -> None:
+        """Build the MLP (last layer zero, so the untrained Q-values are the prior).
+
+        Args:
+            n_features: ``F``.
+            n_robots: ``n_g``.
+            n_actions: ``K + 1``.
+            share_params: One network for all robots (True) or one each.
+            hidden: Units per hidden layer.
+            depth: Hidden layers.
+            auction_prior: Bonus of the greedy bid (module docstring).
+            device: Parameter device.
+        """
+        super().__init__()
+        self.mlp = MultiAgentMLP(
+            n_features,
+            n_actions,
+            n_robots,
+            centralized=False,
+            share_params=share_params,
+            depth=depth,
+            num_cells=hidden,
+            activation_class=nn.ReLU,
+            device=device,
+        )
+        _zero_last_layer(self.mlp)
+        self.auction_prior = auction_prior
+
+    def forward(self, observation: torch.Tensor, action_mask: torch.Tensor) -> torch.Tensor:
+        """Q-values ``[*, n_g, A]`` of ``observation`` ``[*, n_g, F]``."""
+        return self.mlp(observation) + self.auction_prior * greedy_bid(action_mask)
+
+
+class JointQ(nn.Module):
+    """Joint-action Q-values ``[*, (K + 1)^n_g]`` of one sub-group, from its robots' features."""
+
+    def __init__(
+        self,
+        n_features: int,
+        n_robots: int,
+        n_actions: int,
+        *,
+        hidden: int,
+        depth: int,
+        auction_prior: float,
+        device: torch.device,
+    ) -> None:
+        """Build the MLP (last layer zero) over the concatenated features of the group.
+
+        Args:
+            n_features: ``F`` per robot.
+            n_robots: ``n_g``.
+            n_actions: ``K + 1``.
+            hidden: Units per hidden layer.
+            depth: Hidden layers.
+            auction_prior: Bonus per robot playing its greedy bid (module docstring).
+            device: Parameter device.
+        """
+        super().__init__()
+        self.mlp = MLP(
+            in_features=n_robots * n_features,
+            out_features=n_actions**n_robots,
+            depth=depth,
+            num_cells=hidden,
+            activation_class=nn.ReLU,
+            device=device,
+        )
+        _zero_last_layer(self.mlp)
+        self.auction_prior = auction_prior
+
+    def forward(
+        self, observation: torch.Tensor, action_mask: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Joint Q-values and joint mask ``[*, A^n_g]`` (mask = product of the robots' masks)."""
+        value = self.mlp(observation.flatten(-2))  # [*, A^n_g]
+        prior = joint_combine(greedy_bid(action_mask), "add")  # greedy bids, summed over robots
+        return value + self.auction_prior * prior, joint_combine(action_mask, "and")
+
+
+class JointDecode(nn.Module):
+    """Joint action ``[*]`` -> the robots' actions ``[*, n_g]`` that the env reads."""
+
+    def __init__(self, n_robots: int, n_actions: int) -> None:
+        """Keep the sizes."""
+        super().__init__()
+        self.n_robots, self.n_actions = n_robots, n_actions
+
+    def forward(self, joint: torch.Tensor) -> torch.Tensor:
+        """Decode (see :func:`joint_decode`)."""
+        return joint_decode(joint, self.n_robots, self.n_actions)
+
+
+def _zero_last_layer(module: nn.Module) -> None:
+    """Zero the output layer, so that the initial Q-values are exactly the auction prior."""
+    last = [p for name, p in module.named_parameters() if p.dim() >= 1][-2:]  # weight, bias
+    with torch.no_grad():
+        for p in last:
+            p.zero_()
+
+
+# ---------------------------------------------------------------------------------- learner
+class NeuralLearner(Learner):
+    """Base of the TorchRL learners: policies, masked epsilon-greedy, optimiser, target updates.
+
+    Subclasses set :attr:`group_map` and build, in :meth:`_build`, ``self.networks`` (an
+    ``nn.ModuleDict``, everything that is saved), ``self.policy`` (greedy, writes ``(group,
+    "action")``), ``self.explore_policy`` (with ``EGreedyModule``) and ``self.losses`` (TorchRL
+    loss modules). They may override :meth:`transitions` to add the keys their loss reads.
+    Training runs in ``mrta_rl.runners.torchrl``; :meth:`update` stays the base no-op.
+    """
+
+    kind = "neural"
+
+    def __init__(
+        self,
+        *,
+        env: AuctionEnv,
+        rng: np.random.Generator,
+        partition: Partition | None = None,
+        hidden: int = 128,
+        depth: int = 2,
+        lr: float = 5e-4,
+        gamma: float = 0.95,
+        loss_function: Literal["l2", "smooth_l1"] = "smooth_l1",
+        reward_scale: float = 0.1,
+        auction_prior: float = 1.0,
+        eps_start: float = 0.3,
+        eps_end: float = 0.02,
+        eps_decay_frames: int = 200_000,
+        buffer_size: int = 100_000,
+        batch_size: int = 256,
+        collect_ticks: int = 50,
+        updates_per_collect: int = 25,
+        warmup_frames: int = 2_000,
+        target_update: Literal["soft", "hard"] = "soft",
+        tau: float = 0.01,
+        hard_update_interval: int = 500,
+        max_grad_norm: float = 10.0,
+        device: str = "cpu",
+    ) -> None:
+        """Store the hyperparameters and build the networks (see ``conf/learner/*.yaml``).
+
+        Args:
+            env: The training env (sizes only; never stepped by the learner).
+            rng: Unused by the networks (torch is seeded by the runner); kept per the interface.
+            partition: The subG partition (subG-DQN only).
+            hidden: Units per hidden layer of the Q-networks.
+            depth: Hidden layers of the Q-networks.
+            lr: Adam learning rate.
+            gamma: Discount per tick.
+            loss_function: TD loss, ``"l2"`` or ``"smooth_l1"`` (Huber).
+            reward_scale: Rewards are multiplied by this before the TD target (Q-value scale).
+            auction_prior: Bonus of the greedy bid in Q-units (module docstring); 0 = off.
+            eps_start: Initial exploration rate of ``EGreedyModule``.
+            eps_end: Final exploration rate.
+            eps_decay_frames: Collected frames (copy-ticks) over which epsilon decays linearly.
+            buffer_size: Replay buffer capacity in transitions (copy-ticks).
+            batch_size: Transitions per gradient step.
+            collect_ticks: Ticks per collector batch (frames per batch = ticks x copies).
+            updates_per_collect: Gradient steps after each collector batch.
+            warmup_frames: Frames collected before the first gradient step.
+            target_update: ``"soft"`` (``SoftUpdate``, Polyak ``tau``) or ``"hard"``
+                (``HardUpdate`` every ``hard_update_interval`` gradient steps).
+            tau: Soft update rate.
+            hard_update_interval: Gradient steps between hard target copies.
+            max_grad_norm: Gradient clipping norm.
+            device: ``"cpu"`` or ``"cuda"``; networks and training live there, the env on cpu.
+
+        Raises:
+            ValueError: on an out-of-range hyperparameter or an unavailable device.
+        """
+        super().__init__(env=env, rng=rng, partition=partition)
+        if torch.device(device).type == "cuda" and not torch.cuda.is_available():
+            raise ValueError("device=cuda but CUDA is not available")
+        if not 0.0 <= eps_end <= eps_start <= 1.0:
+            raise ValueError(f"need 0 <= eps_end <= eps_start <= 1, got {eps_end}, {eps_start}")
+        if not 0.0 < gamma < 1.0 or not 0.0 < tau <= 1.0:
+            raise ValueError(f"need gamma in (0, 1) and tau in (0, 1], got {gamma}, {tau}")
+        if min(hidden, depth, batch_size, collect_ticks, buffer_size, eps_decay_frames) < 1:
+            raise ValueError("hidden, depth, batch sizes, ticks and frames must be >= 1")
+        self.device = torch.device(device)
+        self.hp = {
+            "hidden": hidden,
+            "depth": depth,
+            "lr": lr,
+            "gamma": gamma,
+            "loss_function": loss_function,
+            "reward_scale": reward_scale,
+            "auction_prior": auction_prior,
+            "eps_start": eps_start,
+            "eps_end": eps_end,
+            "eps_decay_frames": eps_decay_frames,
+            "buffer_size": buffer_size,
+            "batch_size": batch_size,
+            "collect_ticks": collect_ticks,
+            "updates_per_collect": updates_per_collect,
+            "warmup_frames": warmup_frames,
+            "target_update": target_update,
+            "tau": tau,
+            "hard_update_interval": hard_update_interval,
+            "max_grad_norm": max_grad_norm,
+        }
+        self.n_features = observations.local_feature_size(env)
+        self.state_size = observations.global_feature_size(env)
+        self.group_map: GroupMap = self._group_map()
+        self.networks = nn.ModuleDict()
+        self.losses: dict[str, LossModule] = {}
+        self.egreedy: list[EGreedyModule] = []
+        # network initialisation draws from torch's generator: seed it from the learner's own
+        # generator, in a forked state, so runs are reproducible and torch's global state is
+        # left to the runner
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(int(rng.integers(2**31)))
+            self._build()
+        for loss in self.losses.values():
+            loss.make_value_estimator(gamma=gamma)
+        params = [p for loss in self.losses.values() for p in loss.parameters()]
+        self.optimizer = torch.optim.Adam(params, lr=lr)
+        self.target_updaters = [
+            SoftUpdate(loss, tau=tau)
+            if target_update == "soft"
+            else HardUpdate(loss, value_network_update_interval=hard_update_interval)
+            for loss in self.losses.values()
+        ]
+        self.gradient_steps = 0
+
+    # -------------------------------------------------------------- for subclasses
+    def _group_map(self) -> GroupMap:
+        """TorchRL groups of the learner; default: all robots in one group ``"agents"``."""
+        return {"agents": list(self.env.system.robots)}
+
+    def _build(self) -> None:  # pragma: no cover - abstract in spirit
+        raise NotImplementedError
+
+    def _egreedy(self, n_choices: int, action_key: tuple, mask_key: tuple) -> EGreedyModule:
+        """A masked ``EGreedyModule`` (random actions drawn among valid ones only)."""
+        module = EGreedyModule(
+            Categorical(n_choices),  # unbatched leaf spec, expanded to the action's shape
+            eps_init=self.hp["eps_start"],
+            eps_end=self.hp["eps_end"],
+            annealing_num_steps=self.hp["eps_decay_frames"],
+            action_key=action_key,
+            action_mask_key=mask_key,
+            device=self.device,
+        )
+        self.egreedy.append(module)
+        return module
+
+    def _per_robot_policy(self, group: str, share_params: bool) -> TensorDictSequential:
+        """Per-robot Q-network + ``QValueModule`` (masked argmax) of one group."""
+        qnet = PerRobotQ(
+            self.n_features,
+            len(self.group_map[group]),
+            self.n_actions,
+            share_params=share_params,
+            hidden=self.hp["hidden"],
+            depth=self.hp["depth"],
+            auction_prior=self.hp["auction_prior"],
+            device=self.device,
+        )
+        self.networks[group] = qnet
+        return TensorDictSequential(
+            TensorDictModule(
+                qnet,
+                in_keys=[(group, "observation"), (group, "action_mask")],
+                out_keys=[(group, "action_value")],
+            ),
+            QValueModule(
+                action_space="categorical",
+                action_value_key=(group, "action_value"),
+                action_mask_key=(group, "action_mask"),
+                out_keys=[(group, "action"), (group, "action_value"), (group, "chosen_action_value")],
+            ),
+        )
+
+    # -------------------------------------------------------------- runner hooks
+    @property
+    def epsilon(self) -> float:
+        """Current exploration rate (shown by the progress bar)."""
+        return float(self.egreedy[0].eps) if self.egreedy else 0.0
+
+    def anneal(self, frames: int) -> None:
+        """Advance the epsilon schedules by ``frames`` collected copy-ticks."""
+        for module in self.egreedy:
+            module.step(frames)
+
+    def transitions(self, data: TensorDictBase) -> TensorDictBase:
+        """Collector batch -> replay transitions (flattened; rewards scaled).
+
+        Args:
+            data: ``[B, T]`` collector output.
+
+        Returns:
+            ``[B * T]`` transitions with the keys the loss reads.
+        """
+        data = data.reshape(-1)
+        scale = self.hp["reward_scale"]
+        data.set(("next", "reward"), data.get(("next", "reward")) * scale)
+        for group in self.group_map:
+            for key in ("reward", "group_reward"):
+                data.set(("next", group, key), data.get(("next", group, key)) * scale)
+        return data
+
+    def train_step(self, batch: TensorDictBase) -> dict[str, float]:
+        """One gradient step on a replayed batch, then the target-network update.
+
+        Args:
+            batch: Transitions from :meth:`transitions`, on :attr:`device`.
+
+        Returns:
+            ``{"train/loss": ...}`` (summed over the groups' losses).
+        """
+        total = sum(loss(batch)["loss"] for loss in self.losses.values())
+        self.optimizer.zero_grad(set_to_none=True)
+        total.backward()
+        params = [p for group in self.optimizer.param_groups for p in group["params"]]
+        nn.utils.clip_grad_norm_(params, self.hp["max_grad_norm"])
+        self.optimizer.step()
+        for updater in self.target_updaters:
+            updater.step()
+        self.gradient_steps += 1
+        return {"train/loss": float(total.detach())}
+
+    # -------------------------------------------------------------- Learner interface
+    def encode(self, env: AuctionEnv) -> TensorDict:
+        """Observation TensorDict of the decision point (:func:`observation_td`, copied arrays)."""
+        return observation_td(env, self.group_map, env.action_mask)
+
+    def act(self, view: TensorDict, mask: np.ndarray, *, explore: bool) -> np.ndarray:
+        """Greedy (or epsilon-greedy) actions of the TorchRL policy, valid under ``mask``.
+
+        Args:
+            view: Output of :meth:`encode`.
+            mask: ``[B, m, K + 1]`` bool valid actions (replaces the view's masks).
+            explore: Use ``explore_policy`` (epsilon-greedy) instead of the greedy ``policy``.
+
+        Returns:
+            ``[B, m]`` int64 actions.
+        """
+        td = view.clone()
+        mask_t = torch.from_numpy(np.ascontiguousarray(mask, dtype=bool))
+        robots = self.env.system.robots
+        index = {g: [robots.index(r) for r in ids] for g, ids in self.group_map.items()}
+        for group, idx in index.items():
+            td.set((group, "action_mask"), mask_t[:, idx])
+        td = td.to(self.device)
+        exploration = ExplorationType.RANDOM if explore else ExplorationType.DETERMINISTIC
+        with torch.no_grad(), set_exploration_type(exploration):
+            td = (self.explore_policy if explore else self.policy)(td)
+        actions = np.zeros(mask.shape[:2], np.int64)  # [B, m]
+        for group, idx in index.items():
+            actions[:, idx] = td.get((group, "action")).cpu().numpy()
+        return actions
+
+    def learning_space(self) -> dict[str, int]:
+        """Network size: ``{"parameters": trainable parameter count}`` (no table dimension)."""
+        return {"parameters": sum(p.numel() for p in self.networks.parameters())}
+
+    def save(self, directory: Path) -> None:
+        """Write ``weights.pt`` (a state_dict, loadable with ``weights_only=True``) and meta json.
+
+        Args:
+            directory: Target folder (created if missing).
+        """
+        directory = Path(directory)
+        directory.mkdir(parents=True, exist_ok=True)
+        torch.save(self.networks.state_dict(), directory / WEIGHTS_FILE)
+        meta = {
+            "class": type(self).__name__,
+            "group_map": self.group_map,
+            "gradient_steps": self.gradient_steps,
+            "hyperparameters": self.hp,
+        }
+        (directory / META_FILE).write_text(json.dumps(meta, indent=2) + "\n")
+
+    def load(self, directory: Path) -> None:
+        """Restore the weights written by :meth:`save` (``torch.load(..., weights_only=True)``).
+
+        Args:
+            directory: Folder written by :meth:`save`.
+
+        Raises:
+            ValueError: if the checkpoint's groups differ from this learner's.
+        """
+        directory = Path(directory)
+        meta_path = directory / META_FILE
+        if meta_path.is_file():
+            meta = json.loads(meta_path.read_text())
+            if meta.get("group_map") != self.group_map:
+                raise ValueError(
+                    f"checkpoint groups {meta.get('group_map')} differ from {self.group_map}"
+                )
+        state = torch.load(directory / WEIGHTS_FILE, map_location=self.device, weights_only=True)
+        self.networks.load_state_dict(state)
+
+
+class MixedQLearner(NeuralLearner):
+    """Per-robot Q-network (shared parameters, robot-id input) mixed into a team Q (VDN, QMIX).
+
+    One TorchRL group ``"agents"`` holds every robot; their chosen Q-values are mixed by
+    :meth:`_mixer` and trained on the team reward (spec step 8) with TorchRL's ``QMixerLoss``.
+    Subclasses differ only in the mixer (``vdn.py``: ``VDNMixer``, ``qmix.py``: ``QMixer``).
+    """
+
+    def _mixer(self) -> TensorDictModule:
+        """The mixer: reads ``("agents", "chosen_action_value")`` (and ``"state"``), writes the
+        root ``"chosen_action_value"`` ``[*, 1]``."""
+        raise NotImplementedError
+
+    def _build(self) -> None:
+        from torchrl.objectives.multiagent import QMixerLoss
+
+        group = "agents"
+        self.policy = self._per_robot_policy(group, share_params=True)
+        self.explore_policy = TensorDictSequential(
+            self.policy,
+            self._egreedy(self.n_actions, (group, "action"), (group, "action_mask")),
+        )
+        mixer = self._mixer()
+        self.networks["mixer"] = mixer.module
+        loss = QMixerLoss(
+            self.policy,
+            mixer,
+            loss_function=self.hp["loss_function"],
+            delay_value=True,
+            action_space="categorical",
+        )
+        loss.set_keys(
+            action_value=(group, "action_value"),
+            local_value=(group, "chosen_action_value"),
+            global_value="chosen_action_value",
+            action=(group, "action"),
+            reward="reward",  # team reward (spec step 8)
+            done="done",
+            terminated="terminated",
+        )
+        self.losses[group] = loss
+
+    def transitions(self, data: TensorDictBase) -> TensorDictBase:
+        """Scaled team reward; Q-values are recomputed by the loss, so they are not stored."""
+        data = super().transitions(data)
+        return data.exclude(("agents", "action_value"), ("agents", "chosen_action_value"))

@@ -1,0 +1,52 @@
+"""Independent DQN per robot (IQL, Tan 1993 / Tampuu et al. 2017): the neural counterpart of DQL."""
+
+from __future__ import annotations
+
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictSequential
+from torchrl.objectives import DQNLoss
+
+from mrta_rl.learners.neural.common import NeuralLearner
+
+GROUP = "agents"
+
+
+class IQLLearner(NeuralLearner):
+    """Each robot learns its own Q-network on its local view and its individual reward.
+
+    One TorchRL group holds every robot, but with ``share_params=False`` its ``MultiAgentMLP``
+    holds one independent network per robot (vectorised), so this is ``m`` independent DQNs:
+    TorchRL's ``DQNLoss`` on the per-robot reward ``(agents, "reward")`` (spec step 8) with the
+    episode flags repeated per robot.
+    """
+
+    def _build(self) -> None:
+        self.policy = self._per_robot_policy(GROUP, share_params=False)
+        self.explore_policy = TensorDictSequential(
+            self.policy, self._egreedy(self.n_actions, (GROUP, "action"), (GROUP, "action_mask"))
+        )
+        loss = DQNLoss(
+            self.policy,
+            loss_function=self.hp["loss_function"],
+            delay_value=True,
+            action_space="categorical",
+        )
+        loss.set_keys(
+            action_value=(GROUP, "action_value"),
+            value=(GROUP, "chosen_action_value"),
+            action=(GROUP, "action"),
+            reward=(GROUP, "reward"),  # individual reward of each robot
+            done=(GROUP, "done"),
+            terminated=(GROUP, "terminated"),
+        )
+        self.losses[GROUP] = loss
+
+    def transitions(self, data: TensorDictBase) -> TensorDictBase:
+        """Scaled rewards, root episode flags repeated for every robot (``[N, m, 1]``)."""
+        data = super().transitions(data)
+        n = self.n_robots
+        for key in ("done", "terminated"):
+            for prefix in ((), ("next",)):
+                flag = data.get((*prefix, key))  # [N, 1]
+                data.set((*prefix, GROUP, key), flag.unsqueeze(-2).expand(-1, n, 1).clone())
+        return data.exclude((GROUP, "action_value"), (GROUP, "chosen_action_value"))

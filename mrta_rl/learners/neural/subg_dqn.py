@@ -1,0 +1,104 @@
+"""SubG-DQN: the neural counterpart of subG-CQL (paper §4), one joint-action Q-network per sub-group."""
+
+from __future__ import annotations
+
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModule, TensorDictSequential
+from torchrl.modules import QValueModule
+from torchrl.objectives import DQNLoss
+
+from mrta_rl.learners.neural.common import JOINT, JointDecode, JointQ, NeuralLearner
+from mrta_rl.types import GroupMap
+
+
+class SubGDQNLearner(NeuralLearner):
+    """Centralised DQN inside each subG sub-group ``L_g`` over its joint actions.
+
+    The partition (paper §4) splits the robots into sub-groups ``G1, G2, ...`` with active task
+    sets ``Lambda_i``; these are the TorchRL groups (``partition.group_map()``). Sub-group ``g``
+    has a Q-network from the concatenated local features of its ``m_g`` robots (its sub-group
+    state) to the ``(K + 1)^{m_g}`` joint actions (spec "Observations": the joint action is the
+    tuple of the robots' actions). Invalid joint actions are masked: the joint mask is the
+    product of the robots' masks, applied by ``QValueModule`` (argmax and target max) and by
+    ``EGreedyModule`` (random joint actions among valid ones). Each group is trained with its own
+    TorchRL ``DQNLoss`` on the sub-group reward (spec step 8), as subG-CQL learns one table per
+    sub-group. Joint keys live under the root ``("joint", group)`` (batch ``[*]``).
+    """
+
+    requires_partition = True
+
+    def _group_map(self) -> GroupMap:
+        assert self.partition is not None  # checked by Learner.__init__ (requires_partition)
+        return {g: list(ids) for g, ids in self.partition.group_map().items()}
+
+    def _build(self) -> None:
+        greedy, explore = [], []
+        A = self.n_actions
+        for group, ids in self.group_map.items():
+            n_g = len(ids)
+            qnet = JointQ(
+                self.n_features,
+                n_g,
+                A,
+                hidden=self.hp["hidden"],
+                depth=self.hp["depth"],
+                auction_prior=self.hp["auction_prior"],
+                device=self.device,
+            )
+            self.networks[group] = qnet
+            value = TensorDictSequential(
+                TensorDictModule(
+                    qnet,
+                    in_keys=[(group, "observation"), (group, "action_mask")],
+                    out_keys=[(JOINT, group, "action_value"), (JOINT, group, "action_mask")],
+                ),
+                QValueModule(
+                    action_space="categorical",
+                    action_value_key=(JOINT, group, "action_value"),
+                    action_mask_key=(JOINT, group, "action_mask"),
+                    out_keys=[
+                        (JOINT, group, "action"),
+                        (JOINT, group, "action_value"),
+                        (JOINT, group, "chosen_action_value"),
+                    ],
+                ),
+            )
+            decode = TensorDictModule(
+                JointDecode(n_g, A), in_keys=[(JOINT, group, "action")], out_keys=[(group, "action")]
+            )
+            egreedy = self._egreedy(
+                A**n_g, (JOINT, group, "action"), (JOINT, group, "action_mask")
+            )
+            greedy += [value, decode]
+            explore += [value, egreedy, decode]
+            loss = DQNLoss(
+                value,
+                loss_function=self.hp["loss_function"],
+                delay_value=True,
+                action_space="categorical",
+            )
+            loss.set_keys(
+                action_value=(JOINT, group, "action_value"),
+                value=(JOINT, group, "chosen_action_value"),
+                action=(JOINT, group, "action"),
+                reward=(JOINT, group, "reward"),  # sub-group reward (spec step 8)
+                done=(JOINT, group, "done"),
+                terminated=(JOINT, group, "terminated"),
+            )
+            self.losses[group] = loss
+        self.policy = TensorDictSequential(*greedy)
+        self.explore_policy = TensorDictSequential(*explore)
+
+    def transitions(self, data: TensorDictBase) -> TensorDictBase:
+        """Sub-group reward ``[N, 1]`` and episode flags under ``("joint", group)``; joint values
+        and masks dropped (the loss recomputes them from the robots' masks)."""
+        data = super().transitions(data)
+        drop = []
+        for group in self.group_map:
+            for prefix in ((), ("next",)):
+                for key in ("done", "terminated"):
+                    data.set((*prefix, JOINT, group, key), data.get((*prefix, key)).clone())
+            # every robot of the group carries the same sub-group reward: take robot 0's
+            data.set(("next", JOINT, group, "reward"), data.get(("next", group, "group_reward"))[:, 0])
+            drop += [(JOINT, group, k) for k in ("action_value", "chosen_action_value", "action_mask")]
+        return data.exclude(*drop)
