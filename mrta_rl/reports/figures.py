@@ -78,7 +78,7 @@ def grouped_bars(
     Returns:
         ``path``.
     """
-    fig = Figure(figsize=(max(7.0, 1.0 + 0.35 * len(groups) * len(cells)), 4.6), dpi=DPI)
+    fig = Figure(figsize=(min(14.0, max(7.0, 1.0 + 0.3 * len(groups) * len(cells))), 5.0), dpi=DPI)
     ax = fig.add_subplot()
     x = np.arange(len(groups))
     width = BAR_GROUP_WIDTH / max(len(cells), 1)
