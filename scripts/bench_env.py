@@ -1,6 +1,6 @@
 """Env-ticks per second of the auction env under greedy, for several batch sizes and systems.
 
-Usage: python scripts/bench_env.py [--batch-sizes 1 64 1024 8192] [--seconds 2] [--out bench_env.json]
+Usage: python scripts/bench_env.py [--batch-sizes 1 64 1024 8192] [--seconds 2] [--out FILE]
 """
 
 from __future__ import annotations
@@ -23,10 +23,16 @@ if __name__ == "__main__":
     parser.add_argument("--seconds", type=float, default=2.0, help="least wall time per cell")
     parser.add_argument("--out", default="bench_env.json")
     args = parser.parse_args()
-    systems = [build_system(yaml.safe_load((CONF / f"{name}.yaml").read_text())) for name in ("system1", "system2")]
+    systems = [
+        build_system(yaml.safe_load((CONF / f"{name}.yaml").read_text()))
+        for name in ("system1", "system2")
+    ]
     systems.append(random_system(100, 20, 0.15, seed=0, name="random100"))
     cells = [(s, b) for s in systems for b in args.batch_sizes]
-    results = [bench_env(s, b, min_seconds=args.seconds) for s, b in tqdm(cells, desc="bench_env", unit="cell")]
+    results = [
+        bench_env(s, b, min_seconds=args.seconds)
+        for s, b in tqdm(cells, desc="bench_env", unit="cell")
+    ]
     print(format_table(results))
     Path(args.out).write_text(json.dumps([r.as_dict() for r in results], indent=2))
     print(f"wrote {args.out}")

@@ -1,4 +1,4 @@
-"""Environments: the batched auction dynamics (auction.py) and its TorchRL / PettingZoo / Gymnasium views."""
+"""Environments: the batched auction dynamics (auction.py) and its TorchRL/PettingZoo/Gym views."""
 
 from __future__ import annotations
 

@@ -31,7 +31,8 @@ import numpy as np
 from mrta_rl.envs.params import AuctionParams
 from mrta_rl.systems import RobotSystem
 
-# --- packed task keys: bit 62 low-priority flag | 42-61 due | 20-41 id | 10-19 type | 1-9 duration | 0 round 2
+# --- packed task keys, by bit: 62 low-priority flag | 42-61 due | 20-41 id | 10-19 type
+#     | 1-9 duration | 0 round 2
 _LOW_SHIFT, _DUE_SHIFT, _ID_SHIFT, _TYPE_SHIFT, _DUR_SHIFT = 62, 42, 20, 10, 1
 _DUE_BITS, _ID_BITS, _TYPE_BITS, _DUR_BITS = 20, 22, 10, 9
 _EMPTY = np.int64(np.iinfo(np.int64).max)  # sorts after every task
@@ -102,7 +103,7 @@ def task_duration(keys: np.ndarray) -> np.ndarray:
 
 
 def _first_true_positions(flags: np.ndarray, k: int, buffer: np.ndarray) -> np.ndarray:
-    """Positions of the first ``k`` True places of each row of ``flags`` ``[B, w <= 64]``; 64 = none.
+    """Positions of the first ``k`` True places of each row of ``flags`` ``[B, w<=64]``; 64: none.
 
     Each row becomes one uint64 bitmask, and the lowest set bit is peeled off ``k`` times: a few
     ``[B]`` operations instead of a reduction over a short last axis, which numpy does slowly.
@@ -137,8 +138,14 @@ def _occupied_width(queue: np.ndarray) -> int:
 def poisson_cdf(rate: float) -> np.ndarray:
     """CDF table ``P(N <= k)`` of Poisson(rate), long enough that the tail is below 1e-30."""
     k_max = int(math.ceil(rate + 14.0 * math.sqrt(rate) + 30))
-    log_p = np.array([k * math.log(rate) - rate - math.lgamma(k + 1) if rate > 0 else (0.0 if k == 0 else -np.inf)
-                      for k in range(k_max + 1)])
+    log_p = np.array(
+        [
+            k * math.log(rate) - rate - math.lgamma(k + 1)
+            if rate > 0
+            else (0.0 if k == 0 else -np.inf)
+            for k in range(k_max + 1)
+        ]
+    )
     cdf = np.cumsum(np.exp(log_p))
     cdf[-1] = 1.0 + 1e-9  # the tail beyond k_max (< 1e-30) is folded into the last count
     return cdf
@@ -168,7 +175,7 @@ class EpisodeStats:
 
 
 class StepResult:
-    """What one tick returns: ``team_reward`` ``[B]``, ``robot_reward`` ``[B, m]``, ``done`` ``[B]``.
+    """One tick's outcome: ``team_reward`` ``[B]``, ``robot_reward`` ``[B, m]``, ``done`` ``[B]``.
 
     Individual rewards (spec step 8) are computed on first access: learners that use only the
     team reward never pay for sharing drop penalties among robots.
@@ -183,7 +190,7 @@ class StepResult:
 
     @property
     def robot_reward(self) -> np.ndarray:
-        """``[B, m]``: the assign reward a robot won minus its share of each dropped task's penalty."""
+        """``[B, m]``: the assign reward a robot won minus its shares of drop penalties."""
         if self._robot_reward is None:
             self._robot_reward = self._assign - self._type_penalty @ self._share
         return self._robot_reward
@@ -203,10 +210,10 @@ class AuctionEnv:
 
     Observation Space:
         Raw state arrays (:attr:`slot_type`, :attr:`slot_high`, :attr:`idle`, :attr:`battery`,
-        :attr:`last_high_arrival`, :attr:`t`); learners encode them with ``mrta_rl.envs.observations``.
+        :attr:`last_high_arrival`, :attr:`t`); ``mrta_rl.envs.observations`` encodes them.
 
     Reward:
-        Team reward ``[B]`` and individual rewards ``[B, m]`` per spec step 8; they sum to the team's.
+        Team reward ``[B]`` and individual rewards ``[B, m]`` (spec step 8); they sum to the team's.
 
     Episode End:
         Truncation after ``horizon`` ticks; call :meth:`reset` (all or some copies) to restart.
@@ -215,7 +222,7 @@ class AuctionEnv:
         system: The robot team.
         params: Dynamics parameters (default: spec defaults plus the system file's ``env:`` block).
         batch_size: Number of copies ``B``.
-        active_tasks: ``[m, n]`` bool ``Lambda_i`` (default ``Gamma_i``); a subG partition removes types.
+        active_tasks: ``[m, n]`` bool ``Lambda_i`` (default ``Gamma_i``); subG-CQL removes types.
         seed: Copy ``b`` is seeded with ``seed + b``.
     """
 
@@ -230,9 +237,15 @@ class AuctionEnv:
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
         self.system = system
-        self.params = (params or AuctionParams.merged(system.env_overrides)).resolve(system.n_robots)
+        self.params = (params or AuctionParams.merged(system.env_overrides)).resolve(
+            system.n_robots
+        )
         p = self.params
-        self.batch_size, self.n_robots, self.n_task_types = batch_size, system.n_robots, system.n_task_types
+        self.batch_size, self.n_robots, self.n_task_types = (
+            batch_size,
+            system.n_robots,
+            system.n_task_types,
+        )
         self.n_slots = p.slots  # K
         self.n_actions = p.slots + 1  # wait + one bid per slot
         capable = system.willingness > 0
@@ -240,7 +253,9 @@ class AuctionEnv:
         if active.shape != capable.shape:
             raise ValueError(f"active_tasks has shape {active.shape}, expected {capable.shape}")
         for i, j in zip(*np.nonzero(active & ~capable), strict=True):
-            raise ValueError(f"active_tasks: robot {system.robots[i]} cannot do {system.task_types[j]}")
+            raise ValueError(
+                f"active_tasks: robot {system.robots[i]} cannot do {system.task_types[j]}"
+            )
         for j in np.flatnonzero(~active.any(axis=0)):
             raise ValueError(f"active_tasks: task type {system.task_types[j]} has no robot left")
         self.active_tasks = active  # Lambda_i, [m, n]
@@ -254,13 +269,20 @@ class AuctionEnv:
                 rng = system.durations.get(name, {}).get(key)
                 lo, hi = (rng.lo, rng.hi) if rng is not None else getattr(p, key)
                 self._dur_lo[j, prio], self._dur_span[j, prio] = lo, hi - lo + 1
-        self._dur_lo, self._dur_span = self._dur_lo.reshape(-1), self._dur_span.reshape(-1)  # index 2 * type + high
+        self._dur_lo, self._dur_span = (
+            self._dur_lo.reshape(-1),
+            self._dur_span.reshape(-1),
+        )  # index 2 * type + high
         self._assign_reward = np.array([p.reward_assign_low, p.reward_assign_high])
         self._drop_penalty = np.array([p.penalty_drop_low, p.penalty_drop_high])
         # spec step 8: a dropped task's penalty is shared by the robots whose Lambda holds its type
-        self._penalty_share = np.vstack([(active / active.sum(axis=0)).T, np.zeros(self.n_robots)])  # [n+1, m]
+        self._penalty_share = np.vstack(
+            [(active / active.sum(axis=0)).T, np.zeros(self.n_robots)]
+        )  # [n+1, m]
         # lookup tables by slot type; the extra last row answers type -1, an empty slot
-        self._willingness_by_type = np.vstack([system.willingness.T, np.zeros(self.n_robots)])  # [n+1, m]
+        self._willingness_by_type = np.vstack(
+            [system.willingness.T, np.zeros(self.n_robots)]
+        )  # [n+1, m]
         self._uniform_willingness = np.ptp(system.willingness[capable]) == 0
         self._can_do_by_type = np.vstack([active.T, np.zeros(self.n_robots, bool)])  # [n+1, m]
         self._poisson_cdf = poisson_cdf(p.arrival_rate)
@@ -272,17 +294,24 @@ class AuctionEnv:
         self.t = np.zeros(B, np.int64)  # current tick per copy
         self._queue = np.full((B, Q + 1), _EMPTY)  # column Q is scratch, always empty
         self._queue_width = 0  # no copy holds more than this many tasks
-        self._queue_row_offsets = np.arange(B)[:, None] * (Q + 1)  # flat index of each row's first place
+        self._queue_row_offsets = np.arange(B)[:, None] * (
+            Q + 1
+        )  # flat index of each row's first place
         self._next_id = np.zeros(B, np.int64)
         self.busy_until = np.full((B, m), -1, np.int64)
         self.battery = np.full((B, m), float(p.battery_capacity))
-        self.last_high_arrival = np.full((B, n), -(1 << 30), np.int64)  # tick of the last H arrival per type
+        self.last_high_arrival = np.full(
+            (B, n), -(1 << 30), np.int64
+        )  # tick of the last H arrival per type
         self.done = np.zeros(B, bool)
         self._pending_team = np.zeros(B)  # overflow penalties of the current tick (spec step 2)
         self._pending_type_penalty = np.zeros((B, n))  # [B, n], shared among robots lazily
         self.stats = EpisodeStats(
-            np.zeros((B, n, 2), np.int64), np.zeros((B, n, 2), np.int64),
-            np.zeros((B, m), np.int64), np.zeros(B), np.zeros(B, np.int64),
+            np.zeros((B, n, 2), np.int64),
+            np.zeros((B, n, 2), np.int64),
+            np.zeros((B, m), np.int64),
+            np.zeros(B),
+            np.zeros(B, np.int64),
         )
         self._slot_pos = np.full((B, K), Q, np.int64)
         self._slot_numbers = np.arange(1, K + 1)[None, :, None]  # [1, K, 1]
@@ -290,7 +319,9 @@ class AuctionEnv:
         self._action_row_offsets = np.arange(B)[:, None] * (K + 1)  # flat (copy, action) index
         # valid actions are stored action-major, [B, K + 1, m], so per-action slices are contiguous
         self._mask_by_action = np.ones((B, K + 1, m), bool)
-        self._mask_offsets = np.arange(B)[:, None] * ((K + 1) * m) + np.arange(m)  # flat index of (b, 0, i)
+        self._mask_offsets = np.arange(B)[:, None] * ((K + 1) * m) + np.arange(
+            m
+        )  # flat index of (b, 0, i)
         self.seed(seed)
         self.reset()
 
@@ -299,8 +330,14 @@ class AuctionEnv:
         limits = {
             "horizon + reauction_delay": (p.horizon + p.reauction_delay, 1 << _DUE_BITS),
             "number of task types": (self.n_task_types, 1 << _TYPE_BITS),
-            "longest duration": (max(p.duration_low[1], p.duration_high[1],
-                                     *(r.hi for d in self.system.durations.values() for r in d.values())), 1 << _DUR_BITS),
+            "longest duration": (
+                max(
+                    p.duration_low[1],
+                    p.duration_high[1],
+                    *(r.hi for d in self.system.durations.values() for r in d.values()),
+                ),
+                1 << _DUR_BITS,
+            ),
             "expected tasks per episode x 4": (4 * p.arrival_rate * p.horizon, 1 << _ID_BITS),
             "slots + 1 (actions fit in int8)": (p.slots + 1, 128),
         }
@@ -310,12 +347,14 @@ class AuctionEnv:
 
     # ------------------------------------------------------------------ seeding and reset
     def seed(self, seed: int | np.ndarray) -> None:
-        """Seed the copies: an int gives copy ``b`` the seed ``seed + b``; an array sets each copy's."""
+        """Seed the copies: an int gives copy ``b`` the seed ``seed + b``; or one per copy."""
         seeds = np.asarray(seed, dtype=np.int64)
         if seeds.ndim == 0:
             seeds = seeds + np.arange(self.batch_size)
         if seeds.shape != (self.batch_size,):
-            raise ValueError(f"expected one seed or {self.batch_size} seeds, got shape {seeds.shape}")
+            raise ValueError(
+                f"expected one seed or {self.batch_size} seeds, got shape {seeds.shape}"
+            )
         self._seeds = mix64(seeds.astype(np.uint64) + _GOLDEN)
         self._episode[:] = 0
 
@@ -339,8 +378,13 @@ class AuctionEnv:
         self.battery[rows] = self.params.battery_capacity
         self.last_high_arrival[rows] = -(1 << 30)
         self.done[rows] = False
-        for counter in (self.stats.assigned, self.stats.dropped, self.stats.busy_ticks,
-                        self.stats.team_return, self.stats.ticks):
+        for counter in (
+            self.stats.assigned,
+            self.stats.dropped,
+            self.stats.busy_ticks,
+            self.stats.team_return,
+            self.stats.ticks,
+        ):
             counter[rows] = 0
         self._pending_team[rows] = 0.0
         self._pending_type_penalty[rows] = 0.0
@@ -366,10 +410,14 @@ class AuctionEnv:
             k = np.arange(1, width + 1, dtype=np.uint64)
             h_prio = mix64(tick_key[:, None] + k * _GOLDEN)  # [B, W]
             h_kind = mix64(h_prio ^ _M2)  # [B, W]: type in the high 32 bits, duration in the low 32
-            high = (unit_float(h_prio) < p.p_high).astype(np.int64)  # priority H with probability p_high
+            high = (unit_float(h_prio) < p.p_high).astype(
+                np.int64
+            )  # priority H with probability p_high
             ttype = bounded_int(h_kind >> _S32, self.n_task_types)  # type uniform over all n types
             kind = 2 * ttype + high
-            duration = self._dur_lo[kind] + bounded_int(h_kind, self._dur_span[kind])  # uniform, ends included
+            duration = self._dur_lo[kind] + bounded_int(
+                h_kind, self._dur_span[kind]
+            )  # uniform, ends included
             arrived = np.arange(width) < n_new[:, None]  # [B, W]
             ids = self._next_id[:, None] + np.arange(width)
             new = np.where(arrived, pack_tasks(high, t[:, None], ids, ttype, duration, 0), _EMPTY)
@@ -413,7 +461,9 @@ class AuctionEnv:
         self.idle = self.t[:, None] > self.busy_until  # spec step 4, [B, m]
         # spec step 4: a bid for slot k is valid if the robot is idle and may do the slot's type
         can_do = self._can_do_by_type[self.slot_type]  # [B, K, m]; row -1 (empty slot) is all False
-        mask = np.empty((self.batch_size, self.n_actions, self.n_robots), bool)  # fresh: callers may keep the last one
+        mask = np.empty(
+            (self.batch_size, self.n_actions, self.n_robots), bool
+        )  # fresh: callers may keep the last one
         mask[:, 0] = True  # waiting is always valid
         np.logical_and(can_do, self.idle[:, None, :], out=mask[:, 1:, :])
         self._mask_by_action = mask
@@ -442,11 +492,15 @@ class AuctionEnv:
         # spec step 5: each robot bids for at most one slot, so all slots are settled at once.
         # Per slot, the highest willingness wins; argmax takes the first maximum, so ties go to the
         # lowest robot index.
-        bid_counts = np.bincount((actions + self._action_row_offsets).ravel(), minlength=self.batch_size * self.n_actions)
+        bid_counts = np.bincount(
+            (actions + self._action_row_offsets).ravel(), minlength=self.batch_size * self.n_actions
+        )
         assigned = bid_counts.reshape(self.batch_size, self.n_actions)[:, 1:] > 0  # [B, K]
         b, k = np.nonzero(assigned)
         if len(b):
-            bids = actions.astype(np.int8)[b] == (k + 1)[:, None]  # [P, m] bidders of each auctioned slot
+            bids = (
+                actions.astype(np.int8)[b] == (k + 1)[:, None]
+            )  # [P, m] bidders of each auctioned slot
             if self._uniform_willingness:  # all d equal: the lowest-index bidder wins
                 w = bids.argmax(axis=1)
             else:
@@ -462,12 +516,18 @@ class AuctionEnv:
             robot[b, w] += reward
             np.add.at(team, b, reward)
             np.add.at(self.stats.assigned, (b, slot_type[b, k], high), 1)
-        # spec step 6: unassigned slot tasks go to round 2 (due t + delay) or, in round 2, are dropped
+        # spec step 6: unassigned slot tasks go to round 2 (due t + delay); in round 2, are dropped
         unassigned = (keys != _EMPTY) & ~assigned
         round2 = (keys & 1) == 1
         reauction = unassigned & ~round2
-        rekeyed = (keys & ~(((1 << _DUE_BITS) - 1) << _DUE_SHIFT)) | ((t[:, None] + p.reauction_delay) << _DUE_SHIFT) | 1
-        self._queue.reshape(-1)[self._slot_pos + self._queue_row_offsets] = np.where(reauction, rekeyed, _EMPTY)
+        rekeyed = (
+            (keys & ~(((1 << _DUE_BITS) - 1) << _DUE_SHIFT))
+            | ((t[:, None] + p.reauction_delay) << _DUE_SHIFT)
+            | 1
+        )
+        self._queue.reshape(-1)[self._slot_pos + self._queue_row_offsets] = np.where(
+            reauction, rekeyed, _EMPTY
+        )
         dropped = unassigned & round2
         if dropped.any():
             b, k = np.nonzero(dropped)
@@ -487,9 +547,14 @@ class AuctionEnv:
 
     def _validate(self, actions: np.ndarray) -> None:
         if actions.shape != (self.batch_size, self.n_robots):
-            raise ValueError(f"actions must have shape (B, m) = {(self.batch_size, self.n_robots)}, got {actions.shape}")
+            raise ValueError(
+                f"actions must have shape (B, m) = {(self.batch_size, self.n_robots)}, "
+                f"got {actions.shape}"
+            )
         if self.done.any():
-            raise ValueError(f"copy {int(np.flatnonzero(self.done)[0])} has finished its episode; reset it first")
+            raise ValueError(
+                f"copy {int(np.flatnonzero(self.done)[0])} has finished its episode; reset it first"
+            )
         in_range = (actions >= 0) & (actions < self.n_actions)
         flat = self._mask_offsets + np.where(in_range, actions, 0) * self.n_robots
         valid = in_range & self._mask_by_action.reshape(-1)[flat]
@@ -504,10 +569,12 @@ class AuctionEnv:
                 why = f"slot {a} is empty"
             else:
                 why = f"{robot} may not do {self.system.task_types[self.slot_type[b, a - 1]]}"
-            raise ValueError(f"invalid action {a} for robot {robot} in copy {b} at tick {self.t[b]}: {why}")
+            raise ValueError(
+                f"invalid action {a} for robot {robot} in copy {b} at tick {self.t[b]}: {why}"
+            )
 
     def _drop(self, keys: np.ndarray) -> np.ndarray:
-        """Count dropped tasks (``keys`` ``[B, W]``, ``_EMPTY`` = none); return their penalties by type ``[B, n]``."""
+        """Count dropped tasks (``keys`` ``[B, W]``, ``_EMPTY``: none); penalties ``[B, n]``."""
         b, k = np.nonzero(keys != _EMPTY)
         dropped_keys = keys[b, k]
         ttype, high = task_type(dropped_keys), task_high(dropped_keys)
@@ -531,8 +598,14 @@ class AuctionEnv:
         """The queue of one copy, decoded, in queue order (for tests and debugging)."""
         keys = np.sort(self._queue[copy][self._queue[copy] != _EMPTY])
         return [
-            {"type": int(task_type(x)), "high": int(task_high(x)), "due": int(task_due(x)),
-             "id": int(_field(x, _ID_SHIFT, _ID_BITS)), "duration": int(task_duration(x)), "round": int(x & 1) + 1}
+            {
+                "type": int(task_type(x)),
+                "high": int(task_high(x)),
+                "due": int(task_due(x)),
+                "id": int(_field(x, _ID_SHIFT, _ID_BITS)),
+                "duration": int(task_duration(x)),
+                "round": int(x & 1) + 1,
+            }
             for x in keys
         ]
 
@@ -541,12 +614,19 @@ class AuctionEnv:
 
         Args:
             copy: Copy index.
-            tasks: Dicts with ``type`` (0-based), ``high`` (0/1), ``due``, ``id``, ``duration``, ``round`` (1/2).
+            tasks: Dicts with ``type`` (0-based), ``high`` (0/1), ``due``, ``id``, ``duration``,
+                ``round`` (1/2).
         """
         if len(tasks) > self.params.queue_capacity:
             raise ValueError("more tasks than queue_capacity")
-        keys = np.sort([pack_tasks(x["high"], x["due"], x["id"], x["type"], x["duration"], x.get("round", 1) - 1)
-                        for x in tasks]).astype(np.int64)
+        keys = np.sort(
+            [
+                pack_tasks(
+                    x["high"], x["due"], x["id"], x["type"], x["duration"], x.get("round", 1) - 1
+                )
+                for x in tasks
+            ]
+        ).astype(np.int64)
         self._queue[copy] = _EMPTY
         self._queue[copy, : len(keys)] = keys
         self._queue_width = max(self._queue_width, len(keys))

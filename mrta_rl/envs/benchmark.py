@@ -33,7 +33,9 @@ class BenchResult:
         return asdict(self)
 
 
-def bench_env(system: RobotSystem, batch_size: int, min_seconds: float = 1.0, min_ticks: int = 50) -> BenchResult:
+def bench_env(
+    system: RobotSystem, batch_size: int, min_seconds: float = 1.0, min_ticks: int = 50
+) -> BenchResult:
     """Step ``batch_size`` copies under greedy until ``min_seconds`` and ``min_ticks`` have passed.
 
     Episodes restart as they end (the horizon is the spec default), so long runs include resets.
@@ -47,7 +49,9 @@ def bench_env(system: RobotSystem, batch_size: int, min_seconds: float = 1.0, mi
     Returns:
         The measured cell.
     """
-    env = AuctionEnv(system, AuctionParams.merged(system.env_overrides), batch_size=batch_size, seed=0)
+    env = AuctionEnv(
+        system, AuctionParams.merged(system.env_overrides), batch_size=batch_size, seed=0
+    )
     for _ in range(5):  # warm-up: first allocations, caches
         env.step(lowest_valid_bid(env.action_mask[:, :, 1:]))
     ticks, start = 0, time.perf_counter()
@@ -57,7 +61,9 @@ def bench_env(system: RobotSystem, batch_size: int, min_seconds: float = 1.0, mi
         if env.done.any():
             env.reset()
     wall = time.perf_counter() - start
-    return BenchResult(system.name, system.n_robots, batch_size, ticks, wall, batch_size * ticks / wall)
+    return BenchResult(
+        system.name, system.n_robots, batch_size, ticks, wall, batch_size * ticks / wall
+    )
 
 
 def format_table(results: list[BenchResult]) -> str:
@@ -65,9 +71,15 @@ def format_table(results: list[BenchResult]) -> str:
     sizes = sorted({r.batch_size for r in results})
     systems = list(dict.fromkeys((r.system, r.n_robots) for r in results))
     cells = {(r.system, r.batch_size): r.ticks_per_s for r in results}
-    lines = ["| system (robots) | " + " | ".join(f"B={b}" for b in sizes) + " | best |",
-             "| --- | " + " | ".join("---:" for _ in sizes) + " | ---: |"]
+    lines = [
+        "| system (robots) | " + " | ".join(f"B={b}" for b in sizes) + " | best |",
+        "| --- | " + " | ".join("---:" for _ in sizes) + " | ---: |",
+    ]
     for name, m in systems:
         row = [cells.get((name, b), np.nan) for b in sizes]
-        lines.append(f"| {name} ({m}) | " + " | ".join(f"{x:,.0f}" for x in row) + f" | {np.nanmax(row):,.0f} |")
+        lines.append(
+            f"| {name} ({m}) | "
+            + " | ".join(f"{x:,.0f}" for x in row)
+            + f" | {np.nanmax(row):,.0f} |"
+        )
     return "\n".join(lines)

@@ -1,4 +1,4 @@
-"""AuctionParams: every parameter of the auction dynamics, with the spec's defaults (auction_env.md)."""
+"""AuctionParams: every parameter of the auction dynamics, with the spec's defaults."""
 
 from __future__ import annotations
 
@@ -45,12 +45,17 @@ class AuctionParams:
             "battery_capacity": self.battery_capacity > 0,
             "drain_per_tick": self.drain_per_tick >= 0,
             "charge_ticks": self.charge_ticks >= 0,
-            "duration_low": len(self.duration_low) == 2 and 1 <= self.duration_low[0] <= self.duration_low[1],
-            "duration_high": len(self.duration_high) == 2 and 1 <= self.duration_high[0] <= self.duration_high[1],
+            "duration_low": len(self.duration_low) == 2
+            and 1 <= self.duration_low[0] <= self.duration_low[1],
+            "duration_high": len(self.duration_high) == 2
+            and 1 <= self.duration_high[0] <= self.duration_high[1],
         }
         bad = [name for name, ok in checks.items() if not ok]
         if bad:
-            raise ValueError(f"AuctionParams: invalid value for {bad}: " + ", ".join(f"{b}={getattr(self, b)!r}" for b in bad))
+            raise ValueError(
+                f"AuctionParams: invalid value for {bad}: "
+                + ", ".join(f"{b}={getattr(self, b)!r}" for b in bad)
+            )
 
     def resolve(self, n_robots: int) -> AuctionParams:
         """Fill the defaults that depend on the system (arrival_rate = m / 6)."""
@@ -73,7 +78,9 @@ class AuctionParams:
         for layer in layers:
             for key, value in dict(layer or {}).items():
                 if key not in names:
-                    raise ValueError(f"unknown environment parameter {key!r}; known: {sorted(names)}")
+                    raise ValueError(
+                        f"unknown environment parameter {key!r}; known: {sorted(names)}"
+                    )
                 if value is not None:
                     values[key] = tuple(value) if key.startswith("duration_") else value
         return cls(**values)

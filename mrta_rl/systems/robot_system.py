@@ -1,4 +1,4 @@
-"""RobotSystem: robots R_i, task types T_j, task sets Gamma_i and willingness d_ij (paper §4, eqs 5-6).
+"""RobotSystem: robots R_i, task types T_j, task sets Gamma_i, willingness d_ij (paper §4, eqs 5-6).
 
 A system file (``conf/system/*.yaml``) is plain data::
 
@@ -43,8 +43,13 @@ class DurationRange:
     hi: int
 
     def __post_init__(self) -> None:
-        if not (isinstance(self.lo, int) and isinstance(self.hi, int)) or not 1 <= self.lo <= self.hi:
-            raise SystemConfigError(f"duration range must be integers 1 <= lo <= hi, got [{self.lo}, {self.hi}]")
+        if (
+            not (isinstance(self.lo, int) and isinstance(self.hi, int))
+            or not 1 <= self.lo <= self.hi
+        ):
+            raise SystemConfigError(
+                f"duration range must be integers 1 <= lo <= hi, got [{self.lo}, {self.hi}]"
+            )
 
 
 @dataclass(frozen=True, eq=False)
@@ -55,7 +60,7 @@ class RobotSystem:
         name: System name (``system1``...).
         robots: Robot ids in order, ``("R1", ...)``; robot index ``i`` is position in this tuple.
         task_types: Task type ids ``("T1", ..., "Tn")`` in numeric order.
-        willingness: ``[m, n]`` float array, ``d_ij`` in (0, 1] where ``R_i`` can do ``T_j``, else 0.
+        willingness: ``[m, n]`` floats, ``d_ij`` in (0, 1] where ``R_i`` can do ``T_j``, else 0.
         durations: Per task type overrides ``{"T2": {"duration_low": DurationRange, ...}}``.
         env_overrides: Per-system environment parameters (see ``AuctionParams``).
     """
@@ -71,7 +76,8 @@ class RobotSystem:
         d = np.asarray(self.willingness, dtype=np.float64)
         if d.shape != (len(self.robots), len(self.task_types)):
             raise SystemConfigError(
-                f"willingness has shape {d.shape}, expected ({len(self.robots)}, {len(self.task_types)})"
+                f"willingness has shape {d.shape}, "
+                f"expected ({len(self.robots)}, {len(self.task_types)})"
             )
         if len(set(self.robots)) != len(self.robots):
             raise SystemConfigError(f"system {self.name!r}: duplicate robot id in {self.robots}")
@@ -85,10 +91,12 @@ class RobotSystem:
                 raise SystemConfigError(f"robot {robot} has no task type")
         for j, task in enumerate(self.task_types):
             if task != f"T{j + 1}":
-                raise SystemConfigError(f"task types must be T1..Tn in order, got {task!r} at {j + 1}")
+                raise SystemConfigError(
+                    f"task types must be T1..Tn in order, got {task!r} at {j + 1}"
+                )
             if not (d[:, j] > 0).any():
                 raise SystemConfigError(f"task type {task}: no robot can do it")
-        for task, ranges in self.durations.items():
+        for task in self.durations:
             if task not in self.task_types:
                 raise SystemConfigError(f"task type {task!r} in task_types is unknown")
         d.setflags(write=False)
@@ -114,7 +122,11 @@ class RobotSystem:
     def task_set(self, robot: RobotId) -> dict[TaskType, float]:
         """Gamma_i of one robot: ``{task type: willingness d_iz}`` (paper eq. 5)."""
         i = self.robots.index(robot)
-        return {t: float(self.willingness[i, j]) for j, t in enumerate(self.task_types) if self.willingness[i, j] > 0}
+        return {
+            t: float(self.willingness[i, j])
+            for j, t in enumerate(self.task_types)
+            if self.willingness[i, j] > 0
+        }
 
     @classmethod
     def from_table(
@@ -139,7 +151,9 @@ class RobotSystem:
             SystemConfigError: naming the robot or task type at fault.
         """
         if not isinstance(robots, Mapping) or not robots:
-            raise SystemConfigError(f"system {name!r}: 'robots' must be a non-empty mapping robot -> task types")
+            raise SystemConfigError(
+                f"system {name!r}: 'robots' must be a non-empty mapping robot -> task types"
+            )
         entries: dict[str, dict[str, float]] = {}
         for robot, spec in robots.items():
             robot = str(robot)
@@ -149,21 +163,39 @@ class RobotSystem:
                 raise SystemConfigError(f"robot {robot} has no task type")
             if isinstance(spec, Mapping):
                 pairs = {str(k): v for k, v in spec.items()}
-            elif isinstance(spec, (list, tuple)) or hasattr(spec, "__iter__") and not isinstance(spec, str):
+            elif (
+                isinstance(spec, (list, tuple))
+                or hasattr(spec, "__iter__")
+                and not isinstance(spec, str)
+            ):
                 pairs = {str(k): 1.0 for k in spec}
             else:
-                raise SystemConfigError(f"robot {robot}: expected a list of task types or a mapping, got {spec!r}")
+                raise SystemConfigError(
+                    f"robot {robot}: expected a list of task types or a mapping, got {spec!r}"
+                )
             for task, d in pairs.items():
                 if not _TASK_RE.match(task):
-                    raise SystemConfigError(f"robot {robot}: unknown task type name {task!r} (expected T1, T2, ...)")
-                if isinstance(d, bool) or not isinstance(d, (int, float)) or not 0.0 < float(d) <= 1.0:
-                    raise SystemConfigError(f"robot {robot}: willingness {d!r} for {task} is outside (0, 1]")
+                    raise SystemConfigError(
+                        f"robot {robot}: unknown task type name {task!r} (expected T1, T2, ...)"
+                    )
+                if (
+                    isinstance(d, bool)
+                    or not isinstance(d, (int, float))
+                    or not 0.0 < float(d) <= 1.0
+                ):
+                    raise SystemConfigError(
+                        f"robot {robot}: willingness {d!r} for {task} is outside (0, 1]"
+                    )
             entries[robot] = {t: float(d) for t, d in pairs.items()}
         durations_cfg = dict(task_types or {})
         for task in durations_cfg:
             if not _TASK_RE.match(str(task)):
-                raise SystemConfigError(f"task_types: unknown task type name {task!r} (expected T1, T2, ...)")
-        numbers = {int(t[1:]) for pairs in entries.values() for t in pairs} | {int(str(t)[1:]) for t in durations_cfg}
+                raise SystemConfigError(
+                    f"task_types: unknown task type name {task!r} (expected T1, T2, ...)"
+                )
+        numbers = {int(t[1:]) for pairs in entries.values() for t in pairs} | {
+            int(str(t)[1:]) for t in durations_cfg
+        }
         names = tuple(f"T{k}" for k in range(1, max(numbers) + 1))
         capable = {t for pairs in entries.values() for t in pairs}
         for task in names:
@@ -179,21 +211,32 @@ class RobotSystem:
 
 def _parse_durations(task: str, spec: Any) -> dict[str, DurationRange]:
     if not isinstance(spec, Mapping):
-        raise SystemConfigError(f"task type {task}: expected {{duration_low: [lo, hi], duration_high: [lo, hi]}}")
+        raise SystemConfigError(
+            f"task type {task}: expected {{duration_low: [lo, hi], duration_high: [lo, hi]}}"
+        )
     out = {}
     for key, value in spec.items():
         if key not in _DURATION_KEYS:
-            raise SystemConfigError(f"task type {task}: unknown key {key!r} (allowed: {_DURATION_KEYS})")
+            raise SystemConfigError(
+                f"task type {task}: unknown key {key!r} (allowed: {_DURATION_KEYS})"
+            )
         try:
             lo, hi = value
             out[key] = DurationRange(lo, hi)
         except (TypeError, ValueError, SystemConfigError) as err:
-            raise SystemConfigError(f"task type {task}: {key} must be [lo, hi] integers, got {value!r}") from err
+            raise SystemConfigError(
+                f"task type {task}: {key} must be [lo, hi] integers, got {value!r}"
+            ) from err
     return out
 
 
 def random_system(
-    n_robots: int, n_task_types: int, density: float, seed: int, name: str = "random", env: Mapping[str, Any] | None = None
+    n_robots: int,
+    n_task_types: int,
+    density: float,
+    seed: int,
+    name: str = "random",
+    env: Mapping[str, Any] | None = None,
 ) -> RobotSystem:
     """A reproducible random team for scaling studies (willingness 1.0).
 
@@ -216,7 +259,10 @@ def random_system(
         SystemConfigError: on arguments out of range.
     """
     if n_robots < 1 or n_task_types < 1:
-        raise SystemConfigError(f"random system needs n_robots >= 1 and n_task_types >= 1, got {n_robots}, {n_task_types}")
+        raise SystemConfigError(
+            "random system needs n_robots >= 1 and n_task_types >= 1, "
+            f"got {n_robots}, {n_task_types}"
+        )
     if not 0.0 <= density <= 1.0:
         raise SystemConfigError(f"random system: density {density} is outside [0, 1]")
     rng = np.random.default_rng(seed)
@@ -251,14 +297,24 @@ def build_system(cfg: Mapping[str, Any]) -> RobotSystem:
     if "robots" in cfg:
         unknown = set(cfg) - _TABLE_KEYS
         if unknown:
-            raise SystemConfigError(f"system {name!r}: unknown keys {sorted(unknown)} (allowed: {sorted(_TABLE_KEYS)})")
+            raise SystemConfigError(
+                f"system {name!r}: unknown keys {sorted(unknown)} (allowed: {sorted(_TABLE_KEYS)})"
+            )
         return RobotSystem.from_table(name, cfg["robots"], cfg.get("task_types"), cfg.get("env"))
     if "n_robots" in cfg:
         unknown = set(cfg) - _RANDOM_KEYS
         if unknown:
-            raise SystemConfigError(f"system {name!r}: unknown keys {sorted(unknown)} (allowed: {sorted(_RANDOM_KEYS)})")
+            raise SystemConfigError(
+                f"system {name!r}: unknown keys {sorted(unknown)} (allowed: {sorted(_RANDOM_KEYS)})"
+            )
         return random_system(
-            int(cfg["n_robots"]), int(cfg.get("n_task_types", 8)), float(cfg.get("density", 0.3)),
-            int(cfg.get("seed", 0)), name, cfg.get("env"),
+            int(cfg["n_robots"]),
+            int(cfg.get("n_task_types", 8)),
+            float(cfg.get("density", 0.3)),
+            int(cfg.get("seed", 0)),
+            name,
+            cfg.get("env"),
         )
-    raise SystemConfigError(f"system {name!r}: needs either 'robots' (a table) or 'n_robots' (a random team)")
+    raise SystemConfigError(
+        f"system {name!r}: needs either 'robots' (a table) or 'n_robots' (a random team)"
+    )

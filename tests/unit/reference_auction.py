@@ -19,7 +19,7 @@ def _u64(x: int) -> np.ndarray:
 
 
 class ReferenceAuction:
-    """One copy of the auction, seeded like copy ``b`` of ``AuctionEnv(seed=seed)`` with ``seed + b``."""
+    """One copy of the auction, seeded as copy ``b`` of ``AuctionEnv(seed=s)`` is: ``s + b``."""
 
     def __init__(self, system: RobotSystem, params: AuctionParams, copy_seed: int, active=None):
         self.system, self.p = system, params.resolve(system.n_robots)
@@ -66,7 +66,9 @@ class ReferenceAuction:
         """Spec steps 1-3."""
         self.pending_drops = []
         for high, ttype, duration in self.draws():  # step 1
-            self.queue.append(dict(id=self.next_id, type=ttype, high=high, duration=duration, round=1, due=self.t))
+            self.queue.append(
+                dict(id=self.next_id, type=ttype, high=high, duration=duration, round=1, due=self.t)
+            )
             self.next_id += 1
         self.queue.sort(key=lambda x: (-x["high"], x["due"], x["id"]))  # step 2
         while len(self.queue) > self.p.queue_capacity:
@@ -104,7 +106,9 @@ class ReferenceAuction:
             else:
                 drops.append(task)
                 self.queue.remove(task)
-        for task in drops:  # step 8: the penalty is shared by the robots whose Lambda holds the type
+        for (
+            task
+        ) in drops:  # step 8: the penalty is shared by the robots whose Lambda holds the type
             self.dropped[task["type"], task["high"]] += 1
             penalty = p.penalty_drop_high if task["high"] else p.penalty_drop_low
             holders = np.flatnonzero(self.active[:, task["type"]])
@@ -114,7 +118,8 @@ class ReferenceAuction:
         self.t += 1
         team = sum(
             (p.reward_assign_high if x["high"] else p.reward_assign_low)
-            for k, x in enumerate(self.slots) if any(a == k + 1 for a in actions)
+            for k, x in enumerate(self.slots)
+            if any(a == k + 1 for a in actions)
         ) - sum(p.penalty_drop_high if x["high"] else p.penalty_drop_low for x in drops)
         if self.t < p.horizon:
             self.start_tick()

@@ -11,11 +11,23 @@ from mrta_rl.envs.params import AuctionParams
 from mrta_rl.systems import RobotSystem, build_system
 from tests.unit.reference_auction import ReferenceAuction
 
-SYSTEM1 = {"name": "system1", "robots": {"R1": ["T1", "T4", "T5"], "R2": ["T2", "T4"], "R3": ["T1", "T3"],
-                                         "R4": ["T4", "T5"], "R5": ["T1"], "R6": ["T1", "T3", "T5"]}}
+SYSTEM1 = {
+    "name": "system1",
+    "robots": {
+        "R1": ["T1", "T4", "T5"],
+        "R2": ["T2", "T4"],
+        "R3": ["T1", "T3"],
+        "R4": ["T4", "T5"],
+        "R5": ["T1"],
+        "R6": ["T1", "T3", "T5"],
+    },
+}
 # willingness differs, T2 has its own durations: exercises winner choice and duration overrides
-MIXED = {"name": "mixed", "robots": {"R1": {"T1": 0.5, "T2": 1.0}, "R2": {"T1": 0.9}, "R3": {"T1": 0.9, "T2": 0.3}},
-         "task_types": {"T2": {"duration_low": [1, 2], "duration_high": [20, 30]}}}
+MIXED = {
+    "name": "mixed",
+    "robots": {"R1": {"T1": 0.5, "T2": 1.0}, "R2": {"T1": 0.9}, "R3": {"T1": 0.9, "T2": 0.3}},
+    "task_types": {"T2": {"duration_low": [1, 2], "duration_high": [20, 30]}},
+}
 
 
 def task(type=0, high=0, due=0, id=0, duration=4, round=1):
@@ -24,7 +36,9 @@ def task(type=0, high=0, due=0, id=0, duration=4, round=1):
 
 def quiet_env(system: dict, batch_size=1, **params) -> AuctionEnv:
     """No arrivals, so hand-built queues are all there is."""
-    return AuctionEnv(build_system(system), AuctionParams(arrival_rate=0.0, **params), batch_size=batch_size)
+    return AuctionEnv(
+        build_system(system), AuctionParams(arrival_rate=0.0, **params), batch_size=batch_size
+    )
 
 
 def waits(env):
@@ -43,16 +57,22 @@ def random_valid_actions(env, rng):
     "system, params",
     [
         (SYSTEM1, AuctionParams(horizon=150)),
-        (MIXED, AuctionParams(horizon=150, arrival_rate=1.5, queue_capacity=4, penalty_drop_low=1.0)),
+        (
+            MIXED,
+            AuctionParams(horizon=150, arrival_rate=1.5, queue_capacity=4, penalty_drop_low=1.0),
+        ),
         # a crowded queue: overflow (spec step 2) happens often
-        (SYSTEM1, AuctionParams(horizon=120, arrival_rate=4.0, queue_capacity=5, battery_threshold=90)),
+        (
+            SYSTEM1,
+            AuctionParams(horizon=120, arrival_rate=4.0, queue_capacity=5, battery_threshold=90),
+        ),
     ],
 )
 def test_batched_dynamics_equal_the_reference_tick_by_tick(system, params):
     rng = np.random.default_rng(0)
     env = AuctionEnv(build_system(system), params, batch_size=3, seed=11)
     refs = [ReferenceAuction(build_system(system), params, copy_seed=11 + b) for b in range(3)]
-    for episode in range(2):
+    for _episode in range(2):
         while not env.done.any():
             for b, ref in enumerate(refs):
                 for i in range(env.n_robots):
@@ -98,29 +118,42 @@ def test_arrivals_are_poisson_with_spec_priorities_types_and_durations():
 
 
 def test_duration_override_per_task_type():
-    env = AuctionEnv(build_system(MIXED), AuctionParams(queue_capacity=64, arrival_rate=3.0), batch_size=3000)
+    env = AuctionEnv(
+        build_system(MIXED), AuctionParams(queue_capacity=64, arrival_rate=3.0), batch_size=3000
+    )
     tasks = [t for b in range(3000) for t in env.queued_tasks(b) if t["type"] == 1]
     assert {t["duration"] for t in tasks if not t["high"]} == {1, 2}
     assert {t["duration"] for t in tasks if t["high"]} <= set(range(20, 31))
 
 
-# ---------------------------------------------------------------- spec step 2: queue order and overflow
+# ------------------------------------------------- spec step 2: queue order and overflow
 def test_queue_order_is_high_first_then_due_then_id():
     env = quiet_env(SYSTEM1)
-    env.inject_tasks(0, [task(id=5, due=0), task(id=2, due=0, high=1), task(id=1, due=0),
-                         task(id=0, due=2, high=1, round=2)])
+    env.inject_tasks(
+        0,
+        [
+            task(id=5, due=0),
+            task(id=2, due=0, high=1),
+            task(id=1, due=0),
+            task(id=0, due=2, high=1, round=2),
+        ],
+    )
     order = [(x["high"], x["due"], x["id"]) for x in env.queued_tasks(0)]
     assert order == [(1, 0, 2), (1, 2, 0), (0, 0, 1), (0, 0, 5)]
 
 
 def test_overflow_drops_the_last_tasks_and_pays_their_penalty():
     env = quiet_env(SYSTEM1, queue_capacity=3, penalty_drop_low=1.0)
-    keys = [pack_tasks(h, 0, i, ty, 4, 0) for i, (h, ty) in enumerate([(0, 0), (1, 1), (0, 2), (1, 3)])]
+    keys = [
+        pack_tasks(h, 0, i, ty, 4, 0) for i, (h, ty) in enumerate([(0, 0), (1, 1), (0, 2), (1, 3)])
+    ]
     env._queue[0, :4] = keys
     env._queue_width = 4
     env._begin_tick(np.ones(1, bool))
     assert [(x["high"], x["id"]) for x in env.queued_tasks(0)] == [(1, 1), (1, 3), (0, 0)]
-    assert env.stats.dropped[0, 2, 0] == 1 and env.stats.dropped.sum() == 1  # the L task with id 2 (T3)
+    assert (
+        env.stats.dropped[0, 2, 0] == 1 and env.stats.dropped.sum() == 1
+    )  # the L task with id 2 (T3)
     result = env.step(waits(env))
     # the penalty counts in this tick's reward, shared by T3's robots R3 and R6
     assert result.team_reward[0] == pytest.approx(-1.0)
@@ -131,8 +164,16 @@ def test_overflow_drops_the_last_tasks_and_pays_their_penalty():
 def test_slots_take_the_first_due_tasks_in_queue_order():
     env = quiet_env(SYSTEM1)
     env.t[:] = 1
-    env.inject_tasks(0, [task(id=0, high=1, due=3, round=2, type=0), task(id=1, high=1, due=1, type=1),
-                         task(id=2, due=0, type=2), task(id=3, due=1, type=3), task(id=4, due=1, type=4)])
+    env.inject_tasks(
+        0,
+        [
+            task(id=0, high=1, due=3, round=2, type=0),
+            task(id=1, high=1, due=1, type=1),
+            task(id=2, due=0, type=2),
+            task(id=3, due=1, type=3),
+            task(id=4, due=1, type=4),
+        ],
+    )
     assert list(env.slot_type[0]) == [1, 2, 3]  # H task due at 3 waits; the rest in queue order
     assert list(env.slot_high[0]) == [1, 0, 0]
 
@@ -154,14 +195,26 @@ def test_masks_allow_only_idle_robots_bidding_for_their_active_types():
     env.inject_tasks(0, [task(type=0), task(type=1, id=1)])
     mask = env.action_mask[0]
     assert mask[:, 0].all()  # waiting is always valid
-    assert list(mask[:, 1]) == [False, False, False, False, True, True]  # T1: R5, R6 (R1 dropped it, R3 busy)
+    assert list(mask[:, 1]) == [
+        False,
+        False,
+        False,
+        False,
+        True,
+        True,
+    ]  # T1: R5, R6 (R1 dropped it, R3 busy)
     assert list(mask[:, 2]) == [False, True, False, False, False, False]  # T2: R2 only
     assert not mask[:, 3].any()  # slot 3 is empty
 
 
 @pytest.mark.parametrize(
     "robot, action, message",
-    [(1, 1, "R2 may not do T1"), (0, 3, "slot 3 is empty"), (2, 1, "R3 is busy"), (0, 7, "actions are 0..3")],
+    [
+        (1, 1, "R2 may not do T1"),
+        (0, 3, "slot 3 is empty"),
+        (2, 1, "R3 is busy"),
+        (0, 7, "actions are 0..3"),
+    ],
 )
 def test_invalid_action_raises_naming_robot_and_reason(robot, action, message):
     env = quiet_env(SYSTEM1)
@@ -191,7 +244,9 @@ def test_highest_willingness_wins_and_ties_go_to_the_lowest_index():
 def test_each_slot_is_settled_separately():
     env = quiet_env(SYSTEM1)
     env.inject_tasks(0, [task(type=0, high=1, duration=7), task(type=3, id=1, duration=3)])
-    result = env.step(np.array([[1, 2, 0, 2, 1, 0]]))  # slot 1 (T1 H): R1, R5; slot 2 (T4 L): R2, R4
+    result = env.step(
+        np.array([[1, 2, 0, 2, 1, 0]])
+    )  # slot 1 (T1 H): R1, R5; slot 2 (T4 L): R2, R4
     assert list(env.busy_until[0]) == [7, 3, -1, -1, -1, -1]
     assert result.team_reward[0] == pytest.approx(12.0)  # 10 for H + 2 for L (spec defaults)
     np.testing.assert_allclose(result.robot_reward[0], [10, 2, 0, 0, 0, 0])
@@ -226,7 +281,7 @@ def test_battery_exactly_at_threshold_does_not_charge():
     assert env.busy_until[0, 0] == 5 and env.battery[0, 0] == pytest.approx(20.0)
 
 
-# ---------------------------------------------------------------- spec step 6: re-auction, then drop
+# ------------------------------------------------- spec step 6: re-auction, then drop
 def test_unassigned_task_is_auctioned_again_after_the_delay_then_dropped():
     env = quiet_env(SYSTEM1, penalty_drop_high=5.0)
     env.inject_tasks(0, [task(type=0, high=1)])

@@ -38,8 +38,13 @@ def test_system2_is_paper_table_2():
 
 
 def test_willingness_mapping_and_duration_override():
-    s = build_system({"name": "w", "robots": {"R1": {"T1": 0.4, "T2": 1}, "R2": ["T2"]},
-                      "task_types": {"T2": {"duration_low": [1, 2]}}})
+    s = build_system(
+        {
+            "name": "w",
+            "robots": {"R1": {"T1": 0.4, "T2": 1}, "R2": ["T2"]},
+            "task_types": {"T2": {"duration_low": [1, 2]}},
+        }
+    )
     assert s.willingness.tolist() == [[0.4, 1.0], [0.0, 1.0]]
     assert (s.durations["T2"]["duration_low"].lo, s.durations["T2"]["duration_low"].hi) == (1, 2)
 
@@ -76,12 +81,22 @@ def test_unknown_top_level_key_is_named():
 def test_bad_system_file_fails_before_any_run_writes_output(tmp_path):
     bad_dir = tmp_path / "systems"
     (bad_dir / "system").mkdir(parents=True)
-    (bad_dir / "system" / "broken.yaml").write_text("name: broken\nrobots:\n  R1: [T1]\n  R2: {T1: 2.0}\n")
+    (bad_dir / "system" / "broken.yaml").write_text(
+        "name: broken\nrobots:\n  R1: [T1]\n  R2: {T1: 2.0}\n"
+    )
     run_dir = tmp_path / "run"
     proc = subprocess.run(
-        [sys.executable, str(ROOT / "scripts" / "train.py"), "learner=greedy", "system=broken",
-         f"hydra.searchpath=[file://{bad_dir}]", f"hydra.run.dir={run_dir}"],
-        capture_output=True, text=True, cwd=ROOT,
+        [
+            sys.executable,
+            str(ROOT / "scripts" / "train.py"),
+            "learner=greedy",
+            "system=broken",
+            f"hydra.searchpath=[file://{bad_dir}]",
+            f"hydra.run.dir={run_dir}",
+        ],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
     )
     assert proc.returncode != 0
     assert "robot R2: willingness 2.0 for T1 is outside (0, 1]" in proc.stderr + proc.stdout
@@ -89,16 +104,22 @@ def test_bad_system_file_fails_before_any_run_writes_output(tmp_path):
 
 
 @settings(max_examples=40, deadline=None)
-@given(m=st.integers(1, 40), n=st.integers(1, 15), density=st.floats(0, 1), seed=st.integers(0, 10**6))
+@given(
+    m=st.integers(1, 40), n=st.integers(1, 15), density=st.floats(0, 1), seed=st.integers(0, 10**6)
+)
 def test_random_systems_are_valid_and_reproducible(m, n, density, seed):
     s = random_system(m, n, density, seed)
     assert s.rtm.shape == (m, n)
-    assert s.rtm.any(axis=1).all() and s.rtm.any(axis=0).all()  # every robot a type, every type a robot
+    assert (
+        s.rtm.any(axis=1).all() and s.rtm.any(axis=0).all()
+    )  # every robot a type, every type a robot
     np.testing.assert_array_equal(s.rtm, random_system(m, n, density, seed).rtm)
 
 
 def test_random_system_config_and_scaling_size():
-    s = build_system({"name": "random", "n_robots": 300, "n_task_types": 30, "density": 0.1, "seed": 4})
+    s = build_system(
+        {"name": "random", "n_robots": 300, "n_task_types": 30, "density": 0.1, "seed": 4}
+    )
     assert s.n_robots == 300 and s.n_task_types == 30
     with pytest.raises(SystemConfigError, match="density 1.5"):
         random_system(3, 3, 1.5, 0)
