@@ -217,4 +217,3 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         info["fps_overall"],
     )
     return info
-

@@ -421,7 +421,11 @@ class NeuralLearner(Learner):
                 action_space="categorical",
                 action_value_key=(group, "action_value"),
                 action_mask_key=(group, "action_mask"),
-                out_keys=[(group, "action"), (group, "action_value"), (group, "chosen_action_value")],
+                out_keys=[
+                    (group, "action"),
+                    (group, "action_value"),
+                    (group, "chosen_action_value"),
+                ],
             ),
         )
 
@@ -555,8 +559,12 @@ class MixedQLearner(NeuralLearner):
     """
 
     def _mixer(self) -> TensorDictModule:
-        """The mixer: reads ``("agents", "chosen_action_value")`` (and ``"state"``), writes the
-        root ``"chosen_action_value"`` ``[*, 1]``."""
+        """The mixer module.
+
+        Returns:
+            A module reading ``("agents", "chosen_action_value")`` (and ``"state"``) and writing
+            the root ``"chosen_action_value"`` ``[*, 1]``.
+        """
         raise NotImplementedError
 
     def _build(self) -> None:

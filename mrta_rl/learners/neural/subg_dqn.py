@@ -1,4 +1,4 @@
-"""SubG-DQN: the neural counterpart of subG-CQL (paper §4), one joint-action Q-network per sub-group."""
+"""SubG-DQN, the neural counterpart of subG-CQL (paper §4): a joint-action Q-net per sub-group."""
 
 from __future__ import annotations
 
@@ -64,11 +64,11 @@ class SubGDQNLearner(NeuralLearner):
                 ),
             )
             decode = TensorDictModule(
-                JointDecode(n_g, A), in_keys=[(JOINT, group, "action")], out_keys=[(group, "action")]
+                JointDecode(n_g, A),
+                in_keys=[(JOINT, group, "action")],
+                out_keys=[(group, "action")],
             )
-            egreedy = self._egreedy(
-                A**n_g, (JOINT, group, "action"), (JOINT, group, "action_mask")
-            )
+            egreedy = self._egreedy(A**n_g, (JOINT, group, "action"), (JOINT, group, "action_mask"))
             greedy += [value, decode]
             explore += [value, egreedy, decode]
             loss = DQNLoss(
@@ -90,8 +90,17 @@ class SubGDQNLearner(NeuralLearner):
         self.explore_policy = TensorDictSequential(*explore)
 
     def transitions(self, data: TensorDictBase) -> TensorDictBase:
-        """Sub-group reward ``[N, 1]`` and episode flags under ``("joint", group)``; joint values
-        and masks dropped (the loss recomputes them from the robots' masks)."""
+        """Replay transitions with the sub-group's reward and flags under ``("joint", group)``.
+
+        The sub-group reward ``[N, 1]`` and the episode flags are what each group's
+        ``DQNLoss`` reads; joint values and masks are dropped (the loss recomputes them).
+
+        Args:
+            data: ``[B, T]`` collector output.
+
+        Returns:
+            ``[B * T]`` transitions.
+        """
         data = super().transitions(data)
         drop = []
         for group in self.group_map:
@@ -99,6 +108,10 @@ class SubGDQNLearner(NeuralLearner):
                 for key in ("done", "terminated"):
                     data.set((*prefix, JOINT, group, key), data.get((*prefix, key)).clone())
             # every robot of the group carries the same sub-group reward: take robot 0's
-            data.set(("next", JOINT, group, "reward"), data.get(("next", group, "group_reward"))[:, 0])
-            drop += [(JOINT, group, k) for k in ("action_value", "chosen_action_value", "action_mask")]
+            data.set(
+                ("next", JOINT, group, "reward"), data.get(("next", group, "group_reward"))[:, 0]
+            )
+            drop += [
+                (JOINT, group, k) for k in ("action_value", "chosen_action_value", "action_mask")
+            ]
         return data.exclude(*drop)

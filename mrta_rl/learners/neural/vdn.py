@@ -1,4 +1,4 @@
-"""VDN (Sunehag et al., 2018): per-robot Q-values summed into the team Q-value (TorchRL VDNMixer)."""
+"""VDN (Sunehag et al., 2018): per-robot Q-values summed into the team Q-value (VDNMixer)."""
 
 from __future__ import annotations
 

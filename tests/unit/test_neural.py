@@ -1,0 +1,214 @@
+"""Neural learners: joint-action masking, VDN/QMIX mixing, training steps, checkpoints, devices."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.collectors import Collector
+
+from mrta_rl.envs import AuctionEnv, AuctionParams
+from mrta_rl.envs.torchrl_env import AuctionTorchRLEnv
+from mrta_rl.learners.neural import IQLLearner, QMIXLearner, SubGDQNLearner, VDNLearner
+from mrta_rl.learners.neural.common import (
+    WEIGHTS_FILE,
+    greedy_bid,
+    joint_combine,
+    joint_decode,
+)
+from mrta_rl.partition import subg_partition
+from mrta_rl.runners.evaluate import evaluate_policy
+from mrta_rl.systems import build_system
+
+SMALL = {"hidden": 16, "depth": 1, "batch_size": 32, "buffer_size": 1000}
+
+
+@pytest.fixture
+def system():
+    """Four robots in two sub-groups (subG partition), three task types."""
+    return build_system(
+        {
+            "name": "four",
+            "robots": {"R1": ["T1", "T2"], "R2": ["T1"], "R3": ["T3"], "R4": ["T2", "T3"]},
+        }
+    )
+
+
+def make(cls, system, batch=4, seed=0, horizon=60, **hp):
+    partition = subg_partition(system)
+    env = AuctionEnv(
+        system,
+        AuctionParams(horizon=horizon),
+        batch_size=batch,
+        active_tasks=partition.active_tasks(system) if cls.requires_partition else None,
+        seed=seed,
+    )
+    learner = cls(env=env, rng=np.random.default_rng(seed), partition=partition, **(SMALL | hp))
+    return learner, env
+
+
+def randomize(learner, scale=3.0, seed=0):
+    """Random weights everywhere (the last layers start at zero), so the prior does not decide."""
+    gen = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for p in learner.networks.parameters():
+            p.copy_(torch.randn(p.shape, generator=gen) * scale)
+
+
+def collect(learner, env, frames=200):
+    """One collector batch of the learner's exploring policy, as replay transitions."""
+    collector = Collector(
+        AuctionTorchRLEnv(env, group_map=learner.group_map),
+        learner.explore_policy,
+        frames_per_batch=frames,
+        total_frames=frames,
+        auto_register_policy_transforms=False,
+    )
+    data = next(iter(collector))
+    collector.shutdown()
+    return learner.transitions(data)
+
+
+def test_joint_combine_and_decode_round_trip():
+    A, n = 4, 3
+    masks = torch.rand(5, n, A) < 0.6
+    masks[..., 0] = True
+    joint = joint_combine(masks, "and")  # [5, A^n]
+    values = torch.randn(5, n, A)
+    summed = joint_combine(values, "add")
+    for j in range(A**n):
+        actions = joint_decode(torch.tensor(j), n, A)  # [n]
+        assert int(sum(int(a) * A**r for r, a in enumerate(actions))) == j
+        expected_mask = torch.stack([masks[:, r, actions[r]] for r in range(n)]).all(0)
+        assert torch.equal(joint[:, j], expected_mask)
+        expected_sum = sum(values[:, r, actions[r]] for r in range(n))
+        torch.testing.assert_close(summed[:, j], expected_sum)
+
+
+def test_greedy_bid_is_the_lowest_valid_bid():
+    mask = torch.tensor([[1, 0, 1, 1], [1, 0, 0, 0], [1, 1, 1, 0]], dtype=torch.bool)
+    expected = torch.tensor([[0, 0, 1, 0], [0, 0, 0, 0], [0, 1, 0, 0]], dtype=torch.float32)
+    assert torch.equal(greedy_bid(mask), expected)
+
+
+@pytest.mark.parametrize("cls", [SubGDQNLearner, VDNLearner, QMIXLearner, IQLLearner])
+def test_untrained_network_is_the_plain_auction(cls, system):
+    """auction_prior + zero last layer: the greedy policy of an untrained net bids like greedy."""
+    learner, env = make(cls, system, batch=6)
+    for _ in range(40):
+        mask = env.action_mask.copy()
+        actions = learner.act(learner.encode(env), mask, explore=False)
+        bids = mask[..., 1:]
+        greedy = np.where(bids.any(-1), bids.argmax(-1) + 1, 0)
+        np.testing.assert_array_equal(actions, greedy)
+        env.step(actions)
+
+
+def test_joint_action_network_never_selects_a_masked_action(system):
+    learner, env = make(SubGDQNLearner, system, batch=8)
+    randomize(learner)
+    for module in learner.egreedy:  # exploring half the time: random joint actions too
+        module.eps.fill_(0.5)
+    for _ in range(60):
+        mask = env.action_mask.copy()
+        view = learner.encode(env)
+        for explore in (False, True):
+            actions = learner.act(view, mask, explore=explore)
+            chosen = np.take_along_axis(mask, actions[..., None], axis=-1)[..., 0]
+            assert chosen.all(), "a masked action was selected"
+        # the joint argmax of a group equals the masked argmax over the joint Q-values
+        td = learner.policy(view.clone())
+        for group in learner.group_map:
+            values = td.get(("joint", group, "action_value"))
+            joint_mask = td.get(("joint", group, "action_mask"))
+            joint = td.get(("joint", group, "action"))
+            assert joint_mask.gather(-1, joint.unsqueeze(-1)).all()
+            best = torch.where(joint_mask, values, -torch.inf).argmax(-1)
+            assert torch.equal(values.gather(-1, joint[:, None]), values.gather(-1, best[:, None]))
+        env.step(learner.act(view, mask, explore=True))
+
+
+def test_vdn_mix_equals_the_sum_of_chosen_values(system):
+    learner, env = make(VDNLearner, system)
+    randomize(learner)
+    td = learner.policy(learner.encode(env))
+    mixer = learner.losses["agents"].mixer_network
+    local = td.get(("agents", "chosen_action_value"))  # [B, m, 1]
+    mixed = mixer(td.clone()).get("chosen_action_value")  # [B, 1]
+    torch.testing.assert_close(mixed, local.sum(dim=-2))
+
+
+def test_qmix_mix_is_monotone_in_each_robot_value(system):
+    learner, env = make(QMIXLearner, system)
+    randomize(learner, scale=0.5)
+    mixer = learner.networks["mixer"]
+    gen = torch.Generator().manual_seed(1)
+    state = torch.rand(64, learner.state_size, generator=gen).round()
+    local = torch.randn(64, learner.n_robots, 1, generator=gen, requires_grad=True)
+    mixer(local, state).sum().backward()
+    assert (local.grad >= 0).all()  # non-negative mixing weights (hypernetwork abs)
+    for i in range(learner.n_robots):  # and a finite step: raising Q_i never lowers Q_team
+        higher = local.detach().clone()
+        higher[:, i] += 1.0
+        assert (mixer(higher, state) >= mixer(local.detach(), state) - 1e-6).all()
+
+
+@pytest.mark.parametrize("cls", [SubGDQNLearner, VDNLearner, QMIXLearner, IQLLearner])
+def test_train_step_lowers_the_loss_on_a_fixed_batch(cls, system):
+    torch.manual_seed(0)
+    learner, env = make(cls, system, lr=1e-2, target_update="hard", hard_update_interval=10**6)
+    batch = collect(learner, env)
+    before = learner.train_step(batch)["train/loss"]
+    for _ in range(30):
+        after = learner.train_step(batch)["train/loss"]
+    assert after < before
+
+
+@pytest.mark.parametrize("cls", [SubGDQNLearner, QMIXLearner])
+def test_checkpoint_reloads_to_identical_evaluation(cls, system, tmp_path):
+    torch.manual_seed(0)
+    learner, env = make(cls, system, lr=1e-2)
+    batch = collect(learner, env)
+    for _ in range(20):
+        learner.train_step(batch)
+    learner.save(tmp_path)
+    state = torch.load(tmp_path / WEIGHTS_FILE, weights_only=True)
+    assert set(state) == set(learner.networks.state_dict())
+
+    fresh, fresh_env = make(cls, system, seed=7)  # other init: must not matter after load
+    fresh.load(tmp_path)
+    eval_env = AuctionEnv(system, env.params, batch_size=3, active_tasks=env.active_tasks, seed=5)
+    a = evaluate_policy(learner, eval_env, 3, seed=5).to_json()
+    b = evaluate_policy(fresh, eval_env, 3, seed=5).to_json()
+    assert a == b
+    assert fresh.learning_space() == learner.learning_space()
+    assert list(fresh.learning_space()) == ["parameters"]
+
+
+def test_checkpoint_of_other_groups_is_refused(system, tmp_path):
+    learner, _ = make(SubGDQNLearner, system)
+    learner.save(tmp_path)
+    other, _ = make(QMIXLearner, system)
+    with pytest.raises(ValueError, match="groups"):
+        other.load(tmp_path)
+
+
+def test_encode_copies_the_mask(system):
+    learner, env = make(VDNLearner, system)
+    view = learner.encode(env)
+    before = view.get(("agents", "action_mask")).clone()
+    env.step(np.zeros((env.batch_size, env.n_robots), np.int64))
+    assert torch.equal(view.get(("agents", "action_mask")), before)
+    assert isinstance(view, TensorDict)
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.parametrize("cls", [SubGDQNLearner, QMIXLearner])
+def test_cuda_runs_the_same_code(cls, system):
+    learner, env = make(cls, system, device="cuda")
+    batch = collect(learner, env).to("cuda")
+    assert np.isfinite(learner.train_step(batch)["train/loss"])
+    actions = learner.act(learner.encode(env), env.action_mask, explore=False)
+    assert actions.shape == (env.batch_size, env.n_robots)
