@@ -9,7 +9,7 @@ wraps these arrays zero-copy with ``torch.from_numpy``.
 Design notes:
 - **Tasks are packed int64 keys.** A queued task is one non-negative int64 whose high bits are the
   spec's queue order (H before L, due tick, id) and whose low bits carry type, duration and round,
-  so one ``np.sort`` per tick orders the queue (spec step 2) and an empty place is ``_EMPTY``.
+  so one ``np.sort`` per tick orders the queue (spec step 2) and an empty place is ``EMPTY``.
 - **Counter-based randomness.** Every random number is a hash of (copy seed, episode number, tick,
   draw index), never a shared generator's stream. A copy's episode therefore depends only on its
   own seed and actions, not on the batch size or on when other copies reset, and a plain scalar
@@ -22,84 +22,34 @@ Design notes:
 
 from __future__ import annotations
 
-import math
 import sys
 from dataclasses import dataclass
 
 import numpy as np
 
+from mrta_rl.envs import counter_rng as rng
 from mrta_rl.envs.params import AuctionParams
+from mrta_rl.envs.tasks import (
+    DUE_BITS,
+    DUE_FIELD,
+    DUE_SHIFT,
+    DURATION_BITS,
+    EMPTY,
+    ID_BITS,
+    TYPE_BITS,
+    pack_tasks,
+    task_due,
+    task_duration,
+    task_high,
+    task_id,
+    task_round,
+    task_type,
+    to_second_round,
+)
 from mrta_rl.systems import RobotSystem
 
-# --- packed task keys, by bit: 62 low-priority flag | 42-61 due | 20-41 id | 10-19 type
-#     | 1-9 duration | 0 round 2
-_LOW_SHIFT, _DUE_SHIFT, _ID_SHIFT, _TYPE_SHIFT, _DUR_SHIFT = 62, 42, 20, 10, 1
-_DUE_BITS, _ID_BITS, _TYPE_BITS, _DUR_BITS = 20, 22, 10, 9
-_EMPTY = np.int64(np.iinfo(np.int64).max)  # sorts after every task
-_DUE_FIELD = np.int64(((1 << _DUE_BITS) - 1) << _DUE_SHIFT)
-
-# --- counter-based hashing (splitmix64 finaliser); uint64 arithmetic wraps by design
-_M1, _M2 = np.uint64(0xBF58476D1CE4E5B9), np.uint64(0x94D049BB133111EB)
-_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
-_S30, _S27, _S31, _S11, _S32 = (np.uint64(s) for s in (30, 27, 31, 11, 32))
-_LO32 = np.uint64(0xFFFFFFFF)
 _ONE = np.uint64(1)
 _BITMASK_ROWS = sys.byteorder == "little"  # 8 packed bytes read as one uint64
-
-
-def mix64(x: np.ndarray) -> np.ndarray:
-    """Splitmix64 finaliser: a bijective avalanche hash of uint64 values."""
-    x = x ^ (x >> _S30)
-    x = x * _M1
-    x = x ^ (x >> _S27)
-    x = x * _M2
-    return x ^ (x >> _S31)
-
-
-def unit_float(h: np.ndarray) -> np.ndarray:
-    """Uniform float64 in [0, 1) from the top 53 bits of a hash."""
-    return (h >> _S11).astype(np.float64) * (1.0 / (1 << 53))
-
-
-def bounded_int(h: np.ndarray, n: np.ndarray | int) -> np.ndarray:
-    """Integer in [0, n) from 32 bits of a hash (Lemire's multiply-shift; bias < n / 2**32)."""
-    return ((h & _LO32) * np.asarray(n, dtype=np.uint64) >> _S32).astype(np.int64)
-
-
-def pack_tasks(high, due, task_id, task_type, duration, round2) -> np.ndarray:
-    """Pack task fields into int64 keys ordered as spec step 2: H before L, due tick, id."""
-    return (
-        ((1 - np.asarray(high, np.int64)) << _LOW_SHIFT)
-        | (np.asarray(due, np.int64) << _DUE_SHIFT)
-        | (np.asarray(task_id, np.int64) << _ID_SHIFT)
-        | (np.asarray(task_type, np.int64) << _TYPE_SHIFT)
-        | (np.asarray(duration, np.int64) << _DUR_SHIFT)
-        | np.asarray(round2, np.int64)
-    )
-
-
-def _field(keys: np.ndarray, shift: int, bits: int) -> np.ndarray:
-    return (keys >> shift) & ((1 << bits) - 1)
-
-
-def task_high(keys: np.ndarray) -> np.ndarray:
-    """1 for an H task, 0 for an L task (meaningless on ``_EMPTY``)."""
-    return 1 - (keys >> _LOW_SHIFT)
-
-
-def task_due(keys: np.ndarray) -> np.ndarray:
-    """Due tick of packed tasks."""
-    return _field(keys, _DUE_SHIFT, _DUE_BITS)
-
-
-def task_type(keys: np.ndarray) -> np.ndarray:
-    """Task type index (0-based) of packed tasks."""
-    return _field(keys, _TYPE_SHIFT, _TYPE_BITS)
-
-
-def task_duration(keys: np.ndarray) -> np.ndarray:
-    """Duration of packed tasks."""
-    return _field(keys, _DUR_SHIFT, _DUR_BITS)
 
 
 def _first_true_positions(flags: np.ndarray, k: int, buffer: np.ndarray) -> np.ndarray:
@@ -128,27 +78,11 @@ def _occupied_width(queue: np.ndarray) -> int:
     lo, hi = 0, queue.shape[1]  # the width lies in [lo, hi]
     while lo < hi:
         mid = (lo + hi) // 2
-        if (queue[:, mid] != _EMPTY).any():
+        if (queue[:, mid] != EMPTY).any():
             lo = mid + 1
         else:
             hi = mid
     return lo
-
-
-def poisson_cdf(rate: float) -> np.ndarray:
-    """CDF table ``P(N <= k)`` of Poisson(rate), long enough that the tail is below 1e-30."""
-    k_max = int(math.ceil(rate + 14.0 * math.sqrt(rate) + 30))
-    log_p = np.array(
-        [
-            k * math.log(rate) - rate - math.lgamma(k + 1)
-            if rate > 0
-            else (0.0 if k == 0 else -np.inf)
-            for k in range(k_max + 1)
-        ]
-    )
-    cdf = np.cumsum(np.exp(log_p))
-    cdf[-1] = 1.0 + 1e-9  # the tail beyond k_max (< 1e-30) is folded into the last count
-    return cdf
 
 
 @dataclass
@@ -266,8 +200,8 @@ class AuctionEnv:
         self._dur_span = np.zeros((self.n_task_types, 2), np.int64)
         for j, name in enumerate(system.task_types):
             for prio, key in enumerate(("duration_low", "duration_high")):
-                rng = system.durations.get(name, {}).get(key)
-                lo, hi = (rng.lo, rng.hi) if rng is not None else getattr(p, key)
+                override = system.durations.get(name, {}).get(key)
+                lo, hi = (override.lo, override.hi) if override is not None else getattr(p, key)
                 self._dur_lo[j, prio], self._dur_span[j, prio] = lo, hi - lo + 1
         self._dur_lo, self._dur_span = (
             self._dur_lo.reshape(-1),
@@ -285,14 +219,14 @@ class AuctionEnv:
         )  # [n+1, m]
         self._uniform_willingness = np.ptp(system.willingness[capable]) == 0
         self._can_do_by_type = np.vstack([active.T, np.zeros(self.n_robots, bool)])  # [n+1, m]
-        self._poisson_cdf = poisson_cdf(p.arrival_rate)
+        self._poisson_cdf = rng.poisson_cdf(p.arrival_rate)
 
         B, m, n, K, Q = batch_size, self.n_robots, self.n_task_types, self.n_slots, p.queue_capacity
         self._seeds = np.zeros(B, np.uint64)
         self._episode = np.zeros(B, np.uint64)
         self._episode_key = np.zeros(B, np.uint64)
         self.t = np.zeros(B, np.int64)  # current tick per copy
-        self._queue = np.full((B, Q + 1), _EMPTY)  # column Q is scratch, always empty
+        self._queue = np.full((B, Q + 1), EMPTY)  # column Q is scratch, always empty
         self._queue_width = 0  # no copy holds more than this many tasks
         self._queue_row_offsets = np.arange(B)[:, None] * (
             Q + 1
@@ -328,17 +262,17 @@ class AuctionEnv:
     def _check_limits(self) -> None:
         p = self.params
         limits = {
-            "horizon + reauction_delay": (p.horizon + p.reauction_delay, 1 << _DUE_BITS),
-            "number of task types": (self.n_task_types, 1 << _TYPE_BITS),
+            "horizon + reauction_delay": (p.horizon + p.reauction_delay, 1 << DUE_BITS),
+            "number of task types": (self.n_task_types, 1 << TYPE_BITS),
             "longest duration": (
                 max(
                     p.duration_low[1],
                     p.duration_high[1],
                     *(r.hi for d in self.system.durations.values() for r in d.values()),
                 ),
-                1 << _DUR_BITS,
+                1 << DURATION_BITS,
             ),
-            "expected tasks per episode x 4": (4 * p.arrival_rate * p.horizon, 1 << _ID_BITS),
+            "expected tasks per episode x 4": (4 * p.arrival_rate * p.horizon, 1 << ID_BITS),
             "slots + 1 (actions fit in int8)": (p.slots + 1, 128),
         }
         for what, (value, limit) in limits.items():
@@ -355,7 +289,7 @@ class AuctionEnv:
             raise ValueError(
                 f"expected one seed or {self.batch_size} seeds, got shape {seeds.shape}"
             )
-        self._seeds = mix64(seeds.astype(np.uint64) + _GOLDEN)
+        self._seeds = rng.seed_keys(seeds)
         self._episode[:] = 0
 
     def reset(self, mask: np.ndarray | None = None, seed: int | np.ndarray | None = None) -> None:
@@ -369,10 +303,10 @@ class AuctionEnv:
             self.seed(seed)
         # a copy: the caller may pass self.done itself, which this method overwrites
         rows = np.ones(self.batch_size, bool) if mask is None else np.array(mask, bool)
-        self._episode_key[rows] = mix64(self._seeds[rows] ^ mix64(self._episode[rows] + _GOLDEN))
+        self._episode_key[rows] = rng.episode_keys(self._seeds[rows], self._episode[rows])
         self._episode[rows] += np.uint64(1)
         self.t[rows] = 0
-        self._queue[rows] = _EMPTY
+        self._queue[rows] = EMPTY
         self._next_id[rows] = 0
         self.busy_until[rows] = -1
         self.battery[rows] = self.params.battery_capacity
@@ -395,32 +329,28 @@ class AuctionEnv:
         """Spec steps 1-3 of tick ``t`` for ``rows``; other copies keep their slots (idempotent)."""
         p, t, Q = self.params, self.t, self.params.queue_capacity
         # spec step 1: N ~ Poisson(arrival_rate) new tasks, one hash per copy and tick
-        tick_key = mix64(self._episode_key ^ (t.astype(np.uint64) * _GOLDEN))  # [B]
-        n_new = np.searchsorted(self._poisson_cdf, unit_float(tick_key), side="right")
+        tick_key = rng.tick_keys(self._episode_key, t)  # [B]
+        n_new = np.searchsorted(self._poisson_cdf, rng.unit_float(tick_key), side="right")
         n_new[~rows] = 0
         width = int(n_new.max())
         self._pending_team[rows] = 0.0
         self._pending_type_penalty[rows] = 0.0
         end = self._queue_width + width
         if end > self._queue.shape[1] - 1:  # grow the spare columns (the last one stays empty)
-            grow = np.full((self.batch_size, end + 1 - self._queue.shape[1] + 8), _EMPTY)
+            grow = np.full((self.batch_size, end + 1 - self._queue.shape[1] + 8), EMPTY)
             self._queue = np.concatenate([self._queue, grow], axis=1)
             self._queue_row_offsets = np.arange(self.batch_size)[:, None] * self._queue.shape[1]
         if width:
-            k = np.arange(1, width + 1, dtype=np.uint64)
-            h_prio = mix64(tick_key[:, None] + k * _GOLDEN)  # [B, W]
-            h_kind = mix64(h_prio ^ _M2)  # [B, W]: type in the high 32 bits, duration in the low 32
-            high = (unit_float(h_prio) < p.p_high).astype(
-                np.int64
-            )  # priority H with probability p_high
-            ttype = bounded_int(h_kind >> _S32, self.n_task_types)  # type uniform over all n types
+            h_prio, h_kind = rng.task_hashes(tick_key, width)  # [B, W] each
+            # priority H with probability p_high; type uniform over all n types (high 32 bits of
+            # h_kind); duration uniform over the type's range, ends included (low 32 bits)
+            high = (rng.unit_float(h_prio) < p.p_high).astype(np.int64)
+            ttype = rng.bounded_int(rng.high_bits(h_kind), self.n_task_types)
             kind = 2 * ttype + high
-            duration = self._dur_lo[kind] + bounded_int(
-                h_kind, self._dur_span[kind]
-            )  # uniform, ends included
+            duration = self._dur_lo[kind] + rng.bounded_int(h_kind, self._dur_span[kind])
             arrived = np.arange(width) < n_new[:, None]  # [B, W]
             ids = self._next_id[:, None] + np.arange(width)
-            new = np.where(arrived, pack_tasks(high, t[:, None], ids, ttype, duration, 0), _EMPTY)
+            new = np.where(arrived, pack_tasks(high, t[:, None], ids, ttype, duration, 0), EMPTY)
             self._next_id += n_new
             b_h, k_h = np.nonzero(arrived & (high == 1))
             self.last_high_arrival[b_h, ttype[b_h, k_h]] = t[b_h]
@@ -429,10 +359,10 @@ class AuctionEnv:
         queue.sort(axis=1)  # spec step 2: (H before L, due tick, id); empties last
         if end > Q:  # spec step 2: overflow drops the last tasks
             overflow = queue[:, Q:end]
-            if (overflow != _EMPTY).any():
+            if (overflow != EMPTY).any():
                 self._pending_type_penalty += self._drop(overflow)
                 self._pending_team[:] = self._pending_type_penalty.sum(axis=1)
-                overflow[:] = _EMPTY
+                overflow[:] = EMPTY
         self._queue_width = _occupied_width(queue[:, : min(end, Q)])
         self._select_slots()
 
@@ -443,8 +373,8 @@ class AuctionEnv:
         # reauction_delay ticks, so the first K eligible tasks lie within K * (delay + 1) places.
         width = min(self._queue_width, self.n_slots * (self.params.reauction_delay + 1))
         queue = self._queue[:, :width]
-        # _EMPTY's due field is all ones, later than any tick (see _check_limits): no separate test
-        due_now = (queue & _DUE_FIELD) <= (self.t << _DUE_SHIFT)[:, None]  # [B, width]
+        # EMPTY's due field is all ones, later than any tick (see _check_limits): no separate test
+        due_now = (queue & DUE_FIELD) <= (self.t << DUE_SHIFT)[:, None]  # [B, width]
         if self.done.any():
             due_now &= ~self.done[:, None]
         if width <= 64 and _BITMASK_ROWS:
@@ -455,7 +385,7 @@ class AuctionEnv:
         self._slot_pos = np.where(pos < width, pos, Q)  # [B, K]; Q = the always-empty place
         keys = self._queue.reshape(-1)[self._slot_pos + self._queue_row_offsets]  # [B, K]
         self._slot_keys = keys
-        filled = keys != _EMPTY
+        filled = keys != EMPTY
         self.slot_type = np.where(filled, task_type(keys), -1)  # [B, K], -1 = empty slot
         self.slot_high = np.where(filled, task_high(keys), -1)  # [B, K], 1 = H, 0 = L, -1 = empty
         self.idle = self.t[:, None] > self.busy_until  # spec step 4, [B, m]
@@ -517,16 +447,12 @@ class AuctionEnv:
             np.add.at(team, b, reward)
             np.add.at(self.stats.assigned, (b, slot_type[b, k], high), 1)
         # spec step 6: unassigned slot tasks go to round 2 (due t + delay); in round 2, are dropped
-        unassigned = (keys != _EMPTY) & ~assigned
-        round2 = (keys & 1) == 1
+        unassigned = (keys != EMPTY) & ~assigned
+        round2 = task_round(keys) == 2
         reauction = unassigned & ~round2
-        rekeyed = (
-            (keys & ~(((1 << _DUE_BITS) - 1) << _DUE_SHIFT))
-            | ((t[:, None] + p.reauction_delay) << _DUE_SHIFT)
-            | 1
-        )
+        rekeyed = to_second_round(keys, t[:, None] + p.reauction_delay)
         self._queue.reshape(-1)[self._slot_pos + self._queue_row_offsets] = np.where(
-            reauction, rekeyed, _EMPTY
+            reauction, rekeyed, EMPTY
         )
         dropped = unassigned & round2
         if dropped.any():
@@ -574,8 +500,8 @@ class AuctionEnv:
             )
 
     def _drop(self, keys: np.ndarray) -> np.ndarray:
-        """Count dropped tasks (``keys`` ``[B, W]``, ``_EMPTY``: none); penalties ``[B, n]``."""
-        b, k = np.nonzero(keys != _EMPTY)
+        """Count dropped tasks (``keys`` ``[B, W]``, ``EMPTY``: none); penalties ``[B, n]``."""
+        b, k = np.nonzero(keys != EMPTY)
         dropped_keys = keys[b, k]
         ttype, high = task_type(dropped_keys), task_high(dropped_keys)
         np.add.at(self.stats.dropped, (b, ttype, high), 1)
@@ -592,19 +518,19 @@ class AuctionEnv:
     @property
     def queue_length(self) -> np.ndarray:
         """``[B]`` tasks waiting in the queue (slot tasks included)."""
-        return (self._queue[:, : self._queue_width] != _EMPTY).sum(axis=1)
+        return (self._queue[:, : self._queue_width] != EMPTY).sum(axis=1)
 
     def queued_tasks(self, copy: int) -> list[dict[str, int]]:
         """The queue of one copy, decoded, in queue order (for tests and debugging)."""
-        keys = np.sort(self._queue[copy][self._queue[copy] != _EMPTY])
+        keys = np.sort(self._queue[copy][self._queue[copy] != EMPTY])
         return [
             {
                 "type": int(task_type(x)),
                 "high": int(task_high(x)),
                 "due": int(task_due(x)),
-                "id": int(_field(x, _ID_SHIFT, _ID_BITS)),
+                "id": int(task_id(x)),
                 "duration": int(task_duration(x)),
-                "round": int(x & 1) + 1,
+                "round": int(task_round(x)),
             }
             for x in keys
         ]
@@ -627,7 +553,7 @@ class AuctionEnv:
                 for x in tasks
             ]
         ).astype(np.int64)
-        self._queue[copy] = _EMPTY
+        self._queue[copy] = EMPTY
         self._queue[copy, : len(keys)] = keys
         self._queue_width = max(self._queue_width, len(keys))
         self._select_slots()

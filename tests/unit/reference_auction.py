@@ -9,13 +9,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from mrta_rl.envs.auction import _GOLDEN, _M2, bounded_int, mix64, poisson_cdf, unit_float
+from mrta_rl.envs import counter_rng as rng
 from mrta_rl.envs.params import AuctionParams
 from mrta_rl.systems import RobotSystem
-
-
-def _u64(x: int) -> np.ndarray:
-    return np.array([x], dtype=np.uint64)
 
 
 class ReferenceAuction:
@@ -26,13 +22,13 @@ class ReferenceAuction:
         self.m, self.n = system.n_robots, system.n_task_types
         self.d = system.willingness
         self.active = (self.d > 0) if active is None else np.asarray(active, bool)
-        self.seed_key = mix64(_u64(copy_seed) + _GOLDEN)
+        self.seed_key = rng.seed_keys(np.array([copy_seed]))
         self.episode = 0
-        self.cdf = poisson_cdf(self.p.arrival_rate)
+        self.cdf = rng.poisson_cdf(self.p.arrival_rate)
         self.reset()
 
     def reset(self):
-        self.episode_key = mix64(self.seed_key ^ mix64(_u64(self.episode) + _GOLDEN))
+        self.episode_key = rng.episode_keys(self.seed_key, np.array([self.episode]))
         self.episode += 1
         self.t, self.next_id, self.queue = 0, 0, []
         self.busy_until = [-1] * self.m
@@ -45,16 +41,15 @@ class ReferenceAuction:
 
     def draws(self):
         """The tick's random draws, in the same derivation as AuctionEnv."""
-        tick_key = mix64(self.episode_key ^ (_u64(self.t) * _GOLDEN))
-        count = int(np.searchsorted(self.cdf, unit_float(tick_key), side="right")[0])
+        tick_key = rng.tick_keys(self.episode_key, np.array([self.t]))
+        count = int(np.searchsorted(self.cdf, rng.unit_float(tick_key), side="right")[0])
+        h_prio, h_kind = rng.task_hashes(tick_key, count)
         tasks = []
-        for k in range(1, count + 1):
-            h_prio = mix64(tick_key + _u64(k) * _GOLDEN)
-            h_kind = mix64(h_prio ^ _M2)
-            high = int(unit_float(h_prio)[0] < self.p.p_high)
-            ttype = int(bounded_int(h_kind >> np.uint64(32), self.n)[0])
+        for k in range(count):
+            high = int(rng.unit_float(h_prio[0, k]) < self.p.p_high)
+            ttype = int(rng.bounded_int(rng.high_bits(h_kind[0, k]), self.n))
             lo, hi = self.duration_range(ttype, high)
-            tasks.append((high, ttype, lo + int(bounded_int(h_kind, hi - lo + 1)[0])))
+            tasks.append((high, ttype, lo + int(rng.bounded_int(h_kind[0, k], hi - lo + 1))))
         return tasks
 
     def duration_range(self, ttype, high):

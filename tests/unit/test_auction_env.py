@@ -6,8 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mrta_rl.envs.auction import AuctionEnv, pack_tasks, task_high, task_type
+from mrta_rl.envs.auction import AuctionEnv
 from mrta_rl.envs.params import AuctionParams
+from mrta_rl.envs.tasks import pack_tasks, task_high, task_type
 from mrta_rl.systems import RobotSystem, build_system
 from tests.unit.reference_auction import ReferenceAuction
 
