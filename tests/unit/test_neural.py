@@ -24,6 +24,15 @@ from mrta_rl.systems import build_system
 SMALL = {"hidden": 16, "depth": 1, "batch_size": 32, "buffer_size": 1000}
 
 
+@pytest.fixture(autouse=True)
+def one_thread():
+    """One intra-op thread, as the runner uses (tiny nets; no spinning threads on a busy CPU)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
 @pytest.fixture
 def system():
     """Four robots in two sub-groups (subG partition), three task types."""
@@ -56,7 +65,7 @@ def randomize(learner, scale=3.0, seed=0):
             p.copy_(torch.randn(p.shape, generator=gen) * scale)
 
 
-def collect(learner, env, frames=200):
+def collect(learner, env, frames=100):
     """One collector batch of the learner's exploring policy, as replay transitions."""
     collector = Collector(
         AuctionTorchRLEnv(env, group_map=learner.group_map),
@@ -160,7 +169,7 @@ def test_train_step_lowers_the_loss_on_a_fixed_batch(cls, system):
     learner, env = make(cls, system, lr=1e-2, target_update="hard", hard_update_interval=10**6)
     batch = collect(learner, env)
     before = learner.train_step(batch)["train/loss"]
-    for _ in range(30):
+    for _ in range(15):
         after = learner.train_step(batch)["train/loss"]
     assert after < before
 
@@ -170,7 +179,7 @@ def test_checkpoint_reloads_to_identical_evaluation(cls, system, tmp_path):
     torch.manual_seed(0)
     learner, env = make(cls, system, lr=1e-2)
     batch = collect(learner, env)
-    for _ in range(20):
+    for _ in range(10):
         learner.train_step(batch)
     learner.save(tmp_path)
     state = torch.load(tmp_path / WEIGHTS_FILE, weights_only=True)
