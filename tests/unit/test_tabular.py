@@ -12,6 +12,7 @@ from mrta_rl.learners.tabular.common import (
     apply_updates,
     deconflict,
     greedy_actions,
+    spread_actions,
     visit_alpha,
 )
 from mrta_rl.learners.tabular.cql import CQLLearner
@@ -27,7 +28,9 @@ LEARNERS = [SubGCQLLearner, CQLLearner, SemiCQLLearner, DQLLearner]
 @pytest.fixture
 def trio():
     """Three robots sharing T1, so joint actions conflict."""
-    return build_system({"name": "trio", "robots": {"R1": ["T1", "T2"], "R2": ["T1"], "R3": ["T1", "T2"]}})
+    return build_system(
+        {"name": "trio", "robots": {"R1": ["T1", "T2"], "R2": ["T1"], "R3": ["T1", "T2"]}}
+    )
 
 
 def make(cls, system, params=None, batch=4, seed=0, **hp):
@@ -80,7 +83,9 @@ def test_enumerate_valid_is_product_of_valid_actions():
     assert got == {(a0, a1) for a0 in (0, 1, 3) for a1 in (0, 1, 2)}
     state, codes = joint.enumerate_valid(masks, prune_conflicts=True)
     got = {tuple(a) for a in joint.decode(codes[state == 0])}
-    assert got == {(a0, a1) for a0 in (0, 1, 3) for a1 in (0, 1, 2)} - {(1, 1)}  # two bids for slot 1
+    assert got == {(a0, a1) for a0 in (0, 1, 3) for a1 in (0, 1, 2)} - {
+        (1, 1)
+    }  # two bids for slot 1
 
 
 def test_deconflict_keeps_the_auction_winner():
@@ -104,6 +109,69 @@ def test_table_ties_go_to_the_plain_auction():
     assert table.actions_of(table.best_entries(rows)).tolist() == [[2, 1]]
     with pytest.raises(ValueError):
         table.entries_of(rows, table.joint.encode(np.array([[3, 0]])))  # slot 3 masked
+
+
+def test_spread_actions_give_distinct_slots_in_order():
+    masks = np.array(
+        [
+            [[1, 1, 1, 0], [1, 1, 0, 0], [1, 1, 1, 1]],  # R1: slots 1-2, R2: slot 1, R3: all
+            [[1, 0, 0, 0], [1, 0, 1, 0], [1, 0, 1, 0]],  # slot 2 only: R2 bids, R3 waits
+        ],
+        bool,
+    )
+    # copy 0: slot 1 -> R1 (lowest index), slot 2 -> R3 (R1 taken, R2 cannot), slot 3 -> nobody
+    assert spread_actions(masks).tolist() == [[1, 0, 2], [0, 2, 0]]
+
+
+@pytest.mark.parametrize("prior", ["spread", "spread_wait"])
+def test_table_prior_is_the_tie_break(prior):
+    table = JointQTable(2, 4, prior=prior)
+    masks = np.array([[[1, 1, 1, 0], [1, 1, 1, 0]]], bool)
+    prior_masks = masks.copy()
+    prior_masks[:, :, 2] = False  # e.g. spread_wait holding an L task in slot 2
+    rows = table.rows(np.array([3]), masks, np.ones((1, 2, 3)), prior_masks)
+    assert table.actions_of(table.best_entries(rows)).tolist() == [[1, 0]]
+    assert len(table.state_q(3)) == 7  # the stored actions still follow the full mask
+    with pytest.raises(ValueError):
+        JointQTable(2, 4, prior="nope")
+
+
+def test_min_visits_keeps_the_prior_until_an_entry_is_tried():
+    table = JointQTable(2, 4, min_visits=2)
+    masks = np.array([[[1, 1, 0, 0], [1, 0, 1, 0]]], bool)
+    rows = table.rows(np.array([0]), masks, np.ones((1, 2, 3)))
+    prior = table.best_entries(rows)
+    assert table.actions_of(prior).tolist() == [[1, 2]]  # plain auction: R1 slot 1, R2 slot 2
+    other = table.entries_of(rows, table.joint.encode(np.array([[0, 0]])))
+    table.q[prior], table.q[other] = -1.0, 5.0  # the untried entry looks better ...
+    assert table.best_entries(rows).tolist() == prior.tolist()  # ... but is not a candidate
+    assert table.max_q(rows).tolist() == [-1.0]  # eq. (3)'s max over the candidates
+    table.visits[other] = 2
+    assert table.best_entries(rows).tolist() == other.tolist()
+    assert table.max_q(rows).tolist() == [5.0]
+
+
+@pytest.mark.parametrize("cls", [SubGCQLLearner, CQLLearner])
+def test_untrained_spread_prior_plays_spread(cls, trio, tiny_params):
+    env, learner = make(cls, trio, tiny_params, batch=6, seed=3, prior="spread")
+    while not env.done.any():
+        mask = env.action_mask
+        actions = learner.act(learner.encode(env), mask, explore=False)
+        expected = np.zeros_like(actions)
+        for robots in learner.groups:
+            expected[:, robots] = spread_actions(mask[:, robots])
+        np.testing.assert_array_equal(actions, expected)
+        env.step(actions)
+
+
+def test_spread_wait_prior_holds_low_slots_after_a_recent_high(trio, tiny_params):
+    env, learner = make(CQLLearner, trio, tiny_params, batch=1, prior="spread_wait")
+    env.inject_tasks(0, [{"type": 0, "high": 0, "due": 0, "id": 0, "duration": 4}])
+    assert env.action_mask[0, :, 1].all()  # everyone may bid for the L task in slot 1
+    env.last_high_arrival[0, 0] = env.t[0] - 2  # an H task of T1 arrived 2 ticks ago: level 0
+    assert learner.act(learner.encode(env), env.action_mask, explore=False).tolist() == [[0, 0, 0]]
+    env.last_high_arrival[0, :] = env.t[0] - 50  # long ago: spread bids for the L task
+    assert learner.act(learner.encode(env), env.action_mask, explore=False).tolist() == [[1, 0, 0]]
 
 
 # ------------------------------------------------------------------ updates and schedules
@@ -131,7 +199,7 @@ def test_schedules_and_pending_returns():
     assert ret[0] == pytest.approx(1.0 + 0.9 * 2.0) and discount[0] == pytest.approx(0.81)
 
 
-# ------------------------------------------------------------------ hand-computed eq. (3) per learner
+# ---------------------------------------------------------------- hand-computed eq. (3), per learn
 def _h_task_in_slot_1(env):
     """Copy 0 holds one H task of type T1 (index 0), due now: every idle T1 robot may bid slot 1."""
     env.inject_tasks(0, [{"type": 0, "high": 1, "due": 0, "id": 0, "duration": 5}])
@@ -140,7 +208,9 @@ def _h_task_in_slot_1(env):
 @pytest.mark.parametrize("cls", LEARNERS)
 def test_hand_computed_q_update(cls, trio, tiny_params):
     alpha, gamma = 0.5, 0.9
-    env, learner = make(cls, trio, tiny_params, batch=1, alpha=alpha, gamma=gamma, decisions_only=False)
+    env, learner = make(
+        cls, trio, tiny_params, batch=1, alpha=alpha, gamma=gamma, decisions_only=False
+    )
     _h_task_in_slot_1(env)
     view = learner.encode(env)
     actions = np.zeros((1, 3), np.int64)
@@ -153,7 +223,9 @@ def test_hand_computed_q_update(cls, trio, tiny_params):
         g = next(k for k, rs in enumerate(learner.groups) if 1 in rs)
         table, robots = learner.tables[g], learner.groups[g]
         rows, entries = learner._chosen_entries(view, actions, g)
-        next_row = table.rows(next_view.states[g], next_mask[:, robots], next_view.slot_weight[:, robots])
+        next_row = table.rows(
+            next_view.states[g], next_mask[:, robots], next_view.slot_weight[:, robots]
+        )
         offset, length = int(table._offset.data[next_row[0]]), int(table._length.data[next_row[0]])
         if rows[0] != next_row[0]:
             table.q[offset : offset + length] = np.arange(length) + 2.0
@@ -163,7 +235,9 @@ def test_hand_computed_q_update(cls, trio, tiny_params):
         table.q[entries[0]] = 1.0
         if next_max is None:
             next_max = float(table.q[offset : offset + length].max())
-        reward = result.robot_reward[0, robots].sum() if cls is SubGCQLLearner else result.team_reward[0]
+        reward = (
+            result.robot_reward[0, robots].sum() if cls is SubGCQLLearner else result.team_reward[0]
+        )
         assert reward == 10.0  # spec step 8: H assignment
         learner.update(view, actions, result, next_view, next_mask)
         assert table.q[entries[0]] == pytest.approx(1.0 + alpha * (10.0 + gamma * next_max - 1.0))
@@ -192,7 +266,8 @@ def test_epsilon_one_never_picks_an_invalid_action(cls, trio, tiny_params):
 
 @pytest.mark.parametrize("cls", LEARNERS)
 def test_untrained_learner_plays_the_plain_auction(cls, trio, tiny_params):
-    env, learner = make(cls, trio, tiny_params, batch=6, seed=3)
+    hp = {"prior": "greedy"} if cls in (SubGCQLLearner, CQLLearner) else {}
+    env, learner = make(cls, trio, tiny_params, batch=6, seed=3, **hp)
     plain = AuctionEnv(trio, tiny_params, batch_size=6, active_tasks=env.active_tasks, seed=3)
     while not env.done.any():
         env_result = env.step(learner.act(learner.encode(env), env.action_mask, explore=False))

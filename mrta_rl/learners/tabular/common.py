@@ -101,6 +101,36 @@ def greedy_actions(mask: np.ndarray) -> np.ndarray:
     return np.where(bids.any(axis=-1), bids.argmax(axis=-1) + 1, 0).astype(np.int64)
 
 
+def spread_actions(mask: np.ndarray) -> np.ndarray:
+    """Spread prior: idle robots bid for distinct slots, in slot order, lowest robot index first.
+
+    Slot 1 (the most urgent, spec step 3) gets the lowest-indexed robot that may bid for it,
+    slot 2 the lowest-indexed robot among the others, and so on; robots left over wait. Unlike
+    the plain auction no bid is lost, so no robot spends a busy tick on a lost bid (spec step 7)
+    and more slots are filled at the same tick.
+
+    Args:
+        mask: ``[N, m_g, K + 1]`` bool valid actions of a group.
+
+    Returns:
+        ``[N, m_g]`` int64 conflict-free actions.
+    """
+    n, m_g, n_actions = mask.shape
+    actions = np.zeros((n, m_g), np.int64)
+    taken = np.zeros((n, m_g), bool)
+    rows = np.arange(n)
+    for k in range(1, n_actions):
+        candidates = mask[:, :, k] & ~taken  # [N, m_g]
+        has = candidates.any(axis=1)
+        first = candidates.argmax(axis=1)  # lowest robot index among the candidates
+        actions[rows[has], first[has]] = k
+        taken[rows[has], first[has]] = True
+    return actions
+
+
+PRIORS = ("greedy", "spread", "spread_wait")  # tie-break joint action of an untrained state
+
+
 def random_valid_actions(mask: np.ndarray, u: np.ndarray) -> np.ndarray:
     """Uniform choice among the valid actions, driven by uniforms ``u`` in [0, 1).
 
@@ -277,11 +307,32 @@ class JointQTable:
         n_robots: Robots in the group ``m_g``.
         n_actions: Actions per robot ``K + 1``.
         prune_conflicts: Store only conflict-free joint actions (module docstring).
+        prior: Tie-break joint action: ``"greedy"`` (the plain auction) or ``"spread"``
+            (:func:`spread_actions`) or ``"spread_wait"`` (spread under the prior masks passed
+            to :meth:`rows`); each is valid in every state.
+        min_visits: Entries other than the prior compete for the greedy choice and the max of
+            eq. (3) once updated this many times (0: all entries, untried ones at Q = 0).
+
+    Raises:
+        ValueError: on an unknown prior.
     """
 
-    def __init__(self, n_robots: int, n_actions: int, prune_conflicts: bool = True) -> None:
+    def __init__(
+        self,
+        n_robots: int,
+        n_actions: int,
+        prune_conflicts: bool = True,
+        prior: str = "greedy",
+        min_visits: int = 0,
+    ) -> None:
+        if prior not in PRIORS:
+            raise ValueError(f"prior must be one of {PRIORS}, got {prior!r}")
+        if min_visits < 0:
+            raise ValueError(f"min_visits must be >= 0, got {min_visits}")
         self.joint = JointActions(n_robots, n_actions)
         self.prune_conflicts = prune_conflicts
+        self.prior = prior
+        self.min_visits = min_visits
         self.index: dict[int, int] = {}  # state index -> row
         self._states = _Growable(np.int64)  # row -> state index
         self._offset = _Growable(np.int64)  # row -> first entry
@@ -292,13 +343,21 @@ class JointQTable:
         self._visits = _Growable(np.int64)  # entry -> updates so far
 
     # -- rows
-    def rows(self, states: np.ndarray, masks: np.ndarray, slot_weight: np.ndarray) -> np.ndarray:
+    def rows(
+        self,
+        states: np.ndarray,
+        masks: np.ndarray,
+        slot_weight: np.ndarray,
+        prior_masks: np.ndarray | None = None,
+    ) -> np.ndarray:
         """Rows of ``N`` states, created on the first visit.
 
         Args:
             states: ``[N]`` group state indices.
             masks: ``[N, m_g, K + 1]`` valid actions of the group's robots in those states.
             slot_weight: ``[N, m_g, K]`` willingness of the robots for the slots' types.
+            prior_masks: ``[N, m_g, K + 1]`` the bids the prior may use (a subset of ``masks``,
+                a function of the state); None = ``masks``.
 
         Returns:
             ``[N]`` int64 rows.
@@ -309,17 +368,27 @@ class JointQTable:
         if new.any():
             fresh, first = np.unique(states[new], return_index=True)
             at = np.flatnonzero(new)[first]
-            self._add_rows(fresh, masks[at], slot_weight[at])
+            prior = masks[at] if prior_masks is None else prior_masks[at]
+            self._add_rows(fresh, masks[at], slot_weight[at], prior)
             rows[new] = np.fromiter((get(s) for s in states[new].tolist()), np.int64, new.sum())
         return rows
 
-    def _add_rows(self, states: np.ndarray, masks: np.ndarray, slot_weight: np.ndarray) -> None:
+    def _add_rows(
+        self,
+        states: np.ndarray,
+        masks: np.ndarray,
+        slot_weight: np.ndarray,
+        prior_masks: np.ndarray,
+    ) -> None:
         state_of, codes = self.joint.enumerate_valid(masks, self.prune_conflicts)
         lengths = np.bincount(state_of, minlength=len(states))
         offsets = self._codes.size + np.cumsum(lengths) - lengths
-        greedy = greedy_actions(masks)  # [N, m_g]
-        if self.prune_conflicts:
-            greedy = deconflict(greedy, slot_weight)
+        if self.prior in ("spread", "spread_wait"):
+            greedy = spread_actions(prior_masks)  # [N, m_g], conflict-free by construction
+        else:
+            greedy = greedy_actions(prior_masks)  # [N, m_g]
+            if self.prune_conflicts:
+                greedy = deconflict(greedy, slot_weight)
         greedy_code = self.joint.encode(greedy)
         greedy_entry = self._codes.size + np.flatnonzero(codes == greedy_code[state_of])
         first_row = self._states.size
@@ -330,7 +399,9 @@ class JointQTable:
         self._codes.append(codes)
         self._q.append(np.zeros(len(codes)))
         self._visits.append(np.zeros(len(codes), np.int64))
-        self.index.update(zip(states.tolist(), range(first_row, first_row + len(states)), strict=True))
+        self.index.update(
+            zip(states.tolist(), range(first_row, first_row + len(states)), strict=True)
+        )
 
     # -- queries
     def _segments(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -339,20 +410,40 @@ class JointQTable:
         idx = np.repeat(self._offset.data[rows] - starts, lengths) + np.arange(lengths.sum())
         return idx, starts, lengths
 
+    def _candidate_values(
+        self, rows: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Q of each row's candidates (the prior, entries tried ``min_visits`` times), else -inf."""
+        idx, starts, lengths = self._segments(rows)
+        values = self._q.data[idx]
+        if self.min_visits > 0:
+            prior = np.repeat(self._greedy.data[rows], lengths)
+            tried = (self._visits.data[idx] >= self.min_visits) | (idx == prior)
+            values = np.where(tried, values, -np.inf)
+        return idx, starts, lengths, values
+
     def max_q(self, rows: np.ndarray) -> np.ndarray:
-        """``[N]`` max over the valid joint actions of each row (eq. 3's ``max_a'``)."""
+        """``[N]`` max over the valid joint actions of each row (eq. 3's ``max_a'``).
+
+        With ``min_visits > 0`` the max ranges over the candidates of :meth:`best_entries`, so
+        the target is the value of the greedy policy (untried entries hold no estimate yet).
+        """
         if len(rows) == 0:
             return np.zeros(0)
-        idx, starts, _ = self._segments(rows)
-        return np.maximum.reduceat(self._q.data[idx], starts)
+        _, starts, _, values = self._candidate_values(rows)
+        return np.maximum.reduceat(values, starts)
 
     def best_entries(self, rows: np.ndarray) -> np.ndarray:
-        """``[N]`` entry of the greatest Q per row; ties go to the plain auction's joint action."""
+        """``[N]`` entry of the greatest Q per row; ties go to the prior's joint action.
+
+        With ``min_visits > 0`` only the prior and the entries updated at least ``min_visits``
+        times compete: an entry tried once by exploration holds a single noisy target (or, with a
+        constant alpha, a fraction of it) and must not replace the prior on that evidence.
+        """
         if len(rows) == 0:
             return np.zeros(0, np.int64)
         q = self._q.data
-        idx, starts, lengths = self._segments(rows)
-        values = q[idx]
+        idx, starts, lengths, values = self._candidate_values(rows)
         best = np.maximum.reduceat(values, starts)
         positions = np.where(values == np.repeat(best, lengths), np.arange(len(idx)), len(idx))
         first = idx[np.minimum.reduceat(positions, starts)]
@@ -375,7 +466,10 @@ class JointQTable:
             return np.zeros(0, np.int64)
         idx, _, lengths = self._segments(rows)
         hit = self._codes.data[idx] == np.repeat(codes, lengths)
-        if hit.sum() != len(rows) or not np.logical_or.reduceat(hit, np.cumsum(lengths) - lengths).all():
+        if (
+            hit.sum() != len(rows)
+            or not np.logical_or.reduceat(hit, np.cumsum(lengths) - lengths).all()
+        ):
             raise ValueError("joint action not valid in its state (masked, or conflicting bids)")
         return idx[hit]
 
@@ -406,7 +500,9 @@ class JointQTable:
         """``{joint code: Q}`` of a stored state (for tests and inspection)."""
         row = self.index[int(state)]
         o, n = int(self._offset.data[row]), int(self._length.data[row])
-        return dict(zip(self._codes.data[o : o + n].tolist(), self._q.data[o : o + n].tolist(), strict=True))
+        return dict(
+            zip(self._codes.data[o : o + n].tolist(), self._q.data[o : o + n].tolist(), strict=True)
+        )
 
     def to_arrays(self, prefix: str) -> dict[str, np.ndarray]:
         """Plain arrays for ``np.savez`` (no objects)."""
@@ -448,7 +544,9 @@ class PendingTransitions:
         """Forget open transitions without updating (episode truncation: no next state)."""
         self.entry[where] = -1
 
-    def close(self, where: np.ndarray) -> tuple[tuple[np.ndarray, ...], np.ndarray, np.ndarray, np.ndarray]:
+    def close(
+        self, where: np.ndarray
+    ) -> tuple[tuple[np.ndarray, ...], np.ndarray, np.ndarray, np.ndarray]:
         """Close the open transitions selected by ``where``.
 
         Args:
@@ -531,8 +629,12 @@ class TabularLearner(Learner):
         """``[B, m, K]`` willingness of each robot for each slot's task type (0 if empty)."""
         return self._weight_by_type[env.slot_type].transpose(0, 2, 1)
 
-    def _update(self, q: np.ndarray, visits: np.ndarray, entries: np.ndarray, targets: np.ndarray) -> float:
-        return apply_updates(q, visits, entries, targets, self.alpha, self.alpha_power, self.alpha_min)
+    def _update(
+        self, q: np.ndarray, visits: np.ndarray, entries: np.ndarray, targets: np.ndarray
+    ) -> float:
+        return apply_updates(
+            q, visits, entries, targets, self.alpha, self.alpha_power, self.alpha_min
+        )
 
     # -- persistence
     def _table_arrays(self) -> dict[str, np.ndarray]:

@@ -27,6 +27,8 @@ class CQLLearner(GroupQLearner):
         rng: Exploration randomness.
         partition: Unused.
         prune_conflicts: Keep only conflict-free joint actions (see ``common``).
+        prior: Tie-break joint action of untried states (``common.PRIORS``, docs/learners.md).
+        min_visits: Updates an entry needs before it competes with the prior (``JointQTable``).
         **hyperparameters: See :class:`~mrta_rl.learners.tabular.common.TabularLearner`.
     """
 
@@ -47,13 +49,23 @@ class CQLLearner(GroupQLearner):
         epsilon_decay_episodes: int = 20,
         decisions_only: bool = True,
         prune_conflicts: bool = True,
+        prior: str = "spread",
+        min_visits: int = 0,
     ) -> None:
         super().__init__(
-            env=env, rng=rng, partition=partition, alpha=alpha, alpha_power=alpha_power,
-            alpha_min=alpha_min, gamma=gamma, epsilon_start=epsilon_start, epsilon_end=epsilon_end,
-            epsilon_decay_episodes=epsilon_decay_episodes, decisions_only=decisions_only,
+            env=env,
+            rng=rng,
+            partition=partition,
+            alpha=alpha,
+            alpha_power=alpha_power,
+            alpha_min=alpha_min,
+            gamma=gamma,
+            epsilon_start=epsilon_start,
+            epsilon_end=epsilon_end,
+            epsilon_decay_episodes=epsilon_decay_episodes,
+            decisions_only=decisions_only,
         )
-        self._set_groups(["team"], [list(range(env.n_robots))], prune_conflicts)
+        self._set_groups(["team"], [list(range(env.n_robots))], prune_conflicts, prior, min_visits)
 
     def _group_rewards(self, result: StepResult) -> np.ndarray:
         return np.asarray(result.team_reward, np.float64)[:, None]  # spec step 8: team reward

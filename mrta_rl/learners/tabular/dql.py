@@ -161,9 +161,17 @@ class DQLLearner(RobotQLearner):
         decisions_only: bool = True,
     ) -> None:
         super().__init__(
-            env=env, rng=rng, partition=partition, alpha=alpha, alpha_power=alpha_power,
-            alpha_min=alpha_min, gamma=gamma, epsilon_start=epsilon_start, epsilon_end=epsilon_end,
-            epsilon_decay_episodes=epsilon_decay_episodes, decisions_only=decisions_only,
+            env=env,
+            rng=rng,
+            partition=partition,
+            alpha=alpha,
+            alpha_power=alpha_power,
+            alpha_min=alpha_min,
+            gamma=gamma,
+            epsilon_start=epsilon_start,
+            epsilon_end=epsilon_end,
+            epsilon_decay_episodes=epsilon_decay_episodes,
+            decisions_only=decisions_only,
         )
         self.state_counts = local_state_count(env)  # |S_i|
         self._stride = max(self.state_counts)
@@ -185,6 +193,8 @@ class DQLLearner(RobotQLearner):
 
     def _load_table_arrays(self, arrays: dict[str, np.ndarray]) -> None:
         if arrays["q"].size != self.q.size:
-            raise ValueError(f"saved table has shape {arrays['q'].shape}, this env needs {self.q.size} values")
+            raise ValueError(
+                f"saved table has shape {arrays['q'].shape}, this env needs {self.q.size} values"
+            )
         self.q[:] = arrays["q"].ravel()
         self.visits[:] = arrays["visits"].ravel()

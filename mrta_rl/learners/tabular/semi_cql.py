@@ -46,9 +46,17 @@ class SemiCQLLearner(RobotQLearner):
         decisions_only: bool = True,
     ) -> None:
         super().__init__(
-            env=env, rng=rng, partition=partition, alpha=alpha, alpha_power=alpha_power,
-            alpha_min=alpha_min, gamma=gamma, epsilon_start=epsilon_start, epsilon_end=epsilon_end,
-            epsilon_decay_episodes=epsilon_decay_episodes, decisions_only=decisions_only,
+            env=env,
+            rng=rng,
+            partition=partition,
+            alpha=alpha,
+            alpha_power=alpha_power,
+            alpha_min=alpha_min,
+            gamma=gamma,
+            epsilon_start=epsilon_start,
+            epsilon_end=epsilon_end,
+            epsilon_decay_episodes=epsilon_decay_episodes,
+            decisions_only=decisions_only,
         )
         self._robots = list(range(env.n_robots))
         self._row_size = self.n_robots * self.n_actions
@@ -73,7 +81,9 @@ class SemiCQLLearner(RobotQLearner):
             self.states[first : first + len(fresh)] = fresh
             self.index.update(zip(fresh.tolist(), range(first, first + len(fresh)), strict=True))
             self._n_rows += len(fresh)
-            rows[new] = np.fromiter((get(s) for s in states[new].tolist()), np.int64, int(new.sum()))
+            rows[new] = np.fromiter(
+                (get(s) for s in states[new].tolist()), np.int64, int(new.sum())
+            )
         return rows
 
     def _grow(self, extra: int) -> None:
@@ -105,7 +115,10 @@ class SemiCQLLearner(RobotQLearner):
     def _load_table_arrays(self, arrays: dict[str, np.ndarray]) -> None:
         states = arrays["states"]
         if arrays["q"].shape[1:] != (self.n_robots, self.n_actions):
-            raise ValueError(f"saved table has shape {arrays['q'].shape}, expected [rows, {self.n_robots}, {self.n_actions}]")
+            raise ValueError(
+                f"saved table has shape {arrays['q'].shape}, "
+                f"expected [rows, {self.n_robots}, {self.n_actions}]"
+            )
         self._n_rows = 0
         self.states, self.q, self.visits = np.zeros(0, np.int64), np.zeros(0), np.zeros(0, np.int64)
         self._grow(len(states))

@@ -16,7 +16,7 @@ from typing import ClassVar
 import numpy as np
 
 from mrta_rl.envs import AuctionEnv, StepResult
-from mrta_rl.envs.observations import group_state_index
+from mrta_rl.envs.observations import group_state_index, recency_level
 from mrta_rl.learners.tabular.common import (
     JointQTable,
     PendingTransitions,
@@ -35,6 +35,7 @@ class GroupObservation:
         states: Per group, ``[B]`` group state indices.
         mask: ``[B, m, K + 1]`` valid actions (copied from the env).
         slot_weight: ``[B, m, K]`` willingness of each robot for each slot's type (conflicts).
+        prior_masks: Per group, ``[B, m, K + 1]`` the bids the tie-break prior may use.
         rows: Per group, ``[B]`` table rows (-1: no decision), filled by ``act``.
         entries: Per group, ``[B]`` chosen table entries (-1: none), filled by ``act``.
         actions: The ``[B, m]`` actions ``act`` returned, to check the cache in ``update``.
@@ -43,6 +44,7 @@ class GroupObservation:
     states: list[np.ndarray]
     mask: np.ndarray
     slot_weight: np.ndarray
+    prior_masks: list[np.ndarray]
     rows: list[np.ndarray | None] = field(default_factory=list)
     entries: list[np.ndarray | None] = field(default_factory=list)
     actions: np.ndarray | None = None
@@ -56,16 +58,30 @@ class GroupQLearner(TabularLearner):
 
     Args:
         prune_conflicts: Keep only conflict-free joint actions (see ``common``).
+        prior: Tie-break joint action of untried states (``common.PRIORS``).
+        min_visits: Updates an entry needs before it competes with the prior.
         **kwargs: Env, generator, partition and the hyperparameters of
             :class:`~mrta_rl.learners.tabular.common.TabularLearner`.
     """
 
     space_name: ClassVar[str]
 
-    def _set_groups(self, names: list[str], groups: list[list[int]], prune_conflicts: bool) -> None:
+    def _set_groups(
+        self,
+        names: list[str],
+        groups: list[list[int]],
+        prune_conflicts: bool,
+        prior: str,
+        min_visits: int,
+    ) -> None:
         self.group_names = names
         self.groups = [np.asarray(g, np.int64) for g in groups]
-        self.tables = [JointQTable(len(g), self.n_actions, prune_conflicts) for g in groups]
+        self.tables = [
+            JointQTable(len(g), self.n_actions, prune_conflicts, prior, min_visits) for g in groups
+        ]
+        self.prior = prior
+        active = self.env.active_tasks
+        self._group_types = [active[np.asarray(g, np.int64)].any(axis=0) for g in groups]  # T_g
         self._pending: list[PendingTransitions] = []
 
     def _group_rewards(self, result: StepResult) -> np.ndarray:
@@ -80,7 +96,20 @@ class GroupQLearner(TabularLearner):
     def encode(self, env: AuctionEnv) -> GroupObservation:
         """Group state of every group, the mask and the slot willingness (copies)."""
         states = [group_state_index(env, g) for g in self.groups]
-        return GroupObservation(states, env.action_mask.copy(), self._slot_weight(env))
+        mask = env.action_mask.copy()
+        if self.prior == "spread_wait":
+            # the prior holds L slots while the group's recency level is 0 (an H task of T_g
+            # arrived within 3 ticks; it is in the group state), as the rule spread_wait3
+            low = (env.slot_high == 0)[:, None, :]  # [B, 1, K]
+            prior_masks = []
+            for types in self._group_types:
+                hold = (recency_level(env, types) == 0)[:, None, None]  # [B, 1, 1]
+                prior = mask.copy()
+                prior[:, :, 1:] &= ~(low & hold)
+                prior_masks.append(prior)
+        else:
+            prior_masks = [mask] * len(self.groups)
+        return GroupObservation(states, mask, self._slot_weight(env), prior_masks)
 
     def act(self, view: GroupObservation, mask: np.ndarray, *, explore: bool) -> np.ndarray:
         """Epsilon-greedy joint action per group over its valid joint actions.
@@ -103,7 +132,10 @@ class GroupQLearner(TabularLearner):
             decide = np.flatnonzero(self._decides(mask, robots))
             if len(decide):
                 rows[decide] = table.rows(
-                    view.states[g][decide], mask[decide][:, robots], view.slot_weight[decide][:, robots]
+                    view.states[g][decide],
+                    mask[decide][:, robots],
+                    view.slot_weight[decide][:, robots],
+                    view.prior_masks[g][decide][:, robots],
                 )
                 chosen = table.best_entries(rows[decide])
                 if epsilon > 0.0:
@@ -119,7 +151,9 @@ class GroupQLearner(TabularLearner):
         view.actions = actions.copy()
         return actions
 
-    def _chosen_entries(self, view: GroupObservation, actions: np.ndarray, g: int) -> tuple[np.ndarray, np.ndarray]:
+    def _chosen_entries(
+        self, view: GroupObservation, actions: np.ndarray, g: int
+    ) -> tuple[np.ndarray, np.ndarray]:
         """``[B]`` rows and entries of the actions taken in ``view`` (-1 where no decision)."""
         if view.actions is not None and view.rows and np.array_equal(view.actions, actions):
             return view.rows[g], view.entries[g]
@@ -129,7 +163,10 @@ class GroupQLearner(TabularLearner):
         decide = np.flatnonzero(self._decides(view.mask, robots))
         if len(decide):
             weight = view.slot_weight[decide][:, robots]
-            rows[decide] = table.rows(view.states[g][decide], view.mask[decide][:, robots], weight)
+            prior = view.prior_masks[g][decide][:, robots]
+            rows[decide] = table.rows(
+                view.states[g][decide], view.mask[decide][:, robots], weight, prior
+            )
             taken = actions[decide][:, robots]
             if table.prune_conflicts:
                 taken = deconflict(taken, weight)  # same outcome as the bids taken (spec step 5)
@@ -162,7 +199,9 @@ class GroupQLearner(TabularLearner):
         rewards = self._group_rewards(result)  # [B, G]
         done = np.asarray(result.done, bool)
         logs: dict[str, float] = {}
-        for g, (robots, table, pending) in enumerate(zip(self.groups, self.tables, self._pending, strict=True)):
+        for g, (robots, table, pending) in enumerate(
+            zip(self.groups, self.tables, self._pending, strict=True)
+        ):
             _, entries = self._chosen_entries(view, actions, g)
             pending.start(entries >= 0, entries)
             pending.accumulate(rewards[:, g], self.gamma)
@@ -172,10 +211,15 @@ class GroupQLearner(TabularLearner):
             if len(pos) == 0:
                 continue
             next_rows = table.rows(
-                next_view.states[g][pos], next_mask[pos][:, robots], next_view.slot_weight[pos][:, robots]
+                next_view.states[g][pos],
+                next_mask[pos][:, robots],
+                next_view.slot_weight[pos][:, robots],
+                next_view.prior_masks[g][pos][:, robots],
             )
             targets = ret + discount * table.max_q(next_rows)  # eq. (3): r + gamma max_a' Q(s', a')
-            logs[f"learner/{self.group_names[g]}/td_error"] = self._update(table.q, table.visits, closed, targets)
+            logs[f"learner/{self.group_names[g]}/td_error"] = self._update(
+                table.q, table.visits, closed, targets
+            )
         return logs
 
     def learning_space(self) -> dict[str, int]:
@@ -206,6 +250,8 @@ class SubGCQLLearner(GroupQLearner):
         rng: Exploration randomness.
         partition: The subG partition (required).
         prune_conflicts: Keep only conflict-free joint actions (see ``common``).
+        prior: Tie-break joint action of untried states (``common.PRIORS``, docs/learners.md).
+        min_visits: Updates an entry needs before it competes with the prior (``JointQTable``).
         **hyperparameters: See :class:`~mrta_rl.learners.tabular.common.TabularLearner`.
     """
 
@@ -227,20 +273,36 @@ class SubGCQLLearner(GroupQLearner):
         epsilon_decay_episodes: int = 20,
         decisions_only: bool = True,
         prune_conflicts: bool = True,
+        prior: str = "spread_wait",
+        min_visits: int = 0,
     ) -> None:
         super().__init__(
-            env=env, rng=rng, partition=partition, alpha=alpha, alpha_power=alpha_power,
-            alpha_min=alpha_min, gamma=gamma, epsilon_start=epsilon_start, epsilon_end=epsilon_end,
-            epsilon_decay_episodes=epsilon_decay_episodes, decisions_only=decisions_only,
+            env=env,
+            rng=rng,
+            partition=partition,
+            alpha=alpha,
+            alpha_power=alpha_power,
+            alpha_min=alpha_min,
+            gamma=gamma,
+            epsilon_start=epsilon_start,
+            epsilon_end=epsilon_end,
+            epsilon_decay_episodes=epsilon_decay_episodes,
+            decisions_only=decisions_only,
         )
         assert partition is not None  # checked by Learner.__init__
         expected = partition.active_tasks(env.system)
         if not np.array_equal(env.active_tasks, expected):
-            raise ValueError("subG-CQL needs the env built with the partition's active tasks (Lambda_i)")
+            raise ValueError(
+                "subG-CQL needs the env built with the partition's active tasks (Lambda_i)"
+            )
         group_map = partition.group_map()
         robots = env.system.robots
         self._set_groups(
-            list(group_map), [[robots.index(r) for r in rs] for rs in group_map.values()], prune_conflicts
+            list(group_map),
+            [[robots.index(r) for r in rs] for rs in group_map.values()],
+            prune_conflicts,
+            prior,
+            min_visits,
         )
 
     def _group_rewards(self, result: StepResult) -> np.ndarray:
