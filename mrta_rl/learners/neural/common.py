@@ -294,7 +294,8 @@ class NeuralLearner(Learner):
 
         Args:
             env: The training env (sizes only; never stepped by the learner).
-            rng: Unused by the networks (torch is seeded by the runner); kept per the interface.
+            rng: Seeds the network initialisation (in a forked torch state); exploration and
+                replay draw from torch, which the runner seeds.
             partition: The subG partition (subG-DQN only).
             hidden: Units per hidden layer of the Q-networks.
             depth: Hidden layers of the Q-networks.
