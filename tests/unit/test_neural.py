@@ -11,12 +11,8 @@ from torchrl.collectors import Collector
 from mrta_rl.envs import AuctionEnv, AuctionParams
 from mrta_rl.envs.torchrl_env import AuctionTorchRLEnv
 from mrta_rl.learners.neural import IQLLearner, QMIXLearner, SubGDQNLearner, VDNLearner
-from mrta_rl.learners.neural.common import (
-    WEIGHTS_FILE,
-    greedy_bid,
-    joint_combine,
-    joint_decode,
-)
+from mrta_rl.learners.neural.common import WEIGHTS_FILE
+from mrta_rl.learners.neural.networks import greedy_bid, joint_combine, joint_decode
 from mrta_rl.partition import subg_partition
 from mrta_rl.runners.evaluate import evaluate_policy
 from mrta_rl.systems import build_system

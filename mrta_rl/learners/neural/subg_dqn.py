@@ -7,7 +7,8 @@ from tensordict.nn import TensorDictModule, TensorDictSequential
 from torchrl.modules import QValueModule
 from torchrl.objectives import DQNLoss
 
-from mrta_rl.learners.neural.common import JOINT, JointDecode, JointQ, NeuralLearner
+from mrta_rl.learners.neural.common import JOINT, NeuralLearner
+from mrta_rl.learners.neural.networks import JointDecode, JointQ
 from mrta_rl.types import GroupMap
 
 
