@@ -18,7 +18,8 @@ from typing import TYPE_CHECKING, Any
 
 from hydra.utils import instantiate
 from omegaconf import DictConfig
-from tqdm.auto import tqdm
+
+from mrta_rl.runners.progress import progress_bar
 
 if TYPE_CHECKING:
     from mrta_rl.runners.train import RunSetup
@@ -62,12 +63,11 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     env.reset()
     with (
         instantiate(cfg.logger)(run_dir=run_dir) as curve,
-        tqdm(
+        progress_bar(
             total=cfg.train.episodes * horizon,
             unit="tick",
             desc=f"train {run.name}",
-            disable=not cfg.train.progress_bar,
-            dynamic_ncols=True,
+            enabled=cfg.train.progress_bar,
         ) as bar,
     ):
         for episode in range(1, cfg.train.episodes + 1):

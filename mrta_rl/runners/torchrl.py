@@ -28,10 +28,10 @@ from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.record.loggers import CSVLogger as TorchRLCSVLogger
 from torchrl.record.loggers import Logger
-from tqdm.auto import tqdm
 
 from mrta_rl.envs.torchrl_env import AuctionTorchRLEnv
 from mrta_rl.metrics.logger import CSVLogger
+from mrta_rl.runners.progress import progress_bar
 
 if TYPE_CHECKING:
     from mrta_rl.learners.neural import NeuralLearner
@@ -134,13 +134,12 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     )
     with (
         instantiate(cfg.logger)(run_dir=run_dir) as curve,
-        tqdm(
+        progress_bar(
             total=total_frames,
             unit="frame",
             unit_scale=True,
             desc=f"train {run.name}",
-            disable=not cfg.train.progress_bar,
-            dynamic_ncols=True,
+            enabled=cfg.train.progress_bar,
         ) as bar,
     ):
         scalars = _scalar_logger(curve, run_dir)
