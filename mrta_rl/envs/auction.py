@@ -193,6 +193,7 @@ class AuctionEnv:
         for j in np.flatnonzero(~active.any(axis=0)):
             raise ValueError(f"active_tasks: task type {system.task_types[j]} has no robot left")
         self.active_tasks = active  # Lambda_i, [m, n]
+        self.copy_offset = 0  # index of copy 0 in a larger batch (ThreadedAuctionEnv), for errors
         self._check_limits()
 
         # per (type, priority) duration ranges: system file overrides, else the params' defaults
@@ -399,11 +400,12 @@ class AuctionEnv:
         self._mask_by_action = mask
 
     # ------------------------------------------------------------------ spec steps 4-8
-    def step(self, actions: np.ndarray) -> StepResult:
+    def step(self, actions: np.ndarray, *, validated: bool = False) -> StepResult:
         """Play spec steps 4-8 of the current tick in every copy, then steps 1-3 of the next.
 
         Args:
             actions: ``[B, m]`` ints, 0 = wait, k = bid for slot k.
+            validated: The caller has already run :meth:`validate` on these actions.
 
         Returns:
             Team and individual rewards of the tick and the done flags.
@@ -413,7 +415,8 @@ class AuctionEnv:
                 copy whose episode has ended and was not reset.
         """
         actions = np.asarray(actions)
-        self._validate(actions)
+        if not validated:
+            self.validate(actions)
         p, t = self.params, self.t
         team = -self._pending_team  # spec step 8 counts this tick's overflow drops (a new array)
         type_penalty = self._pending_type_penalty.copy()  # [B, n]
@@ -471,7 +474,12 @@ class AuctionEnv:
         self._begin_tick(~self.done)
         return StepResult(team, self.done.copy(), robot, type_penalty, self._penalty_share[:-1])
 
-    def _validate(self, actions: np.ndarray) -> None:
+    def validate(self, actions: np.ndarray) -> None:
+        """Check a joint action against shape, episode end and the action mask (spec step 4).
+
+        Raises:
+            ValueError: naming the copy, the robot and the reason.
+        """
         if actions.shape != (self.batch_size, self.n_robots):
             raise ValueError(
                 f"actions must have shape (B, m) = {(self.batch_size, self.n_robots)}, "
@@ -479,7 +487,8 @@ class AuctionEnv:
             )
         if self.done.any():
             raise ValueError(
-                f"copy {int(np.flatnonzero(self.done)[0])} has finished its episode; reset it first"
+                f"copy {int(np.flatnonzero(self.done)[0]) + self.copy_offset} has finished its "
+                "episode; reset it first"
             )
         in_range = (actions >= 0) & (actions < self.n_actions)
         flat = self._mask_offsets + np.where(in_range, actions, 0) * self.n_robots
@@ -496,7 +505,8 @@ class AuctionEnv:
             else:
                 why = f"{robot} may not do {self.system.task_types[self.slot_type[b, a - 1]]}"
             raise ValueError(
-                f"invalid action {a} for robot {robot} in copy {b} at tick {self.t[b]}: {why}"
+                f"invalid action {a} for robot {robot} in copy {b + self.copy_offset} "
+                f"at tick {self.t[b]}: {why}"
             )
 
     def _drop(self, keys: np.ndarray) -> np.ndarray:
