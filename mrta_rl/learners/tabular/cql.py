@@ -11,9 +11,8 @@ from typing import ClassVar
 
 import numpy as np
 
-from mrta_rl.envs import AuctionEnv, StepResult
+from mrta_rl.envs import StepResult
 from mrta_rl.learners.tabular.subg_cql import GroupQLearner
-from mrta_rl.partition import Partition
 
 
 class CQLLearner(GroupQLearner):
@@ -34,38 +33,10 @@ class CQLLearner(GroupQLearner):
 
     space_name: ClassVar[str] = "cql"
 
-    def __init__(
-        self,
-        *,
-        env: AuctionEnv,
-        rng: np.random.Generator,
-        partition: Partition | None = None,
-        alpha: float = 0.1,
-        alpha_power: float = 0.0,
-        alpha_min: float = 0.0,
-        gamma: float = 0.9,
-        epsilon_start: float = 0.2,
-        epsilon_end: float = 0.0,
-        epsilon_decay_episodes: int = 20,
-        decisions_only: bool = True,
-        prune_conflicts: bool = True,
-        prior: str = "spread",
-        min_visits: int = 0,
-    ) -> None:
-        super().__init__(
-            env=env,
-            rng=rng,
-            partition=partition,
-            alpha=alpha,
-            alpha_power=alpha_power,
-            alpha_min=alpha_min,
-            gamma=gamma,
-            epsilon_start=epsilon_start,
-            epsilon_end=epsilon_end,
-            epsilon_decay_episodes=epsilon_decay_episodes,
-            decisions_only=decisions_only,
-        )
-        self._set_groups(["team"], [list(range(env.n_robots))], prune_conflicts, prior, min_visits)
+    def __init__(self, **hyperparameters) -> None:
+        super().__init__(**hyperparameters)
+        env = self.env
+        self._set_groups(["team"], [list(range(env.n_robots))])
 
     def _group_rewards(self, result: StepResult) -> np.ndarray:
         return np.asarray(result.team_reward, np.float64)[:, None]  # spec step 8: team reward

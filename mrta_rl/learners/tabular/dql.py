@@ -22,7 +22,6 @@ from mrta_rl.learners.tabular.common import (
     random_valid_actions,
 )
 from mrta_rl.metrics.learning_space import learning_space_dimension
-from mrta_rl.partition import Partition
 
 
 @dataclass
@@ -145,34 +144,9 @@ class DQLLearner(RobotQLearner):
 
     space_name: ClassVar[str] = "dql"
 
-    def __init__(
-        self,
-        *,
-        env: AuctionEnv,
-        rng: np.random.Generator,
-        partition: Partition | None = None,
-        alpha: float = 0.1,
-        alpha_power: float = 0.0,
-        alpha_min: float = 0.0,
-        gamma: float = 0.9,
-        epsilon_start: float = 0.2,
-        epsilon_end: float = 0.0,
-        epsilon_decay_episodes: int = 20,
-        decisions_only: bool = True,
-    ) -> None:
-        super().__init__(
-            env=env,
-            rng=rng,
-            partition=partition,
-            alpha=alpha,
-            alpha_power=alpha_power,
-            alpha_min=alpha_min,
-            gamma=gamma,
-            epsilon_start=epsilon_start,
-            epsilon_end=epsilon_end,
-            epsilon_decay_episodes=epsilon_decay_episodes,
-            decisions_only=decisions_only,
-        )
+    def __init__(self, **hyperparameters) -> None:
+        super().__init__(**hyperparameters)
+        env = self.env
         self.state_counts = local_state_count(env)  # |S_i|
         self._stride = max(self.state_counts)
         size = self.n_robots * self._stride * self.n_actions

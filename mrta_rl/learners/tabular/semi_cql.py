@@ -15,7 +15,6 @@ import numpy as np
 from mrta_rl.envs import AuctionEnv
 from mrta_rl.envs.observations import group_state_index
 from mrta_rl.learners.tabular.dql import RobotObservation, RobotQLearner
-from mrta_rl.partition import Partition
 
 
 class SemiCQLLearner(RobotQLearner):
@@ -30,34 +29,9 @@ class SemiCQLLearner(RobotQLearner):
 
     space_name: ClassVar[str] = "semi_cql"
 
-    def __init__(
-        self,
-        *,
-        env: AuctionEnv,
-        rng: np.random.Generator,
-        partition: Partition | None = None,
-        alpha: float = 0.1,
-        alpha_power: float = 0.0,
-        alpha_min: float = 0.0,
-        gamma: float = 0.9,
-        epsilon_start: float = 0.2,
-        epsilon_end: float = 0.0,
-        epsilon_decay_episodes: int = 20,
-        decisions_only: bool = True,
-    ) -> None:
-        super().__init__(
-            env=env,
-            rng=rng,
-            partition=partition,
-            alpha=alpha,
-            alpha_power=alpha_power,
-            alpha_min=alpha_min,
-            gamma=gamma,
-            epsilon_start=epsilon_start,
-            epsilon_end=epsilon_end,
-            epsilon_decay_episodes=epsilon_decay_episodes,
-            decisions_only=decisions_only,
-        )
+    def __init__(self, **hyperparameters) -> None:
+        super().__init__(**hyperparameters)
+        env = self.env
         self._robots = list(range(env.n_robots))
         self._row_size = self.n_robots * self.n_actions
         self.index: dict[int, int] = {}  # whole-system state index -> row

@@ -24,7 +24,6 @@ from mrta_rl.learners.tabular.common import (
     deconflict,
 )
 from mrta_rl.metrics.learning_space import learning_space_dimension
-from mrta_rl.partition import Partition
 
 
 @dataclass
@@ -65,21 +64,27 @@ class GroupQLearner(TabularLearner):
     """
 
     space_name: ClassVar[str]
+    default_prior: ClassVar[str] = "spread"
 
-    def _set_groups(
+    def __init__(
         self,
-        names: list[str],
-        groups: list[list[int]],
-        prune_conflicts: bool,
-        prior: str,
-        min_visits: int,
+        *,
+        prune_conflicts: bool = True,
+        prior: str | None = None,
+        min_visits: int = 0,
+        **hyperparameters,
     ) -> None:
+        super().__init__(**hyperparameters)
+        self.prune_conflicts, self.min_visits = prune_conflicts, min_visits
+        self.prior = self.default_prior if prior is None else prior
+
+    def _set_groups(self, names: list[str], groups: list[list[int]]) -> None:
         self.group_names = names
         self.groups = [np.asarray(g, np.int64) for g in groups]
         self.tables = [
-            JointQTable(len(g), self.n_actions, prune_conflicts, prior, min_visits) for g in groups
+            JointQTable(len(g), self.n_actions, self.prune_conflicts, self.prior, self.min_visits)
+            for g in groups
         ]
-        self.prior = prior
         active = self.env.active_tasks
         self._group_types = [active[np.asarray(g, np.int64)].any(axis=0) for g in groups]  # T_g
         self._pending: list[PendingTransitions] = []
@@ -257,38 +262,11 @@ class SubGCQLLearner(GroupQLearner):
 
     requires_partition: ClassVar[bool] = True
     space_name: ClassVar[str] = "subg_cql"
+    default_prior: ClassVar[str] = "spread_wait"
 
-    def __init__(
-        self,
-        *,
-        env: AuctionEnv,
-        rng: np.random.Generator,
-        partition: Partition | None = None,
-        alpha: float = 0.1,
-        alpha_power: float = 0.0,
-        alpha_min: float = 0.0,
-        gamma: float = 0.9,
-        epsilon_start: float = 0.2,
-        epsilon_end: float = 0.0,
-        epsilon_decay_episodes: int = 20,
-        decisions_only: bool = True,
-        prune_conflicts: bool = True,
-        prior: str = "spread_wait",
-        min_visits: int = 0,
-    ) -> None:
-        super().__init__(
-            env=env,
-            rng=rng,
-            partition=partition,
-            alpha=alpha,
-            alpha_power=alpha_power,
-            alpha_min=alpha_min,
-            gamma=gamma,
-            epsilon_start=epsilon_start,
-            epsilon_end=epsilon_end,
-            epsilon_decay_episodes=epsilon_decay_episodes,
-            decisions_only=decisions_only,
-        )
+    def __init__(self, **hyperparameters) -> None:
+        super().__init__(**hyperparameters)
+        env, partition = self.env, self.partition
         assert partition is not None  # checked by Learner.__init__
         expected = partition.active_tasks(env.system)
         if not np.array_equal(env.active_tasks, expected):
@@ -300,9 +278,6 @@ class SubGCQLLearner(GroupQLearner):
         self._set_groups(
             list(group_map),
             [[robots.index(r) for r in rs] for rs in group_map.values()],
-            prune_conflicts,
-            prior,
-            min_visits,
         )
 
     def _group_rewards(self, result: StepResult) -> np.ndarray:
