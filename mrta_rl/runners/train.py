@@ -80,22 +80,17 @@ def _validate_numbers(cfg: DictConfig) -> None:
         isinstance(cfg.seed, int) and 0 <= cfg.seed < 2**31,
         f"seed must be in [0, 2**31), got {cfg.seed!r}",
     )
-    _check(
-        isinstance(cfg.train.episodes, int) and cfg.train.episodes >= 0,
-        f"train.episodes must be an integer >= 0, got {cfg.train.episodes!r}",
-    )
-    _check(
-        isinstance(cfg.train.batch_size, int) and cfg.train.batch_size >= 1,
-        f"train.batch_size must be an integer >= 1, got {cfg.train.batch_size!r}",
-    )
-    _check(
-        isinstance(cfg.eval.episodes, int) and cfg.eval.episodes >= 1,
-        f"eval.episodes must be an integer >= 1, got {cfg.eval.episodes!r}",
-    )
-    _check(
-        isinstance(cfg.eval.batch_size, int) and cfg.eval.batch_size >= 1,
-        f"eval.batch_size must be an integer >= 1, got {cfg.eval.batch_size!r}",
-    )
+    for key, least in (
+        ("train.episodes", 0),
+        ("train.batch_size", 1),
+        ("eval.episodes", 1),
+        ("eval.batch_size", 1),
+    ):
+        value = OmegaConf.select(cfg, key)
+        _check(
+            isinstance(value, int) and value >= least,
+            f"{key} must be an integer >= {least}, got {value!r}",
+        )
     _check(
         isinstance(cfg.eval.seed, int) and 0 <= cfg.eval.seed <= SEED_STRIDE - cfg.eval.batch_size,
         f"eval.seed must be in [0, 2**32 - eval.batch_size], got {cfg.eval.seed!r}",
