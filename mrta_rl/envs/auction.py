@@ -175,11 +175,8 @@ class AuctionEnv:
             system.n_robots
         )
         p = self.params
-        self.batch_size, self.n_robots, self.n_task_types = (
-            batch_size,
-            system.n_robots,
-            system.n_task_types,
-        )
+        self.batch_size = batch_size
+        self.n_robots, self.n_task_types = system.n_robots, system.n_task_types
         self.n_slots = p.slots  # K
         self.n_actions = p.slots + 1  # wait + one bid per slot
         capable = system.willingness > 0
@@ -204,20 +201,15 @@ class AuctionEnv:
                 override = system.durations.get(name, {}).get(key)
                 lo, hi = (override.lo, override.hi) if override is not None else getattr(p, key)
                 self._dur_lo[j, prio], self._dur_span[j, prio] = lo, hi - lo + 1
-        self._dur_lo, self._dur_span = (
-            self._dur_lo.reshape(-1),
-            self._dur_span.reshape(-1),
-        )  # index 2 * type + high
+        # flat tables, indexed by 2 * type + high
+        self._dur_lo, self._dur_span = self._dur_lo.reshape(-1), self._dur_span.reshape(-1)
         self._assign_reward = np.array([p.reward_assign_low, p.reward_assign_high])
         self._drop_penalty = np.array([p.penalty_drop_low, p.penalty_drop_high])
+        # Lookup tables [n + 1, m] by slot type; the extra last row answers type -1, an empty slot.
         # spec step 8: a dropped task's penalty is shared by the robots whose Lambda holds its type
-        self._penalty_share = np.vstack(
-            [(active / active.sum(axis=0)).T, np.zeros(self.n_robots)]
-        )  # [n+1, m]
-        # lookup tables by slot type; the extra last row answers type -1, an empty slot
-        self._willingness_by_type = np.vstack(
-            [system.willingness.T, np.zeros(self.n_robots)]
-        )  # [n+1, m]
+        no_robot = np.zeros(self.n_robots)
+        self._penalty_share = np.vstack([(active / active.sum(axis=0)).T, no_robot])
+        self._willingness_by_type = np.vstack([system.willingness.T, no_robot])
         self._uniform_willingness = np.ptp(system.willingness[capable]) == 0
         self._can_do_by_type = np.vstack([active.T, np.zeros(self.n_robots, bool)])  # [n+1, m]
         self._poisson_cdf = rng.poisson_cdf(p.arrival_rate)
@@ -229,15 +221,13 @@ class AuctionEnv:
         self.t = np.zeros(B, np.int64)  # current tick per copy
         self._queue = np.full((B, Q + 1), EMPTY)  # column Q is scratch, always empty
         self._queue_width = 0  # no copy holds more than this many tasks
-        self._queue_row_offsets = np.arange(B)[:, None] * (
-            Q + 1
-        )  # flat index of each row's first place
+        # flat index of each row's first place
+        self._queue_row_offsets = np.arange(B)[:, None] * (Q + 1)
         self._next_id = np.zeros(B, np.int64)
         self.busy_until = np.full((B, m), -1, np.int64)
         self.battery = np.full((B, m), float(p.battery_capacity))
-        self.last_high_arrival = np.full(
-            (B, n), -(1 << 30), np.int64
-        )  # tick of the last H arrival per type
+        # tick of the last H arrival per type; far in the past until one arrives
+        self.last_high_arrival = np.full((B, n), -(1 << 30), np.int64)
         self.done = np.zeros(B, bool)
         self._pending_team = np.zeros(B)  # overflow penalties of the current tick (spec step 2)
         self._pending_type_penalty = np.zeros((B, n))  # [B, n], shared among robots lazily
@@ -254,9 +244,8 @@ class AuctionEnv:
         self._action_row_offsets = np.arange(B)[:, None] * (K + 1)  # flat (copy, action) index
         # valid actions are stored action-major, [B, K + 1, m], so per-action slices are contiguous
         self._mask_by_action = np.ones((B, K + 1, m), bool)
-        self._mask_offsets = np.arange(B)[:, None] * ((K + 1) * m) + np.arange(
-            m
-        )  # flat index of (b, 0, i)
+        # flat index of (b, 0, i) in that layout
+        self._mask_offsets = np.arange(B)[:, None] * ((K + 1) * m) + np.arange(m)
         self.seed(seed)
         self.reset()
 
@@ -392,9 +381,8 @@ class AuctionEnv:
         self.idle = self.t[:, None] > self.busy_until  # spec step 4, [B, m]
         # spec step 4: a bid for slot k is valid if the robot is idle and may do the slot's type
         can_do = self._can_do_by_type[self.slot_type]  # [B, K, m]; row -1 (empty slot) is all False
-        mask = np.empty(
-            (self.batch_size, self.n_actions, self.n_robots), bool
-        )  # fresh: callers may keep the last one
+        # a fresh array every tick: callers may keep the last one
+        mask = np.empty((self.batch_size, self.n_actions, self.n_robots), bool)
         mask[:, 0] = True  # waiting is always valid
         np.logical_and(can_do, self.idle[:, None, :], out=mask[:, 1:, :])
         self._mask_by_action = mask
