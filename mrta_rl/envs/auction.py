@@ -229,7 +229,6 @@ class AuctionEnv:
         # tick of the last H arrival per type; far in the past until one arrives
         self.last_high_arrival = np.full((B, n), -(1 << 30), np.int64)
         self.done = np.zeros(B, bool)
-        self._pending_team = np.zeros(B)  # overflow penalties of the current tick (spec step 2)
         self._pending_type_penalty = np.zeros((B, n))  # [B, n], shared among robots lazily
         self.stats = EpisodeStats(
             np.zeros((B, n, 2), np.int64),
@@ -310,7 +309,6 @@ class AuctionEnv:
             self.stats.ticks,
         ):
             counter[rows] = 0
-        self._pending_team[rows] = 0.0
         self._pending_type_penalty[rows] = 0.0
         self._begin_tick(rows)
 
@@ -323,7 +321,6 @@ class AuctionEnv:
         n_new = np.searchsorted(self._poisson_cdf, rng.unit_float(tick_key), side="right")
         n_new[~rows] = 0
         width = int(n_new.max())
-        self._pending_team[rows] = 0.0
         self._pending_type_penalty[rows] = 0.0
         end = self._queue_width + width
         if end > self._queue.shape[1] - 1:  # grow the spare columns (the last one stays empty)
@@ -351,7 +348,6 @@ class AuctionEnv:
             overflow = queue[:, Q:end]
             if (overflow != EMPTY).any():
                 self._pending_type_penalty += self._drop(overflow)
-                self._pending_team[:] = self._pending_type_penalty.sum(axis=1)
                 overflow[:] = EMPTY
         self._queue_width = _occupied_width(queue[:, : min(end, Q)])
         self._select_slots()
@@ -406,7 +402,8 @@ class AuctionEnv:
         if not validated:
             self.validate(actions)
         p, t = self.params, self.t
-        team = -self._pending_team  # spec step 8 counts this tick's overflow drops (a new array)
+        # spec step 8 counts this tick's overflow drops (spec step 2)
+        team = -self._pending_type_penalty.sum(axis=1)
         type_penalty = self._pending_type_penalty.copy()  # [B, n]
         robot = np.zeros((self.batch_size, self.n_robots))  # assign rewards won
         keys, slot_type, slot_high = self._slot_keys, self.slot_type, self.slot_high
