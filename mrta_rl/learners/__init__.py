@@ -3,6 +3,11 @@
 from __future__ import annotations
 
 from mrta_rl.learners.base import Learner, LearnerKind
-from mrta_rl.learners.fixed import GreedyLearner, HighOnlyLearner, RandomLearner
+from mrta_rl.learners.fixed import (
+    GreedyLearner,
+    HighOnlyLearner,
+    RandomLearner,
+    SubGReserveLearner,
+)
 
-__all__ = ["GreedyLearner", "HighOnlyLearner", "Learner", "LearnerKind", "RandomLearner"]
+__all__ = ["GreedyLearner", "HighOnlyLearner", "Learner", "LearnerKind", "RandomLearner", "SubGReserveLearner"]

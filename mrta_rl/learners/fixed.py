@@ -1,8 +1,10 @@
-"""Fixed allocation policies of the spec ("Fixed policies"): greedy, random and high_only.
+"""Fixed allocation policies: the spec's greedy, random and high_only, and the subG rule.
 
 They are learners with ``kind = "fixed"`` and the base class's no-op ``update``, so the runner
 evaluates them exactly like trained learners. ``greedy`` is the plain auction without learning,
-the baseline every run reports next to its learner. All three are vectorised over ``[B, m]``.
+the baseline every run reports next to its learner. ``subg_reserve`` is not in the spec: a
+hand-written sub-group rule on the subG partition, the yardstick of what the partition allows.
+All are vectorised over ``[B, m]``.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ from typing import ClassVar
 import numpy as np
 
 from mrta_rl.envs import AuctionEnv
+from mrta_rl.envs.observations import N_RECENCY_LEVELS, recency_level
 from mrta_rl.learners.base import Learner, LearnerKind
 
 
@@ -112,3 +115,91 @@ class HighOnlyLearner(Learner):
             ``[B, m]`` int64 actions.
         """
         return lowest_valid_bid(mask[:, :, 1:] & (view[:, None, :] == 1))
+
+
+class SubGReserveLearner(Learner):
+    """A hand-written rule inside the subG partition: the yardstick for subG-CQL and subG-DQN.
+
+    It sees no more than a sub-group learner may (spec "Observations": slot contents of the
+    group's types, which of its robots are idle, the recency level of an H arrival of its types)
+    and bids only for the robots' kept types ``Lambda_i``. Per sub-group ``G`` and copy:
+
+    1. H slots, in slot order: the group's idle robot that may bid and has the fewest kept types
+       (ties to the lowest index) bids, so versatile robots stay free. No two robots bid for the
+       same slot, so no bid is lost (spec step 7 counts a lost bid as busy time).
+    2. L slots, in slot order, the same way, but only while at least ``reserve`` other robots of
+       ``G`` stay idle after the bid and the group's recency level is at least ``hold_level``
+       (``hold_level=1``: no H task of ``T_g`` arrived within 3 ticks, the spread_wait prior of
+       subG-CQL; ``0``: never hold; ``2``: within 10 ticks).
+
+    A sweep over ``reserve`` and ``hold_level`` measures what the partition allows a sub-group
+    policy built from these signals (``docs/results.md``, "What the partition costs").
+
+    Args:
+        reserve: Idle robots a group keeps back for H work when bidding for an L task.
+        hold_level: L slots wait while the group's recency level is below this (0 = never).
+        **kwargs: Env, generator and partition of :class:`~mrta_rl.learners.base.Learner`.
+
+    Raises:
+        ValueError: on a negative ``reserve`` or a ``hold_level`` outside 0..3.
+    """
+
+    kind: ClassVar[LearnerKind] = "fixed"
+    requires_partition: ClassVar[bool] = True
+
+    def __init__(self, *, reserve: int = 0, hold_level: int = 1, **kwargs) -> None:
+        super().__init__(**kwargs)
+        if reserve < 0:
+            raise ValueError(f"subg_reserve: reserve must be >= 0, got {reserve}")
+        if not 0 <= hold_level <= N_RECENCY_LEVELS:
+            raise ValueError(f"subg_reserve: hold_level must be in 0..3, got {hold_level}")
+        self.reserve, self.hold_level = reserve, hold_level
+        active = self.env.active_tasks  # Lambda_i, [m, n]
+        self._groups = []  # (robots in bidding preference order, T_g)
+        for robots in self.partition.group_map().values():
+            ids = [self.env.system.robots.index(r) for r in robots]
+            ids.sort(key=lambda i: (active[i].sum(), i))  # fewest kept types first
+            self._groups.append((np.asarray(ids, np.int64), active[ids].any(axis=0)))
+
+    def encode(self, env: AuctionEnv) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Slot priorities ``[B, K]``, idle flags ``[B, m]``, group recency levels ``[B, G]``.
+
+        The mask alone cannot tell an idle robot with nothing to bid for from a busy one, and the
+        reserve counts every idle robot of the group.
+        """
+        recency = np.stack([recency_level(env, types) for _, types in self._groups], axis=1)
+        return env.slot_high.copy(), env.idle.copy(), recency
+
+    def act(
+        self, view: tuple[np.ndarray, np.ndarray], mask: np.ndarray, *, explore: bool
+    ) -> np.ndarray:
+        """Bid per the rule of the class docstring.
+
+        Args:
+            view: Slot priorities and group recency levels from :meth:`encode`.
+            mask: ``[B, m, K + 1]`` bool valid actions.
+            explore: Unused: the policy is deterministic.
+
+        Returns:
+            ``[B, m]`` int64 conflict-free actions.
+        """
+        slot_high, idle, recency = view
+        batch, _, n_actions = mask.shape
+        rows = np.arange(batch)
+        actions = np.zeros(mask.shape[:2], np.int64)
+        for g, (robots, _) in enumerate(self._groups):
+            free = idle[:, robots].copy()  # [B, m_g] idle robots without a bid yet
+            idle_left = free.sum(axis=1)  # [B]
+            may_take_low = recency[:, g] >= self.hold_level  # [B]
+            for high in (1, 0):  # H slots first
+                for k in range(n_actions - 1):
+                    # mask: idle robots whose Lambda_i holds the slot's type (spec step 4)
+                    candidates = mask[:, robots, k + 1] & free & (slot_high[:, k] == high)[:, None]
+                    if not high:
+                        candidates &= (may_take_low & (idle_left - 1 >= self.reserve))[:, None]
+                    has = candidates.any(axis=1)
+                    first = candidates.argmax(axis=1)  # first in preference order
+                    actions[rows[has], robots[first[has]]] = k + 1
+                    free[rows[has], first[has]] = False
+                    idle_left -= has
+        return actions

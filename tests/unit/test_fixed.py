@@ -4,17 +4,25 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import yaml
 
-from mrta_rl.envs import AuctionEnv
-from mrta_rl.learners import GreedyLearner, HighOnlyLearner, RandomLearner
+from mrta_rl.envs import AuctionEnv, AuctionParams
+from mrta_rl.learners import GreedyLearner, HighOnlyLearner, RandomLearner, SubGReserveLearner
+from mrta_rl.partition import subg_partition
+from mrta_rl.systems import build_system
+from tests.conftest import CONF
 
 # one copy, four robots, K = 3 slots; columns: wait, slot 1, slot 2, slot 3
-MASK = np.array([[
-    [True, False, False, False],  # busy or nothing to bid for: only wait
-    [True, True, True, True],  # may bid for every slot
-    [True, False, True, True],  # slots 2 and 3
-    [True, False, False, True],  # slot 3 only
-]])
+MASK = np.array(
+    [
+        [
+            [True, False, False, False],  # busy or nothing to bid for: only wait
+            [True, True, True, True],  # may bid for every slot
+            [True, False, True, True],  # slots 2 and 3
+            [True, False, False, True],  # slot 3 only
+        ]
+    ]
+)
 SLOT_HIGH = np.array([[0, 1, 0]])  # slot 1 L, slot 2 H, slot 3 L
 
 
@@ -77,3 +85,103 @@ def test_greedy_matches_spec_on_env(tiny_system, tiny_params, rng):
         expected = np.where(bids.any(axis=2), bids.argmax(axis=2) + 1, 0)
         np.testing.assert_array_equal(actions, expected)
         env.step(actions)
+
+
+# subg_reserve on System-I, whose sub-group G1 is {R3: T1, T3; R5: T1; R6: T1, T3} (paper
+# Table 3); R5 (one kept type) is asked first, then R3 and R6. Slots: 1 = H T1, 2 = L T3,
+# 3 = L T1. Robots R1, R2, R4 (sub-group G2) have nothing to bid for.
+NO_BID = [True, False, False, False]
+RESERVE_MASK = np.array(
+    [
+        [
+            NO_BID,
+            NO_BID,
+            [True, True, True, True],  # R3: T1 and T3
+            NO_BID,
+            [True, True, False, True],  # R5: T1 only
+            [True, True, True, True],  # R6: T1 and T3
+        ]
+    ]
+)
+RESERVE_SLOTS = np.array([[1, 0, 0]])
+ALL_IDLE = np.ones((1, 6), bool)
+
+
+def system1():
+    return build_system(yaml.safe_load((CONF / "system" / "system1.yaml").read_text()))
+
+
+def make_reserve(rng, system=None, **rule):
+    system = system or system1()
+    partition = subg_partition(system)
+    env = AuctionEnv(system, active_tasks=partition.active_tasks(system))
+    return SubGReserveLearner(env=env, rng=rng, partition=partition, **rule)
+
+
+@pytest.mark.parametrize(
+    ("rule", "recency", "expected"),
+    [
+        # the H slot goes to R5 (fewest kept types), then R3 and R6 take the L slots
+        ({"reserve": 0, "hold_level": 1}, 2, [[0, 0, 2, 0, 1, 3]]),
+        # reserve 1: R6 would be the last idle robot of G1, it stays back for H work
+        ({"reserve": 1, "hold_level": 1}, 2, [[0, 0, 2, 0, 1, 0]]),
+        ({"reserve": 2, "hold_level": 1}, 2, [[0, 0, 0, 0, 1, 0]]),
+        # an H task of T_g arrived within 3 ticks (recency level 0): L slots wait
+        ({"reserve": 0, "hold_level": 1}, 0, [[0, 0, 0, 0, 1, 0]]),
+        # hold_level 0 never holds
+        ({"reserve": 0, "hold_level": 0}, 0, [[0, 0, 2, 0, 1, 3]]),
+        # recency level 1 (4..10 ticks ago) holds only under hold_level 2
+        ({"reserve": 0, "hold_level": 1}, 1, [[0, 0, 2, 0, 1, 3]]),
+        ({"reserve": 0, "hold_level": 2}, 1, [[0, 0, 0, 0, 1, 0]]),
+    ],
+)
+def test_subg_reserve_rule_by_hand(rng, rule, recency, expected):
+    learner = make_reserve(rng, **rule)
+    view = (RESERVE_SLOTS, ALL_IDLE, np.array([[recency, 2]]))  # recency of G1, G2
+    np.testing.assert_array_equal(learner.act(view, RESERVE_MASK, explore=False), expected)
+
+
+def test_subg_reserve_counts_idle_robots_without_a_bid(rng):
+    # slot 1 holds an L T3 task: R3 may bid, R5 (T1 only) is idle with nothing to bid for and R6
+    # is busy. With reserve 1, R5 is the robot kept back, so R3 bids; with R5 busy too it waits.
+    learner = make_reserve(rng, reserve=1, hold_level=0)
+    mask = np.array([[NO_BID, NO_BID, [True, True, False, False], NO_BID, NO_BID, NO_BID]])
+    slots, recency = np.array([[0, -1, -1]]), np.array([[2, 2]])
+    r6_busy = np.array([[True, True, True, True, True, False]])
+    expected = [[0, 0, 1, 0, 0, 0]]
+    np.testing.assert_array_equal(
+        learner.act((slots, r6_busy, recency), mask, explore=False), expected
+    )
+    r5_r6_busy = np.array([[True, True, True, True, False, False]])
+    waits = [[0, 0, 0, 0, 0, 0]]
+    np.testing.assert_array_equal(
+        learner.act((slots, r5_r6_busy, recency), mask, explore=False), waits
+    )
+
+
+def test_subg_reserve_needs_a_partition_and_valid_rule(tiny_system, rng):
+    with pytest.raises(ValueError, match="requires a subG partition"):
+        SubGReserveLearner(env=AuctionEnv(tiny_system), rng=rng)
+    with pytest.raises(ValueError, match="reserve must be >= 0"):
+        make_reserve(rng, tiny_system, reserve=-1)
+    with pytest.raises(ValueError, match="hold_level must be in 0..3"):
+        make_reserve(rng, tiny_system, hold_level=4)
+
+
+def test_subg_reserve_plays_valid_conflict_free_episodes(rng):
+    system = build_system(yaml.safe_load((CONF / "system" / "system2.yaml").read_text()))
+    partition = subg_partition(system)
+    env = AuctionEnv(
+        system,
+        AuctionParams(horizon=200),
+        batch_size=8,
+        seed=5,
+        active_tasks=partition.active_tasks(system),
+    )
+    learner = SubGReserveLearner(env=env, rng=rng, partition=partition)
+    while not env.done.all():
+        actions = learner.act(learner.encode(env), env.action_mask, explore=False)
+        for k in range(1, env.n_actions):  # no two robots bid for the same slot
+            assert ((actions == k).sum(axis=1) <= 1).all()
+        env.step(actions)  # raises on an invalid action (a type outside Lambda_i included)
+    assert env.stats.assigned.sum() > 0
