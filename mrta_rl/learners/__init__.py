@@ -10,4 +10,11 @@ from mrta_rl.learners.fixed import (
     SubGReserveLearner,
 )
 
-__all__ = ["GreedyLearner", "HighOnlyLearner", "Learner", "LearnerKind", "RandomLearner", "SubGReserveLearner"]
+__all__ = [
+    "GreedyLearner",
+    "HighOnlyLearner",
+    "Learner",
+    "LearnerKind",
+    "RandomLearner",
+    "SubGReserveLearner",
+]

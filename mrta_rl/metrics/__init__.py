@@ -9,6 +9,7 @@ from mrta_rl.metrics.episode import (
     ctr_overall,
     format_percent,
     itr,
+    return_by_type,
     summarize,
 )
 from mrta_rl.metrics.logger import CURVE_COLUMNS, CSVLogger
@@ -22,5 +23,6 @@ __all__ = [
     "ctr_overall",
     "format_percent",
     "itr",
+    "return_by_type",
     "summarize",
 ]

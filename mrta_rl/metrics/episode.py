@@ -11,18 +11,21 @@ Every learner and runner reports through :func:`summarize`, which reads
   episodes as total idle ticks / total ticks (the mean of per-episode ITRs when all episodes are
   full horizons).
 - **Team return**: mean and population standard deviation (``ddof=0``) over episodes.
+- **Return by task type**: the part of the mean team return earned by each type's tasks,
+  assign rewards minus drop penalties (spec step 8) from the counts; the types add up to the team
+  return. Summed over a subG sub-group's types, it shows where a partition gains or loses.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from mrta_rl.envs import EpisodeStats
+from mrta_rl.envs import AuctionParams, EpisodeStats
 from mrta_rl.types import PRIORITIES, Priority, RobotId, TaskType
 
 
@@ -43,8 +46,12 @@ def concat_stats(snapshots: Sequence[EpisodeStats]) -> EpisodeStats:
     shapes = {(s.assigned.shape[1:], s.busy_ticks.shape[1:]) for s in snapshots}
     if len(shapes) != 1:
         raise ValueError(f"snapshots of different systems cannot be pooled: {sorted(shapes)}")
-    return EpisodeStats(*(np.concatenate([getattr(s, f) for s in snapshots])
-                          for f in EpisodeStats.__dataclass_fields__))
+    return EpisodeStats(
+        *(
+            np.concatenate([getattr(s, f) for s in snapshots])
+            for f in EpisodeStats.__dataclass_fields__
+        )
+    )
 
 
 def _percent(numerator: np.ndarray, denominator: np.ndarray) -> np.ndarray:
@@ -81,6 +88,25 @@ def ctr_overall(stats: EpisodeStats) -> np.ndarray:
     return _percent(assigned, assigned + dropped)
 
 
+def return_by_type(stats: EpisodeStats, params: AuctionParams) -> np.ndarray:
+    """Mean return per episode earned by each task type (spec step 8), from the counts.
+
+    Every team reward is an assign reward or a drop penalty of one task, so the types' parts add
+    up to the mean team return.
+
+    Args:
+        stats: Counters with a leading episode axis.
+        params: The rewards and penalties of the run.
+
+    Returns:
+        ``[n]`` float mean return per episode.
+    """
+    assign = np.array([params.reward_assign_low, params.reward_assign_high])  # (L, H)
+    penalty = np.array([params.penalty_drop_low, params.penalty_drop_high])
+    total = stats.assigned.sum(axis=0) @ assign - stats.dropped.sum(axis=0) @ penalty  # [n]
+    return total / stats.assigned.shape[0]
+
+
 def itr(stats: EpisodeStats) -> np.ndarray:
     """Idle time rate per robot, (horizon - busy ticks) / horizon in percent (paper eq. 9).
 
@@ -105,6 +131,8 @@ class EpisodeSummary:
         ctr: Task type -> priority -> CTR percent (NaN if nothing was decided).
         ctr_overall: Priority -> CTR percent over all types.
         itr: Robot -> ITR percent (paper eq. 9).
+        return_by_type: Task type -> mean return per episode earned by its tasks (empty when
+            the rewards were not given).
     """
 
     episodes: int
@@ -113,6 +141,7 @@ class EpisodeSummary:
     ctr: dict[TaskType, dict[Priority, float]]
     ctr_overall: dict[Priority, float]
     itr: dict[RobotId, float]
+    return_by_type: dict[TaskType, float] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
         """JSON-ready nested dict (the ``eval`` block of ``metrics.json``); NaN becomes None."""
@@ -125,6 +154,7 @@ class EpisodeSummary:
             "ctr": {t: {p: _json(v) for p, v in by_p.items()} for t, by_p in self.ctr.items()},
             "ctr_overall": {p: _json(v) for p, v in self.ctr_overall.items()},
             "itr": {r: _json(v) for r, v in self.itr.items()},
+            "return_by_type": {t: _json(v) for t, v in self.return_by_type.items()},
         }
 
     def flat(self, prefix: str) -> dict[str, float]:
@@ -136,24 +166,31 @@ class EpisodeSummary:
         Returns:
             Flat mapping of metric key to value (NaN kept).
         """
-        out = {f"{prefix}/team_return_mean": self.team_return_mean,
-               f"{prefix}/team_return_std": self.team_return_std}
+        out = {
+            f"{prefix}/team_return_mean": self.team_return_mean,
+            f"{prefix}/team_return_std": self.team_return_std,
+        }
         for task, by_priority in self.ctr.items():
             out.update({f"{prefix}/ctr/{task}_{p}": v for p, v in by_priority.items()})
         out.update({f"{prefix}/ctr/{p}": v for p, v in self.ctr_overall.items()})
         out.update({f"{prefix}/itr/{r}": v for r, v in self.itr.items()})
+        out.update({f"{prefix}/return/{t}": v for t, v in self.return_by_type.items()})
         return out
 
 
 def summarize(
-    snapshots: Sequence[EpisodeStats], robots: Sequence[RobotId], task_types: Sequence[TaskType]
+    snapshots: Sequence[EpisodeStats],
+    robots: Sequence[RobotId],
+    task_types: Sequence[TaskType],
+    params: AuctionParams | None = None,
 ) -> EpisodeSummary:
-    """Pool episode snapshots into CTR, ITR and team return.
+    """Pool episode snapshots into CTR, ITR, team return and (given the rewards) its parts.
 
     Args:
         snapshots: :class:`EpisodeStats` copies of finished batches (each ``[B, ...]``).
         robots: Robot ids, in system order (``system.robots``).
         task_types: Task type ids, in system order (``system.task_types``).
+        params: The run's rewards and penalties, for the return by task type (else left out).
 
     Returns:
         The pooled summary.
@@ -164,8 +201,10 @@ def summarize(
     stats = concat_stats(snapshots)
     n_types, m = stats.assigned.shape[1], stats.busy_ticks.shape[1]
     if (len(task_types), len(robots)) != (n_types, m):
-        raise ValueError(f"stats have {n_types} task types and {m} robots, got ids for "
-                         f"{len(task_types)} and {len(robots)}")
+        raise ValueError(
+            f"stats have {n_types} task types and {m} robots, got ids for "
+            f"{len(task_types)} and {len(robots)}"
+        )
     by_type, overall, idle = ctr(stats), ctr_overall(stats), itr(stats)
     return EpisodeSummary(
         episodes=int(stats.team_return.shape[0]),
@@ -177,6 +216,11 @@ def summarize(
         },
         ctr_overall={p: float(overall[k]) for k, p in enumerate(PRIORITIES)},
         itr={r: float(idle[i]) for i, r in enumerate(robots)},
+        return_by_type=(
+            {}
+            if params is None
+            else dict(zip(task_types, map(float, return_by_type(stats, params)), strict=True))
+        ),
     )
 
 

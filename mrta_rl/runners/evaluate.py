@@ -24,6 +24,7 @@ from omegaconf import DictConfig, OmegaConf
 from mrta_rl.envs import AuctionEnv, EpisodeStats
 from mrta_rl.learners import GreedyLearner, Learner
 from mrta_rl.metrics import EpisodeSummary, format_percent, summarize
+from mrta_rl.partition import Partition
 
 if TYPE_CHECKING:
     from mrta_rl.runners.train import RunSetup
@@ -58,7 +59,7 @@ def evaluate_policy(learner: Learner, env: AuctionEnv, episodes: int, seed: int)
         )
         played += keep
         env.reset()
-    return summarize(snapshots, env.system.robots, env.system.task_types)
+    return summarize(snapshots, env.system.robots, env.system.task_types, env.params)
 
 
 def evaluate_run(run: RunSetup, cfg: DictConfig) -> dict[str, Any]:
@@ -86,7 +87,31 @@ def evaluate_run(run: RunSetup, cfg: DictConfig) -> dict[str, Any]:
         baseline.team_return_mean,
         learned.episodes,
     )
-    return {"eval": learned.to_json(), "baseline_greedy": baseline.to_json()}
+    results = {"eval": learned.to_json(), "baseline_greedy": baseline.to_json()}
+    if run.partition is not None:
+        for summary in results.values():
+            summary["return_by_group"] = return_by_group(summary, run.partition)
+    return results
+
+
+def return_by_group(summary: dict[str, Any], partition: Partition) -> dict[str, dict[str, Any]]:
+    """The team return split by subG sub-group: the part earned by the tasks of its types ``T_g``.
+
+    Each task type belongs to exactly one sub-group, so the parts add up to the team return. For
+    the greedy baseline (full task sets) it is what the same types earn under the plain auction.
+
+    Args:
+        summary: An :meth:`EpisodeSummary.to_json` block with ``return_by_type``.
+        partition: The run's partition.
+
+    Returns:
+        ``{"G1": {"types": ["T1", ...], "return": float}, ...}``.
+    """
+    by_type = summary["return_by_type"]
+    return {
+        group: {"types": types, "return": round(sum(by_type[t] for t in types), 6)}
+        for group, types in partition.group_tasks().items()
+    }
 
 
 def evaluate_checkpoint(checkpoint: Path | str, episodes: int | None = None) -> dict[str, Any]:
@@ -172,6 +197,22 @@ def format_summary(metrics: dict[str, Any]) -> str:
             f"{task:<6} {pct(mine['L']):>{width}} {pct(mine['H']):>{width}} | "
             f"{pct(base['L']):>6} {pct(base['H']):>6}"
         )
+    if learned.get("return_by_type"):
+        lines += [
+            "",
+            f"{'return':<6} {name:>{width}} | {'greedy':>7}   (per episode, by task type)",
+        ]
+        for task, value in learned["return_by_type"].items():
+            lines.append(f"{task:<6} {value:>{width}.1f} | {greedy['return_by_type'][task]:>7.1f}")
+    if learned.get("return_by_group"):
+        lines += [
+            "",
+            f"{'group':<6} {name:>{width}} | {'greedy':>7}   (return of the sub-group's types)",
+        ]
+        for group, part in learned["return_by_group"].items():
+            base = greedy["return_by_group"][group]["return"]
+            types = " ".join(part["types"])
+            lines.append(f"{group:<6} {part['return']:>{width}.1f} | {base:>7.1f}   {types}")
     lines += ["", f"{'ITR %':<6} {name:>{width}} | {'greedy':>6}"]
     for robot, value in learned["itr"].items():
         lines.append(f"{robot:<6} {pct(value):>{width}} | {pct(greedy['itr'][robot]):>6}")

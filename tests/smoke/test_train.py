@@ -19,7 +19,7 @@ from mrta_rl.systems import SystemConfigError
 ROOT = Path(__file__).resolve().parents[2]
 LEARNERS = sorted(path.stem for path in (ROOT / "conf" / "learner").glob("*.yaml"))
 SYSTEMS = {"system1": (6, 5), "system2": (10, 8)}  # robots, task types (paper Tables 1-2)
-EVAL_KEYS = {"episodes", "team_return", "ctr", "ctr_overall", "itr"}
+EVAL_KEYS = {"episodes", "team_return", "ctr", "ctr_overall", "itr", "return_by_type"}
 
 
 class PartitionedGreedy(GreedyLearner):
@@ -74,8 +74,15 @@ def check_metrics(metrics: dict, run_dir: Path, system: str, learner: str) -> No
     }
     assert metrics["learner"] == learner and metrics["system"] == system
     m, n = SYSTEMS[system]
+    partitioned = (run_dir / "partition.json").is_file()
     for block in (metrics["eval"], metrics["baseline_greedy"]):
-        assert set(block) == EVAL_KEYS
+        assert set(block) == EVAL_KEYS | ({"return_by_group"} if partitioned else set())
+        # every reward is a task's: the parts by type, and by sub-group, add up to the return
+        total = block["team_return"]["mean"]
+        assert sum(block["return_by_type"].values()) == pytest.approx(total)
+        if partitioned:
+            parts = block["return_by_group"].values()
+            assert sum(p["return"] for p in parts) == pytest.approx(total)
         assert block["episodes"] == 2
         assert list(block["ctr"]) == [f"T{j + 1}" for j in range(n)]
         assert all(set(v) == {"L", "H"} for v in block["ctr"].values())
@@ -120,7 +127,14 @@ def test_partition_learner_gets_partitioned_env(compose_cfg, tmp_path):
     # the baseline always uses the full task sets: same streams, so same as a plain greedy run
     plain = compose_cfg(["learner=greedy", "system=system1", "debug=smoke"])
     baseline = train(plain, run_dir=tmp_path / "plain")
+    by_group = metrics["baseline_greedy"].pop("return_by_group")  # only partitioned runs have it
     assert metrics["baseline_greedy"] == baseline["baseline_greedy"] == baseline["eval"]
+    by_type = baseline["eval"]["return_by_type"]
+    for group, types in {"G1": ["T1", "T3"], "G2": ["T2", "T4", "T5"]}.items():  # paper Table 3
+        assert by_group[group] == {
+            "types": types,
+            "return": pytest.approx(sum(by_type[t] for t in types)),
+        }
 
 
 def test_evaluation_is_identical_across_learners_streams(compose_cfg, tmp_path):

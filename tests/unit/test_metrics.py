@@ -8,9 +8,17 @@ import math
 import numpy as np
 import pytest
 
-from mrta_rl.envs import AuctionEnv, EpisodeStats
+from mrta_rl.envs import AuctionEnv, AuctionParams, EpisodeStats
 from mrta_rl.learners import GreedyLearner
-from mrta_rl.metrics import CSVLogger, ctr, ctr_overall, format_percent, itr, summarize
+from mrta_rl.metrics import (
+    CSVLogger,
+    ctr,
+    ctr_overall,
+    format_percent,
+    itr,
+    return_by_type,
+    summarize,
+)
 
 ROBOTS, TYPES = ["R1", "R2"], ["T1", "T2"]
 
@@ -68,11 +76,23 @@ def test_functions_match_summary():
     np.testing.assert_allclose(itr(pooled), [80.0, 25.0])  # idle (20-4)/20 and (20-15)/20
 
 
+def test_return_by_task_type_by_hand():
+    params = AuctionParams(reward_assign_high=10, reward_assign_low=2, penalty_drop_high=5,
+                           penalty_drop_low=1)
+    summary = summarize([BATCH_A, BATCH_B], ROBOTS, TYPES, params)
+    # T1: assigned 4 L and 3 H, dropped 1 L and 1 H: 4*2 + 3*10 - 1*1 - 1*5 = 32 over 3 episodes
+    # T2: dropped 2 L: -2 over 3 episodes
+    assert summary.return_by_type == {"T1": pytest.approx(32 / 3), "T2": pytest.approx(-2 / 3)}
+    np.testing.assert_allclose(return_by_type(BATCH_B, params), [20.0, -2.0])
+    assert summarize([BATCH_A], ROBOTS, TYPES).return_by_type == {}  # no rewards given
+
+
 def test_json_and_table_show_missing_ctr():
     summary = summarize([BATCH_A, BATCH_B], ROBOTS, TYPES)
     payload = json.loads(json.dumps(summary.to_json(), allow_nan=False))  # no NaN in JSON
     assert payload["ctr"]["T2"]["H"] is None
-    assert set(payload) == {"episodes", "team_return", "ctr", "ctr_overall", "itr"}
+    keys = {"episodes", "team_return", "ctr", "ctr_overall", "itr", "return_by_type"}
+    assert set(payload) == keys
     assert format_percent(summary.ctr["T2"]["H"]) == "-"
     assert format_percent(None) == "-"
     assert format_percent(summary.ctr["T1"]["L"]) == "80.0"
@@ -94,9 +114,11 @@ def test_summary_of_real_episodes_is_consistent(tiny_system, tiny_params, rng):
     while not env.done.all():
         env.step(learner.act(None, env.action_mask, explore=False))
     snapshot = env.stats.copy()
-    summary = summarize([snapshot], tiny_system.robots, tiny_system.task_types)
+    summary = summarize([snapshot], tiny_system.robots, tiny_system.task_types, env.params)
     assert summary.episodes == 3
     assert summary.team_return_mean == pytest.approx(snapshot.team_return.mean())
+    # every team reward is a task's assign reward or drop penalty (spec step 8)
+    assert sum(summary.return_by_type.values()) == pytest.approx(summary.team_return_mean)
     for value in [*summary.itr.values(), *summary.ctr_overall.values()]:
         assert math.isnan(value) or 0.0 <= value <= 100.0
 
