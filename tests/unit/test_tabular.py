@@ -2,6 +2,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import yaml
 
 from mrta_rl.envs import AuctionEnv
 from mrta_rl.learners.tabular.common import (
@@ -13,6 +14,7 @@ from mrta_rl.learners.tabular.common import (
     deconflict,
     greedy_actions,
     spread_actions,
+    spread_order,
     visit_alpha,
 )
 from mrta_rl.learners.tabular.cql import CQLLearner
@@ -21,6 +23,7 @@ from mrta_rl.learners.tabular.semi_cql import SemiCQLLearner
 from mrta_rl.learners.tabular.subg_cql import SubGCQLLearner
 from mrta_rl.partition import subg_partition
 from mrta_rl.systems import build_system
+from tests.conftest import CONF
 
 LEARNERS = [SubGCQLLearner, CQLLearner, SemiCQLLearner, DQLLearner]
 
@@ -123,6 +126,37 @@ def test_spread_actions_give_distinct_slots_in_order():
     assert spread_actions(masks).tolist() == [[1, 0, 2], [0, 2, 0]]
 
 
+def test_spread_actions_ask_robots_in_the_given_order():
+    masks = np.array([[[1, 1, 1, 0], [1, 1, 0, 0], [1, 1, 1, 1]]], bool)  # copy 0 above
+    # R3 first: slot 1 -> R3, slot 2 -> R1 (R2 cannot), slot 3 -> nobody left who may
+    assert spread_actions(masks, [2, 0, 1]).tolist() == [[2, 0, 1]]
+    # R2 first: slot 1 -> R2, slot 2 -> R1 (asked before R3), slot 3 -> R3
+    assert spread_actions(masks, [1, 0, 2]).tolist() == [[2, 1, 3]]
+
+
+def test_spread_order_rules():
+    active = np.array([[1, 1, 1], [1, 0, 0], [0, 1, 1], [0, 0, 1]], bool)  # 3, 1, 2, 1 types
+    assert spread_order(active, "index").tolist() == [0, 1, 2, 3]
+    assert spread_order(active, "fewest_types").tolist() == [1, 3, 2, 0]  # ties to lower index
+    with pytest.raises(ValueError, match="prior_order must be one of"):
+        spread_order(active, "most_types")
+
+
+def test_subg_cql_asks_robots_with_fewest_kept_types_first():
+    system = build_system(yaml.safe_load((CONF / "system" / "system2.yaml").read_text()))
+    partition = subg_partition(system)
+    env = AuctionEnv(system, active_tasks=partition.active_tasks(system))
+    learner = SubGCQLLearner(env=env, rng=np.random.default_rng(0), partition=partition)
+    pairs = zip(learner.groups, learner.tables, strict=True)
+    asked = [[system.robots[robots[i]] for i in table.order] for robots, table in pairs]
+    # paper Table 4: R2 keeps 3 types (T1, T2, T8), R7 keeps 3 (T4, T6, T7), the others 2
+    assert asked == [["R5", "R6", "R8", "R2"], ["R1", "R10"], ["R3", "R4", "R9", "R7"]]
+    with pytest.raises(ValueError, match="prior_order"):
+        SubGCQLLearner(
+            env=env, rng=np.random.default_rng(0), partition=partition, prior_order="nope"
+        )
+
+
 @pytest.mark.parametrize("prior", ["spread", "spread_wait"])
 def test_table_prior_is_the_tie_break(prior):
     table = JointQTable(2, 4, prior=prior)
@@ -158,8 +192,8 @@ def test_untrained_spread_prior_plays_spread(cls, trio, tiny_params):
         mask = env.action_mask
         actions = learner.act(learner.encode(env), mask, explore=False)
         expected = np.zeros_like(actions)
-        for robots in learner.groups:
-            expected[:, robots] = spread_actions(mask[:, robots])
+        for robots, table in zip(learner.groups, learner.tables, strict=True):
+            expected[:, robots] = spread_actions(mask[:, robots], table.order)
         np.testing.assert_array_equal(actions, expected)
         env.step(actions)
 

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import json
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
@@ -101,34 +102,62 @@ def greedy_actions(mask: np.ndarray) -> np.ndarray:
     return np.where(bids.any(axis=-1), bids.argmax(axis=-1) + 1, 0).astype(np.int64)
 
 
-def spread_actions(mask: np.ndarray) -> np.ndarray:
-    """Spread prior: idle robots bid for distinct slots, in slot order, lowest robot index first.
+def spread_actions(mask: np.ndarray, order: Sequence[int] | None = None) -> np.ndarray:
+    """Spread prior: idle robots bid for distinct slots, in slot order, robots in a fixed order.
 
-    Slot 1 (the most urgent, spec step 3) gets the lowest-indexed robot that may bid for it,
-    slot 2 the lowest-indexed robot among the others, and so on; robots left over wait. Unlike
-    the plain auction no bid is lost, so no robot spends a busy tick on a lost bid (spec step 7)
-    and more slots are filled at the same tick.
+    Slot 1 (the most urgent, spec step 3) gets the first robot in ``order`` that may bid for it,
+    slot 2 the first among the others, and so on; robots left over wait. Unlike the plain auction
+    no bid is lost, so no robot spends a busy tick on a lost bid (spec step 7) and more slots are
+    filled at the same tick.
 
     Args:
         mask: ``[N, m_g, K + 1]`` bool valid actions of a group.
+        order: The group's robot positions in the order they are asked (see
+            :data:`PRIOR_ORDERS`); default: lowest index first.
 
     Returns:
         ``[N, m_g]`` int64 conflict-free actions.
     """
     n, m_g, n_actions = mask.shape
+    order = np.arange(m_g) if order is None else np.asarray(order, np.int64)
+    ranked = mask[:, order]  # robots in the order they are asked
     actions = np.zeros((n, m_g), np.int64)
     taken = np.zeros((n, m_g), bool)
     rows = np.arange(n)
     for k in range(1, n_actions):
-        candidates = mask[:, :, k] & ~taken  # [N, m_g]
+        candidates = ranked[:, :, k] & ~taken  # [N, m_g]
         has = candidates.any(axis=1)
-        first = candidates.argmax(axis=1)  # lowest robot index among the candidates
-        actions[rows[has], first[has]] = k
+        first = candidates.argmax(axis=1)  # first in order among the candidates
+        actions[rows[has], order[first[has]]] = k
         taken[rows[has], first[has]] = True
     return actions
 
 
+def spread_order(active_tasks: np.ndarray, rule: str) -> np.ndarray:
+    """The order in which the spread priors ask a group's robots (:data:`PRIOR_ORDERS`).
+
+    Args:
+        active_tasks: ``[m_g, n]`` bool ``Lambda_i`` of the group's robots, in group order.
+        rule: ``"index"`` (lowest index first) or ``"fewest_types"`` (robots with the fewest
+            active types first, ties to the lowest index: versatile robots stay free for the
+            types only they can do).
+
+    Returns:
+        ``[m_g]`` int64 permutation of the group's robot positions.
+
+    Raises:
+        ValueError: on an unknown rule.
+    """
+    if rule not in PRIOR_ORDERS:
+        raise ValueError(f"prior_order must be one of {PRIOR_ORDERS}, got {rule!r}")
+    positions = np.arange(len(active_tasks))
+    if rule == "index":
+        return positions
+    return np.lexsort((positions, active_tasks.sum(axis=1)))  # by type count, then index
+
+
 PRIORS = ("greedy", "spread", "spread_wait")  # tie-break joint action of an untrained state
+PRIOR_ORDERS = ("index", "fewest_types")  # which idle robot the spread priors ask first
 
 
 def random_valid_actions(mask: np.ndarray, u: np.ndarray) -> np.ndarray:
@@ -312,6 +341,8 @@ class JointQTable:
             to :meth:`rows`); each is valid in every state.
         min_visits: Entries other than the prior compete for the greedy choice and the max of
             eq. (3) once updated this many times (0: all entries, untried ones at Q = 0).
+        order: The order in which the spread priors ask the group's robots
+            (:func:`spread_order`); default: lowest index first.
 
     Raises:
         ValueError: on an unknown prior.
@@ -324,6 +355,7 @@ class JointQTable:
         prune_conflicts: bool = True,
         prior: str = "greedy",
         min_visits: int = 0,
+        order: Sequence[int] | None = None,
     ) -> None:
         if prior not in PRIORS:
             raise ValueError(f"prior must be one of {PRIORS}, got {prior!r}")
@@ -333,6 +365,7 @@ class JointQTable:
         self.prune_conflicts = prune_conflicts
         self.prior = prior
         self.min_visits = min_visits
+        self.order = np.arange(n_robots) if order is None else np.asarray(order, np.int64)
         self.index: dict[int, int] = {}  # state index -> row
         self._states = _Growable(np.int64)  # row -> state index
         self._offset = _Growable(np.int64)  # row -> first entry
@@ -384,7 +417,7 @@ class JointQTable:
         lengths = np.bincount(state_of, minlength=len(states))
         offsets = self._codes.size + np.cumsum(lengths) - lengths
         if self.prior in ("spread", "spread_wait"):
-            greedy = spread_actions(prior_masks)  # [N, m_g], conflict-free by construction
+            greedy = spread_actions(prior_masks, self.order)  # [N, m_g], conflict-free
         else:
             greedy = greedy_actions(prior_masks)  # [N, m_g]
             if self.prune_conflicts:

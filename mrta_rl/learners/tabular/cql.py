@@ -28,6 +28,7 @@ class CQLLearner(GroupQLearner):
         prune_conflicts: Keep only conflict-free joint actions (see ``common``).
         prior: Tie-break joint action of untried states (``common.PRIORS``, docs/learners.md).
         min_visits: Updates an entry needs before it competes with the prior (``JointQTable``).
+        prior_order: Which idle robot the spread priors ask first (default ``index``).
         **hyperparameters: See :class:`~mrta_rl.learners.tabular.common.TabularLearner`.
     """
 

@@ -22,6 +22,7 @@ from mrta_rl.learners.tabular.common import (
     PendingTransitions,
     TabularLearner,
     deconflict,
+    spread_order,
 )
 from mrta_rl.metrics.learning_space import learning_space_dimension
 
@@ -58,6 +59,7 @@ class GroupQLearner(TabularLearner):
     Args:
         prune_conflicts: Keep only conflict-free joint actions (see ``common``).
         prior: Tie-break joint action of untried states (``common.PRIORS``).
+        prior_order: Which idle robot the spread priors ask first (``common.PRIOR_ORDERS``).
         min_visits: Updates an entry needs before it competes with the prior.
         **kwargs: Env, generator, partition and the hyperparameters of
             :class:`~mrta_rl.learners.tabular.common.TabularLearner`.
@@ -65,27 +67,38 @@ class GroupQLearner(TabularLearner):
 
     space_name: ClassVar[str]
     default_prior: ClassVar[str] = "spread"
+    default_prior_order: ClassVar[str] = "index"
 
     def __init__(
         self,
         *,
         prune_conflicts: bool = True,
         prior: str | None = None,
+        prior_order: str | None = None,
         min_visits: int = 0,
         **hyperparameters,
     ) -> None:
         super().__init__(**hyperparameters)
         self.prune_conflicts, self.min_visits = prune_conflicts, min_visits
         self.prior = self.default_prior if prior is None else prior
+        self.prior_order = self.default_prior_order if prior_order is None else prior_order
+        spread_order(self.env.active_tasks[:1], self.prior_order)  # fail before work
 
     def _set_groups(self, names: list[str], groups: list[list[int]]) -> None:
         self.group_names = names
         self.groups = [np.asarray(g, np.int64) for g in groups]
+        active = self.env.active_tasks
         self.tables = [
-            JointQTable(len(g), self.n_actions, self.prune_conflicts, self.prior, self.min_visits)
+            JointQTable(
+                len(g),
+                self.n_actions,
+                self.prune_conflicts,
+                self.prior,
+                self.min_visits,
+                order=spread_order(active[np.asarray(g, np.int64)], self.prior_order),
+            )
             for g in groups
         ]
-        active = self.env.active_tasks
         self._group_types = [active[np.asarray(g, np.int64)].any(axis=0) for g in groups]  # T_g
         self._pending: list[PendingTransitions] = []
 
@@ -257,12 +270,15 @@ class SubGCQLLearner(GroupQLearner):
         prune_conflicts: Keep only conflict-free joint actions (see ``common``).
         prior: Tie-break joint action of untried states (``common.PRIORS``, docs/learners.md).
         min_visits: Updates an entry needs before it competes with the prior (``JointQTable``).
+        prior_order: Which idle robot the spread priors ask first (default ``fewest_types``).
         **hyperparameters: See :class:`~mrta_rl.learners.tabular.common.TabularLearner`.
     """
 
     requires_partition: ClassVar[bool] = True
     space_name: ClassVar[str] = "subg_cql"
     default_prior: ClassVar[str] = "spread_wait"
+    # a sub-group keeps its versatile robots free for the types only they can do (docs/learners.md)
+    default_prior_order: ClassVar[str] = "fewest_types"
 
     def __init__(self, **hyperparameters) -> None:
         super().__init__(**hyperparameters)
