@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -81,6 +81,10 @@ class CellSummary:
         train_env_ticks: Training copy-ticks per seed.
         capable_robots: ``task type -> number of robots whose task set contains it``, from the
             run's system config (empty if unknown).
+        group_return: ``sub-group -> MeanCI`` of the return earned by its task types, for runs
+            on a subG partition (``return_by_group`` of metrics.json); empty otherwise.
+        greedy_group_return: The same split of the greedy baseline's return (full task sets).
+        group_types: ``sub-group -> its task types``.
     """
 
     learner: str
@@ -97,6 +101,9 @@ class CellSummary:
     train_wall_s: MeanCI
     train_env_ticks: MeanCI
     capable_robots: dict[str, int]
+    group_return: dict[str, MeanCI] = field(default_factory=dict)
+    greedy_group_return: dict[str, MeanCI] = field(default_factory=dict)
+    group_types: dict[str, tuple[str, ...]] = field(default_factory=dict)
 
     @property
     def overall_itr(self) -> MeanCI:
@@ -160,6 +167,12 @@ def summarize_cell(runs: Sequence[RunRecord]) -> CellSummary:
         for key in keys
     }
     train = [r.metrics.get("train") or {} for r in runs]
+    groups = evals[0].get("return_by_group") or {}
+    baselines = [r.metrics.get("baseline_greedy") or {} for r in runs]
+
+    def group_part(block: dict[str, Any], group: str) -> float | None:
+        return ((block.get("return_by_group") or {}).get(group) or {}).get("return")
+
     return CellSummary(
         learner=runs[0].learner,
         system=runs[0].system,
@@ -175,6 +188,9 @@ def summarize_cell(runs: Sequence[RunRecord]) -> CellSummary:
         train_wall_s=mean_ci(t.get("wall_s") for t in train),
         train_env_ticks=mean_ci(t.get("env_ticks") for t in train),
         capable_robots=_capable_robots(runs[0].config),
+        group_return={g: mean_ci(group_part(e, g) for e in evals) for g in groups},
+        greedy_group_return={g: mean_ci(group_part(b, g) for b in baselines) for g in groups},
+        group_types={g: tuple(part["types"]) for g, part in groups.items()},
     )
 
 

@@ -158,6 +158,7 @@ def build_report(inputs: Iterable[Path | str], out_dir: Path | str | None = None
         ),
         "itr": (["system", "learner", "robot", *tables.STAT_HEADER], tables.itr_rows(cells)),
         "team_return": (tables.TEAM_RETURN_HEADER, tables.team_return_rows(cells)),
+        "group_return": (tables.GROUP_RETURN_HEADER, tables.group_return_rows(cells)),
         "learning_space": (tables.LEARNING_SPACE_HEADER, tables.learning_space_rows(cells)),
         "claims": (
             ["claim", "system", "verdict", "separation", "statement", "evidence"],
@@ -263,6 +264,22 @@ def _report_markdown(
         _image(files, "team_return", "Team return"),
         "",
     ]
+    group_tables = {
+        system: table
+        for system, system_cells in by_system.items()
+        if (table := tables.group_return_markdown(system_cells))
+    }
+    if group_tables:
+        md += [
+            "### Team return by subG sub-group",
+            "",
+            "Every reward is a task's and each task type belongs to one sub-group, so the team "
+            "return splits exactly into the parts its sub-groups' task types earn; the last row "
+            "is what the same types earn under the plain auction on the full team.",
+            "",
+        ]
+        for system, table in group_tables.items():
+            md += [f"{system_label(system)}:", "", table, ""]
     md += [
         "## Completed task ratio (paper Tables 5-6, Figures 1-4)",
         "",

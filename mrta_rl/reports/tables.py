@@ -200,6 +200,69 @@ TEAM_RETURN_HEADER = [
 ]
 
 
+# ----------------------------------------------------------------- return by subG sub-group
+
+
+def group_return_markdown(summaries: Sequence[CellSummary]) -> str:
+    """Per sub-group, the return its task types earn: each partitioned learner, then greedy.
+
+    The cells must be of one system and their learners on the same partition (subG learners on
+    one system share it). Empty string if no cell ran on a partition.
+    """
+    cells = [c for c in summaries if c.group_return]
+    if not cells:
+        return ""
+    groups = cells[0].group_types
+    header = ["learner", *(f"{g} ({' '.join(types)})" for g, types in groups.items()), "team"]
+    rows = [
+        [
+            learner_label(c.learner),
+            *(c.group_return[g].format() for g in groups),
+            c.team_return.format(),
+        ]
+        for c in cells
+    ]
+    base = cells[0]
+    rows.append(
+        [
+            "greedy, full team",
+            *(base.greedy_group_return[g].format() for g in groups),
+            base.greedy_return.format(),
+        ]
+    )
+    return markdown_table(header, rows)
+
+
+def group_return_rows(summaries: Iterable[CellSummary]) -> list[list[Any]]:
+    """CSV rows: system, learner, sub-group, its types, learner's part and greedy's part."""
+    return [
+        [
+            c.system,
+            c.learner,
+            g,
+            " ".join(c.group_types[g]),
+            len(c.seeds),
+            stat.mean,
+            stat.ci95,
+            c.greedy_group_return[g].mean,
+        ]
+        for c in summaries
+        for g, stat in c.group_return.items()
+    ]
+
+
+GROUP_RETURN_HEADER = [
+    "system",
+    "learner",
+    "group",
+    "task_types",
+    "n_seeds",
+    "return_mean",
+    "return_ci95",
+    "greedy_return_mean",
+]
+
+
 # ----------------------------------------------------------------- learning space (Table 9)
 
 

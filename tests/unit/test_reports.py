@@ -37,8 +37,12 @@ def write_run(
     space: dict[str, int] | None = None,
     curve: list[tuple[int, float]] | None = None,
     system: str = "system1",
+    groups: dict[str, tuple[list[str], float, float]] | None = None,
 ) -> Path:
-    """A run dir as scripts/train.py writes it (metrics.json, curve.csv, .hydra/config.yaml)."""
+    """A run dir as scripts/train.py writes it (metrics.json, curve.csv, .hydra/config.yaml).
+
+    ``groups``: sub-group -> (task types, learner's part, greedy's part) of a partitioned run.
+    """
     def block(ret: float, low: float, high: float, idle: float) -> dict:
         return {
             "episodes": 2,
@@ -58,6 +62,10 @@ def write_run(
         "train": {"env_ticks": 100, "wall_s": 1.5, "episodes": 2},
         "learning_space": space or {},
     }
+    for group, (types, mine, greedy) in (groups or {}).items():
+        for key, part in (("eval", mine), ("baseline_greedy", greedy)):
+            split = metrics[key].setdefault("return_by_group", {})
+            split[group] = {"types": types, "return": part}
     (run_dir / "metrics.json").write_text(json.dumps(metrics))
     with (run_dir / "curve.csv").open("w") as handle:
         handle.write("env_ticks,episode,team_return_mean\n")
@@ -185,3 +193,23 @@ def test_report_keeps_big_learning_spaces_exact(tmp_path):
     assert "1.181e+21" in text and "![System-I learning curves](curve_system1.png)" in text
     assert set(files.figures) >= {"ctr_system1_L", "ctr_system1_H", "itr_system1",
                                   "curve_system1", "team_return"}
+
+
+def test_report_splits_the_return_by_sub_group(tmp_path):
+    for seed, (g1, g2) in enumerate([(60.0, 40.0), (64.0, 42.0)]):
+        groups = {"G1": (["T1"], g1, 50.0), "G2": (["T2", "T3"], g2, 40.0)}
+        write_run(tmp_path / "runs" / f"s{seed}", "subg_cql", seed, groups=groups)
+    write_run(tmp_path / "runs" / "plain", "cql", 0)  # not partitioned: no row
+    files = build_report([tmp_path / "runs"])
+    text = files.report.read_text()
+    assert "| learner | G1 (T1) | G2 (T2 T3) | team |" in text
+    # means over the two seeds: G1 (60 + 64) / 2, G2 (40 + 42) / 2; greedy's parts as written
+    assert "| subG-CQL | 62.0 ± 25.4 | 41.0 ± 12.7 | 100.0 ± 0.0 |" in text
+    assert "| greedy, full team | 50.0 ± 0.0 | 40.0 ± 0.0 | 90.0 ± 0.0 |" in text
+    with files.csvs["group_return"].open() as handle:
+        rows = list(csv.DictReader(handle))
+    assert [(r["learner"], r["group"], r["task_types"]) for r in rows] == [
+        ("subg_cql", "G1", "T1"),
+        ("subg_cql", "G2", "T2 T3"),
+    ]
+    assert float(rows[0]["return_mean"]) == 62.0 and float(rows[1]["greedy_return_mean"]) == 40.0
