@@ -8,6 +8,7 @@ import yaml
 
 from mrta_rl.envs import AuctionEnv, AuctionParams
 from mrta_rl.learners import GreedyLearner, HighOnlyLearner, RandomLearner, SubGReserveLearner
+from mrta_rl.learners.tabular.subg_cql import SubGCQLLearner
 from mrta_rl.partition import subg_partition
 from mrta_rl.systems import build_system
 from tests.conftest import CONF
@@ -185,3 +186,23 @@ def test_subg_reserve_plays_valid_conflict_free_episodes(rng):
             assert ((actions == k).sum(axis=1) <= 1).all()
         env.step(actions)  # raises on an invalid action (a type outside Lambda_i included)
     assert env.stats.assigned.sum() > 0
+
+
+def test_subg_reserve_with_no_reserve_is_the_untrained_subg_cql(rng):
+    """docs/learners.md: untrained subG-CQL (spread_wait, fewest_types) plays subg_reserve."""
+    system = build_system(yaml.safe_load((CONF / "system" / "system2.yaml").read_text()))
+    partition = subg_partition(system)
+    env = AuctionEnv(
+        system,
+        AuctionParams(horizon=150),
+        batch_size=6,
+        seed=11,
+        active_tasks=partition.active_tasks(system),
+    )
+    rule = SubGReserveLearner(env=env, rng=rng, partition=partition, reserve=0, hold_level=1)
+    table = SubGCQLLearner(env=env, rng=rng, partition=partition)
+    while not env.done.all():
+        mask = env.action_mask
+        expected = rule.act(rule.encode(env), mask, explore=False)
+        np.testing.assert_array_equal(table.act(table.encode(env), mask, explore=False), expected)
+        env.step(expected)
