@@ -73,6 +73,7 @@ __all__ = [
     "global_features",
     "group_state_count",
     "group_state_index",
+    "local_feature_layout",
     "local_feature_size",
     "local_features",
     "local_state_count",
@@ -350,17 +351,39 @@ def local_features(env: AuctionEnv) -> np.ndarray:
     # (an empty slot indexes row -1, a real type, but its code is 0 anyway)
     visible = env.active_tasks.T[env.slot_type] & (codes > 0)[:, :, None]  # [B, K, m]
     local_codes = np.where(visible, codes[:, :, None], 0).transpose(0, 2, 1)  # [B, m, K]
+    at = local_feature_layout(K, n)
     out = np.zeros((B, m, local_feature_size(env)), np.float32)
-    out[..., 0] = env.idle
-    slot_block = out[..., 1 : 1 + K * n_codes].reshape(B, m, K, n_codes)
+    out[..., at["idle"].start] = env.idle
+    slot_block = out[..., at["slots"]].reshape(B, m, K, n_codes)
     np.put_along_axis(slot_block, local_codes[..., None], 1.0, axis=-1)
-    out[..., 1 : 1 + K * n_codes] = slot_block.reshape(B, m, K * n_codes)
-    base = 1 + K * n_codes
-    out[..., base] = battery_level(env)
+    out[..., at["slots"]] = slot_block.reshape(B, m, K * n_codes)
+    out[..., at["battery"].start] = battery_level(env)
     recency = recency_level(env, env.active_tasks)  # [B, m]
-    np.put_along_axis(out, (base + 1 + recency)[..., None], 1.0, axis=-1)
-    out[:, np.arange(m), base + 1 + N_RECENCY_LEVELS + np.arange(m)] = 1.0  # robot id one-hot
+    np.put_along_axis(out, (at["recency"].start + recency)[..., None], 1.0, axis=-1)
+    out[:, np.arange(m), at["robot"].start + np.arange(m)] = 1.0  # robot id one-hot
     return out
+
+
+def local_feature_layout(n_slots: int, n_task_types: int) -> dict[str, slice]:
+    """Where the parts of :func:`local_features` sit on the feature axis (module docstring).
+
+    Args:
+        n_slots: ``K``.
+        n_task_types: ``n``.
+
+    Returns:
+        ``{"idle", "slots", "battery", "recency", "robot"}`` -> slice; ``"slots"`` holds ``K``
+        one-hots of ``1 + 2n`` codes (code ``1 + 2 type + high``), ``"recency"`` the 3 levels.
+    """
+    slots_end = 1 + n_slots * (1 + 2 * n_task_types)
+    recency_end = slots_end + 1 + N_RECENCY_LEVELS
+    return {
+        "idle": slice(0, 1),
+        "slots": slice(1, slots_end),
+        "battery": slice(slots_end, slots_end + 1),
+        "recency": slice(slots_end + 1, recency_end),
+        "robot": slice(recency_end, None),
+    }
 
 
 def global_features(env: AuctionEnv) -> np.ndarray:

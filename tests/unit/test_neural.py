@@ -5,17 +5,20 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+import yaml
 from tensordict import TensorDict
 from torchrl.collectors import Collector
 
 from mrta_rl.envs import AuctionEnv, AuctionParams
 from mrta_rl.envs.torchrl_env import AuctionTorchRLEnv
+from mrta_rl.learners import SubGReserveLearner
 from mrta_rl.learners.neural import IQLLearner, QMIXLearner, SubGDQNLearner, VDNLearner
 from mrta_rl.learners.neural.common import WEIGHTS_FILE
 from mrta_rl.learners.neural.networks import greedy_bid, joint_combine, joint_decode
 from mrta_rl.partition import subg_partition
 from mrta_rl.runners.evaluate import evaluate_policy
 from mrta_rl.systems import build_system
+from tests.conftest import CONF
 
 SMALL = {"hidden": 16, "depth": 1, "batch_size": 32, "buffer_size": 1000}
 
@@ -100,7 +103,8 @@ def test_greedy_bid_is_the_lowest_valid_bid():
 @pytest.mark.parametrize("cls", [SubGDQNLearner, VDNLearner, QMIXLearner, IQLLearner])
 def test_untrained_network_is_the_plain_auction(cls, system):
     """auction_prior + zero last layer: the greedy policy of an untrained net bids like greedy."""
-    learner, env = make(cls, system, batch=6)
+    hp = {"prior": "greedy"} if cls is SubGDQNLearner else {}  # subG-DQN's default: spread_wait
+    learner, env = make(cls, system, batch=6, **hp)
     for _ in range(40):
         mask = env.action_mask.copy()
         actions = learner.act(learner.encode(env), mask, explore=False)
@@ -108,6 +112,29 @@ def test_untrained_network_is_the_plain_auction(cls, system):
         greedy = np.where(bids.any(-1), bids.argmax(-1) + 1, 0)
         np.testing.assert_array_equal(actions, greedy)
         env.step(actions)
+
+
+def test_untrained_subg_dqn_plays_the_subg_cql_prior():
+    """prior spread_wait: the untrained nets play subG-CQL's prior, i.e. subg_reserve (0, 1)."""
+    system2 = build_system(yaml.safe_load((CONF / "system" / "system2.yaml").read_text()))
+    learner, env = make(SubGDQNLearner, system2, batch=6, horizon=150, seed=11)
+    rule = SubGReserveLearner(
+        env=env, rng=np.random.default_rng(0), partition=learner.partition, reserve=0
+    )
+    held = 0
+    while not env.done.all():
+        mask = env.action_mask.copy()
+        expected = rule.act(rule.encode(env), mask, explore=False)
+        np.testing.assert_array_equal(
+            learner.act(learner.encode(env), mask, explore=False), expected
+        )
+        held += int(((expected == 0) & mask[:, :, 1:].any(-1)).sum())  # a robot kept back
+        env.step(expected)
+    assert held > 0  # the rule did hold robots back, so this is not the plain auction again
+    with pytest.raises(ValueError, match="prior must be one of"):
+        make(SubGDQNLearner, system2, prior="nope")
+    with pytest.raises(ValueError, match="prior_order must be one of"):
+        make(SubGDQNLearner, system2, prior_order="nope")
 
 
 def test_joint_action_network_never_selects_a_masked_action(system):

@@ -11,6 +11,8 @@ import torch
 from torch import nn
 from torchrl.modules import MLP, MultiAgentMLP
 
+JOINT_PRIORS = ("greedy", "spread_wait")  # what an untrained joint-action network plays
+
 
 def greedy_bid(mask: torch.Tensor) -> torch.Tensor:
     """One-hot of the plain auction's action (spec "Fixed policies", greedy).
@@ -25,6 +27,48 @@ def greedy_bid(mask: torch.Tensor) -> torch.Tensor:
     first = bids.to(torch.uint8).argmax(-1) + 1  # argmax returns the first maximum
     onehot = nn.functional.one_hot(first, mask.shape[-1]).to(torch.float32)
     return onehot * bids.any(-1, keepdim=True)
+
+
+def spread_wait_bid(
+    observation: torch.Tensor,
+    mask: torch.Tensor,
+    order: torch.Tensor,
+    slots: slice,
+    recent: int,
+) -> torch.Tensor:
+    """One-hot of the subG-CQL ``spread_wait`` prior's action per robot of a sub-group.
+
+    The same rule as the tabular prior (``learners/tabular/common.py``, ``spread_actions`` under
+    the ``spread_wait`` masks): L slots are held while an H task of the group's types arrived
+    within 3 ticks (some robot's recency level is 0: the group's level is the lowest of its
+    robots'), then idle robots, asked in ``order``, bid for distinct slots in slot order.
+
+    Args:
+        observation: ``[*, n_g, F]`` local features (``observations.local_feature_layout``).
+        mask: ``[*, n_g, K + 1]`` bool valid actions.
+        order: ``[n_g]`` int64 robot positions in the order they are asked.
+        slots: Feature slice of the ``K`` slot one-hots (code ``1 + 2 type + high``).
+        recent: Feature index of recency level 0.
+
+    Returns:
+        ``[*, n_g, K + 1]`` float one-hot (wait included: the rule's wait is an action too).
+    """
+    *lead, n_g, n_actions = mask.shape
+    codes = observation[..., slots].reshape(*lead, n_g, n_actions - 1, -1)  # [*, n_g, K, codes]
+    low = codes[..., 1::2].sum(-1) > 0  # odd codes 1 + 2 type are L tasks
+    hold = (observation[..., recent] > 0).any(-1)[..., None, None]  # [*, 1, 1]
+    bids = (mask[..., 1:] & ~(low & hold))[..., order, :]  # [*, n_g, K], robots in order
+    taken = torch.zeros(bids.shape[:-1], dtype=torch.bool, device=mask.device)
+    ranked = torch.zeros(bids.shape[:-1], dtype=torch.long, device=mask.device)
+    for k in range(n_actions - 1):
+        candidates = bids[..., k] & ~taken
+        first = nn.functional.one_hot(candidates.to(torch.uint8).argmax(-1), n_g).bool()
+        first &= candidates.any(-1, keepdim=True)
+        ranked = torch.where(first, k + 1, ranked)
+        taken |= first
+    actions = torch.empty_like(ranked)
+    actions[..., order] = ranked
+    return nn.functional.one_hot(actions, n_actions).to(torch.float32)
 
 
 def joint_combine(per_robot: torch.Tensor, op: str) -> torch.Tensor:
@@ -129,6 +173,9 @@ class JointQ(nn.Module):
         depth: int,
         auction_prior: float,
         device: torch.device,
+        prior: str = "greedy",
+        order: list[int] | None = None,
+        layout: dict[str, slice] | None = None,
     ) -> None:
         """Build the MLP (last layer zero) over the concatenated features of the group.
 
@@ -138,10 +185,25 @@ class JointQ(nn.Module):
             n_actions: ``K + 1``.
             hidden: Units per hidden layer.
             depth: Hidden layers.
-            auction_prior: Bonus per robot playing its greedy bid (module docstring).
+            auction_prior: Bonus per robot playing the prior's action (module docstring).
             device: Parameter device.
+            prior: The rule an untrained network plays: ``"greedy"`` (:func:`greedy_bid`, the
+                plain auction) or ``"spread_wait"`` (:func:`spread_wait_bid`).
+            order: ``spread_wait``: robot positions in the order they are asked.
+            layout: ``spread_wait``: ``observations.local_feature_layout`` of the features.
+
+        Raises:
+            ValueError: on an unknown prior, or ``spread_wait`` without order and layout.
         """
         super().__init__()
+        if prior not in JOINT_PRIORS:
+            raise ValueError(f"prior must be one of {JOINT_PRIORS}, got {prior!r}")
+        if prior == "spread_wait" and (order is None or layout is None):
+            raise ValueError("the spread_wait prior needs the robot order and the feature layout")
+        self.prior = prior
+        self.layout = layout
+        order = list(range(n_robots)) if order is None else list(order)
+        self.register_buffer("order", torch.tensor(order, dtype=torch.long, device=device))
         self.mlp = MLP(
             in_features=n_robots * n_features,
             out_features=n_actions**n_robots,
@@ -158,7 +220,12 @@ class JointQ(nn.Module):
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Joint Q-values and joint mask ``[*, A^n_g]`` (mask = product of the robots' masks)."""
         value = self.mlp(observation.flatten(-2))  # [*, A^n_g]
-        prior = joint_combine(greedy_bid(action_mask), "add")  # greedy bids, summed over robots
+        if self.prior == "greedy":
+            per_robot = greedy_bid(action_mask)
+        else:
+            slots, recency = self.layout["slots"], self.layout["recency"]
+            per_robot = spread_wait_bid(observation, action_mask, self.order, slots, recency.start)
+        prior = joint_combine(per_robot, "add")  # robots playing the prior's action, summed
         return value + self.auction_prior * prior, joint_combine(action_mask, "and")
 
 

@@ -7,8 +7,10 @@ from tensordict.nn import TensorDictModule, TensorDictSequential
 from torchrl.modules import QValueModule
 from torchrl.objectives import DQNLoss
 
+from mrta_rl.envs.observations import local_feature_layout
 from mrta_rl.learners.neural.common import JOINT, NeuralLearner
-from mrta_rl.learners.neural.networks import JointDecode, JointQ
+from mrta_rl.learners.neural.networks import JOINT_PRIORS, JointDecode, JointQ
+from mrta_rl.learners.tabular.common import PRIOR_ORDERS, spread_order
 from mrta_rl.types import GroupMap
 
 
@@ -28,6 +30,26 @@ class SubGDQNLearner(NeuralLearner):
 
     requires_partition = True
 
+    def __init__(self, *, prior: str = "spread_wait", prior_order: str = "fewest_types", **hp):
+        """Keep the prior's settings, then build (see :class:`NeuralLearner`).
+
+        Args:
+            prior: What the untrained networks play (``networks.JOINT_PRIORS``): ``greedy``
+                (the plain auction) or ``spread_wait`` (subG-CQL's prior, docs/neural.md).
+            prior_order: ``spread_wait``: which idle robot is asked first
+                (``tabular.common.PRIOR_ORDERS``), as subG-CQL's ``prior_order``.
+            **hp: Env, generator, partition and the hyperparameters of :class:`NeuralLearner`.
+
+        Raises:
+            ValueError: on an unknown prior or prior order.
+        """
+        if prior not in JOINT_PRIORS:
+            raise ValueError(f"prior must be one of {JOINT_PRIORS}, got {prior!r}")
+        if prior_order not in PRIOR_ORDERS:
+            raise ValueError(f"prior_order must be one of {PRIOR_ORDERS}, got {prior_order!r}")
+        self.prior, self.prior_order = prior, prior_order
+        super().__init__(**hp)
+
     def _group_map(self) -> GroupMap:
         assert self.partition is not None  # checked by Learner.__init__ (requires_partition)
         return {g: list(ids) for g, ids in self.partition.group_map().items()}
@@ -35,8 +57,11 @@ class SubGDQNLearner(NeuralLearner):
     def _build(self) -> None:
         greedy, explore = [], []
         A = self.n_actions
+        env = self.env
+        layout = local_feature_layout(env.n_slots, env.n_task_types)
         for group, ids in self.group_map.items():
             n_g = len(ids)
+            robots = [env.system.robots.index(r) for r in ids]
             qnet = JointQ(
                 self.n_features,
                 n_g,
@@ -45,6 +70,9 @@ class SubGDQNLearner(NeuralLearner):
                 depth=self.hp["depth"],
                 auction_prior=self.hp["auction_prior"],
                 device=self.device,
+                prior=self.prior,
+                order=spread_order(env.active_tasks[robots], self.prior_order).tolist(),
+                layout=layout,
             )
             self.networks[group] = qnet
             value = TensorDictSequential(
