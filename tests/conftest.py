@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 from hydra.core.hydra_config import HydraConfig
@@ -17,6 +18,11 @@ from mrta_rl.systems import RobotSystem, build_system
 
 ROOT = Path(__file__).resolve().parents[1]
 CONF = ROOT / "conf"
+
+
+def paper_system(name: str) -> RobotSystem:
+    """System-I or System-II (paper Tables 1-2) from ``conf/system/<name>.yaml``."""
+    return build_system(yaml.safe_load((CONF / "system" / f"{name}.yaml").read_text()))
 
 
 @pytest.fixture

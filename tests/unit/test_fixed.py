@@ -4,14 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import yaml
 
 from mrta_rl.envs import AuctionEnv, AuctionParams
 from mrta_rl.learners import GreedyLearner, HighOnlyLearner, RandomLearner, SubGReserveLearner
 from mrta_rl.learners.tabular.subg_cql import SubGCQLLearner
 from mrta_rl.partition import subg_partition
-from mrta_rl.systems import build_system
-from tests.conftest import CONF
+from tests.conftest import paper_system
 
 # one copy, four robots, K = 3 slots; columns: wait, slot 1, slot 2, slot 3
 MASK = np.array(
@@ -108,12 +106,16 @@ RESERVE_SLOTS = np.array([[1, 0, 0]])
 ALL_IDLE = np.ones((1, 6), bool)
 
 
-def system1():
-    return build_system(yaml.safe_load((CONF / "system" / "system1.yaml").read_text()))
+def on_partition(system, horizon=1000, batch=1, seed=0):
+    """System, partition and an env on the partition's task sets Lambda_i."""
+    partition = subg_partition(system)
+    params = AuctionParams(horizon=horizon)
+    env = AuctionEnv(system, params, batch, active_tasks=partition.active_tasks(system), seed=seed)
+    return partition, env
 
 
 def make_reserve(rng, system=None, **rule):
-    system = system or system1()
+    system = system or paper_system("system1")
     partition = subg_partition(system)
     env = AuctionEnv(system, active_tasks=partition.active_tasks(system))
     return SubGReserveLearner(env=env, rng=rng, partition=partition, **rule)
@@ -170,15 +172,7 @@ def test_subg_reserve_needs_a_partition_and_valid_rule(tiny_system, rng):
 
 
 def test_subg_reserve_plays_valid_conflict_free_episodes(rng):
-    system = build_system(yaml.safe_load((CONF / "system" / "system2.yaml").read_text()))
-    partition = subg_partition(system)
-    env = AuctionEnv(
-        system,
-        AuctionParams(horizon=200),
-        batch_size=8,
-        seed=5,
-        active_tasks=partition.active_tasks(system),
-    )
+    partition, env = on_partition(paper_system("system2"), horizon=200, batch=8, seed=5)
     learner = SubGReserveLearner(env=env, rng=rng, partition=partition)
     while not env.done.all():
         actions = learner.act(learner.encode(env), env.action_mask, explore=False)
@@ -190,15 +184,7 @@ def test_subg_reserve_plays_valid_conflict_free_episodes(rng):
 
 def test_subg_reserve_with_no_reserve_is_the_untrained_subg_cql(rng):
     """docs/learners.md: untrained subG-CQL (spread_wait, fewest_types) plays subg_reserve."""
-    system = build_system(yaml.safe_load((CONF / "system" / "system2.yaml").read_text()))
-    partition = subg_partition(system)
-    env = AuctionEnv(
-        system,
-        AuctionParams(horizon=150),
-        batch_size=6,
-        seed=11,
-        active_tasks=partition.active_tasks(system),
-    )
+    partition, env = on_partition(paper_system("system2"), horizon=150, batch=6, seed=11)
     rule = SubGReserveLearner(env=env, rng=rng, partition=partition, reserve=0, hold_level=1)
     table = SubGCQLLearner(env=env, rng=rng, partition=partition)
     while not env.done.all():

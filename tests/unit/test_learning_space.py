@@ -1,7 +1,6 @@
 from __future__ import annotations
 
 import pytest
-from omegaconf import OmegaConf
 
 from mrta_rl.envs import AuctionEnv
 from mrta_rl.metrics.learning_space import (
@@ -13,8 +12,7 @@ from mrta_rl.metrics.learning_space import (
     subgroup_dimension,
 )
 from mrta_rl.partition import subg_partition
-from mrta_rl.systems import build_system
-from tests.conftest import CONF
+from tests.conftest import paper_system
 
 
 def test_formulas_by_hand():
@@ -43,7 +41,7 @@ def test_tiny_system_by_hand(tiny_system):
 
 @pytest.mark.parametrize("name", ["system1", "system2"])
 def test_table9_ordering(name):
-    system = build_system(OmegaConf.to_container(OmegaConf.load(CONF / "system" / f"{name}.yaml")))
+    system = paper_system(name)
     table = learning_space_table(system)
     assert table["cql"] > 10 * table["subg_cql"] > 10 * table["dql"]  # CQL far above subG > DQL
     assert all(isinstance(v, int) for v in table.values())

@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-import yaml
 from tensordict import TensorDict
 from torchrl.collectors import Collector
 
@@ -18,7 +17,7 @@ from mrta_rl.learners.neural.networks import greedy_bid, joint_combine, joint_de
 from mrta_rl.partition import subg_partition
 from mrta_rl.runners.evaluate import evaluate_policy
 from mrta_rl.systems import build_system
-from tests.conftest import CONF
+from tests.conftest import paper_system
 
 SMALL = {"hidden": 16, "depth": 1, "batch_size": 32, "buffer_size": 1000}
 
@@ -116,7 +115,7 @@ def test_untrained_network_is_the_plain_auction(cls, system):
 
 def test_untrained_subg_dqn_plays_the_subg_cql_prior():
     """prior spread_wait: the untrained nets play subG-CQL's prior, i.e. subg_reserve (0, 1)."""
-    system2 = build_system(yaml.safe_load((CONF / "system" / "system2.yaml").read_text()))
+    system2 = paper_system("system2")
     learner, env = make(SubGDQNLearner, system2, batch=6, horizon=150, seed=11)
     rule = SubGReserveLearner(
         env=env, rng=np.random.default_rng(0), partition=learner.partition, reserve=0

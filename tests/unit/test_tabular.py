@@ -2,7 +2,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import yaml
 
 from mrta_rl.envs import AuctionEnv
 from mrta_rl.learners.tabular.common import (
@@ -23,7 +22,7 @@ from mrta_rl.learners.tabular.semi_cql import SemiCQLLearner
 from mrta_rl.learners.tabular.subg_cql import SubGCQLLearner
 from mrta_rl.partition import subg_partition
 from mrta_rl.systems import build_system
-from tests.conftest import CONF
+from tests.conftest import paper_system
 
 LEARNERS = [SubGCQLLearner, CQLLearner, SemiCQLLearner, DQLLearner]
 
@@ -143,7 +142,7 @@ def test_spread_order_rules():
 
 
 def test_subg_cql_asks_robots_with_fewest_kept_types_first():
-    system = build_system(yaml.safe_load((CONF / "system" / "system2.yaml").read_text()))
+    system = paper_system("system2")
     partition = subg_partition(system)
     env = AuctionEnv(system, active_tasks=partition.active_tasks(system))
     learner = SubGCQLLearner(env=env, rng=np.random.default_rng(0), partition=partition)
