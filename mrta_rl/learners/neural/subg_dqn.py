@@ -9,8 +9,8 @@ from torchrl.objectives import DQNLoss
 
 from mrta_rl.envs.observations import local_feature_layout
 from mrta_rl.learners.neural.common import JOINT, NeuralLearner
-from mrta_rl.learners.neural.networks import JOINT_PRIORS, JointDecode, JointQ
-from mrta_rl.learners.tabular.common import PRIOR_ORDERS, spread_order
+from mrta_rl.learners.neural.networks import JointDecode, JointQ
+from mrta_rl.learners.tabular.common import spread_order
 from mrta_rl.types import GroupMap
 
 
@@ -43,10 +43,7 @@ class SubGDQNLearner(NeuralLearner):
         Raises:
             ValueError: on an unknown prior or prior order.
         """
-        if prior not in JOINT_PRIORS:
-            raise ValueError(f"prior must be one of {JOINT_PRIORS}, got {prior!r}")
-        if prior_order not in PRIOR_ORDERS:
-            raise ValueError(f"prior_order must be one of {PRIOR_ORDERS}, got {prior_order!r}")
+        # checked where they are used, while building: spread_order and JointQ raise
         self.prior, self.prior_order = prior, prior_order
         super().__init__(**hp)
 

@@ -82,7 +82,6 @@ class GroupQLearner(TabularLearner):
         self.prune_conflicts, self.min_visits = prune_conflicts, min_visits
         self.prior = self.default_prior if prior is None else prior
         self.prior_order = self.default_prior_order if prior_order is None else prior_order
-        spread_order(self.env.active_tasks[:1], self.prior_order)  # fail before work
 
     def _set_groups(self, names: list[str], groups: list[list[int]]) -> None:
         self.group_names = names
