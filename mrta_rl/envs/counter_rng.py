@@ -49,8 +49,15 @@ def seed_keys(seeds: np.ndarray) -> np.ndarray:
 
 
 def episode_keys(seed_key: np.ndarray, episode: np.ndarray) -> np.ndarray:
-    """Keys of each copy's ``episode``-th episode (0-based)."""
-    return mix64(seed_key ^ mix64(np.asarray(episode, dtype=np.uint64) + _GOLDEN))
+    """Keys of each copy's ``episode``-th episode (0-based).
+
+    ``mix64(s + G) ^ mix64(e + G)`` alone is symmetric in the copy seed ``s`` and the episode
+    ``e`` (copy ``b``'s episode ``e`` would draw copy ``e``'s episode ``b``), so the episode also
+    enters once more as ``e * _M2``. That term is 0 for episode 0, whose streams (the evaluation
+    episodes) are therefore those of the symmetric mix.
+    """
+    episode = np.asarray(episode, dtype=np.uint64)
+    return mix64(seed_key ^ mix64(episode + _GOLDEN) ^ (episode * _M2))
 
 
 def tick_keys(episode_key: np.ndarray, tick: np.ndarray) -> np.ndarray:
