@@ -24,7 +24,9 @@ def test_tick_streams_distinct_over_copies_and_episodes():
     streams = set()
     for e in range(32):
         ek = rng.episode_keys(keys, np.full(len(seeds), e))
-        draws = np.stack([rng.unit_float(rng.tick_keys(ek, np.full(len(seeds), t))) for t in range(8)])
+        draws = np.stack(
+            [rng.unit_float(rng.tick_keys(ek, np.full(len(seeds), t))) for t in range(8)]
+        )
         streams.update(map(tuple, draws.T.round(12)))
     assert len(streams) == 32 * 32
 
