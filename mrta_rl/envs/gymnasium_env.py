@@ -1,7 +1,13 @@
-"""Gymnasium view of the auction (spec ``auction_env.md``): one agent picks the joint action."""
+"""Gymnasium view of the auction (docs/spec/auction_env.md): one agent picks the joint action.
+
+Importing ``mrta_rl.envs`` (or any module under it) registers the Gymnasium ids of
+:data:`GYM_IDS`, so ``gym.make`` works after ``import mrta_rl.envs``; without that import,
+``gym.make("mrta_rl.envs:mrta_rl/Auction-System1-v0")`` imports it itself.
+"""
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any
 
 import gymnasium as gym
@@ -11,8 +17,23 @@ from gymnasium import spaces
 from mrta_rl.envs import observations
 from mrta_rl.envs.auction import AuctionEnv
 from mrta_rl.envs.params import AuctionParams
-from mrta_rl.envs.pettingzoo_env import InvalidAction, sanitize_actions
-from mrta_rl.systems import RobotSystem
+from mrta_rl.envs.view_inputs import (
+    DEFAULT_INVALID_ACTION,
+    InvalidAction,
+    SystemLike,
+    check_invalid_action,
+    fresh_seed,
+    resolve_params,
+    resolve_system,
+    sanitize_actions,
+)
+
+# id -> default keyword arguments; gym.make's keyword arguments override them
+GYM_IDS: dict[str, dict[str, Any]] = {
+    "mrta_rl/Auction-v0": {},  # pass system=... (a name, yaml path, mapping or RobotSystem)
+    "mrta_rl/Auction-System1-v0": {"system": "system1"},  # paper Table 1
+    "mrta_rl/Auction-System2-v0": {"system": "system2"},  # paper Table 2
+}
 
 
 class AuctionGymEnv(gym.Env):
@@ -24,10 +45,12 @@ class AuctionGymEnv(gym.Env):
 
     Action Space:
         ``MultiDiscrete([K + 1] * m)``: robot ``i``'s action, 0 = wait, ``k`` = bid for slot ``k``
-        (spec step 4). Valid actions are ``info["action_mask"]`` (int8 ``[m, K + 1]``; pass
-        ``tuple(mask)`` to ``action_space.sample(mask=...)``). Invalid bids raise the core's
-        ``ValueError`` (``invalid_action="raise"``, default) or become waits (``"wait"``, needed
-        by ``gymnasium.utils.env_checker.check_env``, which sends unmasked random actions).
+        (spec step 4). The valid ones are in ``info["action_mask"]`` (int8 ``[m, K + 1]``; pass
+        ``tuple(mask)`` to ``action_space.sample(mask=...)``) and in :meth:`action_masks` (flat,
+        sb3-contrib's ``MaskablePPO`` convention). With ``invalid_action="wait"`` (default) an
+        invalid or out-of-range sub-action is played as a wait and flagged in
+        ``info["invalid_action"]``, so unmasked samples (``check_env``) are accepted; with
+        ``"raise"`` it raises the core's ``ValueError``.
 
     Observation Space:
         ``Box(0, 1, (G,), float32)``: global features
@@ -39,11 +62,17 @@ class AuctionGymEnv(gym.Env):
     Episode End:
         Truncated after ``horizon`` ticks; never terminated.
 
+    Seeding:
+        ``reset(seed=s)`` plays the task stream of ``AuctionEnv(..., seed=s)``; later resets
+        without a seed play that copy's next episodes. The first reset without any seed draws
+        fresh entropy (Gymnasium's ``np_random``), so fresh envs play different streams.
+
     Arguments:
-        system: The robot team.
-        params: Dynamics parameters (default: spec defaults plus the system file's ``env:`` block).
+        system: The robot team, or its name (``"system1"``), yaml path or config mapping.
+        params: Dynamics parameters, or a mapping of overrides (default: spec defaults plus the
+            system file's ``env:`` block).
         active_tasks: ``[m, n]`` bool ``Lambda_i`` (default ``Gamma_i``).
-        invalid_action: ``"raise"`` or ``"wait"`` (see Action Space).
+        invalid_action: ``"wait"`` (default) or ``"raise"`` (see Action Space).
         render_mode: Only ``None``.
     """
 
@@ -51,18 +80,20 @@ class AuctionGymEnv(gym.Env):
 
     def __init__(
         self,
-        system: RobotSystem,
-        params: AuctionParams | None = None,
+        system: SystemLike,
+        params: AuctionParams | Mapping[str, Any] | None = None,
         *,
         active_tasks: np.ndarray | None = None,
-        invalid_action: InvalidAction = "raise",
+        invalid_action: InvalidAction = DEFAULT_INVALID_ACTION,
         render_mode: None = None,
     ) -> None:
-        if invalid_action not in ("raise", "wait"):
-            raise ValueError(f"invalid_action must be 'raise' or 'wait', got {invalid_action!r}")
+        check_invalid_action(invalid_action)
         if render_mode is not None:
-            raise ValueError("AuctionGymEnv has no render modes")
-        self.core = AuctionEnv(system, params, batch_size=1, active_tasks=active_tasks)
+            raise ValueError(f"AuctionGymEnv has no render modes, got render_mode={render_mode!r}")
+        system = resolve_system(system)
+        self.core = AuctionEnv(
+            system, resolve_params(system, params), batch_size=1, active_tasks=active_tasks
+        )
         self.invalid_action = invalid_action
         self.render_mode = render_mode
         m, n_actions = self.core.n_robots, self.core.n_actions
@@ -75,16 +106,29 @@ class AuctionGymEnv(gym.Env):
         obs = observations.global_features(self.core)[0]  # [G]
         return obs, {"action_mask": self.core.action_mask[0].astype(np.int8)}  # [m, K + 1]
 
+    def action_masks(self) -> np.ndarray:
+        """Valid sub-actions, flat bool ``[m * (K + 1)]``: robot 0's ``K + 1`` actions first.
+
+        sb3-contrib's ``MaskablePPO`` reads this method for ``MultiDiscrete`` spaces.
+        """
+        return self.core.action_mask[0].reshape(-1).copy()
+
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[np.ndarray, dict[str, Any]]:
-        """Start an episode; ``seed`` reseeds the copy (the core's counter-based randomness).
+        """Start an episode (see Seeding in the class docstring; ``options`` are unused).
 
         Returns:
             The observation and an info dict with ``action_mask``.
         """
-        super().reset(seed=seed)  # keeps Gymnasium's np_random contract; the core has its own
-        self.core.reset(seed=seed)
+        first = self._np_random is None  # no seed so far: Gymnasium draws fresh entropy
+        super().reset(seed=seed)
+        if seed is not None:
+            self.core.reset(seed=seed)  # the stream of AuctionEnv(seed=seed)
+        elif first:
+            self.core.reset(seed=fresh_seed(self.np_random))
+        else:
+            self.core.reset()  # the copy's next episode
         return self._observe()
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
@@ -92,13 +136,26 @@ class AuctionGymEnv(gym.Env):
 
         Returns:
             Observation, team reward, terminated (always False), truncated, info
-            (``action_mask``, ``robot_reward``).
+            (``action_mask``, ``robot_reward`` ``[m]``, ``invalid_action`` ``[m]`` bool: the
+            sub-actions played as waits).
 
         Raises:
             ValueError: on an invalid bid with ``invalid_action="raise"``, or after the end.
         """
         joint = np.asarray(action, dtype=np.int64).reshape(1, self.core.n_robots)  # [1, m]
-        result = self.core.step(sanitize_actions(joint, self.core.action_mask, self.invalid_action))
+        joint, invalid = sanitize_actions(joint, self.core.action_mask, self.invalid_action)
+        result = self.core.step(joint)
         obs, info = self._observe()
         info["robot_reward"] = result.robot_reward[0].copy()  # [m]
+        info["invalid_action"] = invalid[0]  # [m]
         return obs, float(result.team_reward[0]), False, bool(result.done[0]), info
+
+
+def register_envs() -> None:
+    """Register the ids of :data:`GYM_IDS` with Gymnasium (once; runs when this module loads)."""
+    for env_id, kwargs in GYM_IDS.items():
+        if env_id not in gym.registry:
+            gym.register(env_id, entry_point=f"{__name__}:AuctionGymEnv", kwargs=kwargs)
+
+
+register_envs()

@@ -1,42 +1,29 @@
-"""PettingZoo parallel view of the auction (spec ``auction_env.md``): one agent per robot."""
+"""PettingZoo parallel view of the auction (docs/spec/auction_env.md): one agent per robot."""
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 from gymnasium import spaces
+from gymnasium.utils import seeding
 from pettingzoo import ParallelEnv
 
 from mrta_rl.envs import observations
 from mrta_rl.envs.auction import AuctionEnv
 from mrta_rl.envs.params import AuctionParams
-from mrta_rl.systems import RobotSystem
+from mrta_rl.envs.view_inputs import (
+    DEFAULT_INVALID_ACTION,
+    InvalidAction,
+    SystemLike,
+    check_invalid_action,
+    fresh_seed,
+    resolve_params,
+    resolve_system,
+    sanitize_actions,
+)
 from mrta_rl.types import RobotId
-
-InvalidAction = Literal["raise", "wait"]
-
-
-def sanitize_actions(
-    actions: np.ndarray, mask: np.ndarray, invalid_action: InvalidAction
-) -> np.ndarray:
-    """Apply the invalid-action policy to ``[B, m]`` actions under ``mask`` ``[B, m, K + 1]``.
-
-    Args:
-        actions: Joint actions.
-        mask: The core's action mask.
-        invalid_action: ``"raise"`` leaves them for the core to reject (spec step 4: a clear
-            ``ValueError``); ``"wait"`` turns every invalid or out-of-range action into 0 (wait).
-
-    Returns:
-        The actions to send to the core.
-    """
-    if invalid_action == "raise":
-        return actions
-    in_range = (actions >= 0) & (actions < mask.shape[-1])
-    safe = np.where(in_range, actions, 0)
-    valid = in_range & np.take_along_axis(mask, safe[..., None], axis=-1)[..., 0]
-    return np.where(valid, actions, 0)
 
 
 class AuctionParallelEnv(ParallelEnv):
@@ -47,14 +34,18 @@ class AuctionParallelEnv(ParallelEnv):
         and masks are the core's, unchanged.
 
     Action Space:
-        ``Discrete(K + 1)`` per agent: 0 = wait, ``k`` = bid for slot ``k``. Invalid bids raise
-        the core's ``ValueError`` (``invalid_action="raise"``, default) or become waits
-        (``invalid_action="wait"``). An agent missing from the action dict waits.
+        ``Discrete(K + 1)`` per agent: 0 = wait, ``k`` = bid for slot ``k``. The valid ones are
+        ``infos[agent]["action_mask"]`` (int8 ``[K + 1]``, after reset and every step; PettingZoo's
+        info-dict masking convention, which its tests sample with) and :meth:`action_mask`. With
+        ``invalid_action="wait"`` (default) an invalid or out-of-range action is played as a wait
+        and flagged in ``infos[agent]["invalid_action"]``, so unmasked samples
+        (``parallel_seed_test``) are accepted; ``"raise"`` raises the core's ``ValueError``.
+        An agent missing from the action dict waits.
 
     Observation Space:
-        ``Dict(observation=Box(0, 1, (F,), float32), action_mask=Box(0, 1, (K + 1,), int8))``:
-        the robot's local features (:func:`~mrta_rl.envs.observations.local_features`) and its
-        valid actions, PettingZoo's masking convention (``parallel_api_test`` samples with it).
+        ``Box(0, 1, (F,), float32)``: the robot's local features
+        (:func:`~mrta_rl.envs.observations.local_features`), a NumPy array as PettingZoo's
+        AEC tests expect.
 
     Reward:
         Each robot's individual reward (spec step 8); they add up to the team reward, which
@@ -64,39 +55,46 @@ class AuctionParallelEnv(ParallelEnv):
         Every agent is truncated after ``horizon`` ticks (never terminated); ``agents`` then
         becomes empty.
 
+    Seeding:
+        ``reset(seed=s)`` plays the task stream of ``AuctionEnv(..., seed=s)``; later resets
+        without a seed play that copy's next episodes. The first reset without any seed plays
+        the constructor's ``seed``, or fresh entropy when it is ``None`` (default), so fresh
+        envs play different streams.
+
     Arguments:
-        system: The robot team.
-        params: Dynamics parameters (default: spec defaults plus the system file's ``env:`` block).
+        system: The robot team, or its name (``"system1"``), yaml path or config mapping.
+        params: Dynamics parameters, or a mapping of overrides (default: spec defaults plus the
+            system file's ``env:`` block).
         active_tasks: ``[m, n]`` bool ``Lambda_i`` (default ``Gamma_i``).
-        seed: Seed of the first episode; ``reset(seed=...)`` reseeds.
-        invalid_action: ``"raise"`` or ``"wait"`` (see Action Space).
+        seed: Seed of the first episode when ``reset`` gets none (default: fresh entropy).
+        invalid_action: ``"wait"`` (default) or ``"raise"`` (see Action Space).
     """
 
     metadata = {"name": "mrta_auction_v0", "render_modes": [], "is_parallelizable": True}
 
     def __init__(
         self,
-        system: RobotSystem,
-        params: AuctionParams | None = None,
+        system: SystemLike,
+        params: AuctionParams | Mapping[str, Any] | None = None,
         *,
         active_tasks: np.ndarray | None = None,
-        seed: int = 0,
-        invalid_action: InvalidAction = "raise",
+        seed: int | None = None,
+        invalid_action: InvalidAction = DEFAULT_INVALID_ACTION,
     ) -> None:
-        if invalid_action not in ("raise", "wait"):
-            raise ValueError(f"invalid_action must be 'raise' or 'wait', got {invalid_action!r}")
-        self.core = AuctionEnv(system, params, batch_size=1, active_tasks=active_tasks, seed=seed)
+        check_invalid_action(invalid_action)
+        system = resolve_system(system)
+        self.core = AuctionEnv(
+            system, resolve_params(system, params), batch_size=1, active_tasks=active_tasks
+        )
+        self._first_seed = seed
+        self._seeded = False  # has an episode been seeded yet (then resets continue its copy)
         self.invalid_action = invalid_action
         self.render_mode = None
         self.possible_agents: list[RobotId] = list(system.robots)
         self.agents: list[RobotId] = []
         n_features, n_actions = observations.local_feature_size(self.core), self.core.n_actions
         self._observation_spaces = {
-            agent: spaces.Dict(
-                observation=spaces.Box(0.0, 1.0, (n_features,), np.float32),
-                action_mask=spaces.Box(0, 1, (n_actions,), np.int8),
-            )
-            for agent in self.possible_agents
+            agent: spaces.Box(0.0, 1.0, (n_features,), np.float32) for agent in self.possible_agents
         }
         self._action_spaces = {agent: spaces.Discrete(n_actions) for agent in self.possible_agents}
         self._index = {agent: i for i, agent in enumerate(self.possible_agents)}
@@ -109,32 +107,41 @@ class AuctionParallelEnv(ParallelEnv):
         """The (cached) action space of one robot."""
         return self._action_spaces[agent]
 
-    def _observe(self) -> dict[RobotId, dict[str, np.ndarray]]:
-        features = observations.local_features(self.core)[0]  # [m, F]
+    def action_mask(self, agent: RobotId) -> np.ndarray:
+        """Valid actions of one robot at this tick, int8 ``[K + 1]`` (1 = valid)."""
+        return self.core.action_mask[0, self._index[agent]].astype(np.int8)
+
+    def _observe(self) -> tuple[dict[RobotId, np.ndarray], dict[RobotId, dict[str, Any]]]:
+        features = observations.local_features(self.core)[0]  # [m, F] float32
         mask = self.core.action_mask[0].astype(np.int8)  # [m, K + 1]
-        return {
-            agent: {"observation": features[i], "action_mask": mask[i]}
-            for i, agent in enumerate(self.possible_agents)
-            if agent in self.agents
-        }
+        live = [(i, agent) for i, agent in enumerate(self.possible_agents) if agent in self.agents]
+        obs = {agent: features[i] for i, agent in live}
+        infos = {agent: {"action_mask": mask[i]} for i, agent in live}
+        return obs, infos
 
     def reset(
         self, seed: int | None = None, options: dict[str, Any] | None = None
-    ) -> tuple[dict[RobotId, dict[str, np.ndarray]], dict[RobotId, dict[str, Any]]]:
-        """Start an episode (reseeding the copy when ``seed`` is given; ``options`` are unused).
+    ) -> tuple[dict[RobotId, np.ndarray], dict[RobotId, dict[str, Any]]]:
+        """Start an episode (see Seeding in the class docstring; ``options`` are unused).
 
         Returns:
-            Observations and (empty) infos of every agent.
+            Observations and infos (``action_mask``) of every agent.
         """
-        self.core.reset(seed=seed)
+        if seed is None and not self._seeded:
+            seed = self._first_seed
+            if seed is None:
+                seed = fresh_seed(seeding.np_random(None)[0])  # fresh entropy
+        self.core.reset(seed=seed)  # None: the copy's next episode
+        self._seeded = True
         self.agents = list(self.possible_agents)
-        return self._observe(), {agent: {} for agent in self.agents}
+        return self._observe()
 
     def step(self, actions: dict[RobotId, int]) -> tuple[dict, dict, dict, dict, dict]:
         """Play one tick with every live agent's action (missing agents wait).
 
         Returns:
-            Observations, rewards, terminations, truncations and infos, keyed by agent.
+            Observations, rewards, terminations, truncations and infos (``action_mask``,
+            ``team_reward``, ``invalid_action``: the action was played as a wait), by agent.
 
         Raises:
             ValueError: on an invalid bid with ``invalid_action="raise"``, or after the end.
@@ -142,15 +149,19 @@ class AuctionParallelEnv(ParallelEnv):
         if not self.agents:
             raise ValueError("the episode has ended; call reset()")
         joint = np.array([[int(actions.get(agent, 0)) for agent in self.possible_agents]])  # [1, m]
-        result = self.core.step(sanitize_actions(joint, self.core.action_mask, self.invalid_action))
+        joint, invalid = sanitize_actions(joint, self.core.action_mask, self.invalid_action)
+        result = self.core.step(joint)
         truncated = bool(result.done[0])  # spec: the horizon truncates, nothing terminates
         agents = list(self.agents)
-        obs = self._observe()
+        obs, infos = self._observe()
         robot_reward = result.robot_reward[0]  # [m], spec step 8
+        team_reward = float(result.team_reward[0])
         rewards = {a: float(robot_reward[self._index[a]]) for a in agents}
         terminations = dict.fromkeys(agents, False)
         truncations = dict.fromkeys(agents, truncated)
-        infos = {agent: {"team_reward": float(result.team_reward[0])} for agent in agents}
+        for agent in agents:
+            infos[agent]["team_reward"] = team_reward
+            infos[agent]["invalid_action"] = bool(invalid[0, self._index[agent]])
         if truncated:
             self.agents = []
         return obs, rewards, terminations, truncations, infos

@@ -1,70 +1,127 @@
-"""Tests of the PettingZoo and Gymnasium views (pettingzoo_env.py, gymnasium_env.py)."""
+"""Tests of the PettingZoo and Gymnasium views (pettingzoo_env.py, gymnasium_env.py).
+
+The outside clients run on the views in their DEFAULT configuration: Gymnasium's and SB3's
+``check_env``, ``gym.make`` ids, PettingZoo's ``parallel_api_test``, ``parallel_seed_test`` and
+AEC ``api_test`` (through ``parallel_to_aec``), sb3-contrib's mask convention.
+"""
 
 from __future__ import annotations
 
 import warnings
-from pathlib import Path
 
+import gymnasium as gym
 import numpy as np
 import pytest
-import yaml
-from gymnasium.utils.env_checker import check_env
-from pettingzoo.test import parallel_api_test, parallel_seed_test
+from gymnasium.utils.env_checker import check_env as gym_check_env
+from pettingzoo.test import api_test, parallel_api_test, parallel_seed_test
+from pettingzoo.utils.conversions import parallel_to_aec
+from sb3_contrib.common.maskable.utils import get_action_masks, is_masking_supported
+from stable_baselines3.common.env_checker import check_env as sb3_check_env
 
 from mrta_rl.envs import AuctionEnv, AuctionParams
 from mrta_rl.envs import observations as ob
-from mrta_rl.envs.gymnasium_env import AuctionGymEnv
-from mrta_rl.envs.pettingzoo_env import AuctionParallelEnv, sanitize_actions
+from mrta_rl.envs.gymnasium_env import GYM_IDS, AuctionGymEnv
+from mrta_rl.envs.pettingzoo_env import AuctionParallelEnv
+from mrta_rl.envs.view_inputs import resolve_params, resolve_system, sanitize_actions
 from mrta_rl.partition import subg_partition
-from mrta_rl.systems import RobotSystem, build_system
+from tests.conftest import paper_system
 
-ROOT = Path(__file__).resolve().parents[2]
 SHORT = AuctionParams(horizon=40)
-
-
-def load_system(name: str) -> RobotSystem:
-    return build_system(yaml.safe_load((ROOT / "conf" / "system" / f"{name}.yaml").read_text()))
 
 
 def random_valid(mask: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     return (rng.random(mask.shape) * mask).argmax(axis=-1)
 
 
+def first_stream(env, n_ticks: int = 30) -> list[np.ndarray]:
+    """Observations of the first ``n_ticks`` ticks under waits (the task stream alone)."""
+    obs, _ = env.reset()
+    wait = np.zeros(env.action_space.shape, np.int64)
+    return [obs] + [env.step(wait)[0] for _ in range(n_ticks)]
+
+
 def test_sanitize_actions():
     mask = np.array([[[True, True, False], [True, False, False]]])  # [1, 2, 3]
     actions = np.array([[2, 1]])
-    assert sanitize_actions(actions, mask, "raise") is actions
-    assert sanitize_actions(actions, mask, "wait").tolist() == [[0, 0]]
-    assert sanitize_actions(np.array([[1, 7]]), mask, "wait").tolist() == [[1, 0]]
-    assert sanitize_actions(np.array([[-1, 0]]), mask, "wait").tolist() == [[0, 0]]
+    same, flags = sanitize_actions(actions, mask, "raise")
+    assert same is actions and not flags.any()
+    played, flags = sanitize_actions(actions, mask, "wait")
+    assert played.tolist() == [[0, 0]] and flags.tolist() == [[True, True]]
+    played, flags = sanitize_actions(np.array([[1, 7]]), mask, "wait")
+    assert played.tolist() == [[1, 0]] and flags.tolist() == [[False, True]]
+    played, flags = sanitize_actions(np.array([[-1, 0]]), mask, "wait")
+    assert played.tolist() == [[0, 0]] and flags.tolist() == [[True, False]]
+
+
+def test_resolve_inputs():
+    system = resolve_system("system2")
+    assert system.robots == paper_system("system2").robots
+    assert resolve_system(system) is system
+    assert resolve_params(system, None) is None
+    assert resolve_params(system, {"horizon": 7}) == AuctionParams(horizon=7)
+    with pytest.raises(ValueError, match="unknown system 'system9'.*system1"):
+        resolve_system("system9")
+    with pytest.raises(ValueError, match="unknown environment parameter 'horizn'"):
+        resolve_params(system, {"horizn": 7})
 
 
 # ---------------------------------------------------------------- PettingZoo
 @pytest.mark.parametrize("name", ["system1", "system2"])
 def test_parallel_api(name):
+    system = paper_system(name)
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # any API warning is a failure
-        parallel_api_test(AuctionParallelEnv(load_system(name), SHORT), num_cycles=100)
-    partition = subg_partition(load_system(name))
-    system = load_system(name)
-    parallel_api_test(
-        AuctionParallelEnv(system, SHORT, active_tasks=partition.active_tasks(system)), 60
-    )
+        parallel_api_test(AuctionParallelEnv(system, SHORT), num_cycles=100)
+        partition = subg_partition(system)
+        parallel_api_test(
+            AuctionParallelEnv(system, SHORT, active_tasks=partition.active_tasks(system)), 60
+        )
+
+
+def test_aec_conversion_does_not_warn():
+    # observations are float32 arrays of the observation space (PettingZoo warned at every step
+    # when they were dicts); the AEC test samples with infos[agent]["action_mask"]
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        api_test(parallel_to_aec(AuctionParallelEnv(paper_system("system1"), SHORT)), 200)
+    # robots keep the paper's names R1..Rm, not PettingZoo's suggested "robot_0"
+    messages = [str(w.message) for w in caught if "named in the format" not in str(w.message)]
+    assert messages == []
 
 
 def test_parallel_seed():
-    # the seed test samples unmasked actions, hence the lenient mode
-    system = load_system("system1")
-    parallel_seed_test(lambda: AuctionParallelEnv(system, SHORT, invalid_action="wait"), 50)
+    # the default configuration: parallel_seed_test samples unmasked actions
+    system = paper_system("system1")
+    parallel_seed_test(lambda: AuctionParallelEnv(system, SHORT), 50)
     first, second = AuctionParallelEnv(system, SHORT), AuctionParallelEnv(system, SHORT)
     obs1, _ = first.reset(seed=3)
     obs2, _ = second.reset(seed=3)
     for agent in first.agents:
-        np.testing.assert_array_equal(obs1[agent]["observation"], obs2[agent]["observation"])
+        np.testing.assert_array_equal(obs1[agent], obs2[agent])
+
+
+def test_parallel_unseeded_envs_differ():
+    system = paper_system("system1")
+
+    def stream(env):
+        obs, _ = env.reset()
+        states = [env.state()]
+        for _ in range(30):
+            env.step({})
+            states.append(env.state())
+        return np.array(states)
+
+    assert not np.array_equal(
+        stream(AuctionParallelEnv(system, SHORT)), stream(AuctionParallelEnv(system, SHORT))
+    )
+    np.testing.assert_array_equal(  # a constructor seed makes the unseeded reset reproducible
+        stream(AuctionParallelEnv(system, SHORT, seed=5)),
+        stream(AuctionParallelEnv(system, SHORT, seed=5)),
+    )
 
 
 def test_parallel_matches_core():
-    system = load_system("system2")
+    system = paper_system("system2")
     env = AuctionParallelEnv(system, SHORT)
     core = AuctionEnv(system, SHORT, seed=7)
     obs, infos = env.reset(seed=7)
@@ -73,8 +130,9 @@ def test_parallel_matches_core():
     for tick in range(SHORT.horizon):
         features = ob.local_features(core)[0]
         for i, agent in enumerate(env.agents):
-            np.testing.assert_array_equal(obs[agent]["observation"], features[i])
-            np.testing.assert_array_equal(obs[agent]["action_mask"], core.action_mask[0, i])
+            np.testing.assert_array_equal(obs[agent], features[i])
+            np.testing.assert_array_equal(infos[agent]["action_mask"], core.action_mask[0, i])
+            np.testing.assert_array_equal(env.action_mask(agent), core.action_mask[0, i])
             assert env.observation_space(agent).contains(obs[agent])
         np.testing.assert_array_equal(env.state(), ob.global_features(core)[0])
         actions = random_valid(core.action_mask, rng)  # [1, m]
@@ -86,6 +144,7 @@ def test_parallel_matches_core():
         team = infos["R1"]["team_reward"]
         assert team == pytest.approx(result.team_reward[0])
         assert sum(rewards.values()) == pytest.approx(team)  # spec step 8
+        assert not any(info["invalid_action"] for info in infos.values())
         assert not any(terms.values())
         assert all(v == (tick == SHORT.horizon - 1) for v in truncs.values())
     assert env.agents == []
@@ -94,14 +153,14 @@ def test_parallel_matches_core():
 
 
 def test_parallel_invalid_actions():
-    system = load_system("system1")
+    system = paper_system("system1")
     for mode in ("raise", "wait"):
         env = AuctionParallelEnv(system, SHORT, invalid_action=mode)
-        obs, _ = env.reset(seed=1)
+        _, infos = env.reset(seed=1)
         bad = {
-            a: int(np.flatnonzero(obs[a]["action_mask"] == 0)[0])
+            a: int(np.flatnonzero(infos[a]["action_mask"] == 0)[0])
             for a in env.agents
-            if not obs[a]["action_mask"].all()
+            if not infos[a]["action_mask"].all()
         }
         assert bad, "every robot could bid for every slot: pick another seed"
         if mode == "raise":
@@ -109,26 +168,87 @@ def test_parallel_invalid_actions():
                 env.step(bad)
         else:
             core = AuctionEnv(system, SHORT, seed=1)
-            _, rewards, *_ = env.step(
-                bad
-            )  # the invalid bids become waits (and missing agents wait)
+            # the invalid bids become waits (and missing agents wait), flagged in the infos
+            _, rewards, _, _, infos = env.step(bad)
             np.testing.assert_allclose(
                 list(rewards.values()), core.step(np.zeros((1, 6), int)).robot_reward[0]
             )
-    with pytest.raises(ValueError):
+            assert {a for a, info in infos.items() if info["invalid_action"]} == set(bad)
+    assert AuctionParallelEnv(system).invalid_action == "wait"  # the default
+    with pytest.raises(ValueError, match="invalid_action must be one of"):
         AuctionParallelEnv(system, invalid_action="ignore")
 
 
-# ---------------------------------------------------------------- Gymnasium
-@pytest.mark.parametrize("name", ["system1", "system2"])
-def test_gym_check_env(name):
+# ---------------------------------------------------------------- Gymnasium and SB3
+@pytest.mark.parametrize("env_id", ["mrta_rl/Auction-System1-v0", "mrta_rl/Auction-System2-v0"])
+def test_gym_check_env(env_id):
+    env = gym.make(env_id, params={"horizon": 40}).unwrapped  # made: it has a spec to check
     with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message=".*render modes.*")
-        check_env(AuctionGymEnv(load_system(name), SHORT, invalid_action="wait"))
+        warnings.simplefilter("error")  # the default configuration passes without a warning
+        gym_check_env(env)
+
+
+@pytest.mark.parametrize("name", ["system1", "system2"])
+def test_sb3_check_env(name):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        sb3_check_env(AuctionGymEnv(paper_system(name), SHORT), warn=True)
+
+
+def test_gym_make_ids():
+    assert set(GYM_IDS) <= set(gym.registry)  # registered by importing mrta_rl.envs
+    for env_id, name in [
+        ("mrta_rl/Auction-System1-v0", "system1"),
+        ("mrta_rl/Auction-System2-v0", "system2"),
+    ]:
+        env = gym.make(env_id, params={"horizon": 40})
+        core = AuctionEnv(paper_system(name), SHORT, seed=11)
+        obs, _ = env.reset(seed=11)
+        np.testing.assert_array_equal(obs, ob.global_features(core)[0])
+        assert env.unwrapped.core.params.horizon == 40
+    env = gym.make("mrta_rl/Auction-v0", system="system2", invalid_action="raise")
+    assert env.unwrapped.core.n_robots == 10 and env.unwrapped.invalid_action == "raise"
+    with pytest.raises(ValueError, match="unknown system"):
+        gym.make("mrta_rl/Auction-v0", system="system7")
+
+
+def test_gym_action_masks():
+    env = AuctionGymEnv(paper_system("system2"), SHORT)
+    _, info = env.reset(seed=2)
+    rng = np.random.default_rng(1)
+    for _ in range(SHORT.horizon):
+        flat = env.action_masks()
+        assert flat.dtype == bool and flat.shape == (int(env.action_space.nvec.sum()),)
+        np.testing.assert_array_equal(flat, info["action_mask"].reshape(-1).astype(bool))
+        np.testing.assert_array_equal(flat.reshape(10, -1), env.core.action_mask[0])
+        _, _, _, _, info = env.step(random_valid(info["action_mask"][None], rng)[0])
+        assert not info["invalid_action"].any()
+    assert is_masking_supported(env)  # sb3-contrib finds the method
+    np.testing.assert_array_equal(get_action_masks(env), env.action_masks())
+
+
+def test_gym_unseeded_envs_differ():
+    system = paper_system("system1")
+    one, two = (
+        first_stream(AuctionGymEnv(system, SHORT)),
+        first_stream(AuctionGymEnv(system, SHORT)),
+    )
+    assert not np.array_equal(np.array(one), np.array(two))
+    # a vector env reset without seeds: each copy draws its own entropy
+    vec = gym.vector.SyncVectorEnv([lambda: AuctionGymEnv(system, SHORT)] * 2)
+    obs, _ = vec.reset()
+    wait = np.zeros(vec.action_space.shape, np.int64)
+    frames = [obs] + [vec.step(wait)[0] for _ in range(30)]
+    assert not np.array_equal(np.array(frames)[:, 0], np.array(frames)[:, 1])
+    # seeded resets stay deterministic; unseeded resets after them continue the seeded copy
+    env_a, env_b = AuctionGymEnv(system, SHORT), AuctionGymEnv(system, SHORT)
+    for env in (env_a, env_b):
+        env.reset(seed=4)
+    np.testing.assert_array_equal(np.array(first_stream(env_a)), np.array(first_stream(env_b)))
 
 
 def test_gym_matches_core():
-    system = load_system("system1")
+    system = paper_system("system1")
     env = AuctionGymEnv(system, SHORT)
     core = AuctionEnv(system, SHORT, seed=4)
     obs, info = env.reset(seed=4)
@@ -145,23 +265,24 @@ def test_gym_matches_core():
         assert not terminated and truncated == (tick == SHORT.horizon - 1)
     with pytest.raises(ValueError, match="reset"):
         env.step(np.zeros(6, int))
-    # reset(seed) is deterministic; a reset without seed starts the next episode
     first, _ = env.reset(seed=9)
     again, _ = env.reset(seed=9)
     np.testing.assert_array_equal(first, again)
 
 
 def test_gym_invalid_actions():
-    system = load_system("system1")
-    env = AuctionGymEnv(system, SHORT)
-    _, info = env.reset(seed=1)
+    system = paper_system("system1")
+    strict = AuctionGymEnv(system, SHORT, invalid_action="raise")
+    _, info = strict.reset(seed=1)
     robot, action = np.argwhere(info["action_mask"] == 0)[0]
     joint = np.zeros(6, int)
     joint[robot] = action
     with pytest.raises(ValueError, match="invalid action"):
-        env.step(joint)
-    lenient = AuctionGymEnv(system, SHORT, invalid_action="wait")
+        strict.step(joint)
+    lenient = AuctionGymEnv(system, SHORT)  # the default: played as a wait, flagged
+    assert lenient.invalid_action == "wait"
     lenient.reset(seed=1)
     core = AuctionEnv(system, SHORT, seed=1)
-    _, reward, *_ = lenient.step(joint)
+    _, reward, *_, info = lenient.step(joint)
     assert reward == pytest.approx(core.step(np.zeros((1, 6), int)).team_reward[0])
+    assert np.flatnonzero(info["invalid_action"]).tolist() == [robot]
