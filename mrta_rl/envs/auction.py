@@ -1,4 +1,4 @@
-"""The auction dynamics of ``shared/spec/auction_env.md``, batched over ``B`` copies (numpy).
+"""The auction dynamics of ``docs/spec/auction_env.md``, batched over ``B`` copies (numpy).
 
 This module is THE dynamics: every learner, view (TorchRL, PettingZoo, Gymnasium) and metric runs
 on :class:`AuctionEnv`. It is plain vectorised numpy over ``[B, ...]`` arrays with no Python loop

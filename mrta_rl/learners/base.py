@@ -1,7 +1,7 @@
 """Learner: the one interface every allocation policy implements, fixed, tabular or neural.
 
 The runner (``mrta_rl.runners``) drives every learner with the same loop over the batched
-auction env (``shared/spec/auction_env.md``)::
+auction env (``docs/spec/auction_env.md``)::
 
     view = learner.encode(env)                       # decision point of tick t
     actions = learner.act(view, env.action_mask, explore=True)

@@ -1,4 +1,4 @@
-"""subG-CQL partition of a robot system into sub-groups (paper §4, spec subg_partition.md).
+"""subG-CQL partition of a robot system into sub-groups (paper §4, spec docs/spec/partition.md).
 
 The paper describes the partition in words and in pseudo-code, and Tables 3 and 4 give the
 sub-groups it produces for System-I and System-II. Taken literally, the pseudo-code cannot
@@ -6,7 +6,7 @@ produce those tables: once a robot has joined a sub-group, the rule "if ``R_i`` 
 add the triplet to ``L_f``" sends every later pair of that robot to the same sub-group. The
 robot's first sub-group therefore always collects all of its dependency, it always wins the
 final comparison, and no robot ever drops a task type, while the paper reports dropped pairs
-(R1-T1 and R6-T5 in System-I). This module follows ``shared/spec/subg_partition.md``, which
+(R1-T1 and R6-T5 in System-I). This module follows ``docs/spec/partition.md``, which
 fixes the ambiguous points so that both tables come out exactly. It departs from the
 pseudo-code in three places:
 
@@ -135,7 +135,7 @@ class Partition:
 
 
 def subg_partition(system: RobotSystem) -> Partition:
-    """Partition a robot system into subG-CQL sub-groups (paper §4, spec subg_partition.md).
+    """Partition a robot system into subG-CQL sub-groups (paper §4, spec docs/spec/partition.md).
 
     Args:
         system: The robot team; ``M`` is ``system.rtm`` and ``D`` is ``system.willingness``.
@@ -155,7 +155,7 @@ def partition_matrices(
     robots: Sequence[RobotId] | None = None,
     task_types: Sequence[TaskType] | None = None,
 ) -> Partition:
-    """Run the subG-CQL partition on a raw relation matrix (spec subg_partition.md, steps 1-5).
+    """Run the subG-CQL partition on a raw relation matrix (spec docs/spec/partition.md, steps 1-5).
 
     Args:
         rtm: Robot-task relation matrix ``M`` (paper eq. 6), ``[m, n]``, entries 0 or 1.

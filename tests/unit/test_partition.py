@@ -1,4 +1,4 @@
-"""Tests of the subG-CQL partition (paper §4, spec subg_partition.md)."""
+"""Tests of the subG-CQL partition (paper §4, spec docs/spec/partition.md)."""
 
 from __future__ import annotations
 
