@@ -14,19 +14,9 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from mrta_rl.envs import observations
-from mrta_rl.envs.auction import AuctionEnv
+from mrta_rl.envs import observations, view_inputs
 from mrta_rl.envs.params import AuctionParams
-from mrta_rl.envs.view_inputs import (
-    DEFAULT_INVALID_ACTION,
-    InvalidAction,
-    SystemLike,
-    check_invalid_action,
-    fresh_seed,
-    resolve_params,
-    resolve_system,
-    sanitize_actions,
-)
+from mrta_rl.envs.view_inputs import InvalidAction, SystemLike
 
 # id -> default keyword arguments; gym.make's keyword arguments override them
 GYM_IDS: dict[str, dict[str, Any]] = {
@@ -84,16 +74,12 @@ class AuctionGymEnv(gym.Env):
         params: AuctionParams | Mapping[str, Any] | None = None,
         *,
         active_tasks: np.ndarray | None = None,
-        invalid_action: InvalidAction = DEFAULT_INVALID_ACTION,
+        invalid_action: InvalidAction = view_inputs.DEFAULT_INVALID_ACTION,
         render_mode: None = None,
     ) -> None:
-        check_invalid_action(invalid_action)
         if render_mode is not None:
             raise ValueError(f"AuctionGymEnv has no render modes, got render_mode={render_mode!r}")
-        system = resolve_system(system)
-        self.core = AuctionEnv(
-            system, resolve_params(system, params), batch_size=1, active_tasks=active_tasks
-        )
+        self.core = view_inputs.build_core(system, params, active_tasks, invalid_action)
         self.invalid_action = invalid_action
         self.render_mode = render_mode
         m, n_actions = self.core.n_robots, self.core.n_actions
@@ -126,7 +112,7 @@ class AuctionGymEnv(gym.Env):
         if seed is not None:
             self.core.reset(seed=seed)  # the stream of AuctionEnv(seed=seed)
         elif first:
-            self.core.reset(seed=fresh_seed(self.np_random))
+            self.core.reset(seed=view_inputs.fresh_seed(self.np_random))
         else:
             self.core.reset()  # the copy's next episode
         return self._observe()
@@ -143,7 +129,9 @@ class AuctionGymEnv(gym.Env):
             ValueError: on an invalid bid with ``invalid_action="raise"``, or after the end.
         """
         joint = np.asarray(action, dtype=np.int64).reshape(1, self.core.n_robots)  # [1, m]
-        joint, invalid = sanitize_actions(joint, self.core.action_mask, self.invalid_action)
+        joint, invalid = view_inputs.sanitize_actions(
+            joint, self.core.action_mask, self.invalid_action
+        )
         result = self.core.step(joint)
         obs, info = self._observe()
         info["robot_reward"] = result.robot_reward[0].copy()  # [m]

@@ -10,19 +10,9 @@ from gymnasium import spaces
 from gymnasium.utils import seeding
 from pettingzoo import ParallelEnv
 
-from mrta_rl.envs import observations
-from mrta_rl.envs.auction import AuctionEnv
+from mrta_rl.envs import observations, view_inputs
 from mrta_rl.envs.params import AuctionParams
-from mrta_rl.envs.view_inputs import (
-    DEFAULT_INVALID_ACTION,
-    InvalidAction,
-    SystemLike,
-    check_invalid_action,
-    fresh_seed,
-    resolve_params,
-    resolve_system,
-    sanitize_actions,
-)
+from mrta_rl.envs.view_inputs import InvalidAction, SystemLike
 from mrta_rl.types import RobotId
 
 
@@ -79,18 +69,14 @@ class AuctionParallelEnv(ParallelEnv):
         *,
         active_tasks: np.ndarray | None = None,
         seed: int | None = None,
-        invalid_action: InvalidAction = DEFAULT_INVALID_ACTION,
+        invalid_action: InvalidAction = view_inputs.DEFAULT_INVALID_ACTION,
     ) -> None:
-        check_invalid_action(invalid_action)
-        system = resolve_system(system)
-        self.core = AuctionEnv(
-            system, resolve_params(system, params), batch_size=1, active_tasks=active_tasks
-        )
+        self.core = view_inputs.build_core(system, params, active_tasks, invalid_action)
         self._first_seed = seed
         self._seeded = False  # has an episode been seeded yet (then resets continue its copy)
         self.invalid_action = invalid_action
         self.render_mode = None
-        self.possible_agents: list[RobotId] = list(system.robots)
+        self.possible_agents: list[RobotId] = list(self.core.system.robots)
         self.agents: list[RobotId] = []
         n_features, n_actions = observations.local_feature_size(self.core), self.core.n_actions
         self._observation_spaces = {
@@ -130,7 +116,7 @@ class AuctionParallelEnv(ParallelEnv):
         if seed is None and not self._seeded:
             seed = self._first_seed
             if seed is None:
-                seed = fresh_seed(seeding.np_random(None)[0])  # fresh entropy
+                seed = view_inputs.fresh_seed(seeding.np_random(None)[0])  # fresh entropy
         self.core.reset(seed=seed)  # None: the copy's next episode
         self._seeded = True
         self.agents = list(self.possible_agents)
@@ -149,7 +135,9 @@ class AuctionParallelEnv(ParallelEnv):
         if not self.agents:
             raise ValueError("the episode has ended; call reset()")
         joint = np.array([[int(actions.get(agent, 0)) for agent in self.possible_agents]])  # [1, m]
-        joint, invalid = sanitize_actions(joint, self.core.action_mask, self.invalid_action)
+        joint, invalid = view_inputs.sanitize_actions(
+            joint, self.core.action_mask, self.invalid_action
+        )
         result = self.core.step(joint)
         truncated = bool(result.done[0])  # spec: the horizon truncates, nothing terminates
         agents = list(self.agents)

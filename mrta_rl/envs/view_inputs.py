@@ -22,6 +22,7 @@ from typing import Any, Literal
 import numpy as np
 import yaml
 
+from mrta_rl.envs.auction import AuctionEnv
 from mrta_rl.envs.params import AuctionParams
 from mrta_rl.systems import RobotSystem, build_system
 
@@ -79,6 +80,24 @@ def resolve_params(
     if params is None or isinstance(params, AuctionParams):
         return params
     return AuctionParams.merged(system.env_overrides, params)
+
+
+def build_core(
+    system: SystemLike,
+    params: AuctionParams | Mapping[str, Any] | None,
+    active_tasks: np.ndarray | None,
+    invalid_action: str,
+) -> AuctionEnv:
+    """The one-copy core of a view, after checking every argument (nothing is built before).
+
+    Raises:
+        ValueError: on an unknown ``invalid_action``, system or parameter, naming it.
+    """
+    check_invalid_action(invalid_action)
+    system = resolve_system(system)
+    return AuctionEnv(
+        system, resolve_params(system, params), batch_size=1, active_tasks=active_tasks
+    )
 
 
 def sanitize_actions(

@@ -59,8 +59,11 @@ def test_resolve_inputs():
     assert resolve_system(system) is system
     assert resolve_params(system, None) is None
     assert resolve_params(system, {"horizon": 7}) == AuctionParams(horizon=7)
+    assert AuctionParallelEnv("system2").possible_agents == list(system.robots)
     with pytest.raises(ValueError, match="unknown system 'system9'.*system1"):
         resolve_system("system9")
+    with pytest.raises(ValueError, match="invalid_action must be one of"):
+        AuctionGymEnv("system9", invalid_action="skip")  # checked first, before the system
     with pytest.raises(ValueError, match="unknown environment parameter 'horizn'"):
         resolve_params(system, {"horizn": 7})
 
