@@ -83,6 +83,9 @@ class AuctionParallelEnv(ParallelEnv):
             agent: spaces.Box(0.0, 1.0, (n_features,), np.float32) for agent in self.possible_agents
         }
         self._action_spaces = {agent: spaces.Discrete(n_actions) for agent in self.possible_agents}
+        self.state_space = spaces.Box(
+            0.0, 1.0, (observations.global_feature_size(self.core),), np.float32
+        )
         self._index = {agent: i for i, agent in enumerate(self.possible_agents)}
 
     def observation_space(self, agent: RobotId) -> spaces.Space:
@@ -155,7 +158,11 @@ class AuctionParallelEnv(ParallelEnv):
         return obs, rewards, terminations, truncations, infos
 
     def state(self) -> np.ndarray:
-        """Global features (:func:`~mrta_rl.envs.observations.global_features`), float32 ``[G]``."""
+        """Global features (:func:`~mrta_rl.envs.observations.global_features`), in ``state_space``.
+
+        Returns:
+            float32 ``[G]``.
+        """
         return observations.global_features(self.core)[0]
 
     def render(self) -> None:

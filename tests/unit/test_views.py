@@ -138,6 +138,7 @@ def test_parallel_matches_core():
             np.testing.assert_array_equal(env.action_mask(agent), core.action_mask[0, i])
             assert env.observation_space(agent).contains(obs[agent])
         np.testing.assert_array_equal(env.state(), ob.global_features(core)[0])
+        assert env.state_space.contains(env.state())
         actions = random_valid(core.action_mask, rng)  # [1, m]
         result = core.step(actions)
         obs, rewards, terms, truncs, infos = env.step(
