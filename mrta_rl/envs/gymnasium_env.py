@@ -80,6 +80,7 @@ class AuctionGymEnv(gym.Env):
         if render_mode is not None:
             raise ValueError(f"AuctionGymEnv has no render modes, got render_mode={render_mode!r}")
         self.core = view_inputs.build_core(system, params, active_tasks, invalid_action)
+        self._seeded = False  # has an episode been seeded yet (then resets continue its copy)
         self.invalid_action = invalid_action
         self.render_mode = render_mode
         m, n_actions = self.core.n_robots, self.core.n_actions
@@ -107,14 +108,14 @@ class AuctionGymEnv(gym.Env):
         Returns:
             The observation and an info dict with ``action_mask``.
         """
-        first = self._np_random is None  # no seed so far: Gymnasium draws fresh entropy
-        super().reset(seed=seed)
+        super().reset(seed=seed)  # without a seed, np_random holds fresh entropy until seeded
         if seed is not None:
             self.core.reset(seed=seed)  # the stream of AuctionEnv(seed=seed)
-        elif first:
+        elif not self._seeded:
             self.core.reset(seed=view_inputs.fresh_seed(self.np_random))
         else:
             self.core.reset()  # the copy's next episode
+        self._seeded = True
         return self._observe()
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:

@@ -238,6 +238,10 @@ def test_gym_unseeded_envs_differ():
         first_stream(AuctionGymEnv(system, SHORT)),
     )
     assert not np.array_equal(np.array(one), np.array(two))
+    touched = [AuctionGymEnv(system, SHORT), AuctionGymEnv(system, SHORT)]
+    for env in touched:
+        env.np_random  # noqa: B018  (Gymnasium creates it, unseeded, on first access)
+    assert not np.array_equal(*(np.array(first_stream(env)) for env in touched))
     # a vector env reset without seeds: each copy draws its own entropy
     vec = gym.vector.SyncVectorEnv([lambda: AuctionGymEnv(system, SHORT)] * 2)
     obs, _ = vec.reset()
