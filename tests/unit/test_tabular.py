@@ -4,25 +4,33 @@ import numpy as np
 import pytest
 
 from mrta_rl.envs import AuctionEnv
-from mrta_rl.learners.tabular.common import (
-    JointActions,
-    JointQTable,
-    LinearSchedule,
-    PendingTransitions,
-    apply_updates,
-    deconflict,
-    greedy_actions,
-    spread_actions,
-    spread_order,
-    visit_alpha,
-)
+from mrta_rl.envs import observations as ob
+from mrta_rl.learners.tabular import group_kernels, robot_kernels
 from mrta_rl.learners.tabular.cql import CQLLearner
 from mrta_rl.learners.tabular.dql import DQLLearner
+from mrta_rl.learners.tabular.encoding import GroupEncoder, LocalEncoder
+from mrta_rl.learners.tabular.joint_actions import JointActions, max_valid_joint_actions
+from mrta_rl.learners.tabular.priors import (
+    PRIOR_CODES,
+    deconflict,
+    greedy_actions,
+    random_valid_actions,
+    spread_actions,
+    spread_order,
+)
+from mrta_rl.learners.tabular.qtable import (
+    ENTRY_CODE,
+    JointQStorage,
+    best_entry,
+    max_q,
+)
+from mrta_rl.learners.tabular.schedules import LinearSchedule, visit_alpha
 from mrta_rl.learners.tabular.semi_cql import SemiCQLLearner
 from mrta_rl.learners.tabular.subg_cql import SubGCQLLearner
 from mrta_rl.partition import subg_partition
 from mrta_rl.systems import build_system
 from tests.conftest import paper_system
+from tests.unit.tabular_tables import CASES, FIXTURE, play_tables
 
 LEARNERS = [SubGCQLLearner, CQLLearner, SemiCQLLearner, DQLLearner]
 
@@ -97,20 +105,75 @@ def test_deconflict_keeps_the_auction_winner():
     assert deconflict(actions, weight).tolist() == [[1, 0, 2], [0, 0, 1]]
 
 
+def one_row(masks, prior="greedy", prior_masks=None, weight=None, state=7, prune=True):
+    """Storage of one group of ``m_g`` robots 0..m_g-1 holding the row of one state."""
+    masks = np.asarray(masks, bool)  # [1, m_g, K + 1]
+    n, n_actions = masks.shape[1], masks.shape[2]
+    storage = JointQStorage(1)
+    storage.reserve(1, max_valid_joint_actions(n, n_actions, prune))
+    weight_by_type = np.ones((2, n)) if weight is None else weight  # type 0, empty slot
+    slot_type = np.zeros((1, n_actions - 1), np.int64)
+    slot_high = np.zeros((1, n_actions - 1), np.int64)  # all L: spread_wait may hold them
+    hold = np.array([prior_masks is not None])
+    rows = np.empty(1, np.int64)
+    robots = np.arange(n)
+    group_kernels.rows_of(
+        storage.hash, storage.rows, storage.entries, storage.q, storage.sizes, 0,
+        np.array([state]), np.array([True]), masks, slot_type, slot_high, hold, robots, n,
+        robots, weight_by_type, PRIOR_CODES[prior], prune, rows,
+    )  # fmt: skip
+    return storage, int(rows[0])
+
+
+def best_actions(storage, row, n, min_visits=0):
+    entry = best_entry(storage.rows, storage.entries, storage.q, row, min_visits)
+    return JointActions(n, 4).decode(storage.entries[ENTRY_CODE, [entry]])[0].tolist()
+
+
+def entry_of(storage, row, actions):
+    code = JointActions(len(actions), 4).encode(np.array([actions]))[0]
+    at = storage.row_entries(row)
+    return at.start + int(np.flatnonzero(storage.entries[ENTRY_CODE, at] == code)[0])
+
+
 def test_table_ties_go_to_the_plain_auction():
-    table = JointQTable(2, 4)
-    masks = np.array([[[1, 1, 1, 0], [1, 1, 0, 0]]], bool)
-    weight = np.ones((1, 2, 3))
-    rows = table.rows(np.array([7]), masks, weight)
-    greedy = table.actions_of(table.best_entries(rows))
-    assert greedy.tolist() == [[1, 0]]  # both bid slot 1, R1 wins: R2's losing bid is pruned
-    q = table.state_q(7)
-    assert len(q) == 5 and table.joint.encode(np.array([[1, 1]]))[0] not in q
-    entry = table.entries_of(rows, table.joint.encode(np.array([[2, 1]])))
-    table.q[entry] = 0.5
-    assert table.actions_of(table.best_entries(rows)).tolist() == [[2, 1]]
-    with pytest.raises(ValueError):
-        table.entries_of(rows, table.joint.encode(np.array([[3, 0]])))  # slot 3 masked
+    storage, row = one_row([[[1, 1, 1, 0], [1, 1, 0, 0]]])
+    assert best_actions(storage, row, 2) == [1, 0]  # both bid slot 1, R1 wins: R2's bid pruned
+    q = storage.state_q(0, 7)
+    assert len(q) == 5 and JointActions(2, 4).encode(np.array([[1, 1]]))[0] not in q
+    storage.q[entry_of(storage, row, [2, 1])] = 0.5
+    assert best_actions(storage, row, 2) == [2, 1]
+    assert storage.row(0, 7) == row and storage.row(0, 8) == -1 and storage.row(1, 7) == -1
+
+
+def test_greedy_prior_keeps_the_most_willing_bidder():
+    weight = np.array([[1.0, 2.0], [0.0, 0.0]])  # T1: R2 more willing than R1
+    storage, row = one_row([[[1, 1, 0, 0], [1, 1, 0, 0]]], weight=weight)
+    assert best_actions(storage, row, 2) == [0, 1]  # spec step 5: R2 wins slot 1
+
+
+def test_storage_grows_and_finds_every_row():
+    storage = JointQStorage(2)
+    rows = np.empty(300, np.int64)
+    masks = np.ones((300, 2, 4), bool)
+    zeros = np.zeros((300, 3), np.int64)
+    for g in (1, 0):  # 600 rows: the hash table (1024 slots, half full at most) grows
+        storage.reserve(300, 300 * 13)
+        states = np.arange(300, dtype=np.int64)[::-1] * 1_000_003
+        group_kernels.rows_of(
+            storage.hash, storage.rows, storage.entries, storage.q, storage.sizes, g, states,
+            np.ones(300, bool), masks, zeros, zeros, np.zeros(300, bool), np.arange(2), 2,
+            np.arange(2), np.ones((2, 2)), 0, True, rows,
+        )  # fmt: skip
+        assert (np.diff(storage.rows[0, storage.group_rows(g)]) > 0).all()  # created in order
+    assert storage.hash.shape[1] > 1024 and storage.n_rows == 600
+    assert storage.n_entries == 600 * max_valid_joint_actions(2, 4, True) == 600 * 13
+    assert all(storage.row(g, s * 1_000_003) >= 0 for g in (0, 1) for s in range(300))
+    again = JointQStorage(2)
+    again.from_arrays([storage.to_arrays(0), storage.to_arrays(1)])
+    for g in (0, 1):
+        for key, value in storage.to_arrays(g).items():
+            np.testing.assert_array_equal(again.to_arrays(g)[key], value)
 
 
 def test_spread_actions_give_distinct_slots_in_order():
@@ -146,8 +209,11 @@ def test_subg_cql_asks_robots_with_fewest_kept_types_first():
     partition = subg_partition(system)
     env = AuctionEnv(system, active_tasks=partition.active_tasks(system))
     learner = SubGCQLLearner(env=env, rng=np.random.default_rng(0), partition=partition)
-    pairs = zip(learner.groups, learner.tables, strict=True)
-    asked = [[system.robots[robots[i]] for i in table.order] for robots, table in pairs]
+    orders = [learner.order[g, : len(robots)] for g, robots in enumerate(learner.groups)]
+    asked = [
+        [system.robots[robots[i]] for i in order]
+        for robots, order in zip(learner.groups, orders, strict=True)
+    ]
     # paper Table 4: R2 keeps 3 types (T1, T2, T8), R7 keeps 3 (T4, T6, T7), the others 2
     assert asked == [["R5", "R6", "R8", "R2"], ["R1", "R10"], ["R3", "R4", "R9", "R7"]]
     with pytest.raises(ValueError, match="prior_order"):
@@ -158,30 +224,28 @@ def test_subg_cql_asks_robots_with_fewest_kept_types_first():
 
 @pytest.mark.parametrize("prior", ["spread", "spread_wait"])
 def test_table_prior_is_the_tie_break(prior):
-    table = JointQTable(2, 4, prior=prior)
-    masks = np.array([[[1, 1, 1, 0], [1, 1, 1, 0]]], bool)
-    prior_masks = masks.copy()
-    prior_masks[:, :, 2] = False  # e.g. spread_wait holding an L task in slot 2
-    rows = table.rows(np.array([3]), masks, np.ones((1, 2, 3)), prior_masks)
-    assert table.actions_of(table.best_entries(rows)).tolist() == [[1, 0]]
-    assert len(table.state_q(3)) == 7  # the stored actions still follow the full mask
-    with pytest.raises(ValueError):
-        JointQTable(2, 4, prior="nope")
+    masks = [[[1, 1, 1, 0], [1, 1, 1, 0]]]
+    hold = [[[1, 1, 0, 0], [1, 1, 0, 0]]] if prior == "spread_wait" else None
+    storage, row = one_row(masks, prior=prior, prior_masks=hold)
+    # spread: R1 slot 1, R2 slot 2; spread_wait holds the L slots: nobody bids
+    assert best_actions(storage, row, 2) == ([1, 2] if prior == "spread" else [0, 0])
+    assert len(storage.state_q(0, 7)) == 7  # the stored actions still follow the full mask
+    with pytest.raises(ValueError, match="prior must be one of"):
+        make(CQLLearner, build_system({"name": "x", "robots": {"R1": ["T1"]}}), prior="nope")
 
 
 def test_min_visits_keeps_the_prior_until_an_entry_is_tried():
-    table = JointQTable(2, 4, min_visits=2)
-    masks = np.array([[[1, 1, 0, 0], [1, 0, 1, 0]]], bool)
-    rows = table.rows(np.array([0]), masks, np.ones((1, 2, 3)))
-    prior = table.best_entries(rows)
-    assert table.actions_of(prior).tolist() == [[1, 2]]  # plain auction: R1 slot 1, R2 slot 2
-    other = table.entries_of(rows, table.joint.encode(np.array([[0, 0]])))
-    table.q[prior], table.q[other] = -1.0, 5.0  # the untried entry looks better ...
-    assert table.best_entries(rows).tolist() == prior.tolist()  # ... but is not a candidate
-    assert table.max_q(rows).tolist() == [-1.0]  # eq. (3)'s max over the candidates
-    table.visits[other] = 2
-    assert table.best_entries(rows).tolist() == other.tolist()
-    assert table.max_q(rows).tolist() == [5.0]
+    storage, row = one_row([[[1, 1, 0, 0], [1, 0, 1, 0]]])
+    prior = entry_of(storage, row, [1, 2])  # plain auction: R1 slot 1, R2 slot 2
+    assert best_actions(storage, row, 2, min_visits=2) == [1, 2]
+    other = entry_of(storage, row, [0, 0])
+    storage.q[prior], storage.q[other] = -1.0, 5.0  # the untried entry looks better ...
+    assert best_actions(storage, row, 2, min_visits=2) == [1, 2]  # ... but is not a candidate
+    assert max_q(storage.rows, storage.entries, storage.q, row, 2) == -1.0  # eq. (3)'s max
+    assert best_actions(storage, row, 2, min_visits=0) == [0, 0]
+    storage.visits()[other] = 2
+    assert best_actions(storage, row, 2, min_visits=2) == [0, 0]
+    assert max_q(storage.rows, storage.entries, storage.q, row, 2) == 5.0
 
 
 @pytest.mark.parametrize("cls", [SubGCQLLearner, CQLLearner])
@@ -191,8 +255,8 @@ def test_untrained_spread_prior_plays_spread(cls, trio, tiny_params):
         mask = env.action_mask
         actions = learner.act(learner.encode(env), mask, explore=False)
         expected = np.zeros_like(actions)
-        for robots, table in zip(learner.groups, learner.tables, strict=True):
-            expected[:, robots] = spread_actions(mask[:, robots], table.order)
+        for g, robots in enumerate(learner.groups):
+            expected[:, robots] = spread_actions(mask[:, robots], learner.order[g, : len(robots)])
         np.testing.assert_array_equal(actions, expected)
         env.step(actions)
 
@@ -208,28 +272,89 @@ def test_spread_wait_prior_holds_low_slots_after_a_recent_high(trio, tiny_params
 
 
 # ------------------------------------------------------------------ updates and schedules
-def test_apply_updates_is_sequential_eq3():
-    q, visits = np.zeros(3), np.zeros(3, np.int64)
-    td = apply_updates(q, visits, np.array([1, 1, 2]), np.array([1.0, 2.0, 4.0]), 0.5, 0.0, 0.0)
-    assert q.tolist() == [0.0, 0.5 + 0.5 * (2.0 - 0.5), 2.0]  # entry 1: two updates in order
-    assert visits.tolist() == [0, 2, 1]
-    assert td == pytest.approx((1.0 + 1.5 + 4.0) / 3)
-    q, visits = np.zeros(1), np.zeros(1, np.int64)
-    apply_updates(q, visits, np.array([0, 0, 0]), np.array([3.0, 6.0, 9.0]), 1.0, 1.0, 0.0)
-    assert q[0] == pytest.approx(6.0)  # alpha = 1 / visits: the sample mean
+def test_updates_of_one_entry_are_sequential_eq3():
+    """Two copies closing on one entry in a tick: two eq. (3) updates in copy order."""
+    q, visits = np.array([0.0, 0.0, 7.0, 3.0]), np.zeros(4, np.int64)
+    next_bases = np.array([[2], [2]])  # both copies' next state: Q = [7, 3] over 2 actions
+    next_mask = np.array([[[True, False]], [[True, True]]])
+    closing = np.ones((2, 1), bool)
+    pending = (np.array([[1], [1]]), np.array([[1.0], [2.0]]), np.array([[0.5], [0.5]]))
+    td = robot_kernels.close_transitions(
+        q, visits, next_bases, next_mask, closing, *pending, 0.5, 0.0, 0.0
+    )
+    target = 1.0 + 0.5 * 7.0  # both targets from the table before the tick's updates
+    first = 0.5 * target
+    assert q[1] == pytest.approx(first + 0.5 * (2.0 + 0.5 * 7.0 - first))
+    assert visits.tolist() == [0, 2, 0, 0] and pending[0].tolist() == [[-1], [-1]]
+    assert td == pytest.approx(target + (2.0 + 3.5 - first))
+    q, visits = np.zeros(2), np.zeros(2, np.int64)
+    for target in (3.0, 6.0, 9.0):  # alpha = 1 / visits: the sample mean
+        pending = (np.array([[0]]), np.array([[target]]), np.array([[0.0]]))
+        robot_kernels.close_transitions(
+            q, visits, np.array([[0]]), next_mask[:1], closing[:1], *pending, 1.0, 1.0, 0.0
+        )
+    assert q[0] == pytest.approx(6.0)
 
 
 def test_schedules_and_pending_returns():
     eps = LinearSchedule(1.0, 0.0, 4)
     assert [eps(k) for k in range(6)] == [1.0, 0.75, 0.5, 0.25, 0.0, 0.0]
     assert visit_alpha(np.array([1, 4]), 0.5, 0.5, 0.2).tolist() == [0.5, 0.25]
-    pending = PendingTransitions((2,))
-    pending.start(np.array([True, False]), np.array([5, 6]))
-    pending.accumulate(np.array([1.0, 9.0]), 0.9)
-    pending.accumulate(np.array([2.0, 9.0]), 0.9)
-    (pos,), entries, ret, discount = pending.close(np.array([True, True]))
-    assert pos.tolist() == [0] and entries.tolist() == [5]
-    assert ret[0] == pytest.approx(1.0 + 0.9 * 2.0) and discount[0] == pytest.approx(0.81)
+    visits = np.arange(1, 50)
+    np.testing.assert_array_equal(  # the floats of the vectorised rule, 1/n included
+        visit_alpha(visits, 1.0, 1.0, 0.05), np.maximum(0.05, 1.0 * visits.astype(float) ** -1.0)
+    )
+    pending = (np.full((1, 2), -1), np.zeros((1, 2)), np.ones((1, 2)))
+    masks = np.array([[[True, True], [True, False]], [[True, True], [True, True]]])  # tick 1, 2
+    closing = np.zeros((1, 2), bool)
+    args = (np.array([[5, 6]]), np.zeros((1, 2), np.int64))
+    for tick, reward in enumerate(([1.0, 9.0], [2.0, 9.0])):  # robot 1 cannot bid at tick 0
+        mask, after = masks[0 if tick == 0 else 1][None], masks[1][None]
+        closed = robot_kernels.open_transitions(
+            *args, mask if tick == 0 else np.zeros_like(mask), after if tick else mask,
+            np.array([reward]), np.array([False]), *pending, True, 0.9, closing,
+        )  # fmt: skip
+    assert closed == 1 and closing.tolist() == [[True, False]]
+    assert pending[0].tolist() == [[5, -1]]
+    assert pending[1][0, 0] == pytest.approx(1.0 + 0.9 * 2.0)
+    assert pending[2][0, 0] == pytest.approx(0.81)
+
+
+def test_random_valid_actions_are_uniform_over_the_valid_ones():
+    mask = np.array([[True, False, True, True]] * 3)
+    assert random_valid_actions(mask, np.array([0.0, 0.5, 0.99])).tolist() == [0, 2, 3]
+
+
+def test_same_tables_as_the_vectorised_learners():
+    """Same seeds, same tables as the numpy/dict learners (fixture: ``tabular_tables.py``)."""
+    with np.load(FIXTURE, allow_pickle=False) as saved:
+        expected = {k: saved[k] for k in saved.files}
+    for case, (name, hyperparameters) in CASES.items():
+        tables = play_tables(name, hyperparameters)
+        keys = sorted(k.removeprefix(f"{case}/") for k in expected if k.startswith(f"{case}/"))
+        assert sorted(tables) == keys, case
+        for key, value in tables.items():
+            np.testing.assert_array_equal(value, expected[f"{case}/{key}"], err_msg=f"{case}/{key}")
+        assert any(np.abs(v).max() > 0 for k, v in tables.items() if k.endswith("q")), case
+
+
+def test_compiled_encodings_are_the_observation_codes():
+    system = paper_system("system2")
+    env = AuctionEnv(system, batch_size=6, seed=3)
+    groups = [np.array([0, 3, 5]), np.arange(10), np.array([9])]
+    group_encoder, local_encoder = GroupEncoder(env, groups), LocalEncoder(env)
+    rng = np.random.default_rng(0)
+    for _ in range(120):
+        states, level = group_encoder.index(env)
+        for g, robots in enumerate(groups):
+            np.testing.assert_array_equal(states[g], ob.group_state_index(env, robots))
+            types = env.active_tasks[robots].any(axis=0)
+            np.testing.assert_array_equal(level[g], ob.recency_level(env, types))
+        np.testing.assert_array_equal(local_encoder.index(env), ob.local_state_index(env))
+        logits = rng.random(env.action_mask.shape) * env.action_mask
+        env.step(logits.argmax(axis=2))
+        if env.done.any():
+            env.reset()
 
 
 # ---------------------------------------------------------------- hand-computed eq. (3), per learn
@@ -254,26 +379,21 @@ def test_hand_computed_q_update(cls, trio, tiny_params):
     # seed Q(s, a) = 1 and distinct values on s' so that the max over valid next actions matters
     if isinstance(learner, (SubGCQLLearner, CQLLearner)):
         g = next(k for k, rs in enumerate(learner.groups) if 1 in rs)
-        table, robots = learner.tables[g], learner.groups[g]
-        rows, entries = learner._chosen_entries(view, actions, g)
-        next_row = table.rows(
-            next_view.states[g], next_mask[:, robots], next_view.slot_weight[:, robots]
-        )
-        offset, length = int(table._offset.data[next_row[0]]), int(table._length.data[next_row[0]])
-        if rows[0] != next_row[0]:
-            table.q[offset : offset + length] = np.arange(length) + 2.0
-            next_max = length + 1.0
-        else:
-            next_max = None  # same state: computed below
-        table.q[entries[0]] = 1.0
-        if next_max is None:
-            next_max = float(table.q[offset : offset + length].max())
+        robots, storage = learner.groups[g], learner.storage
+        entry = learner._chosen_entries(view, actions)[g, 0]  # act was not called: looked up
+        learner.act(next_view, next_mask, explore=False)  # creates the rows of s' (no learning)
+        next_row = storage.row(g, next_view.states[g, 0])
+        at = storage.row_entries(next_row)
+        if storage.row(g, view.states[g, 0]) != next_row:
+            storage.q[at] = np.arange(at.stop - at.start) + 2.0
+        storage.q[entry] = 1.0
+        next_max = float(storage.q[at].max())
         reward = (
             result.robot_reward[0, robots].sum() if cls is SubGCQLLearner else result.team_reward[0]
         )
         assert reward == 10.0  # spec step 8: H assignment
         learner.update(view, actions, result, next_view, next_mask)
-        assert table.q[entries[0]] == pytest.approx(1.0 + alpha * (10.0 + gamma * next_max - 1.0))
+        assert storage.q[entry] == pytest.approx(1.0 + alpha * (10.0 + gamma * next_max - 1.0))
     else:
         bases = learner._bases(view)
         next_bases = learner._bases(next_view)

@@ -38,7 +38,7 @@ def spread_wait_bid(
 ) -> torch.Tensor:
     """One-hot of the subG-CQL ``spread_wait`` prior's action per robot of a sub-group.
 
-    The same rule as the tabular prior (``learners/tabular/common.py``, ``spread_actions`` under
+    The same rule as the tabular prior (``learners/tabular/priors.py``, ``spread_actions`` under
     the ``spread_wait`` masks): L slots are held while an H task of the group's types arrived
     within 3 ticks (some robot's recency level is 0: the group's level is the lowest of its
     robots'), then idle robots, asked in ``order``, bid for distinct slots in slot order.

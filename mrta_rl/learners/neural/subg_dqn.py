@@ -10,7 +10,7 @@ from torchrl.objectives import DQNLoss
 from mrta_rl.envs.observations import local_feature_layout
 from mrta_rl.learners.neural.common import JOINT, NeuralLearner
 from mrta_rl.learners.neural.networks import JointDecode, JointQ
-from mrta_rl.learners.tabular.common import spread_order
+from mrta_rl.learners.tabular.priors import spread_order
 from mrta_rl.types import GroupMap
 
 
@@ -37,7 +37,7 @@ class SubGDQNLearner(NeuralLearner):
             prior: What the untrained networks play (``networks.JOINT_PRIORS``): ``greedy``
                 (the plain auction) or ``spread_wait`` (subG-CQL's prior, docs/neural.md).
             prior_order: ``spread_wait``: which idle robot is asked first
-                (``tabular.common.PRIOR_ORDERS``), as subG-CQL's ``prior_order``.
+                (``tabular.priors.PRIOR_ORDERS``), as subG-CQL's ``prior_order``.
             **hp: Env, generator, partition and the hyperparameters of :class:`NeuralLearner`.
 
         Raises:

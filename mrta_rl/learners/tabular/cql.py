@@ -2,7 +2,7 @@
 
 The analytic table is astronomically large for System-II (paper Table 9; here ``|S| 4^10``,
 beyond 64 bits), so the table stores only the states met at decisions and, per state, only its
-valid conflict-free joint actions (``common.JointQTable``).
+valid conflict-free joint actions (``qtable.JointQStorage``).
 """
 
 from __future__ import annotations
@@ -25,11 +25,11 @@ class CQLLearner(GroupQLearner):
         env: The env (full task sets).
         rng: Exploration randomness.
         partition: Unused.
-        prune_conflicts: Keep only conflict-free joint actions (see ``common``).
-        prior: Tie-break joint action of untried states (``common.PRIORS``, docs/learners.md).
-        min_visits: Updates an entry needs before it competes with the prior (``JointQTable``).
+        prune_conflicts: Keep only conflict-free joint actions (``joint_actions``).
+        prior: Tie-break joint action of untried states (``priors.PRIORS``, docs/learners.md).
+        min_visits: Updates an entry needs before it competes with the prior.
         prior_order: Which idle robot the spread priors ask first (default ``index``).
-        **hyperparameters: See :class:`~mrta_rl.learners.tabular.common.TabularLearner`.
+        **hyperparameters: See :class:`~mrta_rl.learners.tabular.base.TabularLearner`.
     """
 
     space_name: ClassVar[str] = "cql"

@@ -4,6 +4,7 @@
 epsilon-greedy over its own valid actions), shared with semi-CQL, which only changes the state
 each robot sees. :class:`DQLLearner` gives robot ``i`` its local view (``LocalView``: idle flag,
 the slots it may bid for, battery level, recency of H arrivals of its types), stored densely.
+The per-tick work runs in the compiled loops of :mod:`~mrta_rl.learners.tabular.robot_kernels`.
 """
 
 from __future__ import annotations
@@ -14,13 +15,9 @@ from typing import ClassVar
 import numpy as np
 
 from mrta_rl.envs import AuctionEnv, StepResult
-from mrta_rl.envs.observations import local_state_count, local_state_index
-from mrta_rl.learners.tabular.common import (
-    PendingTransitions,
-    TabularLearner,
-    greedy_actions,
-    random_valid_actions,
-)
+from mrta_rl.learners.tabular import robot_kernels as kernels
+from mrta_rl.learners.tabular.base import TabularLearner
+from mrta_rl.learners.tabular.encoding import LocalEncoder
 from mrta_rl.metrics.learning_space import learning_space_dimension
 
 
@@ -48,18 +45,11 @@ class RobotQLearner(TabularLearner):
     q: np.ndarray
     visits: np.ndarray
 
-    _pending: PendingTransitions | None = None
+    _pending: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
     def _bases(self, view: RobotObservation) -> np.ndarray:
         """``[B, m]`` flat offset of ``Q_i(s_i, 0)`` for every copy and robot."""
         raise NotImplementedError
-
-    def _values(self, bases: np.ndarray) -> np.ndarray:
-        return self.q[bases[..., None] + np.arange(self.n_actions)]  # [B, m, K + 1]
-
-    def _decides(self, mask: np.ndarray) -> np.ndarray:
-        """``[B, m]`` True where a robot learns: it has a valid bid, or always."""
-        return mask[:, :, 1:].any(axis=2) if self.decisions_only else np.ones(mask.shape[:2], bool)
 
     def act(self, view: RobotObservation, mask: np.ndarray, *, explore: bool) -> np.ndarray:
         """Per robot: epsilon-greedy over its valid actions; ties go to the plain auction's bid.
@@ -72,17 +62,14 @@ class RobotQLearner(TabularLearner):
         Returns:
             ``[B, m]`` valid actions.
         """
-        values = np.where(mask, self._values(self._bases(view)), -np.inf)  # [B, m, K + 1]
-        best = values.max(axis=2)
-        plain = greedy_actions(mask)  # Q starts at 0: ties keep the auction's choice
-        plain_value = np.take_along_axis(values, plain[..., None], axis=2)[..., 0]
-        actions = np.where(plain_value >= best, plain, values.argmax(axis=2))
+        mask = np.asarray(mask, bool)
         epsilon = self.epsilon if explore else 0.0
+        bases = self._bases(view)
+        actions = np.zeros(mask.shape[:2], np.int64)
+        block = self.uniforms.block(2 * actions.size) if epsilon > 0.0 else np.zeros(0)
+        used = kernels.act_robots(self.q, bases, mask, epsilon, block, actions)
         if epsilon > 0.0:
-            explore_now = (self.rng.random(actions.shape) < epsilon) & mask[:, :, 1:].any(axis=2)
-            if explore_now.any():
-                u = self.rng.random(int(explore_now.sum()))
-                actions[explore_now] = random_valid_actions(mask[explore_now], u)
+            self.uniforms.used(block, used)
         return actions
 
     def update(
@@ -93,7 +80,7 @@ class RobotQLearner(TabularLearner):
         next_view: RobotObservation,
         next_mask: np.ndarray,
     ) -> dict[str, float]:
-        """Eq. (3) for every robot on its own decision points (see ``common``), all copies.
+        """Eq. (3) for every robot on its own decision points (docs/learners.md), all copies.
 
         Args:
             view: View before acting.
@@ -105,23 +92,23 @@ class RobotQLearner(TabularLearner):
         Returns:
             ``learner/td_error``: mean absolute TD error of the updates of this tick.
         """
-        batch = len(actions)
-        if self._pending is None or self._pending.entry.shape[0] != batch:
-            self._pending = PendingTransitions((batch, self.n_robots))
-        pending = self._pending
-        entries = self._bases(view) + actions  # [B, m]
-        pending.start(self._decides(view.mask), entries)
-        pending.accumulate(np.asarray(result.robot_reward, np.float64), self.gamma)
-        done = np.asarray(result.done, bool)
-        pending.drop(np.broadcast_to(done[:, None], pending.entry.shape))
-        closing = self._decides(next_mask) & ~done[:, None]
-        pos, closed, ret, discount = pending.close(closing)
-        if len(closed) == 0:
+        shape = actions.shape
+        if self._pending is None or self._pending[0].shape != shape:
+            self._pending = (np.full(shape, -1, np.int64), np.zeros(shape), np.ones(shape))
+        next_mask = np.asarray(next_mask, bool)
+        closing = np.empty(shape, bool)
+        count = kernels.open_transitions(
+            self._bases(view), np.asarray(actions, np.int64), view.mask, next_mask,
+            np.asarray(result.robot_reward, np.float64), np.asarray(result.done, bool),
+            *self._pending, self.decisions_only, self.gamma, closing,
+        )  # fmt: skip
+        if count == 0:
             return {}
-        next_bases = self._bases(next_view)[pos]
-        next_values = np.where(next_mask[pos], self._values(next_bases), -np.inf)
-        targets = ret + discount * next_values.max(axis=-1)  # eq. (3): r + gamma max_a' Q_i(s', a')
-        return {"learner/td_error": self._update(self.q, self.visits, closed, targets)}
+        td_sum = kernels.close_transitions(
+            self.q, self.visits, self._bases(next_view), next_mask, closing, *self._pending,
+            self.alpha, self.alpha_power, self.alpha_min,
+        )  # fmt: skip
+        return {"learner/td_error": td_sum / count} if count else {}
 
     def learning_space(self) -> dict[str, int]:
         """Analytic dimension (eq. 11) and the table entries updated at least once."""
@@ -139,15 +126,15 @@ class DQLLearner(RobotQLearner):
         env: The env (full task sets).
         rng: Exploration randomness.
         partition: Unused.
-        **hyperparameters: See :class:`~mrta_rl.learners.tabular.common.TabularLearner`.
+        **hyperparameters: See :class:`~mrta_rl.learners.tabular.base.TabularLearner`.
     """
 
     space_name: ClassVar[str] = "dql"
 
     def __init__(self, **hyperparameters) -> None:
         super().__init__(**hyperparameters)
-        env = self.env
-        self.state_counts = local_state_count(env)  # |S_i|
+        self.encoder = LocalEncoder(self.env)
+        self.state_counts = self.encoder.counts  # |S_i|
         self._stride = max(self.state_counts)
         size = self.n_robots * self._stride * self.n_actions
         self.q = np.zeros(size)  # Q_i(s, a) at (i * stride + s) * (K + 1) + a
@@ -156,7 +143,7 @@ class DQLLearner(RobotQLearner):
 
     def encode(self, env: AuctionEnv) -> RobotObservation:
         """``[B, m]`` local state index of every robot, and the mask."""
-        return RobotObservation(local_state_index(env), env.action_mask.copy())
+        return RobotObservation(self.encoder.index(env), env.action_mask.copy())
 
     def _bases(self, view: RobotObservation) -> np.ndarray:
         return (self._robot_base + view.states) * self.n_actions

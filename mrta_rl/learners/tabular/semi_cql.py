@@ -2,8 +2,8 @@
 
 Robots share the observation of the whole system (the whole-team ``GroupView``, as CQL) but each
 learns its own ``Q_i(s, a_i)`` from its individual reward, as in the paper's ref. [38]. The state
-space is large (``|S|`` of CQL), so rows are stored only for the states met: a dict from state
-index to a row of ``m x (K + 1)`` values.
+space is large (``|S|`` of CQL), so rows are stored only for the states met: a hash table
+(``qtable``) from state index to a row of ``m x (K + 1)`` values.
 """
 
 from __future__ import annotations
@@ -13,8 +13,10 @@ from typing import ClassVar
 import numpy as np
 
 from mrta_rl.envs import AuctionEnv
-from mrta_rl.envs.observations import group_state_index
 from mrta_rl.learners.tabular.dql import RobotObservation, RobotQLearner
+from mrta_rl.learners.tabular.encoding import GroupEncoder
+from mrta_rl.learners.tabular.qtable import ROW_STATE, JointQStorage
+from mrta_rl.learners.tabular.robot_kernels import rows_of_states
 
 
 class SemiCQLLearner(RobotQLearner):
@@ -24,54 +26,48 @@ class SemiCQLLearner(RobotQLearner):
         env: The env (full task sets).
         rng: Exploration randomness.
         partition: Unused.
-        **hyperparameters: See :class:`~mrta_rl.learners.tabular.common.TabularLearner`.
+        **hyperparameters: See :class:`~mrta_rl.learners.tabular.base.TabularLearner`.
     """
 
     space_name: ClassVar[str] = "semi_cql"
 
     def __init__(self, **hyperparameters) -> None:
         super().__init__(**hyperparameters)
-        env = self.env
-        self._robots = list(range(env.n_robots))
+        self.encoder = GroupEncoder(self.env, [np.arange(self.env.n_robots)])
         self._row_size = self.n_robots * self.n_actions
-        self.index: dict[int, int] = {}  # whole-system state index -> row
-        self.states = np.zeros(0, np.int64)  # row -> state index
-        self.q = np.zeros(0)  # Q_i(s, a) at (row * m + i) * (K + 1) + a
-        self.visits = np.zeros(0, np.int64)
-        self._n_rows = 0
+        self._index = JointQStorage(1)  # state index -> row (hash), row -> state index
+        self.q = np.zeros(1024 * self._row_size)  # Q_i(s, a) at (row * m + i) * (K + 1) + a
+        self.visits = np.zeros(1024 * self._row_size, np.int64)
+
+    @property
+    def _n_rows(self) -> int:
+        return self._index.n_rows
+
+    @property
+    def states(self) -> np.ndarray:
+        """Row -> whole-system state index."""
+        return self._index.rows[ROW_STATE, : self._n_rows]
 
     def encode(self, env: AuctionEnv) -> RobotObservation:
         """``[B]`` whole-system state index, and the mask."""
-        return RobotObservation(group_state_index(env, self._robots), env.action_mask.copy())
+        return RobotObservation(self.encoder.index(env)[0][0], env.action_mask.copy())
 
     def _rows(self, states: np.ndarray) -> np.ndarray:
-        get = self.index.get
-        rows = np.fromiter((get(s, -1) for s in states.tolist()), np.int64, len(states))
-        new = rows < 0
-        if new.any():
-            fresh = np.unique(states[new])
-            self._grow(len(fresh))
-            first = self._n_rows
-            self.states[first : first + len(fresh)] = fresh
-            self.index.update(zip(fresh.tolist(), range(first, first + len(fresh)), strict=True))
-            self._n_rows += len(fresh)
-            rows[new] = np.fromiter(
-                (get(s) for s in states[new].tolist()), np.int64, int(new.sum())
-            )
+        self._reserve(len(states))
+        rows = np.empty(len(states), np.int64)
+        rows_of_states(self._index.hash, self._index.rows, self._index.sizes, states, rows)
         return rows
 
-    def _grow(self, extra: int) -> None:
-        need = self._n_rows + extra
-        if need <= len(self.states):
+    def _reserve(self, extra: int) -> None:
+        self._index.reserve(extra, 0)  # rows and hash table
+        need = (self._n_rows + extra) * self._row_size
+        if need <= len(self.q):
             return
-        capacity = max(need, 2 * len(self.states), 1024)
-        states = np.zeros(capacity, np.int64)
-        states[: self._n_rows] = self.states[: self._n_rows]
-        q = np.zeros(capacity * self._row_size)
-        visits = np.zeros(capacity * self._row_size, np.int64)
+        capacity = max(need, 2 * len(self.q))
         used = self._n_rows * self._row_size
+        q, visits = np.zeros(capacity), np.zeros(capacity, np.int64)
         q[:used], visits[:used] = self.q[:used], self.visits[:used]
-        self.states, self.q, self.visits = states, q, visits
+        self.q, self.visits = q, visits
 
     def _bases(self, view: RobotObservation) -> np.ndarray:
         rows = self._rows(view.states)  # [B]
@@ -81,7 +77,7 @@ class SemiCQLLearner(RobotQLearner):
         used = self._n_rows * self._row_size
         shape = (self._n_rows, self.n_robots, self.n_actions)
         return {
-            "states": self.states[: self._n_rows].copy(),
+            "states": self.states.copy(),
             "q": self.q[:used].reshape(shape),
             "visits": self.visits[:used].reshape(shape),
         }
@@ -93,11 +89,8 @@ class SemiCQLLearner(RobotQLearner):
                 f"saved table has shape {arrays['q'].shape}, "
                 f"expected [rows, {self.n_robots}, {self.n_actions}]"
             )
-        self._n_rows = 0
-        self.states, self.q, self.visits = np.zeros(0, np.int64), np.zeros(0), np.zeros(0, np.int64)
-        self._grow(len(states))
-        self._n_rows = len(states)
-        self.states[: len(states)] = states
+        self._index = JointQStorage(1)
+        self._index.from_rows(states)
+        self._reserve(0)
         self.q[: arrays["q"].size] = arrays["q"].ravel()
         self.visits[: arrays["visits"].size] = arrays["visits"].ravel()
-        self.index = dict(zip(states.tolist(), range(len(states)), strict=True))

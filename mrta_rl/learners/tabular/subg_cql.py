@@ -1,29 +1,28 @@
 """subG-CQL (paper §4, §6): one centralized Q-table per sub-group, over its joint action.
 
 :class:`GroupQLearner` is centralized Q-learning (eq. 3) for any list of robot groups: each
-group has a :class:`~mrta_rl.learners.tabular.common.JointQTable` over its group state
+group has a Q table (:class:`~mrta_rl.learners.tabular.qtable.JointQStorage`) over its group state
 (``GroupView``: slots restricted to the group's task types, each robot's busy / idle / low-battery
 state, recency of H arrivals over the group's types) and the joint action of its robots, and
 learns from the group's reward. :class:`SubGCQLLearner` takes the groups of the subG partition;
-``mrta_rl.learners.tabular.cql.CQLLearner`` takes one group of all robots.
+``mrta_rl.learners.tabular.cql.CQLLearner`` takes one group of all robots. The per-tick work runs
+in the compiled loops of :mod:`~mrta_rl.learners.tabular.group_kernels`.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import ClassVar
 
 import numpy as np
 
 from mrta_rl.envs import AuctionEnv, StepResult
-from mrta_rl.envs.observations import group_state_index, recency_level
-from mrta_rl.learners.tabular.common import (
-    JointQTable,
-    PendingTransitions,
-    TabularLearner,
-    deconflict,
-    spread_order,
-)
+from mrta_rl.learners.tabular import group_kernels as kernels
+from mrta_rl.learners.tabular.base import TabularLearner
+from mrta_rl.learners.tabular.encoding import GroupEncoder
+from mrta_rl.learners.tabular.joint_actions import JointActions, max_valid_joint_actions
+from mrta_rl.learners.tabular.priors import PRIOR_CODES, PRIORS, spread_order
+from mrta_rl.learners.tabular.qtable import TABLE_KEYS, JointQStorage
 from mrta_rl.metrics.learning_space import learning_space_dimension
 
 
@@ -32,21 +31,24 @@ class GroupObservation:
     """A decision point as the group learners see it (built by :meth:`GroupQLearner.encode`).
 
     Attributes:
-        states: Per group, ``[B]`` group state indices.
-        mask: ``[B, m, K + 1]`` valid actions (copied from the env).
-        slot_weight: ``[B, m, K]`` willingness of each robot for each slot's type (conflicts).
-        prior_masks: Per group, ``[B, m, K + 1]`` the bids the tie-break prior may use.
-        rows: Per group, ``[B]`` table rows (-1: no decision), filled by ``act``.
-        entries: Per group, ``[B]`` chosen table entries (-1: none), filled by ``act``.
+        states: ``[G, B]`` group state index of each group and copy.
+        level: ``[G, B]`` recency level of each group (0: an H task of ``T_g`` arrived within 3
+            ticks; the ``spread_wait`` prior holds L slots then).
+        mask: ``[B, m, K + 1]`` valid actions (a copy).
+        slot_type: ``[B, K]`` slot types, -1 empty (a copy).
+        slot_high: ``[B, K]`` slot priorities (a copy).
+        rows: ``[G, B]`` table rows (-1: no decision), filled by ``act``.
+        entries: ``[G, B]`` chosen table entries (-1: none), filled by ``act``.
         actions: The ``[B, m]`` actions ``act`` returned, to check the cache in ``update``.
     """
 
-    states: list[np.ndarray]
+    states: np.ndarray
+    level: np.ndarray
     mask: np.ndarray
-    slot_weight: np.ndarray
-    prior_masks: list[np.ndarray]
-    rows: list[np.ndarray | None] = field(default_factory=list)
-    entries: list[np.ndarray | None] = field(default_factory=list)
+    slot_type: np.ndarray
+    slot_high: np.ndarray
+    rows: np.ndarray | None = None
+    entries: np.ndarray | None = None
     actions: np.ndarray | None = None
 
 
@@ -57,12 +59,12 @@ class GroupQLearner(TabularLearner):
     :meth:`_group_rewards` and :attr:`space_name`.
 
     Args:
-        prune_conflicts: Keep only conflict-free joint actions (see ``common``).
-        prior: Tie-break joint action of untried states (``common.PRIORS``).
-        prior_order: Which idle robot the spread priors ask first (``common.PRIOR_ORDERS``).
+        prune_conflicts: Keep only conflict-free joint actions (``joint_actions``).
+        prior: Tie-break joint action of untried states (``priors.PRIORS``).
+        prior_order: Which idle robot the spread priors ask first (``priors.PRIOR_ORDERS``).
         min_visits: Updates an entry needs before it competes with the prior.
         **kwargs: Env, generator, partition and the hyperparameters of
-            :class:`~mrta_rl.learners.tabular.common.TabularLearner`.
+            :class:`~mrta_rl.learners.tabular.base.TabularLearner`.
     """
 
     space_name: ClassVar[str]
@@ -82,51 +84,52 @@ class GroupQLearner(TabularLearner):
         self.prune_conflicts, self.min_visits = prune_conflicts, min_visits
         self.prior = self.default_prior if prior is None else prior
         self.prior_order = self.default_prior_order if prior_order is None else prior_order
+        if self.prior not in PRIORS:
+            raise ValueError(f"prior must be one of {PRIORS}, got {self.prior!r}")
+        if min_visits < 0:
+            raise ValueError(f"min_visits must be >= 0, got {min_visits}")
 
     def _set_groups(self, names: list[str], groups: list[list[int]]) -> None:
+        env = self.env
         self.group_names = names
         self.groups = [np.asarray(g, np.int64) for g in groups]
-        active = self.env.active_tasks
-        self.tables = [
-            JointQTable(
-                len(g),
-                self.n_actions,
-                self.prune_conflicts,
-                self.prior,
-                self.min_visits,
-                order=spread_order(active[np.asarray(g, np.int64)], self.prior_order),
-            )
-            for g in groups
-        ]
-        self._group_types = [active[np.asarray(g, np.int64)].any(axis=0) for g in groups]  # T_g
-        self._pending: list[PendingTransitions] = []
+        self.joint = [JointActions(len(g), self.n_actions) for g in groups]  # checks int64 codes
+        self.encoder = GroupEncoder(env, self.groups)  # checks the state counts fit int64
+        self.robots, self.size = self.encoder.robots, self.encoder.size
+        self.order = np.zeros_like(self.robots)
+        for g, robots in enumerate(self.groups):
+            self.order[g, : len(robots)] = spread_order(env.active_tasks[robots], self.prior_order)
+        self._prior_code = PRIOR_CODES[self.prior]
+        self._row_entries = max(
+            max_valid_joint_actions(len(g), self.n_actions, self.prune_conflicts) for g in groups
+        )
+        self.storage = JointQStorage(len(groups))
+        self._pending: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
     def _group_rewards(self, result: StepResult) -> np.ndarray:
         """``[B, G]`` reward of each group."""
         raise NotImplementedError
 
-    def _decides(self, mask: np.ndarray, robots: np.ndarray) -> np.ndarray:
-        """``[B]`` True where the group learns at this state: it has a choice, or always."""
-        choice = mask[:, robots, 1:].any(axis=(1, 2))  # some robot of the group may bid
-        return choice if self.decisions_only else np.ones(len(mask), bool)
+    def _reserve(self, view: GroupObservation) -> None:
+        """Room for the rows one kernel call may create (at most one per group and copy)."""
+        new_rows = view.states.size
+        if self.prune_conflicts or self._row_entries <= 4096:
+            entries = new_rows * self._row_entries
+        else:  # without pruning, bound each copy by the product of its valid action counts
+            counts = view.mask.sum(axis=2)  # [B, m]
+            entries = sum(int(counts[:, g].prod(axis=1).sum()) for g in self.groups)
+        self.storage.reserve(new_rows, entries)
+
+    def _kernel_tables(self) -> tuple:
+        s = self.storage
+        return s.hash, s.rows, s.entries, s.q, s.sizes
 
     def encode(self, env: AuctionEnv) -> GroupObservation:
-        """Group state of every group, the mask and the slot willingness (copies)."""
-        states = [group_state_index(env, g) for g in self.groups]
-        mask = env.action_mask.copy()
-        if self.prior == "spread_wait":
-            # the prior holds L slots while the group's recency level is 0 (an H task of T_g
-            # arrived within 3 ticks; it is in the group state), as the rule spread_wait3
-            low = (env.slot_high == 0)[:, None, :]  # [B, 1, K]
-            prior_masks = []
-            for types in self._group_types:
-                hold = (recency_level(env, types) == 0)[:, None, None]  # [B, 1, 1]
-                prior = mask.copy()
-                prior[:, :, 1:] &= ~(low & hold)
-                prior_masks.append(prior)
-        else:
-            prior_masks = [mask] * len(self.groups)
-        return GroupObservation(states, mask, self._slot_weight(env), prior_masks)
+        """Group state and recency level of every group, and copies of the mask and the slots."""
+        states, level = self.encoder.index(env)
+        return GroupObservation(
+            states, level, env.action_mask.copy(), env.slot_type.copy(), env.slot_high.copy()
+        )
 
     def act(self, view: GroupObservation, mask: np.ndarray, *, explore: bool) -> np.ndarray:
         """Epsilon-greedy joint action per group over its valid joint actions.
@@ -134,61 +137,52 @@ class GroupQLearner(TabularLearner):
         Args:
             view: Output of :meth:`encode`.
             mask: ``[B, m, K + 1]`` valid actions.
-            explore: Use epsilon (else greedy in Q, ties to the plain auction).
+            explore: Use epsilon (else greedy in Q, ties to the prior).
 
         Returns:
             ``[B, m]`` valid actions.
         """
         batch = len(mask)
-        actions = np.zeros((batch, self.n_robots), np.int64)
         epsilon = self.epsilon if explore else 0.0
-        view.rows, view.entries = [], []
-        for g, (robots, table) in enumerate(zip(self.groups, self.tables, strict=True)):
-            rows = np.full(batch, -1, np.int64)
-            entries = np.full(batch, -1, np.int64)
-            decide = np.flatnonzero(self._decides(mask, robots))
-            if len(decide):
-                rows[decide] = table.rows(
-                    view.states[g][decide],
-                    mask[decide][:, robots],
-                    view.slot_weight[decide][:, robots],
-                    view.prior_masks[g][decide][:, robots],
-                )
-                chosen = table.best_entries(rows[decide])
-                if epsilon > 0.0:
-                    explore_now = self.rng.random(len(decide)) < epsilon
-                    if explore_now.any():
-                        chosen[explore_now] = table.random_entries(
-                            rows[decide[explore_now]], self.rng.random(int(explore_now.sum()))
-                        )
-                entries[decide] = chosen
-                actions[np.ix_(decide, robots)] = table.actions_of(chosen)
-            view.rows.append(rows)
-            view.entries.append(entries)
+        self._reserve(view)
+        view.rows = np.empty((len(self.groups), batch), np.int64)
+        view.entries = np.empty((len(self.groups), batch), np.int64)
+        actions = np.zeros((batch, self.n_robots), np.int64)
+        block = self.uniforms.block(2 * view.states.size) if epsilon > 0.0 else np.zeros(0)
+        used = kernels.act_groups(
+            *self._kernel_tables(), self.robots, self.size, self.order, self._weight_by_type,
+            view.states, view.level == 0, np.asarray(mask, bool), view.slot_type, view.slot_high,
+            self.decisions_only, self._prior_code, self.prune_conflicts, self.min_visits,
+            epsilon, block, view.rows, view.entries, actions,
+        )  # fmt: skip
+        if epsilon > 0.0:
+            self.uniforms.used(block, used)
         view.actions = actions.copy()
         return actions
 
-    def _chosen_entries(
-        self, view: GroupObservation, actions: np.ndarray, g: int
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """``[B]`` rows and entries of the actions taken in ``view`` (-1 where no decision)."""
-        if view.actions is not None and view.rows and np.array_equal(view.actions, actions):
-            return view.rows[g], view.entries[g]
-        robots, table = self.groups[g], self.tables[g]
-        rows = np.full(len(actions), -1, np.int64)
-        entries = np.full(len(actions), -1, np.int64)
-        decide = np.flatnonzero(self._decides(view.mask, robots))
-        if len(decide):
-            weight = view.slot_weight[decide][:, robots]
-            prior = view.prior_masks[g][decide][:, robots]
-            rows[decide] = table.rows(
-                view.states[g][decide], view.mask[decide][:, robots], weight, prior
+    def _chosen_entries(self, view: GroupObservation, actions: np.ndarray) -> np.ndarray:
+        """``[G, B]`` entries of the actions taken in ``view`` (-1 where no decision).
+
+        Raises:
+            ValueError: if a joint action is not valid in its state.
+        """
+        if view.actions is not None and np.array_equal(view.actions, actions):
+            return view.entries
+        self._reserve(view)
+        rows = np.empty_like(view.states)
+        entries = np.empty_like(view.states)
+        missing = kernels.entries_for_actions(
+            *self._kernel_tables(), self.robots, self.size, self.order, self._weight_by_type,
+            view.states, view.level == 0, view.mask, view.slot_type, view.slot_high,
+            self.decisions_only, self._prior_code, self.prune_conflicts,
+            np.asarray(actions, np.int64), rows, entries,
+        )  # fmt: skip
+        if missing >= 0:
+            raise ValueError(
+                f"joint action not valid in its state in copy {missing} (masked, or "
+                "conflicting bids)"
             )
-            taken = actions[decide][:, robots]
-            if table.prune_conflicts:
-                taken = deconflict(taken, weight)  # same outcome as the bids taken (spec step 5)
-            entries[decide] = table.entries_of(rows[decide], table.joint.encode(taken))
-        return rows, entries
+        return entries
 
     def update(
         self,
@@ -198,7 +192,7 @@ class GroupQLearner(TabularLearner):
         next_view: GroupObservation,
         next_mask: np.ndarray,
     ) -> dict[str, float]:
-        """Eq. (3) per group, on decision points (see ``common``), for all copies.
+        """Eq. (3) per group, on decision points (docs/learners.md), for all copies.
 
         Args:
             view: View before acting.
@@ -210,49 +204,45 @@ class GroupQLearner(TabularLearner):
         Returns:
             ``learner/<group>/td_error``: mean absolute TD error of the updates of this tick.
         """
-        batch = len(actions)
-        if not self._pending or self._pending[0].entry.shape[0] != batch:
-            self._pending = [PendingTransitions((batch,)) for _ in self.groups]
-        rewards = self._group_rewards(result)  # [B, G]
-        done = np.asarray(result.done, bool)
-        logs: dict[str, float] = {}
-        for g, (robots, table, pending) in enumerate(
-            zip(self.groups, self.tables, self._pending, strict=True)
-        ):
-            _, entries = self._chosen_entries(view, actions, g)
-            pending.start(entries >= 0, entries)
-            pending.accumulate(rewards[:, g], self.gamma)
-            pending.drop(done)  # truncation: no next state to bootstrap from (spec: horizon)
-            closing = self._decides(next_mask, robots) & ~done
-            (pos,), closed, ret, discount = pending.close(closing)
-            if len(pos) == 0:
-                continue
-            next_rows = table.rows(
-                next_view.states[g][pos],
-                next_mask[pos][:, robots],
-                next_view.slot_weight[pos][:, robots],
-                next_view.prior_masks[g][pos][:, robots],
+        n_groups, batch = len(self.groups), len(actions)
+        if self._pending is None or self._pending[0].shape[1] != batch:
+            self._pending = (
+                np.full((n_groups, batch), -1, np.int64),  # open entry, -1: none
+                np.zeros((n_groups, batch)),  # R = sum_k gamma^k r_k since the decision
+                np.ones((n_groups, batch)),  # gamma^tau
             )
-            targets = ret + discount * table.max_q(next_rows)  # eq. (3): r + gamma max_a' Q(s', a')
-            logs[f"learner/{self.group_names[g]}/td_error"] = self._update(
-                table.q, table.visits, closed, targets
-            )
-        return logs
+        chosen = self._chosen_entries(view, actions)
+        self._reserve(next_view)
+        td_sum, td_count = np.zeros(n_groups), np.zeros(n_groups, np.int64)
+        kernels.update_groups(
+            *self._kernel_tables(), self.robots, self.size, self.order, self._weight_by_type,
+            chosen, next_view.states, next_view.level == 0, np.asarray(next_mask, bool),
+            next_view.slot_type, next_view.slot_high, self._group_rewards(result),
+            np.asarray(result.done, bool), *self._pending, self.decisions_only, self._prior_code,
+            self.prune_conflicts, self.min_visits, self.gamma, self.alpha, self.alpha_power,
+            self.alpha_min, td_sum, td_count,
+        )  # fmt: skip
+        return {
+            f"learner/{name}/td_error": float(td_sum[g] / td_count[g])
+            for g, name in enumerate(self.group_names)
+            if td_count[g]
+        }
 
     def learning_space(self) -> dict[str, int]:
         """Analytic dimension (eqs. 13-16) and the table entries updated at least once."""
         analytic = learning_space_dimension(self.space_name, self.env, self.partition)
-        return {"analytic": analytic, "visited": sum(t.n_visited() for t in self.tables)}
+        return {"analytic": analytic, "visited": self.storage.n_visited()}
 
     def _table_arrays(self) -> dict[str, np.ndarray]:
         arrays: dict[str, np.ndarray] = {}
-        for name, table in zip(self.group_names, self.tables, strict=True):
-            arrays.update(table.to_arrays(f"{name}."))
+        for g, name in enumerate(self.group_names):
+            arrays.update({f"{name}.{k}": v for k, v in self.storage.to_arrays(g).items()})
         return arrays
 
     def _load_table_arrays(self, arrays: dict[str, np.ndarray]) -> None:
-        for name, table in zip(self.group_names, self.tables, strict=True):
-            table.from_arrays(arrays, f"{name}.")
+        self.storage.from_arrays(
+            [{k: arrays[f"{name}.{k}"] for k in TABLE_KEYS} for name in self.group_names]
+        )
 
 
 class SubGCQLLearner(GroupQLearner):
@@ -266,11 +256,11 @@ class SubGCQLLearner(GroupQLearner):
         env: The env built with the partition's active tasks.
         rng: Exploration randomness.
         partition: The subG partition (required).
-        prune_conflicts: Keep only conflict-free joint actions (see ``common``).
-        prior: Tie-break joint action of untried states (``common.PRIORS``, docs/learners.md).
-        min_visits: Updates an entry needs before it competes with the prior (``JointQTable``).
+        prune_conflicts: Keep only conflict-free joint actions (``joint_actions``).
+        prior: Tie-break joint action of untried states (``priors.PRIORS``, docs/learners.md).
+        min_visits: Updates an entry needs before it competes with the prior.
         prior_order: Which idle robot the spread priors ask first (default ``fewest_types``).
-        **hyperparameters: See :class:`~mrta_rl.learners.tabular.common.TabularLearner`.
+        **hyperparameters: See :class:`~mrta_rl.learners.tabular.base.TabularLearner`.
     """
 
     requires_partition: ClassVar[bool] = True

@@ -1,0 +1,158 @@
+"""The base of the tabular learners: eq. (3) hyperparameters, schedules, uniforms, save / load.
+
+Paper §2 eq. (3) is the update of every tabular learner; §5.2 eqs. (10)-(16) count the tables.
+Design (docs/learners.md): decision points, conflict-free joint actions, ties to a prior, and the
+``B`` copies of a tick applied one after another in copy order with synchronous targets. The
+per-tick work (encoding, action choice, eq. 3) runs in compiled per-copy loops
+(``group_kernels``, ``robot_kernels``) over flat numpy tables.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+from typing import ClassVar
+
+import numpy as np
+
+from mrta_rl.envs import AuctionEnv
+from mrta_rl.learners.base import Learner
+from mrta_rl.learners.tabular.schedules import LinearSchedule
+from mrta_rl.partition import Partition
+
+logger = logging.getLogger(__name__)
+
+Q_FILE = "q_tables.npz"  # arrays of every table, np.savez without object arrays
+META_FILE = "learner.json"  # hyperparameters and schedule position
+
+
+class Uniforms:
+    """Uniforms in [0, 1) for the compiled loops, the same stream as ``rng.random(n)`` calls.
+
+    A loop gets a block of uniforms big enough for any tick, uses the first ``k`` and the
+    generator is moved back over the rest (``bit_generator.advance(-unused)``), so the draws are
+    exactly those of ``k`` successive ``rng.random()`` calls, whatever the block size.
+
+    Args:
+        rng: The learner's generator.
+
+    Raises:
+        ValueError: if its bit generator cannot move back (default_rng's PCG64 can).
+    """
+
+    def __init__(self, rng: np.random.Generator) -> None:
+        if not hasattr(rng.bit_generator, "advance"):
+            raise ValueError(
+                f"tabular learners need a generator whose bit generator has advance() "
+                f"(np.random.default_rng's PCG64), got {type(rng.bit_generator).__name__}"
+            )
+        self.rng = rng
+
+    def block(self, size: int) -> np.ndarray:
+        """``size`` uniforms; call :meth:`used` with how many were consumed."""
+        return self.rng.random(size)
+
+    def used(self, block: np.ndarray, count: int) -> None:
+        """Give back the ``len(block) - count`` uniforms not consumed."""
+        if count < len(block):
+            self.rng.bit_generator.advance(count - len(block))
+
+
+class TabularLearner(Learner):
+    """Q-learning (paper eq. 3) with epsilon-greedy over valid actions; shared plumbing.
+
+    Subclasses implement :meth:`encode`, :meth:`act`, :meth:`update`, the table arrays for
+    save / load and :meth:`learning_space`.
+
+    Args:
+        env: The env (sizes, active tasks).
+        rng: Exploration randomness.
+        partition: The subG partition (subG-CQL only).
+        alpha: Learning rate of eq. (3) (base value, see ``alpha_power``).
+        alpha_power: ``alpha_n = max(alpha_min, alpha / n^alpha_power)`` with ``n`` the entry's
+            visits; 0 keeps ``alpha`` constant.
+        alpha_min: Floor of the decaying learning rate.
+        gamma: Discount per tick.
+        epsilon_start: Exploration rate in the first episode.
+        epsilon_end: Exploration rate after the decay.
+        epsilon_decay_episodes: Episodes of the linear decay (0: always ``epsilon_end``).
+        decisions_only: Update only at decision points (semi-Markov, docs/learners.md).
+    """
+
+    kind: ClassVar = "tabular"
+
+    def __init__(
+        self,
+        *,
+        env: AuctionEnv,
+        rng: np.random.Generator,
+        partition: Partition | None = None,
+        alpha: float = 0.1,
+        alpha_power: float = 0.0,
+        alpha_min: float = 0.0,
+        gamma: float = 0.9,
+        epsilon_start: float = 0.2,
+        epsilon_end: float = 0.0,
+        epsilon_decay_episodes: int = 20,
+        decisions_only: bool = True,
+    ) -> None:
+        super().__init__(env=env, rng=rng, partition=partition)
+        if not 0.0 < alpha <= 1.0 or not 0.0 <= gamma <= 1.0:
+            raise ValueError(f"need 0 < alpha <= 1 and 0 <= gamma <= 1, got {alpha}, {gamma}")
+        if not (0.0 <= epsilon_start <= 1.0 and 0.0 <= epsilon_end <= 1.0):
+            raise ValueError("epsilon_start and epsilon_end must be in [0, 1]")
+        self.alpha, self.alpha_power, self.alpha_min = alpha, alpha_power, alpha_min
+        self.gamma = gamma
+        self.epsilon_schedule = LinearSchedule(epsilon_start, epsilon_end, epsilon_decay_episodes)
+        self.decisions_only = decisions_only
+        self.episodes_done = 0
+        self.n_slots = env.n_slots
+        self.uniforms = Uniforms(rng)
+        # willingness d_i,type by slot type; the extra last row answers an empty slot (type -1)
+        self._weight_by_type = np.vstack([env.system.willingness.T, np.zeros(env.n_robots)])
+
+    @property
+    def epsilon(self) -> float:
+        """Current exploration rate (linear schedule over episodes)."""
+        return self.epsilon_schedule(self.episodes_done)
+
+    def end_episode(self) -> None:
+        """Advance the epsilon schedule by one episode."""
+        self.episodes_done += 1
+
+    # -- persistence
+    def _table_arrays(self) -> dict[str, np.ndarray]:
+        raise NotImplementedError
+
+    def _load_table_arrays(self, arrays: dict[str, np.ndarray]) -> None:
+        raise NotImplementedError
+
+    def save(self, directory: Path) -> None:
+        """Write the tables (``q_tables.npz``) and the schedule position (``learner.json``).
+
+        Args:
+            directory: Target folder, created if missing.
+        """
+        directory = Path(directory)
+        directory.mkdir(parents=True, exist_ok=True)
+        np.savez_compressed(directory / Q_FILE, **self._table_arrays())
+        meta = {"class": type(self).__name__, "episodes_done": self.episodes_done}
+        (directory / META_FILE).write_text(json.dumps(meta, indent=2) + "\n")
+
+    def load(self, directory: Path) -> None:
+        """Restore what :meth:`save` wrote (``allow_pickle=False``).
+
+        Args:
+            directory: Folder written by :meth:`save`.
+
+        Raises:
+            ValueError: if the folder was written by another learner class.
+        """
+        directory = Path(directory)
+        meta = json.loads((directory / META_FILE).read_text())
+        if meta["class"] != type(self).__name__:
+            raise ValueError(f"{directory} holds a {meta['class']}, not a {type(self).__name__}")
+        with np.load(directory / Q_FILE, allow_pickle=False) as data:
+            self._load_table_arrays({k: data[k] for k in data.files})
+        self.episodes_done = int(meta["episodes_done"])

@@ -1,0 +1,149 @@
+"""Compiled state encodings of the tabular learners, code for code those of ``envs/observations``.
+
+:class:`GroupEncoder` computes ``observations.group_state_index`` of several groups at once and
+:class:`LocalEncoder` ``observations.local_state_index``, in per-copy loops, from the same env
+arrays (slots, idle flags, battery levels, H arrivals) and with the tables (slot codes, place
+values) of ``observations.GroupView`` / ``observations.LocalView``, so the codes are the same
+(tested). The battery rule stays in ``observations.battery_level`` (one numpy call per tick); the
+recency rule (:func:`recency`) reads ``observations.RECENCY_THRESHOLDS``.
+
+A new digit of an encoding plugs in as one more place value: ``observations`` adds it to the
+view's radices (and its count), computes the digit for all copies, and the encoder adds
+``digit * place`` in its loop (one more input array).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from numba import njit
+
+from mrta_rl.envs import AuctionEnv
+from mrta_rl.envs.observations import RECENCY_THRESHOLDS, GroupView, LocalView, battery_level
+
+_THRESHOLDS = np.array(RECENCY_THRESHOLDS, np.int64)
+
+
+@njit(cache=True)
+def recency(last_high: np.ndarray, t: int, types: np.ndarray, thresholds: np.ndarray) -> int:
+    """Recency level (``observations.recency_level``) of one copy over the types ``types``."""
+    last, found = 0, False
+    for j in range(types.size):
+        if types[j] and (not found or last_high[j] > last):
+            last, found = last_high[j], True
+    if not found:
+        return 2  # never: the longest level
+    delta = t - last
+    return int(delta > thresholds[0]) + int(delta > thresholds[1])
+
+
+@njit(cache=True)
+def _slot_code(codes: np.ndarray, ttype: int, high: int) -> int:
+    """Code of a slot; an empty slot (type -1) reads the table's last row."""
+    return codes[ttype if ttype >= 0 else codes.shape[0] - 1, max(high, 0)]
+
+
+@njit(cache=True)
+def _encode_groups(
+    slot_type, slot_high, idle, battery_low, t, last_high, codes, slot_places, robots, size,
+    robot_places, recency_place, types, thresholds, states, level,
+):  # fmt: skip
+    for g in range(states.shape[0]):
+        for b in range(states.shape[1]):
+            index = 0
+            for k in range(slot_type.shape[1]):
+                index += _slot_code(codes[g], slot_type[b, k], slot_high[b, k]) * slot_places[g, k]
+            for r in range(size[g]):
+                i = robots[g, r]
+                # robot digit: 0 busy, 1 idle with ok battery, 2 idle with low battery
+                index += idle[b, i] * (1 + battery_low[b, i]) * robot_places[g, r]
+            level[g, b] = recency(last_high[b], t[b], types[g], thresholds)
+            states[g, b] = index + level[g, b] * recency_place[g]
+
+
+@njit(cache=True)
+def _encode_local(
+    slot_type, slot_high, idle, battery_low, t, last_high, codes, slot_places, places, active,
+    thresholds, out,
+):  # fmt: skip
+    n_places = places.shape[1]
+    for b in range(out.shape[0]):
+        for i in range(out.shape[1]):
+            index = np.int64(idle[b, i])
+            for k in range(slot_type.shape[1]):
+                ttype = slot_type[b, k] if slot_type[b, k] >= 0 else codes.shape[0] - 1
+                index += codes[ttype, max(slot_high[b, k], 0), i] * slot_places[k, i]
+            index += battery_low[b, i] * places[i, n_places - 2]
+            index += recency(last_high[b], t[b], active[i], thresholds) * places[i, n_places - 1]
+            out[b, i] = index
+
+
+class GroupEncoder:
+    """Group state indices (``GroupView``) of several groups, all copies in one compiled loop.
+
+    Args:
+        env: The env (its slots, types and active tasks fix the tables).
+        groups: Robot indices of each group, in the order of its digits.
+
+    Raises:
+        OverflowError: if a group's state count does not fit in int64.
+    """
+
+    def __init__(self, env: AuctionEnv, groups: Sequence[np.ndarray]) -> None:
+        views = [GroupView(env, g) for g in groups]
+        for view in views:
+            if not view.fits_int64:
+                raise OverflowError(
+                    f"group state count {view.count} >= 2**63: too many robots or types for one "
+                    f"index (robots {view.robots.tolist()})"
+                )
+        widest = max(len(g) for g in groups)
+        self.robots = np.zeros((len(groups), widest), np.int64)  # padded robot indices
+        self.size = np.array([len(g) for g in groups], np.int64)
+        self._robot_places = np.zeros((len(groups), widest), np.int64)
+        for g, view in enumerate(views):
+            self.robots[g, : len(view.robots)] = view.robots
+            self._robot_places[g, : len(view.robots)] = view._robot_places
+        self._codes = np.stack([v._codes for v in views])  # [G, n + 1, 2]
+        self._slot_places = np.stack([v._slot_places for v in views])  # [G, K]
+        self._recency_place = np.array([v._recency_place for v in views], np.int64)
+        self.types = np.stack([v.types_mask for v in views])  # T_g, [G, n]
+
+    def index(self, env: AuctionEnv) -> tuple[np.ndarray, np.ndarray]:
+        """``([G, B] state indices, [G, B] recency levels over T_g)``."""
+        n_groups, batch = len(self.size), env.batch_size
+        states = np.empty((n_groups, batch), np.int64)
+        level = np.empty((n_groups, batch), np.int64)
+        _encode_groups(
+            env.slot_type, env.slot_high, env.idle, battery_level(env), env.t,
+            env.last_high_arrival, self._codes, self._slot_places, self.robots, self.size,
+            self._robot_places, self._recency_place, self.types, _THRESHOLDS, states, level,
+        )  # fmt: skip
+        return states, level
+
+
+class LocalEncoder:
+    """Local state indices (``LocalView``) of every robot, all copies in one compiled loop.
+
+    Args:
+        env: The env (its slots, types and active tasks fix the tables).
+    """
+
+    def __init__(self, env: AuctionEnv) -> None:
+        view = LocalView(env)
+        self.counts = view.counts  # |S_i|
+        self._codes = view._codes  # [n + 1, 2, m]
+        self._slot_places = view._slot_places  # [K, m]
+        self._places = view._places  # [m, K + 3]
+        self._active = view._active  # Lambda_i, [m, n]
+
+    def index(self, env: AuctionEnv) -> np.ndarray:
+        """``[B, m]`` int64 local state indices."""
+        out = np.empty((env.batch_size, env.n_robots), np.int64)
+        _encode_local(
+            env.slot_type, env.slot_high, env.idle, battery_level(env), env.t,
+            env.last_high_arrival, self._codes, self._slot_places, self._places, self._active,
+            _THRESHOLDS, out,
+        )  # fmt: skip
+        return out

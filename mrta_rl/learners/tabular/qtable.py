@@ -1,0 +1,244 @@
+"""Q storage of the joint-action learners: per (group, state) a row of valid joint actions.
+
+:class:`JointQStorage` keeps the Q tables of all the groups of a learner (subG-CQL's sub-groups,
+CQL's one group) in flat numpy arrays, so that compiled loops can read and grow them:
+
+* an open-addressing hash table (linear probing, power-of-two capacity, at most half full) maps
+  ``(group, state index)`` to a row;
+* per row (``rows[:, row]``): the state, its group, the first entry, the number of entries (its
+  valid joint actions, :func:`~mrta_rl.learners.tabular.joint_actions.enumerate_row`) and the
+  entry of the prior's joint action (the tie-break);
+* per entry: the joint action code, the visit count and ``Q(s, a)``.
+
+Rows are created on a state's first visit at a decision, in increasing state order within a
+batch, entries of a row are contiguous. :meth:`JointQStorage.to_arrays` gives each group's table
+as it is saved (``q_tables.npz``, the format of the earlier per-group tables).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+ROW_STATE, ROW_GROUP, ROW_OFFSET, ROW_LENGTH, ROW_PRIOR = range(5)  # rows of ``rows``
+ENTRY_CODE, ENTRY_VISITS = range(2)  # rows of ``entries``
+TABLE_KEYS = ("states", "offset", "length", "greedy", "codes", "q", "visits")  # saved per group
+_EMPTY = -1  # free hash slot
+
+
+@njit(cache=True)
+def _slot(state: int, group: int, capacity: int) -> int:
+    """Start of the probe sequence of ``(group, state)`` (splitmix64 finaliser of the pair)."""
+    x = np.uint64(state) * np.uint64(0x9E3779B97F4A7C15) + np.uint64(group)
+    x ^= x >> np.uint64(30)
+    x *= np.uint64(0xBF58476D1CE4E5B9)
+    x ^= x >> np.uint64(27)
+    x *= np.uint64(0x94D049BB133111EB)
+    x ^= x >> np.uint64(31)
+    return np.int64(x & np.uint64(capacity - 1))
+
+
+@njit(cache=True)
+def find_row(table: np.ndarray, state: int, group: int) -> int:
+    """Row of ``(group, state)`` in the hash ``table`` (``[3, capacity]``), or -1 if absent."""
+    capacity = table.shape[1]
+    h = _slot(state, group, capacity)
+    while table[0, h] != _EMPTY:
+        if table[0, h] == state and table[1, h] == group:
+            return table[2, h]
+        h = (h + 1) & (capacity - 1)
+    return -1
+
+
+@njit(cache=True)
+def insert_row(table: np.ndarray, state: int, group: int, row: int) -> None:
+    """Map ``(group, state)`` to ``row`` (the key must be new; the table must have room)."""
+    capacity = table.shape[1]
+    h = _slot(state, group, capacity)
+    while table[0, h] != _EMPTY:
+        h = (h + 1) & (capacity - 1)
+    table[0, h], table[1, h], table[2, h] = state, group, row
+
+
+@njit(cache=True)
+def _rebuild_hash(rows: np.ndarray, n_rows: int, capacity: int) -> np.ndarray:
+    table = np.full((3, capacity), _EMPTY, np.int64)
+    for row in range(n_rows):
+        insert_row(table, rows[ROW_STATE, row], rows[ROW_GROUP, row], row)
+    return table
+
+
+@njit(cache=True)
+def candidate_value(rows, entries, q, row: int, entry: int, min_visits: int) -> float:
+    """Q of an entry if it competes (the prior, or tried ``min_visits`` times), else -inf."""
+    if min_visits > 0 and entries[ENTRY_VISITS, entry] < min_visits:
+        if entry != rows[ROW_PRIOR, row]:
+            return -np.inf
+    return q[entry]
+
+
+@njit(cache=True)
+def max_q(rows, entries, q, row: int, min_visits: int) -> float:
+    """Eq. (3)'s ``max_a'`` over the competing entries of a row (the greedy policy's value)."""
+    start = rows[ROW_OFFSET, row]
+    best = -np.inf
+    for e in range(start, start + rows[ROW_LENGTH, row]):
+        best = max(best, candidate_value(rows, entries, q, row, e, min_visits))
+    return best
+
+
+@njit(cache=True)
+def best_entry(rows, entries, q, row: int, min_visits: int) -> int:
+    """Entry of the greatest Q of a row; ties go to the prior's joint action.
+
+    With ``min_visits > 0`` only the prior and the entries updated at least ``min_visits`` times
+    compete: an entry tried once by exploration holds a single noisy target and must not replace
+    the prior on that evidence.
+    """
+    start = rows[ROW_OFFSET, row]
+    best, first = -np.inf, start
+    for e in range(start, start + rows[ROW_LENGTH, row]):
+        value = candidate_value(rows, entries, q, row, e, min_visits)
+        if value > best:
+            best, first = value, e
+    prior = rows[ROW_PRIOR, row]
+    return prior if q[prior] >= best else first
+
+
+@njit(cache=True)
+def random_entry(rows, row: int, u: float) -> int:
+    """Uniform valid joint action of a row (exploration), from ``u`` in [0, 1)."""
+    length = rows[ROW_LENGTH, row]
+    return rows[ROW_OFFSET, row] + min(int(u * length), length - 1)
+
+
+class JointQStorage:
+    """The Q tables of ``n_groups`` groups over (state, valid joint action), in flat arrays.
+
+    Args:
+        n_groups: Number of groups ``G``.
+
+    Attributes:
+        hash: ``[3, capacity]`` int64 open-addressing table: state, group, row (-1: free).
+        rows: ``[5, row capacity]`` int64 per row: state, group, offset, length, prior entry.
+        entries: ``[2, entry capacity]`` int64 per entry: joint code, visits.
+        q: ``[entry capacity]`` float64 ``Q(s, a)``.
+        sizes: ``[2]`` int64 rows and entries in use (the compiled loops bump them).
+    """
+
+    def __init__(self, n_groups: int) -> None:
+        self.n_groups = n_groups
+        self.hash = np.full((3, 1024), _EMPTY, np.int64)
+        self.rows = np.zeros((5, 256), np.int64)
+        self.entries = np.zeros((2, 4096), np.int64)
+        self.q = np.zeros(4096)
+        self.sizes = np.zeros(2, np.int64)
+
+    @property
+    def n_rows(self) -> int:
+        """Rows in use (states met at a decision, all groups)."""
+        return int(self.sizes[0])
+
+    @property
+    def n_entries(self) -> int:
+        """Entries in use."""
+        return int(self.sizes[1])
+
+    def reserve(self, rows: int, entries: int) -> None:
+        """Make room for ``rows`` more rows and ``entries`` more entries (amortised doubling)."""
+        need_rows, need_entries = self.n_rows + rows, self.n_entries + entries
+        if need_rows > self.rows.shape[1]:
+            grown = np.zeros((5, max(need_rows, 2 * self.rows.shape[1])), np.int64)
+            grown[:, : self.n_rows] = self.rows[:, : self.n_rows]
+            self.rows = grown
+        if need_entries > self.q.size:
+            capacity = max(need_entries, 2 * self.q.size)
+            grown = np.zeros((2, capacity), np.int64)
+            grown[:, : self.n_entries] = self.entries[:, : self.n_entries]
+            q = np.zeros(capacity)
+            q[: self.n_entries] = self.q[: self.n_entries]
+            self.entries, self.q = grown, q
+        if 2 * need_rows > self.hash.shape[1]:  # at most half full: short probe sequences
+            capacity = self.hash.shape[1]
+            while 2 * need_rows > capacity:
+                capacity *= 2
+            self.hash = _rebuild_hash(self.rows, self.n_rows, capacity)
+
+    def row(self, group: int, state: int) -> int:
+        """Row of a state of a group, or -1 if it was never met."""
+        return int(find_row(self.hash, int(state), int(group)))
+
+    def visits(self) -> np.ndarray:
+        """Visit counts of the entries in use (a view)."""
+        return self.entries[ENTRY_VISITS, : self.n_entries]
+
+    def n_visited(self) -> int:
+        """Entries updated at least once."""
+        return int(np.count_nonzero(self.visits()))
+
+    def group_rows(self, group: int) -> np.ndarray:
+        """Rows of a group, in creation order."""
+        return np.flatnonzero(self.rows[ROW_GROUP, : self.n_rows] == group)
+
+    def row_entries(self, row: int) -> slice:
+        """The entries of a row."""
+        start = int(self.rows[ROW_OFFSET, row])
+        return slice(start, start + int(self.rows[ROW_LENGTH, row]))
+
+    def state_q(self, group: int, state: int) -> dict[int, float]:
+        """``{joint code: Q}`` of a stored state (for tests and inspection).
+
+        Raises:
+            KeyError: if the state was never met.
+        """
+        row = self.row(group, state)
+        if row < 0:
+            raise KeyError(f"state {state} of group {group} is not stored")
+        at = self.row_entries(row)
+        return dict(zip(self.entries[ENTRY_CODE, at].tolist(), self.q[at].tolist(), strict=True))
+
+    def to_arrays(self, group: int) -> dict[str, np.ndarray]:
+        """One group's table as saved: :data:`TABLE_KEYS` arrays, entries numbered per group."""
+        rows = self.group_rows(group)
+        lengths = self.rows[ROW_LENGTH, rows]
+        offsets = np.cumsum(lengths) - lengths
+        starts = self.rows[ROW_OFFSET, rows]
+        idx = np.repeat(starts - offsets, lengths) + np.arange(lengths.sum(), dtype=np.int64)
+        return {
+            "states": self.rows[ROW_STATE, rows].copy(),
+            "offset": offsets,
+            "length": lengths.copy(),
+            "greedy": self.rows[ROW_PRIOR, rows] - starts + offsets,
+            "codes": self.entries[ENTRY_CODE, idx].copy(),
+            "q": self.q[idx].copy(),
+            "visits": self.entries[ENTRY_VISITS, idx].copy(),
+        }
+
+    def from_rows(self, states: np.ndarray) -> None:
+        """Restore rows without entries (one group): row ``k`` holds ``states[k]``."""
+        self.__init__(self.n_groups)
+        self.reserve(len(states), 0)
+        self.rows[ROW_STATE, : len(states)] = states
+        self.sizes[0] = len(states)
+        self.hash = _rebuild_hash(self.rows, len(states), self.hash.shape[1])
+
+    def from_arrays(self, tables: list[dict[str, np.ndarray]]) -> None:
+        """Restore every group from :meth:`to_arrays` outputs (one dict per group, in order)."""
+        self.__init__(self.n_groups)
+        n_rows = sum(len(t["states"]) for t in tables)
+        n_entries = sum(len(t["codes"]) for t in tables)
+        self.reserve(n_rows, n_entries)
+        row, entry = 0, 0
+        for group, t in enumerate(tables):
+            n, e = len(t["states"]), len(t["codes"])
+            self.rows[ROW_STATE, row : row + n] = t["states"]
+            self.rows[ROW_GROUP, row : row + n] = group
+            self.rows[ROW_OFFSET, row : row + n] = t["offset"] + entry
+            self.rows[ROW_LENGTH, row : row + n] = t["length"]
+            self.rows[ROW_PRIOR, row : row + n] = t["greedy"] + entry
+            self.entries[ENTRY_CODE, entry : entry + e] = t["codes"]
+            self.entries[ENTRY_VISITS, entry : entry + e] = t["visits"]
+            self.q[entry : entry + e] = t["q"]
+            row, entry = row + n, entry + e
+        self.sizes[:] = row, entry
+        self.hash = _rebuild_hash(self.rows, row, self.hash.shape[1])

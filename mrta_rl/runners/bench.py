@@ -1,0 +1,236 @@
+"""Learner throughput benchmark (issue 13): training copy-ticks/s next to the env and a plain loop.
+
+For each learner of ``conf/learner`` the benchmark composes the default run config
+(``conf/config.yaml``, so ``train.batch_size`` and the learner's own defaults), builds the run as
+``scripts/train.py`` does and times its normal training loop (``runners/tabular.py`` or
+``runners/torchrl.py``) over a short fixed budget of ``episodes`` episodes. In the same process it
+times two yardsticks:
+
+* the bare env at the same batch size under the greedy policy (``envs/benchmark.py``);
+* a plain per-copy Python loop of the dynamics, ``tests/unit/reference_auction.py`` (the spec
+  read as one copy with tasks in a list) under greedy.
+
+Absolute figures on a shared machine are noisy; the ratios to the yardsticks measured in the same
+process are what to compare. The measurements run in a worker process (:func:`measure`) whose
+``mrta_rl`` can come from another checkout (``PYTHONPATH``), so that today's code and a branch are
+measured side by side, in turns, with this same module (:func:`run_worker`).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import logging
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+logger = logging.getLogger(__name__)
+
+TABULAR = ("subg_cql", "cql", "semi_cql", "dql")
+NEURAL = ("subg_dqn", "qmix", "vdn", "iql")
+LEARNERS = TABULAR + NEURAL
+WARMUP_OVERRIDES = ("env.horizon=20", "train.episodes=1")  # loads compiled code, fills caches
+
+
+def _repo_root() -> Path:
+    import mrta_rl
+
+    return Path(mrta_rl.__file__).resolve().parents[1]
+
+
+def _compose(overrides: list[str]) -> Any:
+    """The run config of ``scripts/train.py`` with overrides (Hydra compose API)."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=str(_repo_root() / "conf"), version_base=None):
+        return compose(config_name="config", overrides=overrides)
+
+
+def _train_once(name: str, system: str, overrides: list[str]) -> tuple[int, float, int]:
+    """Build the run of ``learner=name`` and time its training loop: (copy-ticks, s, batch)."""
+    from mrta_rl.runners.train import build_run, training_loop
+
+    cfg = _compose([f"learner={name}", f"system={system}", "train.progress_bar=false", *overrides])
+    run = build_run(cfg, name)
+    with tempfile.TemporaryDirectory() as run_dir:
+        start = time.perf_counter()
+        info = training_loop(run.learner.kind)(run, cfg, Path(run_dir))
+        wall = time.perf_counter() - start
+    return int(info["env_ticks"]), wall, int(run.env.batch_size)
+
+
+def plain_loop_ticks_per_s(system: str, min_seconds: float) -> float:
+    """Copy-ticks/s of ``tests/unit/reference_auction.py`` (one copy at a time) under greedy.
+
+    Args:
+        system: ``conf/system`` name.
+        min_seconds: Least wall time to measure.
+
+    Returns:
+        Copy-ticks per second.
+    """
+    from mrta_rl.envs import AuctionParams
+    from mrta_rl.systems import build_system
+
+    path = _repo_root() / "tests" / "unit" / "reference_auction.py"
+    spec = importlib.util.spec_from_file_location("_reference_auction", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    cfg = _compose([f"system={system}"])
+    from omegaconf import OmegaConf
+
+    built = build_system(OmegaConf.to_container(cfg.system, resolve=True))
+    params = AuctionParams.merged(built.env_overrides, OmegaConf.to_container(cfg.env))
+    ref = module.ReferenceAuction(built, params, copy_seed=0)
+    ticks, start = 0, time.perf_counter()
+    while ticks < 100 or time.perf_counter() - start < min_seconds:
+        actions = []
+        for i in range(ref.m):  # greedy: the lowest valid slot, else wait
+            valid = ref.valid_actions(i)
+            actions.append(valid[1] if len(valid) > 1 else 0)
+        ref.step(actions)
+        ticks += 1
+        if ref.t >= ref.p.horizon:
+            ref.reset()
+    return ticks / (time.perf_counter() - start)
+
+
+def measure(learners: list[str], system: str, episodes: int, seconds: float) -> dict[str, Any]:
+    """One worker's measurements: the two yardsticks and every learner's training speed.
+
+    Args:
+        learners: ``conf/learner`` names.
+        system: ``conf/system`` name.
+        episodes: Training episodes per learner (the fixed short budget).
+        seconds: Least wall time of each yardstick.
+
+    Returns:
+        ``{"plain": ticks/s, "env": {batch: ticks/s}, "learners": {name: {...}}}``.
+    """
+    from mrta_rl.envs.benchmark import bench_env
+    from mrta_rl.systems import build_system
+
+    cfg = _compose([f"system={system}"])
+    from omegaconf import OmegaConf
+
+    built = build_system(OmegaConf.to_container(cfg.system, resolve=True))
+    out: dict[str, Any] = {"plain": plain_loop_ticks_per_s(system, seconds), "env": {}}
+    out["learners"] = {}
+    for name in learners:
+        warm_start = time.perf_counter()
+        _train_once(name, system, list(WARMUP_OVERRIDES))
+        warmup = time.perf_counter() - warm_start
+        ticks, wall, batch = _train_once(name, system, [f"train.episodes={episodes}"])
+        if str(batch) not in out["env"]:  # JSON keys are strings
+            out["env"][str(batch)] = bench_env(built, batch, min_seconds=seconds).ticks_per_s
+        out["learners"][name] = {
+            "ticks": ticks,
+            "wall_s": wall,
+            "ticks_per_s": ticks / wall,
+            "batch_size": batch,
+            "warmup_s": warmup,
+        }
+        logger.info("%s: %.0f copy-ticks/s", name, ticks / wall)
+    return out
+
+
+def run_worker(
+    code_root: Path | None, learners: list[str], system: str, episodes: int, seconds: float
+) -> dict[str, Any]:
+    """Run :func:`measure` in a fresh process importing ``mrta_rl`` from ``code_root``.
+
+    Args:
+        code_root: Checkout whose ``mrta_rl`` is measured (None: this one).
+        learners: ``conf/learner`` names.
+        system: ``conf/system`` name.
+        episodes: Training episodes per learner.
+        seconds: Least wall time of each yardstick.
+
+    Returns:
+        The worker's :func:`measure` output.
+
+    Raises:
+        RuntimeError: if the worker fails (its stderr tail is in the message).
+    """
+    root = Path(code_root) if code_root is not None else _repo_root()
+    env = dict(os.environ, PYTHONPATH=str(root))
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "bench.json"
+        # -c keeps this module's folder off sys.path (it holds a torchrl.py)
+        argv = [str(out), system, str(episodes), str(seconds), *learners]
+        code = f"import runpy, sys; sys.argv = ['bench', *{argv!r}]; "
+        code += f"runpy.run_path({str(Path(__file__).resolve())!r}, run_name='__main__')"
+        args = [sys.executable, "-c", code]
+        done = subprocess.run(args, env=env, cwd=root, capture_output=True, text=True)
+        if done.returncode != 0:
+            raise RuntimeError(f"bench worker on {root} failed:\n{done.stderr[-3000:]}")
+        return json.loads(out.read_text())
+
+
+def summarize(runs: dict[str, list[dict[str, Any]]]) -> list[dict[str, Any]]:
+    """Rows per (code, learner): min and median over repeats of ticks/s and the ratios.
+
+    Args:
+        runs: Code label -> the repeats' :func:`measure` outputs.
+
+    Returns:
+        One dict per code and learner (JSON-ready).
+    """
+    rows = []
+    for code, repeats in runs.items():
+        for name in repeats[0]["learners"]:
+            speed = [r["learners"][name]["ticks_per_s"] for r in repeats]
+            batch = repeats[0]["learners"][name]["batch_size"]
+            vs_env = [r["learners"][name]["ticks_per_s"] / r["env"][str(batch)] for r in repeats]
+            vs_plain = [r["learners"][name]["ticks_per_s"] / r["plain"] for r in repeats]
+            rows.append(
+                {
+                    "code": code,
+                    "learner": name,
+                    "batch_size": batch,
+                    "repeats": len(repeats),
+                    "ticks_per_s_min": min(speed),
+                    "ticks_per_s_median": statistics.median(speed),
+                    "vs_env_median": statistics.median(vs_env),
+                    "vs_plain_min": min(vs_plain),
+                    "vs_plain_median": statistics.median(vs_plain),
+                    "plain_ticks_per_s_median": statistics.median(r["plain"] for r in repeats),
+                }
+            )
+    return rows
+
+
+def format_table(rows: list[dict[str, Any]]) -> str:
+    """Markdown table of :func:`summarize` rows, with the speed-up over the first code label."""
+    codes = list(dict.fromkeys(r["code"] for r in rows))
+    base = {r["learner"]: r["ticks_per_s_median"] for r in rows if r["code"] == codes[0]}
+    lines = [
+        "| learner | code | B | copy-ticks/s min | median | x env (same B) | x plain loop "
+        "(min / median) | speed-up vs " + codes[0] + " |",
+        "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |",
+    ]
+    for r in sorted(rows, key=lambda r: (r["learner"], codes.index(r["code"]))):
+        speedup = r["ticks_per_s_median"] / base[r["learner"]] if r["learner"] in base else np.nan
+        lines.append(
+            f"| {r['learner']} | {r['code']} | {r['batch_size']} | {r['ticks_per_s_min']:,.0f} | "
+            f"{r['ticks_per_s_median']:,.0f} | {r['vs_env_median']:.2f} | "
+            f"{r['vs_plain_min']:.2f} / {r['vs_plain_median']:.2f} | {speedup:.1f}x |"
+        )
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":  # worker entry of run_worker: out system episodes seconds learners...
+    out_path, system_name, n_episodes, min_s, *names = sys.argv[1:]
+    logging.basicConfig(level=logging.WARNING)
+    result = measure(names, system_name, int(n_episodes), float(min_s))
+    Path(out_path).write_text(json.dumps(result, indent=2))

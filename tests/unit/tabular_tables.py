@@ -1,0 +1,71 @@
+"""Tables of the four tabular learners after a few hundred training ticks, for regression tests.
+
+``python tests/unit/tabular_tables.py OUT.npz`` plays every learner of :data:`CASES` on
+System-II and saves its tables (``learner._table_arrays()``, keys ``<case>/<array>``). The
+fixture ``data/tabular_tables_v1.npz`` was written by this file run against the vectorised
+learners of commit 5dee1b9 (numpy and Python dicts, before the compiled loops), with
+``PYTHONPATH`` pointing at that checkout; ``test_tabular.py`` checks that today's learners build
+exactly the same tables from the same seeds.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from mrta_rl.envs import AuctionEnv, AuctionParams
+from mrta_rl.partition import subg_partition
+from mrta_rl.systems import build_system
+
+ROOT = Path(__file__).resolve().parents[2]
+FIXTURE = Path(__file__).resolve().parent / "data" / "tabular_tables_v1.npz"
+CLASSES = {
+    "subg_cql": "mrta_rl.learners.tabular.subg_cql:SubGCQLLearner",
+    "cql": "mrta_rl.learners.tabular.cql:CQLLearner",
+    "semi_cql": "mrta_rl.learners.tabular.semi_cql:SemiCQLLearner",
+    "dql": "mrta_rl.learners.tabular.dql:DQLLearner",
+}
+EXPLORE = {"epsilon_start": 0.5, "epsilon_end": 0.3, "alpha": 1.0, "alpha_power": 1.0}
+# (learner, hyperparameters): the defaults, and much exploration with 1/n learning rates
+CASES = {
+    f"{name}/{hp}": (name, kw)
+    for name in CLASSES
+    for hp, kw in (("default", {}), ("explore", EXPLORE))
+}
+TICKS, BATCH, SEED, HORIZON = 250, 4, 7, 60  # several episodes: resets and truncations included
+
+
+def play_tables(name: str, hyperparameters: dict) -> dict[str, np.ndarray]:
+    """Train one learner for :data:`TICKS` ticks of System-II and return its tables."""
+    module, cls_name = CLASSES[name].split(":")
+    cls = getattr(importlib.import_module(module), cls_name)
+    system = build_system(yaml.safe_load((ROOT / "conf" / "system" / "system2.yaml").read_text()))
+    partition = subg_partition(system) if cls.requires_partition else None
+    active = partition.active_tasks(system) if partition is not None else None
+    params = AuctionParams(horizon=HORIZON)
+    env = AuctionEnv(system, params, batch_size=BATCH, seed=SEED, active_tasks=active)
+    rng = np.random.default_rng(SEED)
+    learner = cls(env=env, rng=rng, partition=partition, **hyperparameters)
+    view = learner.encode(env)
+    for _ in range(TICKS):
+        actions = learner.act(view, env.action_mask, explore=True)
+        result = env.step(actions)
+        next_view = learner.encode(env)
+        learner.update(view, actions, result, next_view, env.action_mask)
+        view = next_view
+        if env.done.any():
+            env.reset()
+            learner.end_episode()
+            view = learner.encode(env)
+    return learner._table_arrays()
+
+
+if __name__ == "__main__":
+    tables = {}
+    for case, (learner_name, hp) in CASES.items():
+        tables.update({f"{case}/{k}": v for k, v in play_tables(learner_name, hp).items()})
+    np.savez_compressed(sys.argv[1], **tables)
