@@ -193,6 +193,11 @@ def summarize(runs: dict[str, list[dict[str, Any]]]) -> list[dict[str, Any]]:
             batch = repeats[0]["learners"][name]["batch_size"]
             vs_env = [r["learners"][name]["ticks_per_s"] / r["env"][str(batch)] for r in repeats]
             vs_plain = [r["learners"][name]["ticks_per_s"] / r["plain"] for r in repeats]
+            # the learner's own time per tick: the run's, less the bare env's at the same B
+            own_us = [
+                batch * 1e6 * (1 / r["learners"][name]["ticks_per_s"] - 1 / r["env"][str(batch)])
+                for r in repeats
+            ]
             rows.append(
                 {
                     "code": code,
@@ -204,6 +209,7 @@ def summarize(runs: dict[str, list[dict[str, Any]]]) -> list[dict[str, Any]]:
                     "vs_env_median": statistics.median(vs_env),
                     "vs_plain_min": min(vs_plain),
                     "vs_plain_median": statistics.median(vs_plain),
+                    "learner_us_per_tick_median": statistics.median(own_us),
                     "plain_ticks_per_s_median": statistics.median(r["plain"] for r in repeats),
                 }
             )
@@ -216,15 +222,16 @@ def format_table(rows: list[dict[str, Any]]) -> str:
     base = {r["learner"]: r["ticks_per_s_median"] for r in rows if r["code"] == codes[0]}
     lines = [
         "| learner | code | B | copy-ticks/s min | median | x env (same B) | x plain loop "
-        "(min / median) | speed-up vs " + codes[0] + " |",
-        "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |",
+        "(min / median) | speed-up vs " + codes[0] + " | learner us/tick (run - env) |",
+        "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
     ]
     for r in sorted(rows, key=lambda r: (r["learner"], codes.index(r["code"]))):
         speedup = r["ticks_per_s_median"] / base[r["learner"]] if r["learner"] in base else np.nan
         lines.append(
             f"| {r['learner']} | {r['code']} | {r['batch_size']} | {r['ticks_per_s_min']:,.0f} | "
             f"{r['ticks_per_s_median']:,.0f} | {r['vs_env_median']:.2f} | "
-            f"{r['vs_plain_min']:.2f} / {r['vs_plain_median']:.2f} | {speedup:.1f}x |"
+            f"{r['vs_plain_min']:.2f} / {r['vs_plain_median']:.2f} | {speedup:.1f}x | "
+            f"{r['learner_us_per_tick_median']:,.0f} |"
         )
     return "\n".join(lines)
 

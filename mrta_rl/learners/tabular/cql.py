@@ -39,5 +39,6 @@ class CQLLearner(GroupQLearner):
         env = self.env
         self._set_groups(["team"], [list(range(env.n_robots))])
 
-    def _group_rewards(self, result: StepResult) -> np.ndarray:
-        return np.asarray(result.team_reward, np.float64)[:, None]  # spec step 8: team reward
+    def _group_rewards(self, result: StepResult) -> tuple[np.ndarray, np.ndarray]:
+        # spec step 8: the team reward
+        return np.asarray(result.team_reward, np.float64)[:, None], np.zeros((1, 1), np.int64)

@@ -62,7 +62,7 @@ class RobotQLearner(TabularLearner):
         Returns:
             ``[B, m]`` valid actions.
         """
-        mask = np.asarray(mask, bool)
+        mask = np.ascontiguousarray(mask, bool)
         epsilon = self.epsilon if explore else 0.0
         bases = self._bases(view)
         actions = np.zeros(mask.shape[:2], np.int64)
@@ -95,7 +95,7 @@ class RobotQLearner(TabularLearner):
         shape = actions.shape
         if self._pending is None or self._pending[0].shape != shape:
             self._pending = (np.full(shape, -1, np.int64), np.zeros(shape), np.ones(shape))
-        next_mask = np.asarray(next_mask, bool)
+        next_mask = np.ascontiguousarray(next_mask, bool)
         closing = np.empty(shape, bool)
         count = kernels.open_transitions(
             self._bases(view), np.asarray(actions, np.int64), view.mask, next_mask,

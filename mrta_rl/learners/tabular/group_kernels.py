@@ -241,14 +241,17 @@ def entries_for_actions(
 @njit(cache=True)
 def update_groups(
     table, rows, entries, q, sizes, robots, size, order, weight_by_type, chosen, next_states,
-    next_hold, next_mask, next_slot_type, next_slot_high, rewards, done, pending_entry,
+    next_hold, next_mask, next_slot_type, next_slot_high, rewards, reward_columns, done,
+    pending_entry,
     pending_return, pending_discount, decisions_only, prior, prune, min_visits, gamma, alpha,
     alpha_power, alpha_min, td_sum, td_count,
 ):  # fmt: skip
     """Eq. (3) per group on decision points (semi-Markov), all copies, in copy order.
 
     Per group: open a transition at each decision (``chosen[g, b] >= 0``), add the tick's
-    reward ``rewards[b, g]`` to the open ones (``R += gamma^k r``), drop them at truncation
+    group reward to the open ones (``R += gamma^k r``; the group reward is the sum of the
+    columns ``reward_columns[g]`` of ``rewards`` ``[B, R]``, -1 padded, added left to right as
+    numpy sums fewer than 9 terms along a row of a batch), drop them at truncation
     (``done``: no next state), and close those whose group decides at the next state:
     ``Q(s,a) += alpha_n [R + gamma^tau max_a' Q(s',a') - Q(s,a)]``, with every target taken
     from the table before the tick's updates. ``td_sum`` / ``td_count`` ``[G]`` get the summed
@@ -276,7 +279,11 @@ def update_groups(
                 pending_entry[g, b] = chosen[g, b]
                 pending_return[g, b] = 0.0
                 pending_discount[g, b] = 1.0
-            pending_return[g, b] += pending_discount[g, b] * rewards[b, g]
+            reward = rewards[b, reward_columns[g, 0]]
+            for c in range(1, reward_columns.shape[1]):
+                if reward_columns[g, c] >= 0:
+                    reward += rewards[b, reward_columns[g, c]]
+            pending_return[g, b] += pending_discount[g, b] * reward
             pending_discount[g, b] *= gamma
             if done[b]:  # truncation: no next state to bootstrap from (spec: horizon)
                 pending_entry[g, b] = -1

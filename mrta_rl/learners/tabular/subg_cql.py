@@ -106,8 +106,8 @@ class GroupQLearner(TabularLearner):
         self.storage = JointQStorage(len(groups))
         self._pending: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
-    def _group_rewards(self, result: StepResult) -> np.ndarray:
-        """``[B, G]`` reward of each group."""
+    def _group_rewards(self, result: StepResult) -> tuple[np.ndarray, np.ndarray]:
+        """``([B, R] rewards, [G, M] columns)``: a group's reward is the sum of its columns."""
         raise NotImplementedError
 
     def _reserve(self, view: GroupObservation) -> None:
@@ -149,9 +149,10 @@ class GroupQLearner(TabularLearner):
         view.entries = np.empty((len(self.groups), batch), np.int64)
         actions = np.zeros((batch, self.n_robots), np.int64)
         block = self.uniforms.block(2 * view.states.size) if epsilon > 0.0 else np.zeros(0)
+        mask = np.ascontiguousarray(mask, bool)
         used = kernels.act_groups(
             *self._kernel_tables(), self.robots, self.size, self.order, self._weight_by_type,
-            view.states, view.level == 0, np.asarray(mask, bool), view.slot_type, view.slot_high,
+            view.states, view.level == 0, mask, view.slot_type, view.slot_high,
             self.decisions_only, self._prior_code, self.prune_conflicts, self.min_visits,
             epsilon, block, view.rows, view.entries, actions,
         )  # fmt: skip
@@ -216,8 +217,8 @@ class GroupQLearner(TabularLearner):
         td_sum, td_count = np.zeros(n_groups), np.zeros(n_groups, np.int64)
         kernels.update_groups(
             *self._kernel_tables(), self.robots, self.size, self.order, self._weight_by_type,
-            chosen, next_view.states, next_view.level == 0, np.asarray(next_mask, bool),
-            next_view.slot_type, next_view.slot_high, self._group_rewards(result),
+            chosen, next_view.states, next_view.level == 0, np.ascontiguousarray(next_mask, bool),
+            next_view.slot_type, next_view.slot_high, *self._group_rewards(result),
             np.asarray(result.done, bool), *self._pending, self.decisions_only, self._prior_code,
             self.prune_conflicts, self.min_visits, self.gamma, self.alpha, self.alpha_power,
             self.alpha_min, td_sum, td_count,
@@ -284,7 +285,10 @@ class SubGCQLLearner(GroupQLearner):
             list(group_map),
             [[robots.index(r) for r in rs] for rs in group_map.values()],
         )
+        self._reward_columns = np.where(  # the group's robots, -1 padded
+            np.arange(self.robots.shape[1]) < self.size[:, None], self.robots, -1
+        )
 
-    def _group_rewards(self, result: StepResult) -> np.ndarray:
+    def _group_rewards(self, result: StepResult) -> tuple[np.ndarray, np.ndarray]:
         # spec step 8: a sub-group's reward is the sum of its robots' individual rewards
-        return np.stack([result.robot_reward[:, g].sum(axis=1) for g in self.groups], axis=1)
+        return np.asarray(result.robot_reward, np.float64), self._reward_columns
