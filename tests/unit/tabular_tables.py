@@ -39,6 +39,24 @@ CASES = {
 TICKS, BATCH, SEED, HORIZON = 250, 4, 7, 60  # several episodes: resets and truncations included
 
 
+def play(env, learner, ticks: int, explore: bool = True, learn: bool = True) -> None:
+    """The training loop of ``runners/tabular.py`` for ``ticks`` ticks; checks every action."""
+    view = learner.encode(env)
+    for _ in range(ticks):
+        mask = env.action_mask
+        actions = learner.act(view, mask, explore=explore)
+        assert mask[np.arange(len(mask))[:, None], np.arange(mask.shape[1]), actions].all()
+        result = env.step(actions)
+        next_view = learner.encode(env)
+        if learn:
+            learner.update(view, actions, result, next_view, env.action_mask)
+        view = next_view
+        if env.done.any():
+            env.reset()
+            learner.end_episode()
+            view = learner.encode(env)
+
+
 def play_tables(name: str, hyperparameters: dict) -> dict[str, np.ndarray]:
     """Train one learner for :data:`TICKS` ticks of System-II and return its tables."""
     module, cls_name = CLASSES[name].split(":")
@@ -50,17 +68,7 @@ def play_tables(name: str, hyperparameters: dict) -> dict[str, np.ndarray]:
     env = AuctionEnv(system, params, batch_size=BATCH, seed=SEED, active_tasks=active)
     rng = np.random.default_rng(SEED)
     learner = cls(env=env, rng=rng, partition=partition, **hyperparameters)
-    view = learner.encode(env)
-    for _ in range(TICKS):
-        actions = learner.act(view, env.action_mask, explore=True)
-        result = env.step(actions)
-        next_view = learner.encode(env)
-        learner.update(view, actions, result, next_view, env.action_mask)
-        view = next_view
-        if env.done.any():
-            env.reset()
-            learner.end_episode()
-            view = learner.encode(env)
+    play(env, learner, TICKS)
     return learner._table_arrays()
 
 

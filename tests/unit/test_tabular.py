@@ -30,7 +30,7 @@ from mrta_rl.learners.tabular.subg_cql import SubGCQLLearner
 from mrta_rl.partition import subg_partition
 from mrta_rl.systems import build_system
 from tests.conftest import paper_system
-from tests.unit.tabular_tables import CASES, FIXTURE, play_tables
+from tests.unit.tabular_tables import CASES, FIXTURE, play, play_tables
 
 LEARNERS = [SubGCQLLearner, CQLLearner, SemiCQLLearner, DQLLearner]
 
@@ -48,23 +48,6 @@ def make(cls, system, params=None, batch=4, seed=0, **hp):
     active = partition.active_tasks(system) if partition else None
     env = AuctionEnv(system, params, batch_size=batch, active_tasks=active, seed=seed)
     return env, cls(env=env, rng=np.random.default_rng(seed), partition=partition, **hp)
-
-
-def play(env, learner, ticks, explore=True, learn=True):
-    view = learner.encode(env)
-    for _ in range(ticks):
-        mask = env.action_mask
-        actions = learner.act(view, mask, explore=explore)
-        assert mask[np.arange(len(mask))[:, None], np.arange(mask.shape[1]), actions].all()
-        result = env.step(actions)
-        next_view = learner.encode(env)
-        if learn:
-            learner.update(view, actions, result, next_view, env.action_mask)
-        view = next_view
-        if env.done.any():
-            env.reset()
-            learner.end_episode()
-            view = learner.encode(env)
 
 
 # ------------------------------------------------------------------ joint actions

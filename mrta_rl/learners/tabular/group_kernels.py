@@ -18,7 +18,12 @@ import numpy as np
 from numba import njit
 
 from mrta_rl.learners.tabular.joint_actions import enumerate_row
-from mrta_rl.learners.tabular.priors import deconflict_row, lowest_bid_row, spread_row
+from mrta_rl.learners.tabular.priors import (
+    PRIOR_CODES,
+    deconflict_row,
+    lowest_bid_row,
+    spread_row,
+)
 from mrta_rl.learners.tabular.qtable import (
     ENTRY_CODE,
     ENTRY_VISITS,
@@ -35,7 +40,7 @@ from mrta_rl.learners.tabular.qtable import (
 )
 from mrta_rl.learners.tabular.schedules import alpha_of_visits
 
-GREEDY, SPREAD, SPREAD_WAIT = 0, 1, 2  # priors.PRIOR_CODES
+GREEDY, SPREAD_WAIT = PRIOR_CODES["greedy"], PRIOR_CODES["spread_wait"]  # compile-time constants
 
 
 # ---------------------------------------------------------------------------------- rows
