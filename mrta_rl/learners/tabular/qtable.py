@@ -146,7 +146,14 @@ class JointQStorage:
 
     def reserve(self, rows: int, entries: int) -> None:
         """Make room for ``rows`` more rows and ``entries`` more entries (amortised doubling)."""
-        need_rows, need_entries = self.n_rows + rows, self.n_entries + entries
+        n_rows, n_entries = self.sizes.tolist()
+        need_rows, need_entries = n_rows + rows, n_entries + entries
+        if (  # the usual case, checked first: room everywhere
+            need_rows <= self.rows.shape[1]
+            and need_entries <= self.q.size
+            and 2 * need_rows <= self.hash.shape[1]
+        ):
+            return
         if need_rows > self.rows.shape[1]:
             grown = np.zeros((5, max(need_rows, 2 * self.rows.shape[1])), np.int64)
             grown[:, : self.n_rows] = self.rows[:, : self.n_rows]
