@@ -207,21 +207,17 @@ def test_damaged_weights_are_named_without_suggesting_unsafe_loading(compose_cfg
     learner = build_run(cfg).learner
     learner.save(tmp_path)
     damage(tmp_path / "weights.pt")
-    from mrta_rl.runners.checkpoint import load_learner
-
     with pytest.raises(ValueError, match="weights.pt") as err:
-        load_learner(build_run(cfg).learner, tmp_path)
+        build_run(cfg).learner.load(tmp_path)
     assert "weights_only" not in str(err.value) and "unsafe" not in str(err.value)
 
 
 def test_weights_of_another_shape_are_refused(compose_cfg, tmp_path):
     small = build_run(compose_cfg(["learner=qmix", "system=system1", "learner.hidden=8"]))
     small.learner.save(tmp_path)
-    from mrta_rl.runners.checkpoint import load_learner
-
     run = build_run(compose_cfg(["learner=qmix", "system=system1"]))
     with pytest.raises(ValueError, match=r"weights.pt: tensor .* expected"):
-        load_learner(run.learner, tmp_path)
+        run.learner.load(tmp_path)
 
 
 # ---------------------------------------------------------------------------------- defect 10
