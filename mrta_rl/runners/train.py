@@ -29,6 +29,7 @@ from mrta_rl.envs import AuctionEnv, AuctionParams
 from mrta_rl.learners import Learner
 from mrta_rl.partition import Partition, subg_partition
 from mrta_rl.runners.checkpoint import (
+    CHECKPOINT_DIR,
     LEARNER_DIR,
     METRICS_FILE,
     RunDirError,
@@ -95,7 +96,6 @@ def _validate_numbers(cfg: DictConfig) -> None:
     for key, least in (
         ("train.episodes", 0),
         ("train.batch_size", 1),
-        ("train.checkpoint_every", 0),
         ("eval.episodes", 1),
         ("eval.batch_size", 1),
     ):
@@ -241,13 +241,19 @@ def train(cfg: DictConfig, run_dir: Path | str | None = None) -> dict[str, Any]:
             f"{run_dir} already holds the results of a finished run ({METRICS_FILE}); "
             "choose another hydra.run.dir (the default is unique per run)"
         )
-    run_dir.mkdir(parents=True, exist_ok=True)
-    run.checkpoint = TrainingCheckpoint(
-        run.learner,
-        run_dir,
-        OmegaConf.select(cfg, "train.checkpoint_every", default=0) or 0,
-        resume=bool(resume),
+    if not resume and (run_dir / CHECKPOINT_DIR).exists():
+        raise RunDirError(
+            f"{run_dir} holds the checkpoint of an interrupted run: continue it with "
+            f"resume={run_dir}, or choose another hydra.run.dir"
+        )
+    # runs written before checkpoints existed have no train.checkpoint_every: none then
+    every = OmegaConf.select(cfg, "train.checkpoint_every", default=0)
+    _check(
+        isinstance(every, int) and not isinstance(every, bool) and every >= 0,
+        f"train.checkpoint_every must be an integer >= 0, got {every!r}",
     )
+    run_dir.mkdir(parents=True, exist_ok=True)
+    run.checkpoint = TrainingCheckpoint(run.learner, run_dir, every, resume=bool(resume))
     logger.info(
         "learner %s (%s) on %s, seed %d, run dir %s",
         run.name,

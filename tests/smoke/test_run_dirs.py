@@ -78,6 +78,20 @@ def test_a_finished_run_is_never_overwritten(compose_cfg, tmp_path):
     assert json.loads((tmp_path / "metrics.json").read_text()) == first
 
 
+@pytest.mark.parametrize("value", ["-1", "abc", "true"])
+def test_bad_checkpoint_interval_fails_before_work(compose_cfg, tmp_path, value):
+    cfg = compose_cfg(["learner=greedy", "debug=smoke", f"train.checkpoint_every={value}"])
+    with pytest.raises(ValueError, match="train.checkpoint_every"):
+        train(cfg, run_dir=tmp_path / "run")
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_run_dir_with_a_checkpoint_is_only_resumed(compose_cfg, tmp_path):
+    (tmp_path / "checkpoint").mkdir()
+    with pytest.raises(ValueError, match=f"resume={tmp_path}"):
+        train(compose_cfg(["learner=greedy", "debug=smoke"]), run_dir=tmp_path)
+
+
 # ---------------------------------------------------------------------------------- defect 3
 @pytest.fixture
 def greedy_run(compose_cfg, tmp_path) -> Path:
@@ -124,9 +138,19 @@ def test_a_tampered_run_config_executes_nothing(greedy_run, tmp_path):
     ],
 )
 def test_run_config_holds_plain_data_only(greedy_run, key, value, culprit):
+    """Only learner and logger classes of this package; plain values everywhere else."""
     tamper(greedy_run, key, value)
     with pytest.raises(ValueError, match=culprit):
         evaluate_checkpoint(greedy_run)
+
+
+def test_runs_written_before_checkpoints_still_evaluate(greedy_run):
+    path = greedy_run / ".hydra" / "config.yaml"
+    cfg = OmegaConf.load(path)
+    del cfg.train["checkpoint_every"], cfg["resume"]
+    OmegaConf.save(cfg, path)
+    again = evaluate_checkpoint(greedy_run)
+    assert again["eval"] == json.loads((greedy_run / "metrics.json").read_text())["eval"]
 
 
 # ---------------------------------------------------------------------------------- defect 9
