@@ -1,6 +1,8 @@
 """Re-evaluate a finished training run and write eval_metrics.json in its run dir.
 
-Usage: ``python scripts/evaluate.py checkpoint=outputs/<date>/<time> [episodes=50]``.
+Usage: ``python scripts/evaluate.py checkpoint=outputs/<date>/<time>_<learner>_<id> [episodes=50]``.
+The run dir is read as data (``mrta_rl/runners/checkpoint.py``): a tampered config or damaged
+tables are refused with a message naming the key or file.
 """
 
 from __future__ import annotations

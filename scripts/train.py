@@ -1,8 +1,10 @@
 """Train one learner on one system, evaluate it against the greedy auction, print a summary.
 
 Usage: ``python scripts/train.py learner=greedy system=system1 eval.episodes=20 seed=3``
-(see conf/config.yaml; ``debug=smoke`` for a seconds-long run). Results go to the Hydra run dir:
-metrics.json, curve.csv, learner/ (state of trained learners) and .hydra/ (the config).
+(see conf/config.yaml; ``debug=smoke`` for a seconds-long run). Results go to the Hydra run dir
+(``outputs/<date>/<time>_<learner>_<id>``): metrics.json, curve.csv, learner/ (state of trained
+learners), .hydra/ (the config) and, while training, checkpoint/. Continue an interrupted run
+with ``python scripts/train.py resume=<run dir>``.
 """
 
 from __future__ import annotations

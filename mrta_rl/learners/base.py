@@ -148,3 +148,33 @@ class Learner(ABC):
         Args:
             directory: Folder written by :meth:`save`.
         """
+
+    def checkpoint_state(self, directory: Path) -> dict[str, Any]:
+        """What training needs beyond :meth:`save` to continue exactly (training checkpoints).
+
+        Called at an episode boundary, after :meth:`save` wrote to ``directory``; subclasses add
+        their counters and write further files there (optimizer, ...). The default is the
+        generator's state.
+
+        Args:
+            directory: The checkpoint folder (holds ``learner/`` written by :meth:`save`).
+
+        Returns:
+            JSON-serialisable state, handed back to :meth:`restore_state`.
+        """
+        return {"rng": self.rng.bit_generator.state}
+
+    def restore_state(self, state: dict[str, Any], directory: Path) -> None:
+        """Restore :meth:`checkpoint_state` (after :meth:`load` of the checkpoint's learner state).
+
+        Args:
+            state: The dict :meth:`checkpoint_state` returned.
+            directory: The checkpoint folder.
+
+        Raises:
+            ValueError: if the state does not fit this learner.
+        """
+        saved = state["rng"]
+        if saved.get("bit_generator") != self.rng.bit_generator.state["bit_generator"]:
+            raise ValueError(f"generator {saved.get('bit_generator')!r} differs from this run's")
+        self.rng.bit_generator.state = saved

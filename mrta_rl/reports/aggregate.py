@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from mrta_rl.reports.collect import RunRecord
+from mrta_rl.reports.collect import RunRecord, natural_key
 from mrta_rl.reports.stats import MeanCI, mean_ci
 from mrta_rl.types import PRIORITIES
 
@@ -39,19 +39,34 @@ PRIORITY_LABELS: dict[str, str] = {"L": "low-priority", "H": "high-priority"}
 
 
 def learner_label(name: str) -> str:
-    """Paper name of a learner (``subg_cql`` -> ``subG-CQL``); unknown names unchanged."""
-    return LEARNER_LABELS.get(name, name)
+    """Paper name of a learner (``subg_cql`` -> ``subG-CQL``); unknown names unchanged.
+
+    A configuration name keeps what sets it apart: ``subg_reserve reserve=1`` ->
+    ``subG-reserve reserve=1`` (``reports/collect.py``).
+    """
+    base, _, variant = name.partition(" ")
+    label = LEARNER_LABELS.get(base, base)
+    return f"{label} {variant}" if variant else label
+
+
+def order_learners(names: Sequence[str]) -> list[str]:
+    """Paper order (CQL, semi-CQL, DQL, subG-CQL, neural, fixed), then the rest alphabetically.
+
+    Configurations of one learner follow each other, their numbers ordered by value.
+    """
+    known = list(LEARNER_LABELS)
+
+    def key(name: str) -> tuple[Any, ...]:
+        base = name.partition(" ")[0]
+        rank = known.index(base) if base in known else len(known)
+        return (rank, base, natural_key(name))
+
+    return sorted(set(names), key=key)
 
 
 def system_label(name: str) -> str:
     """Paper name of a system (``system1`` -> ``System-I``); unknown names unchanged."""
     return SYSTEM_LABELS.get(name, name)
-
-
-def order_learners(names: Sequence[str]) -> list[str]:
-    """Paper order (CQL, semi-CQL, DQL, subG-CQL, neural, fixed), then the rest alphabetically."""
-    known = [n for n in LEARNER_LABELS if n in names]
-    return known + sorted(set(names) - set(known))
 
 
 def order_systems(names: Sequence[str]) -> list[str]:

@@ -10,14 +10,24 @@ overrides (``hydra.overrides.task``), expanded as a cartesian product. A job who
 ``train()`` writes metrics.json last and atomically) or has no dir at all is *missing*. Without a
 multirun.yaml the expected grid is the product of the learners, systems and seeds found, so a
 hole in a hand-made set of runs is reported too.
+
+Runs are told apart by their whole configuration, not only by learner, system and seed: among
+the runs of one learner on one system, every setting of ``.hydra/config.yaml`` whose value differs
+between them (the seed and the settings in :data:`NOT_CONFIGURATION` aside) makes a
+configuration of its own, named by what differs (``subg_reserve reserve=1 hold_level=0``; learner
+hyperparameters by their name, other settings by their dotted key). That name is the run's
+``learner`` in the report, so each configuration is its own row; only the same configuration with
+the same seed is a duplicate.
 """
 
 from __future__ import annotations
 
 import csv
+import dataclasses
 import itertools
 import json
 import logging
+import re
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -30,6 +40,8 @@ logger = logging.getLogger(__name__)
 METRICS_FILE = "metrics.json"
 CURVE_FILE = "curve.csv"
 BASIC_SWEEPER = "hydra._internal.core_plugins.basic_sweeper.BasicSweeper"
+# settings that do not change what a run computes: never part of a configuration's name
+NOT_CONFIGURATION = ("seed", "resume", "train.progress_bar", "train.checkpoint_every")
 
 
 @dataclass(frozen=True)
@@ -38,13 +50,16 @@ class RunRecord:
 
     Attributes:
         run_dir: The run's folder.
-        learner: Learner name (yaml stem), from metrics.json.
+        learner: Learner name (yaml stem), from metrics.json, followed by the settings that set
+            its configuration apart from the other runs of that learner and system
+            (``subg_reserve reserve=1 hold_level=0``, see the module docstring).
         system: System name (``system1``...), from metrics.json.
         seed: Run seed, from metrics.json.
         metrics: The whole metrics.json.
         curve: Training curve rows ``(env_ticks, team_return_mean)``; empty for fixed policies.
         config: The run's ``.hydra/config.yaml`` as a plain dict (``{}`` if absent).
         overrides: The job's ``.hydra/overrides.yaml`` (``()`` if absent).
+        variant: What sets the configuration apart (``reserve=1 hold_level=0``), or ``""``.
     """
 
     run_dir: Path
@@ -55,10 +70,11 @@ class RunRecord:
     curve: tuple[tuple[int, float], ...]
     config: dict[str, Any]
     overrides: tuple[str, ...]
+    variant: str = ""
 
     @property
     def key(self) -> tuple[str, str, int]:
-        """``(learner, system, seed)``: one cell of the grid."""
+        """``(configuration, system, seed)``: one cell of the grid."""
         return (self.learner, self.system, self.seed)
 
 
@@ -159,6 +175,71 @@ def load_run(run_dir: Path) -> RunRecord:
     )
 
 
+def _flatten(config: Any, prefix: str = "") -> dict[str, Any]:
+    """``{"learner.reserve": 1, ...}``: the leaves of a nested config (lists as values)."""
+    if not isinstance(config, dict):
+        return {prefix: config}
+    out: dict[str, Any] = {}
+    for key, value in config.items():
+        out.update(_flatten(value, f"{prefix}.{key}" if prefix else str(key)))
+    return out
+
+
+def _setting_name(key: str) -> str:
+    """``learner.reserve`` -> ``reserve``; other settings keep their dotted key."""
+    return key.removeprefix("learner.") if key.count(".") == 1 else key
+
+
+def configuration_variants(records: Sequence[RunRecord]) -> list[str]:
+    """What sets each run's configuration apart from the other runs of its learner and system.
+
+    Args:
+        records: Runs with their configs.
+
+    Returns:
+        Per run, ``"name=value ..."`` of the settings whose values differ among the runs of its
+        ``(learner, system)`` (seed and :data:`NOT_CONFIGURATION` aside), in config order;
+        ``""`` when nothing differs.
+    """
+    flat = [_flatten(r.config) for r in records]
+    variants = [""] * len(records)
+    groups: dict[tuple[str, str], list[int]] = {}
+    for i, record in enumerate(records):
+        groups.setdefault((record.learner, record.system), []).append(i)
+    for members in groups.values():
+        keys = list(dict.fromkeys(k for i in members for k in flat[i]))  # config order
+        differing = [
+            k
+            for k in keys
+            if k not in NOT_CONFIGURATION
+            and len({json.dumps(flat[i].get(k), sort_keys=True) for i in members}) > 1
+        ]
+        for i in members:
+            variants[i] = " ".join(
+                f"{_setting_name(k)}={_format_value(flat[i].get(k))}" for k in differing
+            )
+    return variants
+
+
+def _format_value(value: Any) -> str:
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return str(value).lower()
+    if isinstance(value, list):
+        return "[" + ",".join(_format_value(v) for v in value) + "]"
+    return str(value)
+
+
+def natural_key(text: str) -> tuple[Any, ...]:
+    """Sort key that orders the numbers in ``text`` by value (``reserve=2`` before ``=10``)."""
+    return tuple(
+        (0, int(part), "") if part.isdigit() else (1, 0, part)
+        for part in re.split(r"(\d+)", text)
+        if part
+    )
+
+
 def expected_sweep_jobs(multirun_yaml: Path) -> list[list[str]] | None:
     """The job list Hydra's BasicSweeper built for a multirun, in job-number order.
 
@@ -241,8 +322,14 @@ def collect_runs(inputs: Iterable[Path | str]) -> Collection:
             raise FileNotFoundError(f"no such run or sweep dir: {path}")
     collection = Collection(inputs=paths)
     by_key: dict[tuple[str, str, int], RunRecord] = {}
-    for run_dir in sorted({d.resolve() for p in paths for d in _find_run_dirs(p)}):
-        record = load_run(run_dir)
+    records = [load_run(d) for d in sorted({d.resolve() for p in paths for d in _find_run_dirs(p)})]
+    variants = configuration_variants(records)
+    for record, variant in zip(records, variants, strict=True):
+        if variant:
+            record = dataclasses.replace(
+                record, learner=f"{record.learner} {variant}", variant=variant
+            )
+        run_dir = record.run_dir
         if record.key in by_key:  # e.g. a run repeated by hand; seeds must count once
             logger.warning(
                 "%s repeats %s; keeping %s", run_dir, record.key, by_key[record.key].run_dir
@@ -250,7 +337,7 @@ def collect_runs(inputs: Iterable[Path | str]) -> Collection:
             collection.duplicates.append(record)
             continue
         by_key[record.key] = record
-    collection.runs = sorted(by_key.values(), key=lambda r: r.key)
+    collection.runs = sorted(by_key.values(), key=lambda r: (natural_key(r.learner), *r.key[1:]))
 
     sweeps = [p / "multirun.yaml" for p in paths if (p / "multirun.yaml").is_file()]
     expected_found = False
@@ -280,7 +367,7 @@ def collect_runs(inputs: Iterable[Path | str]) -> Collection:
                 MissingJob(learner, system, seed, tuple(job), job_dir, reason)
             )
     if not expected_found:
-        learners = sorted({r.learner for r in collection.runs})
+        learners = sorted({r.learner for r in collection.runs}, key=natural_key)
         systems = sorted({r.system for r in collection.runs})
         seeds = sorted({r.seed for r in collection.runs})
         collection.expected_jobs = len(learners) * len(systems) * len(seeds)

@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
-from mrta_rl.runners.evaluate import (
+from mrta_rl.runners.checkpoint import register_resolvers
+from mrta_rl.runners.evaluate import evaluate_policy, evaluate_run, format_summary
+from mrta_rl.runners.train import (
+    TRAINING_LOOPS,
+    RunSetup,
+    build_run,
     evaluate_checkpoint,
-    evaluate_policy,
-    evaluate_run,
-    format_summary,
+    train,
 )
-from mrta_rl.runners.train import TRAINING_LOOPS, RunSetup, build_run, train
+
+register_resolvers()  # before Hydra composes conf/config.yaml (run dirs, see checkpoint.py)
 
 __all__ = [
     "TRAINING_LOOPS",

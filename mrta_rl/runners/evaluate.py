@@ -1,4 +1,4 @@
-"""Shared evaluation of every learner kind, the greedy baseline, checkpoints and the summary text.
+"""Shared evaluation of every learner kind, the greedy baseline, and the summary text.
 
 Evaluation plays ``eval.episodes`` episodes, ``eval.batch_size`` copies at a time, on an env whose
 copy ``b`` is seeded ``eval.seed + b``; each round starts with a fresh reset, which advances every
@@ -15,11 +15,10 @@ from __future__ import annotations
 
 import logging
 import math
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from mrta_rl.envs import AuctionEnv, EpisodeStats
 from mrta_rl.learners import GreedyLearner, Learner
@@ -112,59 +111,6 @@ def return_by_group(summary: dict[str, Any], partition: Partition) -> dict[str, 
         group: {"types": types, "return": round(sum(by_type[t] for t in types), 6)}
         for group, types in partition.group_tasks().items()
     }
-
-
-def evaluate_checkpoint(checkpoint: Path | str, episodes: int | None = None) -> dict[str, Any]:
-    """Re-evaluate a finished run: rebuild it from its ``.hydra/config.yaml``, load the learner.
-
-    Writes ``eval_metrics.json`` in the run dir.
-
-    Args:
-        checkpoint: The run dir of ``scripts/train.py`` (holding ``.hydra/`` and ``learner/``).
-        episodes: Evaluation episodes; default: the run's ``eval.episodes``.
-
-    Returns:
-        The content of ``eval_metrics.json`` (as metrics.json, without the training block).
-
-    Raises:
-        FileNotFoundError: if the run dir has no ``.hydra/config.yaml``.
-        ValueError: on an invalid run config.
-    """
-    from mrta_rl.runners.train import build_run, write_json  # train imports this module
-
-    run_dir = Path(checkpoint)
-    config_path = run_dir / ".hydra" / "config.yaml"
-    if not config_path.is_file():
-        raise FileNotFoundError(f"{run_dir} is not a run dir of scripts/train.py: no {config_path}")
-    cfg = OmegaConf.load(config_path)
-    if episodes is not None:
-        cfg.eval.episodes = int(episodes)
-    choices = _run_choices(run_dir)
-    run = build_run(cfg, name=choices.get("learner"))
-    if run.learner.kind != "fixed":
-        state = run_dir / "learner"
-        if not state.is_dir():
-            raise FileNotFoundError(f"{run_dir}: no saved learner state in {state}")
-        run.learner.load(state)
-    metrics = {
-        "learner": run.name,
-        "system": choices.get("system", run.system.name),
-        "seed": int(cfg.seed),
-        "checkpoint": str(run_dir),
-        **evaluate_run(run, cfg),
-        "learning_space": {k: int(v) for k, v in run.learner.learning_space().items()},
-    }
-    write_json(run_dir / "eval_metrics.json", metrics)
-    return metrics
-
-
-def _run_choices(run_dir: Path) -> dict[str, str]:
-    """Config-group choices recorded in ``.hydra/hydra.yaml`` (``learner`` -> ``greedy``)."""
-    path = run_dir / ".hydra" / "hydra.yaml"
-    if not path.is_file():
-        return {}
-    choices = OmegaConf.select(OmegaConf.load(path), "hydra.runtime.choices", default={})
-    return {str(k): str(v) for k, v in dict(choices).items() if v is not None}
 
 
 def format_summary(metrics: dict[str, Any]) -> str:

@@ -13,6 +13,7 @@ import math
 import numbers
 import time
 from collections import deque
+from contextlib import nullcontext
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -58,19 +59,31 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     env, learner = run.env, run.learner
     horizon, batch = run.params.horizon, env.batch_size
     recent: deque[float] = deque(maxlen=RECENT_EPISODES)
-    env_ticks = 0
+    # resuming: the checkpoint's counters and curve; the env replays its resets, because every
+    # copy starts an episode at each reset and the episode's streams depend only on the seed and
+    # the episode count (auction.py "Counter-based randomness")
+    ckpt = run.checkpoint
+    state = (ckpt.restore() if ckpt else None) or {"episode": 0, "env_ticks": 0, "curve": []}
+    rows: list[dict[str, Any]] = state["curve"]
+    env_ticks = state["env_ticks"]
     start = time.perf_counter()
-    env.reset()
+    for _ in range(state["episode"] + 1):
+        env.reset()
     with (
         instantiate(cfg.logger)(run_dir=run_dir) as curve,
         progress_bar(
             total=cfg.train.episodes * horizon,
+            initial=state["episode"] * horizon,
             unit="tick",
             desc=f"train {run.name}",
             enabled=cfg.train.progress_bar,
         ) as bar,
+        ckpt.catch_interrupt() if ckpt else nullcontext(),
     ):
-        for episode in range(1, cfg.train.episodes + 1):
+        for row in rows:
+            curve.log(row)
+            recent.append(row["team_return_mean"])
+        for episode in range(state["episode"] + 1, cfg.train.episodes + 1):
             view = learner.encode(env)
             while not env.done.any():  # copies share the horizon: all finish at the same tick
                 actions = learner.act(view, env.action_mask, explore=True)
@@ -84,13 +97,18 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
             env.reset()
             learner.end_episode()
             recent.append(team_return)
-            curve.log({"env_ticks": env_ticks, "episode": episode, "team_return_mean": team_return})
+            row = {"env_ticks": env_ticks, "episode": episode, "team_return_mean": team_return}
+            curve.log(row)
+            rows.append(row)
             postfix = {"return": f"{sum(recent) / len(recent):.1f}"}
             epsilon = getattr(learner, "epsilon", None)
             if isinstance(epsilon, numbers.Real) and math.isfinite(epsilon):
                 postfix["eps"] = f"{float(epsilon):.3f}"
             bar.set_postfix(postfix, refresh=False)
             logger.debug("episode %d: team return %.1f", episode, team_return)
+            if ckpt:
+                loop = {"episode": episode, "env_ticks": env_ticks, "curve": rows}
+                ckpt.episode_end(loop, last=episode == cfg.train.episodes)
     wall = time.perf_counter() - start
     logger.info("trained %d episodes (%d env ticks) in %.1f s", cfg.train.episodes, env_ticks, wall)
     return {"env_ticks": env_ticks, "wall_s": round(wall, 3), "episodes": int(cfg.train.episodes)}

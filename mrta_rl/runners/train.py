@@ -14,9 +14,7 @@ on identical streams.
 from __future__ import annotations
 
 import importlib
-import json
 import logging
-import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,11 +23,23 @@ from typing import Any
 import numpy as np
 from hydra.core.hydra_config import HydraConfig
 from hydra.utils import get_class, instantiate
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, open_dict
 
 from mrta_rl.envs import AuctionEnv, AuctionParams
 from mrta_rl.learners import Learner
 from mrta_rl.partition import Partition, subg_partition
+from mrta_rl.runners.checkpoint import (
+    CHECKPOINT_DIR,
+    LEARNER_DIR,
+    METRICS_FILE,
+    RunDirError,
+    TrainingCheckpoint,
+    TrainingInterrupted,
+    load_learner,
+    read_run_config,
+    run_choices,
+    write_json,
+)
 from mrta_rl.runners.evaluate import evaluate_run
 from mrta_rl.systems import RobotSystem, build_system
 
@@ -58,6 +68,8 @@ class RunSetup:
         active_tasks: ``[m, n]`` bool ``Lambda_i`` of the learner's envs, None = ``Gamma_i``.
         env: The training env (``train.batch_size`` copies).
         learner: The learner, built on ``env``.
+        checkpoint: Periodic training checkpoints and resuming (set by :func:`train`; None:
+            none).
     """
 
     name: str
@@ -67,6 +79,7 @@ class RunSetup:
     active_tasks: np.ndarray | None
     env: AuctionEnv
     learner: Learner
+    checkpoint: TrainingCheckpoint | None = None
 
 
 def _check(condition: bool, message: str) -> None:
@@ -189,29 +202,58 @@ def build_run(cfg: DictConfig, name: str | None = None) -> RunSetup:
     return RunSetup(name, system, env.params, partition, active_tasks, env, learner)
 
 
-def write_json(path: Path, payload: dict[str, Any]) -> None:
-    """Write JSON atomically (temporary file then rename), so a file is never half-written."""
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(payload, indent=2, allow_nan=False) + "\n")
-    os.replace(tmp, path)
-
-
 def train(cfg: DictConfig, run_dir: Path | str | None = None) -> dict[str, Any]:
     """Train the configured learner, evaluate it and greedy, write ``metrics.json``.
 
+    With ``resume=<run dir>`` the run in that dir continues from its last checkpoint, built from
+    its own ``.hydra/config.yaml`` (read as data, see ``runners/checkpoint.py``), and ends as
+    the uninterrupted run would have.
+
     Args:
         cfg: The composed run config (conf/config.yaml).
-        run_dir: Output folder; default: the Hydra run dir.
+        run_dir: Output folder; default: the Hydra run dir (the ``resume`` dir when resuming).
 
     Returns:
         The content of ``metrics.json``.
 
     Raises:
-        ValueError: on an invalid config, before anything is written.
+        ValueError: on an invalid config or run dir, before anything is written.
+        SystemExit: with code 130 after Ctrl-C (a checkpoint is saved first).
     """
-    run = build_run(cfg)
-    run_dir = Path(run_dir if run_dir is not None else HydraConfig.get().runtime.output_dir)
+    resume = cfg.get("resume")
+    if resume:
+        run_dir = Path(resume)
+        _check_resume_overrides()
+        choices = run_choices(run_dir)
+        progress = cfg.train.progress_bar
+        cfg = read_run_config(run_dir)
+        with open_dict(cfg):
+            cfg.resume = str(run_dir)
+            cfg.train.progress_bar = progress
+        run = build_run(cfg, name=choices.get("learner"))
+        system_name = choices.get("system", run.system.name)
+    else:
+        run = build_run(cfg)
+        run_dir = Path(run_dir if run_dir is not None else HydraConfig.get().runtime.output_dir)
+        system_name = hydra_choice("system", run.system.name)
+    if (run_dir / METRICS_FILE).exists():
+        raise RunDirError(
+            f"{run_dir} already holds the results of a finished run ({METRICS_FILE}); "
+            "choose another hydra.run.dir (the default is unique per run)"
+        )
+    if not resume and (run_dir / CHECKPOINT_DIR).exists():
+        raise RunDirError(
+            f"{run_dir} holds the checkpoint of an interrupted run: continue it with "
+            f"resume={run_dir}, or choose another hydra.run.dir"
+        )
+    # runs written before checkpoints existed have no train.checkpoint_every: none then
+    every = OmegaConf.select(cfg, "train.checkpoint_every", default=0)
+    _check(
+        isinstance(every, int) and not isinstance(every, bool) and every >= 0,
+        f"train.checkpoint_every must be an integer >= 0, got {every!r}",
+    )
     run_dir.mkdir(parents=True, exist_ok=True)
+    run.checkpoint = TrainingCheckpoint(run.learner, run_dir, every, resume=bool(resume))
     logger.info(
         "learner %s (%s) on %s, seed %d, run dir %s",
         run.name,
@@ -221,14 +263,26 @@ def train(cfg: DictConfig, run_dir: Path | str | None = None) -> dict[str, Any]:
         run_dir,
     )
     start = time.perf_counter()
-    train_info = training_loop(run.learner.kind)(run, cfg, run_dir)
+    try:
+        train_info = training_loop(run.learner.kind)(run, cfg, run_dir)
+    except TrainingInterrupted as stop:
+        if stop.checkpoint is None:
+            logger.error("interrupted before the first checkpoint: nothing to resume from")
+        else:
+            logger.error(
+                "interrupted: checkpoint saved in %s; continue with: "
+                "python scripts/train.py resume=%s",
+                stop.checkpoint,
+                run_dir,
+            )
+        raise SystemExit(130) from None
     train_info["wall_s"] = round(time.perf_counter() - start, 3)
     if run.learner.kind != "fixed":
-        run.learner.save(run_dir / "learner")
+        run.learner.save(run_dir / LEARNER_DIR)
     results = evaluate_run(run, cfg)
     metrics = {
         "learner": run.name,
-        "system": hydra_choice("system", run.system.name),
+        "system": system_name,
         "seed": int(cfg.seed),
         **results,
         "train": train_info,
@@ -236,6 +290,61 @@ def train(cfg: DictConfig, run_dir: Path | str | None = None) -> dict[str, Any]:
     }
     if run.partition is not None:
         write_json(run_dir / "partition.json", run.partition.to_json())
-    write_json(run_dir / "metrics.json", metrics)
-    logger.info("wrote %s", run_dir / "metrics.json")
+    write_json(run_dir / METRICS_FILE, metrics, exclusive=True)
+    run.checkpoint.finish()
+    logger.info("wrote %s", run_dir / METRICS_FILE)
+    return metrics
+
+
+RESUME_KEEPS = ("resume", "train.progress_bar")  # overrides allowed with resume=
+
+
+def _check_resume_overrides() -> None:
+    """Resuming takes the run's own config: refuse other overrides instead of ignoring them."""
+    if not HydraConfig.initialized():
+        return
+    given = [str(o) for o in HydraConfig.get().overrides.task]
+    other = [o for o in given if o.split("=")[0].lstrip("+~") not in RESUME_KEEPS]
+    if other:
+        raise ValueError(
+            f"invalid config: resume= continues a run with its own config; drop {other}"
+        )
+
+
+def evaluate_checkpoint(checkpoint: Path | str, episodes: int | None = None) -> dict[str, Any]:
+    """Re-evaluate a finished run: rebuild it from its ``.hydra/config.yaml``, load the learner.
+
+    The run dir is read as data (``runners/checkpoint.py``): its config must name a learner
+    class of this package with plain hyperparameters, and the saved state must fit the learner
+    built for the run; otherwise nothing is evaluated. Writes ``eval_metrics.json`` in the run
+    dir.
+
+    Args:
+        checkpoint: The run dir of ``scripts/train.py`` (holding ``.hydra/`` and ``learner/``).
+        episodes: Evaluation episodes; default: the run's ``eval.episodes``.
+
+    Returns:
+        The content of ``eval_metrics.json`` (as metrics.json, without the training block).
+
+    Raises:
+        RunDirError: on a missing, tampered or damaged run dir (a ``ValueError``).
+        ValueError: on an invalid run config.
+    """
+    run_dir = Path(checkpoint)
+    cfg = read_run_config(run_dir)
+    if episodes is not None:
+        cfg.eval.episodes = int(episodes)
+    choices = run_choices(run_dir)
+    run = build_run(cfg, name=choices.get("learner"))
+    if run.learner.kind != "fixed":
+        load_learner(run.learner, run_dir / LEARNER_DIR)
+    metrics = {
+        "learner": run.name,
+        "system": choices.get("system", run.system.name),
+        "seed": int(cfg.seed),
+        "checkpoint": str(run_dir),
+        **evaluate_run(run, cfg),
+        "learning_space": {k: int(v) for k, v in run.learner.learning_space().items()},
+    }
+    write_json(run_dir / "eval_metrics.json", metrics)
     return metrics

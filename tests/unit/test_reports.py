@@ -38,11 +38,14 @@ def write_run(
     curve: list[tuple[int, float]] | None = None,
     system: str = "system1",
     groups: dict[str, tuple[list[str], float, float]] | None = None,
+    settings: dict | None = None,
 ) -> Path:
     """A run dir as scripts/train.py writes it (metrics.json, curve.csv, .hydra/config.yaml).
 
-    ``groups``: sub-group -> (task types, learner's part, greedy's part) of a partitioned run.
+    ``groups``: sub-group -> (task types, learner's part, greedy's part) of a partitioned run;
+    ``settings``: learner hyperparameters of the run's config.
     """
+
     def block(ret: float, low: float, high: float, idle: float) -> dict:
         return {
             "episodes": 2,
@@ -73,10 +76,16 @@ def write_run(
             handle.write(f"{ticks},{k + 1},{ret}\n")
     (run_dir / ".hydra").mkdir()
     OmegaConf.save(
-        OmegaConf.create({"seed": seed, "system": {"name": system, "robots": ROBOT_TABLE},
-                          "learner": {"_target_": "x.Y", "_partial_": True, "alpha": 0.1},
-                          "env": {"horizon": 50}, "train": {"episodes": 2},
-                          "eval": {"episodes": 2}}),
+        OmegaConf.create(
+            {
+                "seed": seed,
+                "system": {"name": system, "robots": ROBOT_TABLE},
+                "learner": {"_target_": "x.Y", "_partial_": True, "alpha": 0.1, **(settings or {})},
+                "env": {"horizon": 50},
+                "train": {"episodes": 2},
+                "eval": {"episodes": 2},
+            }
+        ),
         run_dir / ".hydra" / "config.yaml",
     )
     return run_dir
@@ -105,25 +114,73 @@ def test_collect_reports_holes_and_duplicates(tmp_path):
     write_run(tmp_path / "d", "dql", 0)  # same cell again: counted once
     collection = collect_runs([tmp_path])
     assert [r.key for r in collection.runs] == [
-        ("cql", "system1", 0), ("cql", "system1", 1), ("dql", "system1", 0)
+        ("cql", "system1", 0),
+        ("cql", "system1", 1),
+        ("dql", "system1", 0),
     ]
     assert [(m.learner, m.system, m.seed) for m in collection.missing] == [("dql", "system1", 1)]
     assert collection.expected_jobs == 4 and len(collection.duplicates) == 1
 
 
+def test_runs_differing_in_hyperparameters_are_separate_configurations(tmp_path):
+    """Issue 9 defect 1: a reserve x hold_level sweep is four rows, not one run and 3 dropped."""
+    returns = {}
+    for i, (reserve, hold) in enumerate([(0, 0), (0, 1), (1, 0), (1, 1)]):
+        returns[reserve, hold] = 100.0 + 10 * i
+        write_run(
+            tmp_path / str(i),
+            "subg_reserve",
+            0,
+            team_return=100.0 + 10 * i,
+            settings={"reserve": reserve, "hold_level": hold},
+        )
+    write_run(tmp_path / "again", "subg_reserve", 0, settings={"reserve": 1, "hold_level": 0})
+    write_run(
+        tmp_path / "seed1",
+        "subg_reserve",
+        1,
+        team_return=returns[1, 0],
+        settings={"reserve": 1, "hold_level": 0},
+    )
+    write_run(tmp_path / "greedy", "greedy", 0)  # nothing differs among greedy runs: plain name
+    collection = collect_runs([tmp_path])
+    variants = [f"subg_reserve reserve={a} hold_level={b}" for a in (0, 1) for b in (0, 1)]
+    assert [(r.learner, r.seed) for r in collection.runs] == [
+        ("greedy", 0),
+        *((v, 0) for v in variants[:2]),
+        (variants[2], 0),
+        (variants[2], 1),
+        (variants[3], 0),
+    ]
+    # only the same configuration with the same seed is a duplicate
+    assert [d.run_dir.name for d in collection.duplicates] == ["again"]
+    cells = summarize_runs(collection.runs)
+    assert [learner for _, learner in cells] == ["greedy", *variants]  # paper order, then values
+    for (reserve, hold), value in returns.items():
+        cell = cells[("system1", f"subg_reserve reserve={reserve} hold_level={hold}")]
+        assert cell.team_return.mean == value
+    assert cells[("system1", "subg_reserve reserve=1 hold_level=0")].seeds == (0, 1)
+    report = build_report([tmp_path], tmp_path / "report").report.read_text()
+    assert "| subG-reserve reserve=1 hold_level=0 |" in report
+
+
 def test_expected_jobs_follow_the_basic_sweeper(tmp_path):
     OmegaConf.save(
-        OmegaConf.create({
-            "seed": 0,
-            "hydra": {
-                "sweeper": {
-                    "_target_": "hydra._internal.core_plugins.basic_sweeper.BasicSweeper",
-                    "max_batch_size": None,
-                    "params": {"learner": "cql,dql", "seed": "0,1,2"},
+        OmegaConf.create(
+            {
+                "seed": 0,
+                "hydra": {
+                    "sweeper": {
+                        "_target_": "hydra._internal.core_plugins.basic_sweeper.BasicSweeper",
+                        "max_batch_size": None,
+                        "params": {"learner": "cql,dql", "seed": "0,1,2"},
+                    },
+                    "overrides": {
+                        "task": ["experiment=paper", "seed=3,4"]
+                    },  # the command line wins
                 },
-                "overrides": {"task": ["experiment=paper", "seed=3,4"]},  # the command line wins
-            },
-        }),
+            }
+        ),
         tmp_path / "multirun.yaml",
     )
     jobs = expected_sweep_jobs(tmp_path / "multirun.yaml")
@@ -152,9 +209,18 @@ def test_summaries_and_claims(tmp_path):
     assert cql.ctr[("T2", "L")].ci95 == pytest.approx(t_quantile(1) * math.sqrt(0.5) / math.sqrt(2))
     assert cql.itr["mean"].mean == pytest.approx(20.5) and cql.return_gain.mean == 10.0
     verdicts = {(r.claim, r.system): r.verdict for r in check_claims(summaries)}
-    for claim in ("h_above_l", "cql_best_ctr", "cql_best_each_type", "subg_ctr_bit_lower",
-                  "dql_lowest_ctr_l", "subg_lowest_itr", "dql_highest_itr", "semi_itr_between",
-                  "space_order", "space_semi_eq_dql"):
+    for claim in (
+        "h_above_l",
+        "cql_best_ctr",
+        "cql_best_each_type",
+        "subg_ctr_bit_lower",
+        "dql_lowest_ctr_l",
+        "subg_lowest_itr",
+        "dql_highest_itr",
+        "semi_itr_between",
+        "space_order",
+        "space_semi_eq_dql",
+    ):
         assert verdicts[(claim, "system1")] == "holds", claim
     # semi-CQL H (80) is below DQL H (85) and its L above: holds; our capable-robot count is
     # 2 for T1 and 1 for T2/T3 while CTR grows with the type index: does not hold
@@ -169,10 +235,12 @@ def test_summaries_and_claims(tmp_path):
 
 
 def test_curves_keep_the_common_prefix(tmp_path):
-    runs = collect_runs([
-        write_run(tmp_path / "a", "cql", 0, curve=[(10, 1.0), (20, 3.0), (30, 5.0)]),
-        write_run(tmp_path / "b", "cql", 1, curve=[(10, 3.0), (20, 5.0)]),
-    ]).runs
+    runs = collect_runs(
+        [
+            write_run(tmp_path / "a", "cql", 0, curve=[(10, 1.0), (20, 3.0), (30, 5.0)]),
+            write_run(tmp_path / "b", "cql", 1, curve=[(10, 3.0), (20, 5.0)]),
+        ]
+    ).runs
     curve = summarize_curve(runs)
     assert curve.env_ticks.tolist() == [10, 20] and curve.mean.tolist() == [2.0, 4.0]
     assert curve.seeds == 2 and curve.high[0] > curve.mean[0] > curve.low[0]
@@ -181,9 +249,13 @@ def test_curves_keep_the_common_prefix(tmp_path):
 
 def test_report_keeps_big_learning_spaces_exact(tmp_path):
     for seed in (0, 1):
-        write_run(tmp_path / "runs" / f"s{seed}", "cql", seed,
-                  space={"analytic": 2**70 + 1, "visited": 3 + seed},
-                  curve=[(10, 1.0 + seed), (20, 2.0)])
+        write_run(
+            tmp_path / "runs" / f"s{seed}",
+            "cql",
+            seed,
+            space={"analytic": 2**70 + 1, "visited": 3 + seed},
+            curve=[(10, 1.0 + seed), (20, 2.0)],
+        )
     files = build_report([tmp_path / "runs"])
     assert files.out_dir == (tmp_path / "runs" / "report").resolve()
     with files.csvs["learning_space"].open() as handle:
@@ -191,8 +263,13 @@ def test_report_keeps_big_learning_spaces_exact(tmp_path):
     assert rows["analytic"]["exact"] == str(2**70 + 1) and rows["visited"]["exact"] == ""
     text = files.report.read_text()
     assert "1.181e+21" in text and "![System-I learning curves](curve_system1.png)" in text
-    assert set(files.figures) >= {"ctr_system1_L", "ctr_system1_H", "itr_system1",
-                                  "curve_system1", "team_return"}
+    assert set(files.figures) >= {
+        "ctr_system1_L",
+        "ctr_system1_H",
+        "itr_system1",
+        "curve_system1",
+        "team_return",
+    }
 
 
 def test_report_splits_the_return_by_sub_group(tmp_path):

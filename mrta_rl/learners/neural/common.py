@@ -51,6 +51,7 @@ logger = logging.getLogger(__name__)
 
 WEIGHTS_FILE = "weights.pt"  # state_dict of the Q-networks (and mixer), torch.load(weights_only)
 META_FILE = "learner.json"  # group map and sizes, to check a checkpoint fits the run
+TRAINING_FILE = "training.pt"  # optimizer, target networks, epsilon (training checkpoints)
 JOINT = "joint"  # root sub-TensorDict of joint-action keys: (JOINT, group, leaf), batch [*]
 
 
@@ -367,18 +368,99 @@ class NeuralLearner(Learner):
             directory: Folder written by :meth:`save`.
 
         Raises:
-            ValueError: if the checkpoint's groups differ from this learner's.
+            ValueError: naming the file, if it is unreadable, or its groups, tensor names or
+                shapes differ from this learner's.
         """
         directory = Path(directory)
         meta_path = directory / META_FILE
         if meta_path.is_file():
-            meta = json.loads(meta_path.read_text())
+            try:
+                meta = json.loads(meta_path.read_text())
+            except ValueError as err:
+                raise ValueError(f"{meta_path}: not a learner description ({err})") from err
             if meta.get("group_map") != self.group_map:
                 raise ValueError(
-                    f"checkpoint groups {meta.get('group_map')} differ from {self.group_map}"
+                    f"{meta_path}: checkpoint groups {meta.get('group_map')} differ from "
+                    f"{self.group_map}"
                 )
-        state = torch.load(directory / WEIGHTS_FILE, map_location=self.device, weights_only=True)
+            if meta.get("class", type(self).__name__) != type(self).__name__:
+                raise ValueError(
+                    f"{directory} holds a {meta['class']}, not a {type(self).__name__}"
+                )
+        path = directory / WEIGHTS_FILE
+        state = read_tensors(path, self.device)
+        check_state_dict(state, self.networks.state_dict(), path)
         self.networks.load_state_dict(state)
+
+    def checkpoint_state(self, directory: Path) -> dict[str, Any]:
+        """Counters; optimizer, target networks and epsilon in ``training.pt``.
+
+        Torch's global generator (exploration, replay sampling) belongs to the runner, which
+        seeds it and saves it with the replay buffer.
+        """
+        extra = {
+            "optimizer": self.optimizer.state_dict(),
+            "losses": {name: loss.state_dict() for name, loss in self.losses.items()},
+            "egreedy": [module.state_dict() for module in self.egreedy],
+        }
+        torch.save(extra, Path(directory) / TRAINING_FILE)
+        return {
+            **super().checkpoint_state(directory),
+            "gradient_steps": self.gradient_steps,
+            "target_updaters": [u.state_dict() for u in self.target_updaters],
+        }
+
+    def restore_state(self, state: dict[str, Any], directory: Path) -> None:
+        """Restore :meth:`checkpoint_state` (``weights_only`` loading of ``training.pt``)."""
+        super().restore_state(state, directory)
+        extra = read_tensors(Path(directory) / TRAINING_FILE, self.device)
+        for name, loss in self.losses.items():
+            loss.load_state_dict(extra["losses"][name])
+        self.optimizer.load_state_dict(extra["optimizer"])
+        for module, saved in zip(self.egreedy, extra["egreedy"], strict=True):
+            module.load_state_dict(saved)
+        self.gradient_steps = int(state["gradient_steps"])
+        for updater, saved in zip(self.target_updaters, state["target_updaters"], strict=True):
+            updater.load_state_dict(saved)
+
+
+def read_tensors(path: Path, device: torch.device) -> Any:
+    """``torch.load(weights_only=True)`` of a file written by this package, errors naming it.
+
+    Raises:
+        ValueError: if the file is missing, truncated or not a tensor file of this package (the
+            message never suggests loading it unsafely).
+    """
+    if not path.is_file():
+        raise ValueError(f"{path}: missing")
+    try:
+        return torch.load(path, map_location=device, weights_only=True)
+    except Exception as err:  # torch raises many types; its message suggests unsafe loading
+        raise ValueError(
+            f"{path}: truncated, damaged or not a weights file written by this package "
+            f"({type(err).__name__})"
+        ) from None
+
+
+def check_state_dict(state: Any, expected: dict[str, torch.Tensor], path: Path) -> None:
+    """Saved tensors against the learner's own: names, shapes and dtypes.
+
+    Raises:
+        ValueError: naming the file and the first mismatch.
+    """
+    if not isinstance(state, dict) or set(state) != set(expected):
+        names = sorted(state) if isinstance(state, dict) else type(state).__name__
+        raise ValueError(
+            f"{path}: holds tensors {names}, this run's learner has {sorted(expected)} "
+            "(saved for another system, partition or learner?)"
+        )
+    for name, want in expected.items():
+        got = state[name]
+        if not isinstance(got, torch.Tensor) or got.shape != want.shape or got.dtype != want.dtype:
+            shape = tuple(got.shape) if isinstance(got, torch.Tensor) else type(got).__name__
+            raise ValueError(
+                f"{path}: tensor {name} is {shape}, expected {tuple(want.shape)} {want.dtype}"
+            )
 
 
 class MixedQLearner(NeuralLearner):

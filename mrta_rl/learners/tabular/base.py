@@ -141,18 +141,98 @@ class TabularLearner(Learner):
         (directory / META_FILE).write_text(json.dumps(meta, indent=2) + "\n")
 
     def load(self, directory: Path) -> None:
-        """Restore what :meth:`save` wrote (``allow_pickle=False``).
+        """Restore what :meth:`save` wrote (``allow_pickle=False``), checked against this learner.
 
         Args:
             directory: Folder written by :meth:`save`.
 
         Raises:
-            ValueError: if the folder was written by another learner class.
+            ValueError: naming the file, if it is unreadable, written by another learner class,
+                or its arrays do not fit this learner (other system or partition, wrong
+                dtype or shape, inconsistent tables).
         """
         directory = Path(directory)
-        meta = json.loads((directory / META_FILE).read_text())
-        if meta["class"] != type(self).__name__:
-            raise ValueError(f"{directory} holds a {meta['class']}, not a {type(self).__name__}")
-        with np.load(directory / Q_FILE, allow_pickle=False) as data:
-            self._load_table_arrays({k: data[k] for k in data.files})
-        self.episodes_done = int(meta["episodes_done"])
+        meta_path = directory / META_FILE
+        try:
+            meta = json.loads(meta_path.read_text())
+            saved_class, episodes_done = meta["class"], int(meta["episodes_done"])
+        except (OSError, ValueError, KeyError, TypeError) as err:
+            raise ValueError(
+                f"{meta_path}: not a learner description written by save ({err})"
+            ) from err
+        if saved_class != type(self).__name__:
+            raise ValueError(f"{directory} holds a {saved_class}, not a {type(self).__name__}")
+        arrays = read_npz(directory / Q_FILE)
+        check_arrays(arrays, self._table_arrays(), directory / Q_FILE)
+        try:
+            self._load_table_arrays(arrays)
+        except (ValueError, KeyError, IndexError) as err:
+            raise ValueError(f"{directory / Q_FILE}: {err}") from err
+        self.episodes_done = episodes_done
+
+
+ZIP_MAGIC = b"PK\x03\x04"  # every npz file is a zip archive
+
+
+def read_npz(path: Path) -> dict[str, np.ndarray]:
+    """All arrays of an npz file written by ``np.savez``, never unpickling anything.
+
+    Args:
+        path: The file.
+
+    Returns:
+        ``{name: array}``.
+
+    Raises:
+        ValueError: naming the file, if it is missing, not an npz archive, or truncated.
+    """
+    try:
+        with path.open("rb") as handle:
+            head = handle.read(len(ZIP_MAGIC))
+    except OSError as err:
+        raise ValueError(f"{path}: cannot read the table file ({err})") from err
+    if head != ZIP_MAGIC:
+        raise ValueError(f"{path}: not a table file written by save (not an npz archive)")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            return {k: data[k] for k in data.files}
+    except Exception as err:  # zipfile, zlib and numpy raise several types on damaged files
+        raise ValueError(
+            f"{path}: truncated or damaged table file ({type(err).__name__}: {err})"
+        ) from err
+
+
+def check_arrays(
+    arrays: dict[str, np.ndarray], expected: dict[str, np.ndarray], path: Path
+) -> None:
+    """Saved arrays against the arrays of the learner built for the run: names, dtypes, shapes.
+
+    An expected array with no rows yet (a table that grows with visited states) fixes only its
+    trailing dimensions; any other fixes its whole shape.
+
+    Args:
+        arrays: The loaded arrays.
+        expected: The learner's own arrays (``_table_arrays()`` of the fresh learner).
+        path: The file, for messages.
+
+    Raises:
+        ValueError: naming the file and the first mismatch.
+    """
+    if set(arrays) != set(expected):
+        raise ValueError(
+            f"{path}: holds arrays {sorted(arrays)}, this run's learner has {sorted(expected)} "
+            "(saved for another system, partition or learner?)"
+        )
+    for name, want in expected.items():
+        got = arrays[name]
+        if got.dtype != want.dtype:
+            raise ValueError(f"{path}: array {name} has dtype {got.dtype}, expected {want.dtype}")
+        grows = want.ndim > 0 and want.shape[0] == 0
+        fits = (
+            got.shape[1:] == want.shape[1:] and got.ndim == want.ndim
+            if grows
+            else got.shape == want.shape
+        )
+        if not fits:
+            shape = ("rows", *want.shape[1:]) if grows else want.shape
+            raise ValueError(f"{path}: array {name} has shape {got.shape}, expected {shape}")

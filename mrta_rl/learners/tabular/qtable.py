@@ -229,8 +229,21 @@ class JointQStorage:
         self.sizes[0] = len(states)
         self.hash = _rebuild_hash(self.rows, len(states), self.hash.shape[1])
 
-    def from_arrays(self, tables: list[dict[str, np.ndarray]]) -> None:
-        """Restore every group from :meth:`to_arrays` outputs (one dict per group, in order)."""
+    def from_arrays(
+        self, tables: list[dict[str, np.ndarray]], joint_counts: list[int] | None = None
+    ) -> None:
+        """Restore every group from :meth:`to_arrays` outputs (one dict per group, in order).
+
+        Args:
+            tables: One dict of :data:`TABLE_KEYS` arrays per group.
+            joint_counts: Number of joint-action codes of each group, to check the codes.
+
+        Raises:
+            ValueError: if a group's arrays do not form one consistent table (see
+                :func:`check_table`).
+        """
+        for group, t in enumerate(tables):
+            check_table(t, None if joint_counts is None else joint_counts[group], f"G{group + 1}")
         self.__init__(self.n_groups)
         n_rows = sum(len(t["states"]) for t in tables)
         n_entries = sum(len(t["codes"]) for t in tables)
@@ -249,3 +262,44 @@ class JointQStorage:
             row, entry = row + n, entry + e
         self.sizes[:] = row, entry
         self.hash = _rebuild_hash(self.rows, row, self.hash.shape[1])
+
+
+def check_table(t: dict[str, np.ndarray], joint_count: int | None, name: str) -> None:
+    """Check that one group's saved arrays form one consistent table.
+
+    Args:
+        t: The group's :data:`TABLE_KEYS` arrays.
+        joint_count: Number of joint-action codes of the group (None: codes not checked).
+        name: The group, for messages.
+
+    Raises:
+        ValueError: if lengths, offsets, joint-action codes, prior entries or visit counts do
+            not fit together.
+    """
+    a = {k: np.asarray(t[k]) for k in TABLE_KEYS}
+    n_rows, n_entries = len(a["states"]), len(a["codes"])
+    problems = [
+        f"{k}: {len(a[k])} values for {n_rows} states"
+        for k in ("offset", "length", "greedy")
+        if len(a[k]) != n_rows
+    ]
+    problems += [
+        f"{k}: {len(a[k])} values for {n_entries} joint actions"
+        for k in ("q", "visits")
+        if len(a[k]) != n_entries
+    ]
+    if not problems:
+        ends = np.cumsum(a["length"])
+        tiled = int(a["length"].sum()) == n_entries and np.array_equal(
+            a["offset"], ends - a["length"]
+        )
+        if (a["length"] < 1).any() or not tiled:
+            problems.append("row offsets and lengths do not tile the joint actions")
+        elif joint_count is not None and ((a["codes"] < 0) | (a["codes"] >= joint_count)).any():
+            problems.append(f"joint-action codes outside [0, {joint_count})")
+        elif ((a["greedy"] < a["offset"]) | (a["greedy"] >= ends)).any():
+            problems.append("a prior entry lies outside its state's row")
+        elif len(np.unique(a["states"])) != n_rows or (a["visits"] < 0).any():
+            problems.append("repeated states or negative visit counts")
+    if problems:
+        raise ValueError(f"table {name}: " + "; ".join(problems))

@@ -242,7 +242,8 @@ class GroupQLearner(TabularLearner):
 
     def _load_table_arrays(self, arrays: dict[str, np.ndarray]) -> None:
         self.storage.from_arrays(
-            [{k: arrays[f"{name}.{k}"] for k in TABLE_KEYS} for name in self.group_names]
+            [{k: arrays[f"{name}.{k}"] for k in TABLE_KEYS} for name in self.group_names],
+            [joint.count for joint in self.joint],
         )
 
 

@@ -1,0 +1,403 @@
+"""Run directories as data: their config and learner state read safely; training checkpoints.
+
+A run dir may come from anyone (a shared drive, a download), so reading one never executes what
+it says. :func:`read_run_config` accepts a ``.hydra/config.yaml`` only if its learner is a
+:class:`~mrta_rl.learners.Learner` class of this package with plain scalar or list
+hyperparameters, its logger a curve logger of this package, and everything else plain data (no
+``_target_``, no interpolation); anything else is refused with a message naming the key.
+:func:`load_learner` restores saved tables or weights through the learner's own ``load``, which
+checks them against the learner built for the run; any failure names the file and what is wrong.
+
+Training checkpoints (:class:`TrainingCheckpoint`) hold everything a run needs to continue
+exactly where it stopped: the learner state (``save``), what ``save`` lacks
+(:meth:`Learner.checkpoint_state`: generators, counters; neural: optimizer, target networks,
+replay buffer), the training loop's counters and the curve so far. They are taken at episode
+boundaries, where every training copy starts a new episode, so the env is fully given by its
+seeds and the number of episodes played. A checkpoint is written to a temporary folder, then
+renamed over the previous one, so a crash never leaves a half-written checkpoint.
+
+Import direction: ``train`` -> ``evaluate``, ``train`` -> ``checkpoint``; this module imports no
+other runner module.
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import logging
+import os
+import secrets
+import shutil
+import signal
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf
+
+from mrta_rl.learners import Learner
+from mrta_rl.metrics.logger import CSVLogger
+
+logger = logging.getLogger(__name__)
+
+CONFIG_FILE = Path(".hydra") / "config.yaml"
+HYDRA_FILE = Path(".hydra") / "hydra.yaml"
+LEARNER_DIR = "learner"  # final learner state (Learner.save)
+CHECKPOINT_DIR = "checkpoint"  # latest training checkpoint
+METRICS_FILE = "metrics.json"
+STATE_FILE = "training.json"  # loop counters, curve so far, learner checkpoint_state
+PACKAGE = "mrta_rl."
+SCALARS = (str, int, float, bool, type(None))
+
+
+class RunDirError(ValueError):
+    """A run dir that cannot be used; the message names the file and what is wrong."""
+
+
+def write_json(path: Path, payload: dict[str, Any], *, exclusive: bool = False) -> None:
+    """Write JSON atomically (temporary file then rename), so a file is never half-written.
+
+    Args:
+        path: The file.
+        payload: JSON-serialisable content (no NaN).
+        exclusive: Never replace an existing file (the rename is a hard link that fails if
+            ``path`` exists): the results of a run are never overwritten by another run.
+
+    Raises:
+        RunDirError: if ``exclusive`` and ``path`` exists.
+    """
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(json.dumps(payload, indent=2, allow_nan=False) + "\n")
+    if not exclusive:
+        os.replace(tmp, path)
+        return
+    try:
+        os.link(tmp, path)
+    except FileExistsError:
+        raise RunDirError(
+            f"{path} was written by another run meanwhile; this run's results are kept in {tmp}"
+        ) from None
+    tmp.unlink()
+
+
+# ---------------------------------------------------------------------------------- run dirs
+RUN_ID = f"{os.getpid() % 0x10000:04x}{secrets.token_hex(2)}"  # this process's run dir suffix
+
+
+def register_resolvers() -> None:
+    """OmegaConf resolvers of the run dir pattern in ``conf/config.yaml`` (``hydra.run.dir``).
+
+    * ``${run_id:}``: a short id unique to this process (pid and random bits): runs started in
+      the same second get different dirs.
+    * ``${resume_or:<resume>,<default>}``: the ``resume`` dir if given, else ``default``.
+    * ``${unless_resume:<resume>,<value>}``: ``value``, or null when resuming (so a resumed run
+      does not overwrite its ``.hydra/`` snapshot with the resume command's config).
+    """
+    resolvers = {
+        "run_id": lambda: RUN_ID,
+        "resume_or": lambda resume, default: str(resume) if resume else default,
+        "unless_resume": lambda resume, value: None if resume else value,
+    }
+    for name, function in resolvers.items():
+        if not OmegaConf.has_resolver(name):
+            OmegaConf.register_new_resolver(name, function)
+
+
+# ---------------------------------------------------------------------------------- config
+def package_class(target: Any, base: type, what: str, where: str) -> type:
+    """The class ``target`` names, if it is a subclass of ``base`` defined in this package.
+
+    Only modules of ``mrta_rl`` are imported, so a tampered name runs no foreign code.
+
+    Args:
+        target: The ``_target_`` value.
+        base: The required base class.
+        what: What the class is for (in messages: ``learner``, ``logger``).
+        where: ``<file>: <key>`` for messages.
+
+    Returns:
+        The class.
+
+    Raises:
+        RunDirError: if the name is not a ``mrta_rl`` class derived from ``base``.
+    """
+    if not isinstance(target, str) or not target.startswith(PACKAGE) or "." not in target:
+        raise RunDirError(f"{where}: {target!r} is not a {what} class of {PACKAGE.rstrip('.')}")
+    module_name, _, name = target.rpartition(".")
+    try:
+        cls = getattr(importlib.import_module(module_name), name)
+    except (ImportError, AttributeError) as err:
+        raise RunDirError(f"{where}: unknown {what} class {target!r} ({err})") from err
+    if not (isinstance(cls, type) and issubclass(cls, base)):
+        raise RunDirError(f"{where}: {target!r} is not a {what} ({base.__name__} subclass)")
+    return cls
+
+
+def _check_data(value: Any, key: str, source: Path) -> None:
+    """Plain data only: mappings without special keys, lists, scalars without interpolation."""
+    if isinstance(value, dict):
+        for k, v in value.items():
+            if str(k).startswith("_"):
+                raise RunDirError(
+                    f"{source}: {key}.{k}: special key refused (a run dir is data, never code)"
+                )
+            _check_data(v, f"{key}.{k}" if key else str(k), source)
+    elif isinstance(value, list):
+        for i, item in enumerate(value):
+            _check_data(item, f"{key}[{i}]", source)
+    elif isinstance(value, str) and "${" in value:
+        raise RunDirError(f"{source}: {key}: interpolation {value!r} refused (plain values only)")
+    elif not isinstance(value, SCALARS):
+        raise RunDirError(f"{source}: {key}: unexpected value {value!r}")
+
+
+def _check_component(block: Any, key: str, base: type, source: Path, *, flat: bool) -> None:
+    """A ``_target_`` block: a package class, ``_partial_: true``, plain (scalar/list) settings."""
+    if not isinstance(block, dict):
+        raise RunDirError(f"{source}: {key}: expected a mapping with _target_, got {block!r}")
+    package_class(block.get("_target_"), base, key, f"{source}: {key}._target_")
+    if block.get("_partial_") is not True:
+        raise RunDirError(f"{source}: {key}._partial_: must be true")
+    for name, value in block.items():
+        if name in ("_target_", "_partial_"):
+            continue
+        if flat and isinstance(value, dict):
+            raise RunDirError(
+                f"{source}: {key}.{name}: a mapping is refused; hyperparameters are plain scalars "
+                f"or lists (got {value!r})"
+            )
+        _check_data({name: value}, key, source)
+
+
+def check_run_config(config: dict[str, Any], source: Path) -> None:
+    """Refuse anything in a run's config that is not plain data (module docstring).
+
+    Args:
+        config: The config as a plain container (``resolve=False``).
+        source: Its file, for messages.
+
+    Raises:
+        RunDirError: naming the first offending key.
+    """
+    if not isinstance(config, dict):
+        raise RunDirError(f"{source}: not a mapping of settings")
+    for key, value in config.items():
+        if key == "learner":
+            _check_component(value, "learner", Learner, source, flat=True)
+        elif key == "logger":
+            _check_component(value, "logger", CSVLogger, source, flat=True)
+        else:
+            _check_data({key: value}, "", source)
+
+
+def read_run_config(run_dir: Path | str) -> DictConfig:
+    """The run's ``.hydra/config.yaml``, checked to hold only plain data (module docstring).
+
+    Args:
+        run_dir: A run dir of ``scripts/train.py``.
+
+    Returns:
+        The config, safe to build the run from.
+
+    Raises:
+        RunDirError: if the file is missing, unreadable or holds anything but plain data.
+    """
+    run_dir = Path(run_dir)
+    path = run_dir / CONFIG_FILE
+    if not path.is_file():
+        raise RunDirError(f"{run_dir} is not a run dir of scripts/train.py: no {path}")
+    try:
+        cfg = OmegaConf.load(path)
+    except Exception as err:  # YAML and OmegaConf raise several types
+        raise RunDirError(f"{path}: not a readable YAML config ({err})") from err
+    check_run_config(OmegaConf.to_container(cfg, resolve=False), path)
+    return cfg  # type: ignore[return-value]
+
+
+def run_choices(run_dir: Path) -> dict[str, str]:
+    """Config-group choices recorded in ``.hydra/hydra.yaml`` (``learner`` -> ``greedy``)."""
+    path = Path(run_dir) / HYDRA_FILE
+    if not path.is_file():
+        return {}
+    try:
+        choices = OmegaConf.select(OmegaConf.load(path), "hydra.runtime.choices", default={})
+        return {str(k): str(v) for k, v in dict(choices).items() if isinstance(v, str | int)}
+    except Exception as err:  # a damaged hydra.yaml only loses the names
+        logger.warning("%s: config-group choices unreadable (%s)", path, err)
+        return {}
+
+
+# ---------------------------------------------------------------------------------- learner state
+def load_learner(learner: Learner, directory: Path) -> None:
+    """Restore a saved learner state into the learner built for the run, or refuse it.
+
+    The learner's ``load`` checks the files against itself (keys, shapes, dtypes, consistency)
+    and names the file on any problem.
+
+    Args:
+        learner: The learner built for the run.
+        directory: Folder written by ``learner.save``.
+
+    Raises:
+        RunDirError: if the folder is missing or its content does not fit the learner.
+    """
+    if not directory.is_dir():
+        raise RunDirError(f"no saved learner state: {directory} is missing")
+    try:
+        learner.load(directory)
+    except (OSError, ValueError, KeyError, RuntimeError, EOFError) as err:
+        message = str(err)
+        if str(directory) not in message:
+            message = f"{directory}: {message}"
+        raise RunDirError(f"saved learner state refused: {message}") from err
+
+
+# ---------------------------------------------------------------------------------- checkpoints
+class TrainingInterrupted(Exception):  # noqa: N818 - an event, not an error of the program
+    """Training stopped by the user (Ctrl-C) after saving a checkpoint.
+
+    Attributes:
+        checkpoint: The checkpoint folder, or None if none could be written.
+    """
+
+    def __init__(self, checkpoint: Path | None) -> None:
+        super().__init__(f"training interrupted; checkpoint: {checkpoint}")
+        self.checkpoint = checkpoint
+
+
+class TrainingCheckpoint:
+    """Periodic, atomic checkpoints of a training loop at episode boundaries, and resuming.
+
+    A training loop creates one, asks :meth:`restore` for the loop state to continue from (None
+    for a fresh run), and calls :meth:`episode_end` after every episode with its loop state; the
+    call saves every ``train.checkpoint_every`` episodes, and at once after a first Ctrl-C (see
+    :meth:`catch_interrupt`), then raises :class:`TrainingInterrupted`.
+
+    Args:
+        learner: The run's learner.
+        run_dir: The run dir; the checkpoint is ``<run_dir>/checkpoint``.
+        every: Episodes between checkpoints (0: only on Ctrl-C).
+        resume: Continue from the run dir's checkpoint.
+    """
+
+    def __init__(self, learner: Learner, run_dir: Path, every: int, resume: bool) -> None:
+        self.learner = learner
+        self.run_dir = Path(run_dir)
+        self.path = self.run_dir / CHECKPOINT_DIR
+        self.every = int(every)
+        self.resume = resume
+        self.stop_requested = False
+        self.saved_episode = 0  # episode of the last checkpoint
+
+    def restore(self) -> dict[str, Any] | None:
+        """The loop state of the checkpoint, with the learner restored; None for a fresh run.
+
+        Returns:
+            The ``loop`` dict given to :meth:`save`, or None when not resuming.
+
+        Raises:
+            RunDirError: if resuming and the checkpoint is missing or does not fit the run.
+        """
+        if not self.resume:
+            return None
+        state_path = self.path / STATE_FILE
+        if not state_path.is_file():
+            raise RunDirError(f"cannot resume: no training checkpoint {state_path}")
+        try:
+            state = json.loads(state_path.read_text())
+            loop, learner_state = state["loop"], state["learner"]
+        except (ValueError, KeyError, TypeError) as err:
+            raise RunDirError(f"{state_path}: not a training checkpoint ({err})") from err
+        load_learner(self.learner, self.path / LEARNER_DIR)
+        try:
+            self.learner.restore_state(learner_state, self.path)
+        except (OSError, ValueError, KeyError, TypeError, RuntimeError) as err:
+            raise RunDirError(f"{self.path}: learner state refused ({err})") from err
+        logger.info("resuming from %s after episode %d", self.path, loop["episode"])
+        self.saved_episode = loop["episode"]
+        return loop
+
+    def save(self, loop: dict[str, Any], files: Callable[[Path], None] | None = None) -> Path:
+        """Write the checkpoint atomically (temporary folder, then rename over the last one).
+
+        Args:
+            loop: The training loop's state (JSON: counters, curve rows, ``episode``).
+            files: Writes the loop's own files (replay buffer...) into the folder it is given.
+
+        Returns:
+            The checkpoint folder.
+        """
+        tmp = self.run_dir / f".{CHECKPOINT_DIR}.tmp"
+        old = self.run_dir / f".{CHECKPOINT_DIR}.old"
+        for stale in (tmp, old):
+            shutil.rmtree(stale, ignore_errors=True)
+        tmp.mkdir(parents=True)
+        self.learner.save(tmp / LEARNER_DIR)
+        state = {"loop": loop, "learner": self.learner.checkpoint_state(tmp)}
+        if files is not None:
+            files(tmp)
+        write_json(tmp / STATE_FILE, state)
+        if self.path.exists():
+            os.replace(self.path, old)
+        os.replace(tmp, self.path)
+        shutil.rmtree(old, ignore_errors=True)
+        self.saved_episode = loop["episode"]
+        logger.debug("checkpoint after episode %d in %s", loop["episode"], self.path)
+        return self.path
+
+    def episode_end(
+        self, loop: dict[str, Any], last: bool, files: Callable[[Path], None] | None = None
+    ) -> None:
+        """Save when due (``every`` episodes since the last save), or after Ctrl-C (then raise).
+
+        Call it only where the loop can continue from: every training copy between episodes.
+
+        Args:
+            loop: The loop state after the episode (``episode`` = episodes done).
+            last: True after the last episode (nothing to save then: the run finishes).
+            files: See :meth:`save`.
+
+        Raises:
+            TrainingInterrupted: after saving, if Ctrl-C was pressed.
+        """
+        if last:
+            return
+        if self.stop_requested:
+            raise TrainingInterrupted(self.save(loop, files))
+        if self.every > 0 and loop["episode"] - self.saved_episode >= self.every:
+            self.save(loop, files)
+
+    def finish(self) -> None:
+        """Remove the checkpoint once the run has written its results (it is complete)."""
+        shutil.rmtree(self.path, ignore_errors=True)
+
+    @contextmanager
+    def catch_interrupt(self) -> Iterator[None]:
+        """First Ctrl-C: finish the episode, save, stop; second Ctrl-C: stop at once.
+
+        Yields:
+            Nothing; the SIGINT handler is in place inside the block.
+        """
+        try:
+            previous = signal.getsignal(signal.SIGINT)
+            signal.signal(signal.SIGINT, self._on_interrupt)
+        except ValueError:  # not the main thread: keep the default behaviour
+            yield
+            return
+        try:
+            yield
+        except KeyboardInterrupt:
+            last = self.path if (self.path / STATE_FILE).is_file() else None
+            raise TrainingInterrupted(last) from None
+        finally:
+            signal.signal(signal.SIGINT, previous)
+
+    def _on_interrupt(self, signum: int, frame: Any) -> None:
+        if self.stop_requested:
+            raise KeyboardInterrupt
+        self.stop_requested = True
+        logger.warning(
+            "interrupted: saving a checkpoint at the end of this episode (Ctrl-C again to stop "
+            "now, keeping the last checkpoint)"
+        )

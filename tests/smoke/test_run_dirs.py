@@ -1,0 +1,378 @@
+"""Run dirs are data (issue 9): unique per run, never overwritten, never executed, checked on load,
+and training survives interruption (checkpoints, Ctrl-C, resume=)."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import OmegaConf, open_dict
+
+from mrta_rl.runners import build_run, evaluate_checkpoint, train
+
+ROOT = Path(__file__).resolve().parents[2]
+TIMINGS = ("wall_s", "fps_collection", "fps_training", "fps_overall")
+
+
+def script(*args: str, cwd: Path = ROOT, **kwargs) -> subprocess.Popen:
+    """``python <script> args`` with this checkout's package first on the path."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    return subprocess.Popen(
+        [sys.executable, *args],
+        cwd=cwd,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        **kwargs,
+    )
+
+
+def save_hydra_files(cfg, run_dir: Path, learner: str, system: str) -> None:
+    """What Hydra writes into a run dir before training (config and group choices)."""
+    hydra_dir = run_dir / ".hydra"
+    hydra_dir.mkdir(parents=True, exist_ok=True)
+    OmegaConf.save(cfg, hydra_dir / "config.yaml")
+    choices = {"hydra": {"runtime": {"choices": {"learner": learner, "system": system}}}}
+    OmegaConf.save(OmegaConf.create(choices), hydra_dir / "hydra.yaml")
+
+
+def without_timings(metrics: dict) -> dict:
+    metrics = json.loads(json.dumps(metrics))
+    for key in TIMINGS:
+        metrics["train"].pop(key, None)
+    return metrics
+
+
+# ---------------------------------------------------------------------------------- defect 2
+def test_runs_started_together_get_their_own_dirs(tmp_path):
+    """Four runs started at once: four run dirs, four metrics.json (defect 2)."""
+    runs = [
+        script(str(ROOT / "scripts" / "train.py"), "learner=greedy", "debug=smoke", cwd=tmp_path)
+        for _ in range(4)
+    ]
+    for run in runs:
+        _, err = run.communicate(timeout=300)
+        assert run.returncode == 0, err
+    metrics = sorted((tmp_path / "outputs").rglob("metrics.json"))
+    assert len(metrics) == 4
+    assert len({m.parent for m in metrics}) == 4
+    assert all(m.parent.name.split("_")[-2] == "greedy" for m in metrics)  # <time>_greedy_<id>
+
+
+def test_a_finished_run_is_never_overwritten(compose_cfg, tmp_path):
+    cfg = compose_cfg(["learner=greedy", "system=system1", "debug=smoke"])
+    first = train(cfg, run_dir=tmp_path)
+    again = compose_cfg(["learner=random", "system=system1", "debug=smoke"])
+    with pytest.raises(ValueError, match="metrics.json"):
+        train(again, run_dir=tmp_path)
+    assert json.loads((tmp_path / "metrics.json").read_text()) == first
+
+
+@pytest.mark.parametrize("value", ["-1", "abc", "true"])
+def test_bad_checkpoint_interval_fails_before_work(compose_cfg, tmp_path, value):
+    cfg = compose_cfg(["learner=greedy", "debug=smoke", f"train.checkpoint_every={value}"])
+    with pytest.raises(ValueError, match="train.checkpoint_every"):
+        train(cfg, run_dir=tmp_path / "run")
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_run_dir_with_a_checkpoint_is_only_resumed(compose_cfg, tmp_path):
+    (tmp_path / "checkpoint").mkdir()
+    with pytest.raises(ValueError, match=f"resume={tmp_path}"):
+        train(compose_cfg(["learner=greedy", "debug=smoke"]), run_dir=tmp_path)
+
+
+# ---------------------------------------------------------------------------------- defect 3
+@pytest.fixture
+def greedy_run(compose_cfg, tmp_path) -> Path:
+    cfg = compose_cfg(["learner=greedy", "system=system1", "debug=smoke"])
+    run_dir = tmp_path / "run"
+    save_hydra_files(cfg, run_dir, "greedy", "system1")
+    train(cfg, run_dir=run_dir)
+    return run_dir
+
+
+def tamper(run_dir: Path, key: str, value) -> None:
+    path = run_dir / ".hydra" / "config.yaml"
+    cfg = OmegaConf.load(path)
+    with open_dict(cfg):
+        OmegaConf.update(cfg, key, value, force_add=True)
+    OmegaConf.save(cfg, path)
+
+
+def test_a_tampered_run_config_executes_nothing(greedy_run, tmp_path):
+    """The config of issue 9 truncated a file through Hydra's instantiate (defect 3)."""
+    victim = tmp_path / "victim.txt"
+    victim.write_text("precious")
+    tamper(
+        greedy_run,
+        "learner.min_visits",
+        {"_target_": "builtins.open", "_args_": [str(victim), "w"]},
+    )
+    with pytest.raises(ValueError, match=r"learner\.min_visits"):
+        evaluate_checkpoint(greedy_run)
+    assert victim.read_text() == "precious"
+    assert not (greedy_run / "eval_metrics.json").exists()
+
+
+@pytest.mark.parametrize(
+    ("key", "value", "culprit"),
+    [
+        ("learner._target_", "builtins.exec", r"learner\._target_"),
+        ("learner._target_", "mrta_rl.envs.AuctionEnv", r"learner\._target_"),
+        ("learner._target_", "mrta_rl.learners.NoSuchLearner", r"learner\._target_"),
+        ("learner.reserve", {"a": 1}, r"learner\.reserve"),
+        ("logger._target_", "os.system", r"logger\._target_"),
+        ("env.horizon", {"_target_": "os.getcwd"}, r"env\.horizon\._target_"),
+        ("system.name", "${oc.env:HOME}", r"system\.name"),
+    ],
+)
+def test_run_config_holds_plain_data_only(greedy_run, key, value, culprit):
+    """Only learner and logger classes of this package; plain values everywhere else."""
+    tamper(greedy_run, key, value)
+    with pytest.raises(ValueError, match=culprit):
+        evaluate_checkpoint(greedy_run)
+
+
+def test_runs_written_before_checkpoints_still_evaluate(greedy_run):
+    path = greedy_run / ".hydra" / "config.yaml"
+    cfg = OmegaConf.load(path)
+    del cfg.train["checkpoint_every"], cfg["resume"]
+    OmegaConf.save(cfg, path)
+    again = evaluate_checkpoint(greedy_run)
+    assert again["eval"] == json.loads((greedy_run / "metrics.json").read_text())["eval"]
+
+
+# ---------------------------------------------------------------------------------- defect 9
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory) -> dict[str, Path]:
+    """subG-CQL trained one smoke episode on System-I and on System-II (run dirs)."""
+    from tests.conftest import _compose
+
+    dirs = {}
+    for system in ("system1", "system2"):
+        cfg = _compose(["learner=subg_cql", f"system={system}", "debug=smoke", "train.episodes=1"])
+        run_dir = tmp_path_factory.mktemp(system)
+        save_hydra_files(cfg, run_dir, "subg_cql", system)
+        train(cfg, run_dir=run_dir)
+        dirs[system] = run_dir
+    return dirs
+
+
+def fresh_copy(run_dir: Path, tmp_path: Path) -> Path:
+    import shutil
+
+    target = tmp_path / "copy"
+    shutil.copytree(run_dir, target)
+    (target / "metrics.json").unlink()
+    return target
+
+
+def truncate(path: Path) -> None:
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+
+
+def random_bytes(path: Path) -> None:
+    path.write_bytes(np.random.default_rng(0).bytes(4096))
+
+
+def shorten(path: Path) -> None:
+    with np.load(path) as data:
+        arrays = {k: data[k] for k in data.files}
+    name = next(k for k in arrays if k.endswith(".codes"))
+    arrays[name] = arrays[name][:-5]
+    np.savez_compressed(path, **arrays)
+
+
+@pytest.mark.parametrize(
+    ("damage", "message"),
+    [
+        (truncate, "truncated or damaged"),
+        (random_bytes, "not a table file"),
+        (shorten, r"codes|joint actions"),
+    ],
+)
+def test_damaged_tables_are_named_before_evaluation(trained, tmp_path, damage, message):
+    run_dir = fresh_copy(trained["system1"], tmp_path)
+    table = run_dir / "learner" / "q_tables.npz"
+    damage(table)
+    with pytest.raises(ValueError, match=message) as err:
+        evaluate_checkpoint(run_dir)
+    assert str(table) in str(err.value)
+    assert "pickle" not in str(err.value) and "unsafe" not in str(err.value)
+    assert not (run_dir / "eval_metrics.json").exists()
+
+
+def test_tables_of_another_system_are_refused(trained, tmp_path):
+    run_dir = fresh_copy(trained["system2"], tmp_path)
+    import shutil
+
+    shutil.rmtree(run_dir / "learner")
+    shutil.copytree(trained["system1"] / "learner", run_dir / "learner")
+    with pytest.raises(ValueError, match="another system") as err:
+        evaluate_checkpoint(run_dir)
+    assert str(run_dir / "learner" / "q_tables.npz") in str(err.value)
+
+
+@pytest.mark.parametrize("damage", [truncate, random_bytes])
+def test_damaged_weights_are_named_without_suggesting_unsafe_loading(compose_cfg, tmp_path, damage):
+    cfg = compose_cfg(["learner=qmix", "system=system1", "debug=smoke"])
+    learner = build_run(cfg).learner
+    learner.save(tmp_path)
+    damage(tmp_path / "weights.pt")
+    with pytest.raises(ValueError, match="weights.pt") as err:
+        build_run(cfg).learner.load(tmp_path)
+    assert "weights_only" not in str(err.value) and "unsafe" not in str(err.value)
+
+
+def test_weights_of_another_shape_are_refused(compose_cfg, tmp_path):
+    small = build_run(compose_cfg(["learner=qmix", "system=system1", "learner.hidden=8"]))
+    small.learner.save(tmp_path)
+    run = build_run(compose_cfg(["learner=qmix", "system=system1"]))
+    with pytest.raises(ValueError, match=r"weights.pt: tensor .* expected"):
+        run.learner.load(tmp_path)
+
+
+# ---------------------------------------------------------------------------------- defect 10
+class Killed(BaseException):
+    """Stands for SIGKILL right after a checkpoint: nothing after it runs."""
+
+
+def interrupted_then_resumed(compose_cfg, tmp_path, monkeypatch, overrides, stop_at):
+    """Uninterrupted metrics, and metrics of the same run stopped after the checkpoint of
+    episode ``stop_at`` and resumed with ``resume=<run dir>``."""
+    learner, system = overrides[0].split("=")[1], overrides[1].split("=")[1]
+    full_dir, cut_dir = tmp_path / "full", tmp_path / "cut"
+    full = train(compose_cfg(overrides), run_dir=full_dir)
+
+    cfg = compose_cfg(overrides)
+    save_hydra_files(cfg, cut_dir, learner, system)
+    from mrta_rl.runners.checkpoint import TrainingCheckpoint
+
+    save = TrainingCheckpoint.save
+
+    def save_then_die(self, loop, files=None):
+        path = save(self, loop, files)
+        if loop["episode"] == stop_at:
+            raise Killed
+        return path
+
+    monkeypatch.setattr(TrainingCheckpoint, "save", save_then_die)
+    with pytest.raises(Killed):
+        train(cfg, run_dir=cut_dir)
+    monkeypatch.undo()
+    assert not (cut_dir / "metrics.json").exists()
+    assert (cut_dir / "checkpoint" / "training.json").is_file()
+    resume = compose_cfg([f"resume={cut_dir}"])
+    HydraConfig.instance().cfg = None  # as from the command line: no overrides but resume=
+    resumed = train(resume)
+    assert not (cut_dir / "checkpoint").exists()  # removed once the run is complete
+    assert (cut_dir / "curve.csv").read_text() == (full_dir / "curve.csv").read_text()
+    return full, resumed, full_dir, cut_dir
+
+
+def assert_same_learner_state(a: Path, b: Path) -> None:
+    """The learner/ dirs of two runs hold the same tables or weights, bit for bit."""
+    names = sorted(p.name for p in (a / "learner").iterdir())
+    assert names == sorted(p.name for p in (b / "learner").iterdir())
+    for name in names:
+        x, y = a / "learner" / name, b / "learner" / name
+        if x.suffix == ".npz":
+            with np.load(x) as p, np.load(y) as q:
+                assert sorted(p.files) == sorted(q.files)
+                assert all(np.array_equal(p[k], q[k]) for k in p.files), name
+        elif x.suffix == ".pt":
+            p, q = (torch.load(f, weights_only=True) for f in (x, y))
+            assert p.keys() == q.keys() and all(torch.equal(p[k], q[k]) for k in p), name
+        else:
+            assert x.read_text() == y.read_text(), name
+
+
+@pytest.mark.parametrize(
+    "overrides",
+    [
+        ["learner=subg_cql", "system=system1", "train.episodes=5"],
+        # short budget that still reaches the gradient steps before the interruption
+        ["learner=qmix", "system=system1", "train.episodes=3", "learner.warmup_frames=100"],
+    ],
+    ids=["subg_cql", "qmix"],
+)
+def test_interrupted_run_resumes_to_the_same_end(compose_cfg, tmp_path, monkeypatch, overrides):
+    overrides = [*overrides, "debug=smoke"]
+    full, resumed, full_dir, cut_dir = interrupted_then_resumed(
+        compose_cfg, tmp_path, monkeypatch, [*overrides, "train.checkpoint_every=1"], stop_at=2
+    )
+    assert full["train"].get("gradient_steps", 1) > 0
+    assert without_timings(resumed) == without_timings(full)
+    assert_same_learner_state(full_dir, cut_dir)
+
+
+def test_resume_refuses_other_overrides(compose_cfg, tmp_path):
+    with pytest.raises(ValueError, match="train.episodes"):
+        train(compose_cfg([f"resume={tmp_path}", "train.episodes=3"]))
+
+
+def test_ctrl_c_saves_says_where_and_exits_130(tmp_path):
+    run_dir = tmp_path / "run"
+    run = script(
+        "scripts/train.py",
+        "learner=subg_cql",
+        "system=system1",
+        "debug=smoke",
+        "train.episodes=100000",
+        f"hydra.run.dir={run_dir}",
+    )
+    curve = run_dir / "curve.csv"
+    deadline = time.monotonic() + 120
+    while not (curve.is_file() and len(curve.read_text().splitlines()) > 2):
+        assert run.poll() is None and time.monotonic() < deadline, run.communicate()
+        time.sleep(0.1)
+    run.send_signal(signal.SIGINT)
+    out, err = run.communicate(timeout=120)
+    err += out  # Hydra logs to stdout
+    assert run.returncode == 130, err
+    assert "Traceback" not in err
+    assert f"checkpoint saved in {run_dir / 'checkpoint'}" in err
+    assert f"resume={run_dir}" in err
+    state = json.loads((run_dir / "checkpoint" / "training.json").read_text())
+    assert state["loop"]["episode"] >= 2 and not (run_dir / "metrics.json").exists()
+
+
+@pytest.mark.slow  # the in-process interruption tests above check the same on every run
+def test_sigkill_then_resume_ends_like_an_uninterrupted_run(tmp_path):
+    args = [
+        "learner=subg_cql",
+        "system=system1",
+        "debug=smoke",
+        "train.episodes=12",
+        "train.checkpoint_every=3",
+    ]
+    full_dir, cut_dir = tmp_path / "full", tmp_path / "cut"
+    full = script("scripts/train.py", *args, f"hydra.run.dir={full_dir}")
+    assert full.wait(timeout=300) == 0
+    cut = script("scripts/train.py", *args, f"hydra.run.dir={cut_dir}")
+    state = cut_dir / "checkpoint" / "training.json"
+    deadline = time.monotonic() + 300
+    while not state.is_file():
+        assert cut.poll() is None and time.monotonic() < deadline, "ended before a checkpoint"
+        time.sleep(0.02)
+    cut.send_signal(signal.SIGKILL)
+    cut.wait()
+    assert not (cut_dir / "metrics.json").exists()
+    resumed = script("scripts/train.py", f"resume={cut_dir}")
+    _, err = resumed.communicate(timeout=300)
+    assert resumed.returncode == 0, err
+    a, b = (json.loads((d / "metrics.json").read_text()) for d in (full_dir, cut_dir))
+    assert without_timings(a) == without_timings(b)
+    assert_same_learner_state(full_dir, cut_dir)
