@@ -8,6 +8,7 @@ from mrta_rl.learners.fixed import (
     HighOnlyLearner,
     RandomLearner,
     SubGReserveLearner,
+    TeamReserveLearner,
 )
 
 __all__ = [
@@ -17,4 +18,5 @@ __all__ = [
     "LearnerKind",
     "RandomLearner",
     "SubGReserveLearner",
+    "TeamReserveLearner",
 ]

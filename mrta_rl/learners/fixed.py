@@ -2,8 +2,9 @@
 
 They are learners with ``kind = "fixed"`` and the base class's no-op ``update``, so the runner
 evaluates them exactly like trained learners. ``greedy`` is the plain auction without learning,
-the baseline every run reports next to its learner. ``subg_reserve`` is not in the spec: a
-hand-written sub-group rule on the subG partition, the yardstick of what the partition allows.
+the baseline every run reports next to its learner. ``team_reserve`` and ``subg_reserve`` are not
+in the spec: a hand-written reserve rule over a grouping of the robots (the whole team, or the
+subG sub-groups on the partition), yardsticks of what a rule on the learners' signals reaches.
 All are vectorised over ``[B, m]``.
 """
 
@@ -16,6 +17,7 @@ import numpy as np
 from mrta_rl.envs import AuctionEnv
 from mrta_rl.envs.observations import N_RECENCY_LEVELS, recency_level
 from mrta_rl.learners.base import Learner, LearnerKind
+from mrta_rl.partition import subg_partition
 
 
 def lowest_valid_bid(bid_mask: np.ndarray) -> np.ndarray:
@@ -117,66 +119,109 @@ class HighOnlyLearner(Learner):
         return lowest_valid_bid(mask[:, :, 1:] & (view[:, None, :] == 1))
 
 
-class SubGReserveLearner(Learner):
-    """A hand-written rule inside the subG partition: the yardstick for subG-CQL and subG-DQN.
+GROUPINGS = ("team", "subg")  # team_reserve: one group of all robots, or the subG sub-groups
+HOLD_SCOPES = ("group", "robot")  # whose recency level holds an L bid back
+ORDERS = ("fewest_types", "index")  # which idle robot of a group is asked first
 
-    It sees no more than a sub-group learner may (spec "Observations": slot contents of the
-    group's types, which of its robots are idle, the recency level of an H arrival of its types)
-    and bids only for the robots' kept types ``Lambda_i``. Per sub-group ``G`` and copy:
 
-    1. H slots, in slot order: the group's idle robot that may bid and has the fewest kept types
-       (ties to the lowest index) bids, so versatile robots stay free. No two robots bid for the
-       same slot, so no bid is lost (spec step 7 counts a lost bid as busy time).
+class TeamReserveLearner(Learner):
+    """A hand-written reserve rule over any grouping of the robots: a yardstick for the learners.
+
+    It reads no more than a centralized learner's group view (spec "Observations": slot contents,
+    which robots are idle, the recency level of an H arrival) and bids for the robots' active
+    types ``Lambda_i`` only. Per group ``G`` and copy:
+
+    1. H slots, in slot order: the group's idle robot that may bid and comes first in ``order``
+       (``fewest_types``: fewest active types first, ties to the lowest index, so versatile robots
+       stay free; ``index``: lowest index) bids. No two robots bid for the same slot, so no bid is
+       lost (spec step 7 counts a lost bid as busy time).
     2. L slots, in slot order, the same way, but only while at least ``reserve`` other robots of
-       ``G`` stay idle after the bid and the group's recency level is at least ``hold_level``
-       (``hold_level=1``: no H task of ``T_g`` arrived within 3 ticks, the spread_wait prior of
-       subG-CQL; ``0``: never hold; ``2``: within 10 ticks).
+       ``G`` stay idle after the bid, and only by a robot whose recency level is at least
+       ``hold_level`` (``hold_scope="group"``: the level over the group's types ``T_g``;
+       ``"robot"``: over the robot's own ``Lambda_i``). ``hold_level=1``: no such H task arrived
+       within 3 ticks; ``0``: never hold; ``2``: within 10 ticks; ``3``: never bid for L.
 
-    A sweep over ``reserve`` and ``hold_level`` measures what the partition allows a sub-group
-    policy built from these signals (``docs/results.md``, "What the partition costs").
+    ``grouping="team"`` (default) is one group of all robots; ``"subg"`` the sub-groups of the
+    subG partition (paper §4), computed from the env's system if the runner gave none. On the
+    partitioned env, ``grouping="subg"`` is the ``subg_reserve`` rule (:class:`SubGReserveLearner`).
+    ``experiment=team_reserve_grid`` sweeps the parameters per system.
 
     Args:
         reserve: Idle robots a group keeps back for H work when bidding for an L task.
-        hold_level: L slots wait while the group's recency level is below this (0 = never).
+        hold_level: L slots wait while the recency level is below this (0 = never).
+        hold_scope: ``"group"`` or ``"robot"``: whose recency level ``hold_level`` reads.
+        grouping: ``"team"`` or ``"subg"``.
+        order: ``"fewest_types"`` or ``"index"``: the bidding preference inside a group.
         **kwargs: Env, generator and partition of :class:`~mrta_rl.learners.base.Learner`.
 
     Raises:
-        ValueError: on a negative ``reserve`` or a ``hold_level`` outside 0..3.
+        ValueError: on a negative ``reserve``, a ``hold_level`` outside 0..3 or an unknown
+            ``hold_scope``, ``grouping`` or ``order``.
     """
 
     kind: ClassVar[LearnerKind] = "fixed"
-    requires_partition: ClassVar[bool] = True
+    _rule_name: ClassVar[str] = "team_reserve"  # in error messages
 
-    def __init__(self, *, reserve: int = 0, hold_level: int = 1, **kwargs) -> None:
+    def __init__(
+        self,
+        *,
+        reserve: int = 0,
+        hold_level: int = 1,
+        hold_scope: str = "group",
+        grouping: str = "team",
+        order: str = "fewest_types",
+        **kwargs,
+    ) -> None:
         super().__init__(**kwargs)
+        name = self._rule_name
         if reserve < 0:
-            raise ValueError(f"subg_reserve: reserve must be >= 0, got {reserve}")
+            raise ValueError(f"{name}: reserve must be >= 0, got {reserve}")
         if not 0 <= hold_level <= N_RECENCY_LEVELS:
-            raise ValueError(f"subg_reserve: hold_level must be in 0..3, got {hold_level}")
-        self.reserve, self.hold_level = reserve, hold_level
+            raise ValueError(f"{name}: hold_level must be in 0..3, got {hold_level}")
+        for key, value, known in (
+            ("hold_scope", hold_scope, HOLD_SCOPES),
+            ("grouping", grouping, GROUPINGS),
+            ("order", order, ORDERS),
+        ):
+            if value not in known:
+                raise ValueError(f"{name}: {key} must be one of {known}, got {value!r}")
+        self.reserve, self.hold_level, self.hold_scope = reserve, hold_level, hold_scope
         active = self.env.active_tasks  # Lambda_i, [m, n]
+        if grouping == "team":
+            groups = [list(range(self.n_robots))]
+        else:
+            partition = self.partition or subg_partition(self.env.system)
+            groups = [
+                [self.env.system.robots.index(r) for r in robots]
+                for robots in partition.group_map().values()
+            ]
         self._groups = []  # (robots in bidding preference order, T_g)
-        for robots in self.partition.group_map().values():
-            ids = [self.env.system.robots.index(r) for r in robots]
-            ids.sort(key=lambda i: (active[i].sum(), i))  # fewest kept types first
+        for ids in groups:
+            if order == "fewest_types":
+                ids = sorted(ids, key=lambda i: (active[i].sum(), i))
             self._groups.append((np.asarray(ids, np.int64), active[ids].any(axis=0)))
+        # the recency scope of each robot: its group's types T_g, or its own Lambda_i
+        self._scope = active.copy()
+        if hold_scope == "group":
+            for robots, types in self._groups:
+                self._scope[robots] = types
 
     def encode(self, env: AuctionEnv) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Slot priorities ``[B, K]``, idle flags ``[B, m]``, group recency levels ``[B, G]``.
+        """Slot priorities ``[B, K]``, idle flags ``[B, m]``, recency levels ``[B, m]``.
 
         The mask alone cannot tell an idle robot with nothing to bid for from a busy one, and the
-        reserve counts every idle robot of the group.
+        reserve counts every idle robot of the group. Robot ``i``'s recency level is over its
+        ``hold_scope``: its group's types or its own.
         """
-        recency = np.stack([recency_level(env, types) for _, types in self._groups], axis=1)
-        return env.slot_high.copy(), env.idle.copy(), recency
+        return env.slot_high.copy(), env.idle.copy(), recency_level(env, self._scope)
 
     def act(
-        self, view: tuple[np.ndarray, np.ndarray], mask: np.ndarray, *, explore: bool
+        self, view: tuple[np.ndarray, np.ndarray, np.ndarray], mask: np.ndarray, *, explore: bool
     ) -> np.ndarray:
         """Bid per the rule of the class docstring.
 
         Args:
-            view: Slot priorities and group recency levels from :meth:`encode`.
+            view: Slot priorities, idle flags and recency levels from :meth:`encode`.
             mask: ``[B, m, K + 1]`` bool valid actions.
             explore: Unused: the policy is deterministic.
 
@@ -187,19 +232,43 @@ class SubGReserveLearner(Learner):
         batch, _, n_actions = mask.shape
         rows = np.arange(batch)
         actions = np.zeros(mask.shape[:2], np.int64)
-        for g, (robots, _) in enumerate(self._groups):
+        may_take_low = recency >= self.hold_level  # [B, m]
+        for robots, _ in self._groups:
             free = idle[:, robots].copy()  # [B, m_g] idle robots without a bid yet
             idle_left = free.sum(axis=1)  # [B]
-            may_take_low = recency[:, g] >= self.hold_level  # [B]
             for high in (1, 0):  # H slots first
                 for k in range(n_actions - 1):
                     # mask: idle robots whose Lambda_i holds the slot's type (spec step 4)
                     candidates = mask[:, robots, k + 1] & free & (slot_high[:, k] == high)[:, None]
                     if not high:
-                        candidates &= (may_take_low & (idle_left - 1 >= self.reserve))[:, None]
+                        candidates &= may_take_low[:, robots]
+                        candidates &= (idle_left - 1 >= self.reserve)[:, None]
                     has = candidates.any(axis=1)
                     first = candidates.argmax(axis=1)  # first in preference order
                     actions[rows[has], robots[first[has]]] = k + 1
                     free[rows[has], first[has]] = False
                     idle_left -= has
         return actions
+
+
+class SubGReserveLearner(TeamReserveLearner):
+    """``team_reserve`` on the subG partition: the yardstick for subG-CQL and subG-DQN.
+
+    The runner builds its env on the partition's ``Lambda_i``, and the groups are the
+    sub-groups (``grouping="subg"``, ``hold_scope="group"``, ``order="fewest_types"``), so it
+    sees no more than a sub-group learner may. With ``reserve=0, hold_level=1`` it is the
+    untrained subG-CQL (the ``spread_wait`` prior with ``fewest_types``). A sweep over
+    ``reserve`` and ``hold_level`` measures what the partition allows a sub-group policy built
+    from these signals (``docs/results.md``, "What the partition costs").
+
+    Args:
+        reserve: Idle robots a group keeps back for H work when bidding for an L task.
+        hold_level: L slots wait while the group's recency level is below this (0 = never).
+        **kwargs: Env, generator and partition of :class:`~mrta_rl.learners.base.Learner`.
+    """
+
+    requires_partition: ClassVar[bool] = True
+    _rule_name: ClassVar[str] = "subg_reserve"
+
+    def __init__(self, *, reserve: int = 0, hold_level: int = 1, **kwargs) -> None:
+        super().__init__(reserve=reserve, hold_level=hold_level, grouping="subg", **kwargs)

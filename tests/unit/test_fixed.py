@@ -6,7 +6,14 @@ import numpy as np
 import pytest
 
 from mrta_rl.envs import AuctionEnv, AuctionParams
-from mrta_rl.learners import GreedyLearner, HighOnlyLearner, RandomLearner, SubGReserveLearner
+from mrta_rl.envs.observations import recency_level
+from mrta_rl.learners import (
+    GreedyLearner,
+    HighOnlyLearner,
+    RandomLearner,
+    SubGReserveLearner,
+    TeamReserveLearner,
+)
 from mrta_rl.learners.tabular.subg_cql import SubGCQLLearner
 from mrta_rl.partition import subg_partition
 from tests.conftest import paper_system
@@ -140,7 +147,8 @@ def make_reserve(rng, system=None, **rule):
 )
 def test_subg_reserve_rule_by_hand(rng, rule, recency, expected):
     learner = make_reserve(rng, **rule)
-    view = (RESERVE_SLOTS, ALL_IDLE, np.array([[recency, 2]]))  # recency of G1, G2
+    # per-robot recency levels: G1 = R3, R5, R6 see `recency`, G2 = R1, R2, R4 see 2
+    view = (RESERVE_SLOTS, ALL_IDLE, np.array([[2, 2, recency, 2, recency, recency]]))
     np.testing.assert_array_equal(learner.act(view, RESERVE_MASK, explore=False), expected)
 
 
@@ -149,7 +157,7 @@ def test_subg_reserve_counts_idle_robots_without_a_bid(rng):
     # is busy. With reserve 1, R5 is the robot kept back, so R3 bids; with R5 busy too it waits.
     learner = make_reserve(rng, reserve=1, hold_level=0)
     mask = np.array([[NO_BID, NO_BID, [True, True, False, False], NO_BID, NO_BID, NO_BID]])
-    slots, recency = np.array([[0, -1, -1]]), np.array([[2, 2]])
+    slots, recency = np.array([[0, -1, -1]]), np.full((1, 6), 2)
     r6_busy = np.array([[True, True, True, True, True, False]])
     expected = [[0, 0, 1, 0, 0, 0]]
     np.testing.assert_array_equal(
@@ -192,3 +200,71 @@ def test_subg_reserve_with_no_reserve_is_the_untrained_subg_cql(rng):
         expected = rule.act(rule.encode(env), mask, explore=False)
         np.testing.assert_array_equal(table.act(table.encode(env), mask, explore=False), expected)
         env.step(expected)
+
+
+def make_team(rng, **rule):
+    """team_reserve on the same partitioned System-I env as :func:`make_reserve`."""
+    system = paper_system("system1")
+    partition = subg_partition(system)
+    env = AuctionEnv(system, active_tasks=partition.active_tasks(system))
+    return TeamReserveLearner(env=env, rng=rng, **rule)
+
+
+@pytest.mark.parametrize(
+    ("rule", "expected"),
+    [
+        # one group of six idle robots: reserve 2 still lets R3 and R6 take the L slots ...
+        ({"reserve": 2, "hold_level": 0}, [[0, 0, 2, 0, 1, 3]]),
+        # ... reserve 4 keeps four back: after R5 (H) and R3 (L), only 4 idle remain
+        ({"reserve": 4, "hold_level": 0}, [[0, 0, 2, 0, 1, 0]]),
+        # per-robot recency: R3 saw an H task within 3 ticks, R6 did not, so R6 takes slot 2
+        ({"reserve": 0, "hold_level": 1}, [[0, 0, 0, 0, 1, 2]]),
+        # index order: R3 (lowest index) takes the H slot, R5 slot 3, R6 (recency 2) slot 2
+        ({"reserve": 0, "hold_level": 0, "order": "index"}, [[0, 0, 1, 0, 3, 2]]),
+    ],
+)
+def test_team_reserve_rule_by_hand(rng, rule, expected):
+    learner = make_team(rng, hold_scope="robot", **rule)
+    view = (RESERVE_SLOTS, ALL_IDLE, np.array([[2, 2, 0, 2, 2, 2]]))  # R3's recency level 0
+    np.testing.assert_array_equal(learner.act(view, RESERVE_MASK, explore=False), expected)
+
+
+def test_team_reserve_recency_scope(rng):
+    _, env = on_partition(paper_system("system2"), horizon=50, batch=4, seed=2)
+    for _ in range(7):
+        env.step(np.zeros((4, env.n_robots), np.int64))
+    robot = TeamReserveLearner(env=env, rng=rng, hold_scope="robot")
+    np.testing.assert_array_equal(robot.encode(env)[2], recency_level(env, env.active_tasks))
+    team = TeamReserveLearner(env=env, rng=rng, hold_scope="group")
+    every_type = recency_level(env, np.ones(env.n_task_types, bool))  # [B], T_g = all types
+    np.testing.assert_array_equal(team.encode(env)[2], np.repeat(every_type[:, None], 10, axis=1))
+
+
+@pytest.mark.parametrize(("reserve", "hold_level"), [(0, 1), (1, 1), (2, 0), (1, 2)])
+def test_team_reserve_on_subg_grouping_plays_subg_reserve(reserve, hold_level):
+    """team_reserve with grouping=subg (partition derived from the system) is subg_reserve."""
+    partition, env = on_partition(paper_system("system2"), horizon=120, batch=6, seed=4)
+    rng = np.random.default_rng(0)
+    rule = {"reserve": reserve, "hold_level": hold_level}
+    subg = SubGReserveLearner(env=env, rng=rng, partition=partition, **rule)
+    team = TeamReserveLearner(env=env, rng=rng, grouping="subg", hold_scope="group", **rule)
+    whole = TeamReserveLearner(env=env, rng=rng, **rule)
+    differs = 0
+    while not env.done.all():
+        mask = env.action_mask
+        expected = subg.act(subg.encode(env), mask, explore=False)
+        np.testing.assert_array_equal(team.act(team.encode(env), mask, explore=False), expected)
+        differs += int((whole.act(whole.encode(env), mask, explore=False) != expected).any())
+        env.step(expected)
+    assert differs > 0  # the whole-team grouping is a different rule
+
+
+def test_team_reserve_rejects_bad_settings(rng):
+    for bad, match in (
+        ({"hold_scope": "nope"}, "hold_scope must be one of"),
+        ({"grouping": "nope"}, "grouping must be one of"),
+        ({"order": "nope"}, "order must be one of"),
+        ({"reserve": -1}, "team_reserve: reserve must be >= 0"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            make_team(rng, **bad)
