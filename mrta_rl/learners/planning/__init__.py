@@ -1,0 +1,7 @@
+"""Planners: reference policies that read the full env state (not learners; docs/learners.md)."""
+
+from __future__ import annotations
+
+from mrta_rl.learners.planning.rollout import RolloutPlanner
+
+__all__ = ["RolloutPlanner"]

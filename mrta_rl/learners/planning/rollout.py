@@ -1,0 +1,233 @@
+"""``rollout``: an online planner that scores a few candidate joint actions by simulation.
+
+At each decision point it takes, per copy, the joint actions of a few candidate rules (greedy,
+spread, reserve or hold variants, see :data:`CANDIDATES`) and scores each by rolling copies of the
+env forward ``horizon`` ticks: the candidate's action at the current tick, then the ``base``
+rule, under ``samples`` sampled futures of the arrivals. The candidate with the highest mean
+rollout return is played (ties to the base rule). Every candidate is scored on the same sampled
+futures (common random numbers), so their differences are not drowned by arrival noise.
+
+This is a reference, not a learner: it reads the full env state (queue, busy times, batteries),
+which no learner's observation holds, and it knows the arrival process of the spec. It has no
+training (``kind = "fixed"``). ``horizon=0`` or a single candidate plays the base rule.
+
+The snapshot, restore and re-seeding of env copies are the three functions :func:`snapshot`,
+:func:`restore` and :func:`reseed`, for now a private fallback on the numpy env's arrays; each
+becomes one call of ``AuctionEnv.get_state`` / ``set_state`` / ``reseed`` when the env has them.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable, Sequence
+from typing import Any, ClassVar
+
+import numpy as np
+
+from mrta_rl.envs import AuctionEnv, counter_rng
+from mrta_rl.envs.tasks import EMPTY
+from mrta_rl.learners.base import Learner, LearnerKind
+from mrta_rl.learners.fixed import GreedyLearner, TeamReserveLearner
+
+logger = logging.getLogger(__name__)
+LOG_EVERY = 1000  # planned ticks between two decision-time log lines
+
+# candidate rule name -> factory(env, rng) of a fixed policy; the team_reserve settings are
+# whole-team rules (mrta_rl/learners/fixed.py), all conflict-free except greedy
+CANDIDATES: dict[str, Callable[[AuctionEnv, np.random.Generator], Learner]] = {
+    "greedy": lambda env, rng: GreedyLearner(env=env, rng=rng),  # the plain auction
+    "spread": lambda env, rng: TeamReserveLearner(env=env, rng=rng, hold_level=0),
+    "hold": lambda env, rng: TeamReserveLearner(env=env, rng=rng, hold_level=1),
+    "hold2": lambda env, rng: TeamReserveLearner(env=env, rng=rng, hold_level=2),
+    "reserve1": lambda env, rng: TeamReserveLearner(env=env, rng=rng, reserve=1, hold_level=0),
+    "reserve2": lambda env, rng: TeamReserveLearner(env=env, rng=rng, reserve=2, hold_level=0),
+    "high_only": lambda env, rng: TeamReserveLearner(env=env, rng=rng, hold_level=3),  # wait for L
+}
+
+# per-copy state of the numpy AuctionEnv (fallback snapshot); the slot and mask arrays are derived
+# from it but copied too, so a restored copy is bit-identical without recomputation
+_STATE_FIELDS = (
+    "_seeds",
+    "_episode",
+    "_episode_key",
+    "t",
+    "_next_id",
+    "busy_until",
+    "battery",
+    "last_high_arrival",
+    "done",
+    "_pending_type_penalty",
+    "_slot_pos",
+    "_slot_keys",
+    "slot_type",
+    "slot_high",
+    "idle",
+    "_mask_by_action",
+)
+_STATS_FIELDS = ("assigned", "dropped", "busy_ticks", "team_return", "ticks")
+
+
+def snapshot(env: AuctionEnv) -> Any:
+    """An independent copy of the state of every copy of ``env``."""
+    state = {f: getattr(env, f).copy() for f in _STATE_FIELDS}
+    state |= {f"stats.{f}": getattr(env.stats, f).copy() for f in _STATS_FIELDS}
+    state["_queue"] = env._queue.copy()
+    state["_queue_width"] = env._queue_width
+    return state
+
+
+def restore(env: AuctionEnv, state: Any, rows: np.ndarray) -> None:
+    """Load copy ``rows[i]`` of ``state`` (from :func:`snapshot`) into copy ``i`` of ``env``.
+
+    ``env.batch_size`` must equal ``len(rows)``; rows may repeat (one state, many copies).
+    """
+    for f in _STATE_FIELDS:
+        setattr(env, f, state[f][rows])
+    for f in _STATS_FIELDS:
+        setattr(env.stats, f, state[f"stats.{f}"][rows])
+    queue = state["_queue"][rows]
+    if queue.shape[1] < env._queue.shape[1]:  # keep the env's spare columns (all empty)
+        pad = np.full((len(rows), env._queue.shape[1] - queue.shape[1]), EMPTY)
+        queue = np.concatenate([queue, pad], axis=1)
+    env._queue = queue
+    env._queue_row_offsets = np.arange(env.batch_size)[:, None] * queue.shape[1]
+    env._queue_width = state["_queue_width"]
+
+
+def reseed(env: AuctionEnv, seeds: np.ndarray) -> None:
+    """Draw the future arrivals of every copy of ``env`` from new keys (one seed per copy).
+
+    Arrivals of tick ``t`` are a hash of (episode key, ``t``) (``envs/counter_rng.py``), so a new
+    episode key changes every arrival after the current tick and nothing already in the queue.
+    """
+    env._episode_key = counter_rng.episode_keys(counter_rng.seed_keys(seeds), env._episode)
+
+
+class RolloutPlanner(Learner):
+    """Online rollout planner over candidate rules (module docstring).
+
+    Args:
+        samples: Sampled futures of the arrivals per candidate (common to all candidates).
+        horizon: Ticks rolled forward per rollout (the candidate's tick included); 0 = no planning.
+        candidates: Names of candidate rules (:data:`CANDIDATES`); the base rule is always one.
+        base: Name of the rule that plays after the first tick of a rollout, and on ties.
+        gamma: Discount per tick of the rollout return (1 = plain sum).
+        **kwargs: Env, generator and partition of :class:`~mrta_rl.learners.base.Learner`.
+
+    Raises:
+        ValueError: on ``samples`` < 1, ``horizon`` < 0, ``gamma`` outside (0, 1], or an unknown
+            rule name.
+    """
+
+    kind: ClassVar[LearnerKind] = "fixed"
+
+    def __init__(
+        self,
+        *,
+        samples: int = 4,
+        horizon: int = 20,
+        candidates: Sequence[str] = ("greedy", "spread", "hold", "reserve1", "high_only"),
+        base: str = "hold",
+        gamma: float = 1.0,
+        **kwargs,
+    ) -> None:
+        super().__init__(**kwargs)
+        if samples < 1:
+            raise ValueError(f"rollout: samples must be >= 1, got {samples}")
+        if horizon < 0:
+            raise ValueError(f"rollout: horizon must be >= 0, got {horizon}")
+        if not 0.0 < gamma <= 1.0:
+            raise ValueError(f"rollout: gamma must be in (0, 1], got {gamma}")
+        names = [base, *(c for c in candidates if c != base)]  # the base rule first: ties go to it
+        for name in names:
+            if name not in CANDIDATES:
+                raise ValueError(f"rollout: unknown rule {name!r} (known: {sorted(CANDIDATES)})")
+        self.samples, self.horizon, self.gamma = samples, horizon, gamma
+        self.names = names
+        self._rules = [CANDIDATES[name](self.env, self.rng) for name in names]
+        self._base = self._rules[0]
+        self._rollout_envs: dict[int, AuctionEnv] = {}  # batch size -> env
+        self.decisions = 0  # ticks at which some copy had candidates to compare
+        self.planning_s = 0.0  # wall time spent in those decisions
+
+    def encode(self, env: AuctionEnv) -> tuple[Any, np.ndarray]:
+        """A snapshot of every copy and the candidates' joint actions ``[C, B, m]``."""
+        mask = env.action_mask
+        actions = np.stack(
+            [rule.act(rule.encode(env), mask, explore=False) for rule in self._rules]
+        )
+        return snapshot(env), actions
+
+    def act(self, view: tuple[Any, np.ndarray], mask: np.ndarray, *, explore: bool) -> np.ndarray:
+        """The candidate with the best mean rollout return, per copy.
+
+        Args:
+            view: Snapshot and candidate actions from :meth:`encode`.
+            mask: ``[B, m, K + 1]`` bool valid actions (every candidate is valid under it).
+            explore: Unused: the planner has no exploration.
+
+        Returns:
+            ``[B, m]`` int64 actions.
+        """
+        state, actions = view
+        chosen = actions[0].copy()  # the base rule
+        # copies where some candidate differs from the base rule: only they need planning
+        plan = np.flatnonzero((actions != actions[0]).any(axis=(0, 2)))
+        if self.horizon == 0 or len(actions) == 1 or len(plan) == 0:
+            return chosen
+        start = time.perf_counter()
+        n_cand, n_plan, S = len(actions), len(plan), self.samples
+        # rollout rows ordered (copy, candidate, sample)
+        rows = np.repeat(plan, n_cand * S)
+        cand = np.tile(np.repeat(np.arange(n_cand), S), n_plan)
+        seeds = self.rng.integers(0, 2**62, size=(n_plan, S))  # one future per (copy, sample)
+        env = self._rollout_env(len(rows))
+        restore(env, state, rows)
+        reseed(env, np.repeat(seeds[:, None, :], n_cand, axis=1).reshape(-1))
+        first = actions[cand, rows]  # [N, m]
+        returns = self._roll(env, first)
+        score = returns.reshape(n_plan, n_cand, S).mean(axis=2)
+        best = score.argmax(axis=1)  # first maximum: ties go to the base rule (index 0)
+        chosen[plan] = actions[best, plan]
+        self.decisions += 1
+        self.planning_s += time.perf_counter() - start
+        if self.decisions % LOG_EVERY == 0:
+            logger.info(
+                "rollout: %d planned ticks, %.2f ms per planned tick (%d copies planned now)",
+                self.decisions,
+                1000 * self.planning_s / self.decisions,
+                n_plan,
+            )
+        return chosen
+
+    def _roll(self, env: AuctionEnv, first: np.ndarray) -> np.ndarray:
+        """Play ``first``, then the base rule, up to ``horizon`` ticks; returns ``[N]``."""
+        returns = np.zeros(env.batch_size)
+        discount = 1.0
+        actions = first
+        for tick in range(self.horizon):
+            if env.done.any():  # the episode ends inside the horizon: no reward after it
+                break
+            if tick:
+                actions = self._base.act(self._base.encode(env), env.action_mask, explore=False)
+            returns += discount * env.step(actions, validated=tick > 0).team_reward
+            discount *= self.gamma
+        return returns
+
+    def _rollout_env(self, batch_size: int) -> AuctionEnv:
+        """A scratch env of ``batch_size`` copies: the learner env's system, params, ``Lambda``."""
+        env = self._rollout_envs.get(batch_size)
+        if env is None:
+            env = AuctionEnv(
+                self.env.system,
+                self.env.params,
+                batch_size=batch_size,
+                active_tasks=self.env.active_tasks,
+            )
+            self._rollout_envs[batch_size] = env
+        return env
+
+    def learning_space(self) -> dict[str, int]:
+        """No table: ``{}`` (a fixed policy); decision time is logged at the end of evaluation."""
+        return {}
