@@ -39,6 +39,26 @@ the whole system for CQL / semi-CQL, one sub-group for subG-CQL), :class:`GroupV
     ``|S_g| = (1 + 2 |T_g|)^K * 3^{m_g} * 3`` (:func:`group_state_count`, an exact Python int;
     :func:`group_state_index` raises ``OverflowError`` if it does not fit in int64).
 
+Features (``features`` argument of every encoding, :data:`FEATURES`): ``"paper"`` (default) is
+the encoding above, the paper-era one; ``"time_to_free"`` adds what the paper's state leaves out
+and rules that know it use: when busy robots become free and how full the queue is.
+    * **free level** (3 values), :func:`free_level`: ``0`` idle, ``1`` busy but free within
+      :data:`FREE_SOON` ticks, ``2`` busy for longer. A robot busy until tick ``u`` (execution and
+      charging included) is idle again at ``u + 1``: ``u - t + 1`` ticks from now.
+    * **queue levels** (3 values per priority), :func:`queue_level`: the number of queued tasks
+      (slot tasks and round-2 tasks included) of the given types, per priority, cut at
+      :data:`QUEUE_THRESHOLDS`: H ``0 | 1 | 2+``, L ``0-2 | 3-8 | 9+``.
+    With ``"time_to_free"``:
+    * local view: the idle flag becomes the free level (3), and the queue levels over
+      ``Lambda_i`` (H then L, 3 each) follow the recency digit:
+      ``|S_i| = 3 (1 + 2 |Lambda_i|)^K * 2 * 3 * 3 * 3``;
+    * group view: robot states gain ``3`` = busy but free within :data:`FREE_SOON` ticks (so 4
+      states), and the queue levels over ``T_g`` (H then L) follow the recency digit:
+      ``|S_g| = (1 + 2 |T_g|)^K * 4^{m_g} * 3 * 3 * 3``;
+    * local features: a free-level one-hot (3) and queue-level one-hots over ``Lambda_i`` (H 3,
+      L 3) between the recency and the robot id (``F + 9``); global features: per robot a
+      free-level one-hot (``3m``) and per task type its queue-level one-hots (``6n``) at the end.
+
 Neural features:
     * :func:`local_features` ``[B, m, F]`` with ``F = 1 + K (1 + 2n) + 1 + 3 + m``: idle bit; per
       slot a one-hot over ``1 + 2n`` codes (``1 + 2 type + high`` over *all* types, so robots share
@@ -56,19 +76,32 @@ from collections.abc import Sequence
 import numpy as np
 
 from mrta_rl.envs.auction import AuctionEnv
+from mrta_rl.envs.tasks import EMPTY, task_high, task_type
 
 RECENCY_THRESHOLDS: tuple[int, int] = (3, 10)  # recency level 0: delta <= 3, 1: delta <= 10, else 2
 N_RECENCY_LEVELS = 3
 N_BATTERY_LEVELS = 2
 N_ROBOT_STATES = 3  # group view: busy / idle ok battery / idle low battery
+FEATURES = ("paper", "time_to_free")  # selectable encodings; "paper" is the paper-era default
+FREE_SOON = 3  # free level 1: a busy robot idle again within this many ticks
+N_FREE_LEVELS = 3  # idle / free soon / free later
+QUEUE_THRESHOLDS = {"H": (0, 1), "L": (2, 8)}  # queue level: count <= t0 -> 0, <= t1 -> 1, else 2
+N_QUEUE_LEVELS = 3
 _NEVER = np.iinfo(np.int64).min // 4  # "no H arrival" sentinel, far below any tick
 
 __all__ = [
+    "FEATURES",
+    "FREE_SOON",
+    "QUEUE_THRESHOLDS",
     "GroupView",
     "LocalView",
     "N_RECENCY_LEVELS",
     "RECENCY_THRESHOLDS",
     "battery_level",
+    "check_features",
+    "free_level",
+    "queue_counts",
+    "queue_level",
     "global_feature_size",
     "global_features",
     "group_state_count",
@@ -141,6 +174,69 @@ def recency_level(env: AuctionEnv, types_mask: np.ndarray) -> np.ndarray:
     return (delta > RECENCY_THRESHOLDS[0]).astype(np.int64) + (delta > RECENCY_THRESHOLDS[1])
 
 
+def check_features(features: str) -> str:
+    """The encoding name, checked against :data:`FEATURES`.
+
+    Raises:
+        ValueError: naming the unknown value and the known ones.
+    """
+    if features not in FEATURES:
+        raise ValueError(f"features must be one of {FEATURES}, got {features!r}")
+    return features
+
+
+def free_level(env: AuctionEnv) -> np.ndarray:
+    """Coarse time until each robot is idle again (module docstring, "Features").
+
+    Args:
+        env: The auction environment.
+
+    Returns:
+        ``[B, m]`` int64 in {0, 1, 2}: idle, free within :data:`FREE_SOON` ticks, later.
+    """
+    ticks = env.busy_until - env.t[:, None] + 1  # idle again at busy_until + 1; <= 0 when idle
+    return (ticks > 0).astype(np.int64) + (ticks > FREE_SOON)
+
+
+def queue_counts(env: AuctionEnv) -> np.ndarray:
+    """Queued tasks per type and priority, slot tasks and round-2 tasks included.
+
+    Args:
+        env: The auction environment.
+
+    Returns:
+        ``[B, n, 2]`` int64 counts (priority index 0 = L, 1 = H).
+    """
+    queue = env._queue[:, : env._queue_width]  # the env keeps every copy's tasks there
+    b, k = np.nonzero(queue != EMPTY)
+    counts = np.zeros((env.batch_size, env.n_task_types, 2), np.int64)
+    np.add.at(counts, (b, task_type(queue[b, k]), task_high(queue[b, k])), 1)
+    return counts
+
+
+def queue_level(env: AuctionEnv, types_mask: np.ndarray, counts: np.ndarray | None = None):
+    """Coarse queued H and L counts over the given task types (module docstring, "Features").
+
+    Args:
+        env: The auction environment.
+        types_mask: ``[n]`` bool (one set of types) or ``[m', n]`` bool (one set per row).
+        counts: :func:`queue_counts` of ``env`` if already computed.
+
+    Returns:
+        ``[B, 2]`` (for ``[n]``) or ``[B, m', 2]`` int64 levels in {0, 1, 2}: index 0 = H,
+        index 1 = L.
+    """
+    counts = queue_counts(env) if counts is None else counts  # [B, n, 2]
+    types = np.asarray(types_mask, dtype=np.int64)
+    per = np.einsum("...n,bnp->b...p", types, counts)  # [B, (m',) 2]; p: 0 = L, 1 = H
+    (h0, h1), (l0, l1) = QUEUE_THRESHOLDS["H"], QUEUE_THRESHOLDS["L"]
+    high, low = per[..., 1], per[..., 0]
+    return np.stack(
+        [(high > h0).astype(np.int64) + (high > h1), (low > l0).astype(np.int64) + (low > l1)],
+        axis=-1,
+    )
+
+
 def _places(radices: np.ndarray) -> np.ndarray:
     """Little-endian mixed-radix place values along the last axis (``place_0 = 1``)."""
     places = np.ones_like(radices)
@@ -163,9 +259,12 @@ class LocalView:
 
     Args:
         env: The auction environment (its ``active_tasks`` and ``n_slots`` fix the tables).
+        features: ``"paper"`` or ``"time_to_free"`` (module docstring, "Features").
     """
 
-    def __init__(self, env: AuctionEnv) -> None:
+    def __init__(self, env: AuctionEnv, features: str = "paper") -> None:
+        self.features = check_features(features)
+        extra = features == "time_to_free"
         m, n, K = env.n_robots, env.n_task_types, env.n_slots
         active = env.active_tasks  # Lambda_i, [m, n]
         self.n_active = active.sum(axis=1)  # |Lambda_i|, [m]
@@ -175,14 +274,22 @@ class LocalView:
         codes[:, :n, :] = np.where(active[:, :, None], 1 + 2 * rank[:, :, None] + np.arange(2), 0)
         self._codes = codes.transpose(1, 2, 0).copy()  # [n + 1, 2, m] for [B, K, m] lookups
         slot_radix = 1 + 2 * self.n_active  # [m]
+        first = N_FREE_LEVELS if extra else 2  # free level, or the idle flag
+        queue = [np.full(m, N_QUEUE_LEVELS)] * 2 if extra else []  # H, L queue levels
         radices = np.column_stack(
-            [np.full(m, 2), *([slot_radix] * K), np.full(m, N_BATTERY_LEVELS), np.full(m, 3)]
+            [
+                np.full(m, first),
+                *([slot_radix] * K),
+                np.full(m, N_BATTERY_LEVELS),
+                np.full(m, N_RECENCY_LEVELS),
+                *queue,
+            ]
         )
         self.counts = [int(np.prod([int(r) for r in row], dtype=object)) for row in radices]
         if max(self.counts) >= 2**63:
             raise OverflowError(f"local state count {max(self.counts)} does not fit in int64")
-        self.radices = radices  # [m, K + 3]
-        self._places = _places(radices)  # [m, K + 3]
+        self.radices = radices  # [m, K + 3] (+ 2 queue digits)
+        self._places = _places(radices)
         self._slot_places = self._places[:, 1 : K + 1].T.copy()  # [K, m]
         self._active = active
 
@@ -190,15 +297,29 @@ class LocalView:
         """``[B, m]`` int64 local state indices, each in ``[0, counts[i])``."""
         high = np.maximum(env.slot_high, 0)  # [B, K]; empty slots use row -1 whatever high is
         codes = self._codes[env.slot_type, high]  # [B, K, m]
-        index = env.idle.astype(np.int64) + (codes * self._slot_places).sum(axis=1)  # [B, m]
-        index += battery_level(env) * self._places[:, -2]
-        index += recency_level(env, self._active) * self._places[:, -1]
+        K = len(self._slot_places)
+        first = free_level(env) if self.features == "time_to_free" else env.idle.astype(np.int64)
+        index = first + (codes * self._slot_places).sum(axis=1)  # [B, m]
+        index += battery_level(env) * self._places[:, K + 1]
+        index += recency_level(env, self._active) * self._places[:, K + 2]
+        if self.features == "time_to_free":
+            queue = queue_level(env, self._active)  # [B, m, 2]: H, L
+            index += queue[..., 0] * self._places[:, K + 3] + queue[..., 1] * self._places[:, K + 4]
         return index
 
     def decode(self, robot: int, index: int) -> dict[str, object]:
-        """Fields of one robot's local index: ``idle``, ``slots``, ``battery``, ``recency``."""
+        """Fields of one robot's local index (``free``, ``queue_*`` with ``time_to_free``).
+
+        Returns:
+            ``idle`` (or ``free``), ``slots``, ``battery``, ``recency`` (, ``queue_high``,
+            ``queue_low``).
+        """
         d = _decode(index, self.radices[robot])
-        return {"idle": d[0], "slots": d[1:-2], "battery": d[-2], "recency": d[-1]}
+        K = len(self._slot_places)
+        fields = {"slots": d[1 : K + 1], "battery": d[K + 1], "recency": d[K + 2]}
+        if self.features == "paper":
+            return {"idle": d[0], **fields}
+        return {"free": d[0], **fields, "queue_high": d[K + 3], "queue_low": d[K + 4]}
 
 
 class GroupView:
@@ -207,12 +328,17 @@ class GroupView:
     Args:
         env: The auction environment.
         robots: Robot indices (or ids such as ``"R2"``) of the group, in the order of its digits.
+        features: ``"paper"`` or ``"time_to_free"`` (module docstring, "Features").
 
     Raises:
-        ValueError: on an empty group or an unknown robot.
+        ValueError: on an empty group, an unknown robot or unknown features.
     """
 
-    def __init__(self, env: AuctionEnv, robots: Sequence[int | str]) -> None:
+    def __init__(
+        self, env: AuctionEnv, robots: Sequence[int | str], features: str = "paper"
+    ) -> None:
+        self.features = check_features(features)
+        extra = features == "time_to_free"
         if len(robots) == 0:
             raise ValueError("a group needs at least one robot")
         ids = [env.system.robots.index(r) if isinstance(r, str) else int(r) for r in robots]
@@ -226,14 +352,20 @@ class GroupView:
         codes = np.zeros((n + 1, 2), np.int64)  # row n answers slot_type -1 (empty)
         codes[:n] = np.where(self.types_mask[:, None], 1 + 2 * rank[:, None] + np.arange(2), 0)
         self._codes = codes
-        self.radices = [1 + 2 * self.n_types] * K + [N_ROBOT_STATES] * len(ids) + [N_RECENCY_LEVELS]
+        self.n_slots = K
+        robot_states = N_ROBOT_STATES + 1 if extra else N_ROBOT_STATES  # + busy, free soon
+        queue = [N_QUEUE_LEVELS] * 2 if extra else []  # H, L queue levels over T_g
+        self.radices = (
+            [1 + 2 * self.n_types] * K + [robot_states] * len(ids) + [N_RECENCY_LEVELS] + queue
+        )
         self.count = int(np.prod(self.radices, dtype=object))  # exact Python int
         self.fits_int64 = self.count < 2**63
         if self.fits_int64:
             places = _places(np.array(self.radices, np.int64))
             self._slot_places = places[:K]  # [K]
-            self._robot_places = places[K:-1]  # [m_g]
-            self._recency_place = int(places[-1])
+            self._robot_places = places[K : K + len(ids)]  # [m_g]
+            self._recency_place = int(places[K + len(ids)])
+            self._queue_places = places[K + len(ids) + 1 :]  # [2] (H, L) or empty
 
     def index(self, env: AuctionEnv) -> np.ndarray:
         """``[B]`` int64 group state indices in ``[0, count)``.
@@ -249,85 +381,114 @@ class GroupView:
         index = self._codes[env.slot_type, high] @ self._slot_places  # [B]
         idle = env.idle[:, self.robots]  # [B, m_g]
         state = idle * (1 + battery_level(env)[:, self.robots])  # 0 busy, 1 idle ok, 2 idle low
+        if self.features == "time_to_free":  # 3 = busy, idle again within FREE_SOON ticks
+            state = np.where(free_level(env)[:, self.robots] == 1, 3, state)
         index += state @ self._robot_places
         index += recency_level(env, self.types_mask) * self._recency_place
+        if self.features == "time_to_free":
+            index += queue_level(env, self.types_mask) @ self._queue_places  # H, L levels
         return index
 
     def decode(self, index: int) -> dict[str, list[int] | int]:
-        """Fields of a group state index: ``slots`` (K), ``robots`` (m_g states), ``recency``."""
+        """Fields of a group state index (``queue_*`` with ``time_to_free``).
+
+        Returns:
+            ``slots`` (K), ``robots`` (m_g states), ``recency`` (, ``queue_high``, ``queue_low``).
+        """
         digits = _decode(index, self.radices)
-        K = len(self.radices) - len(self.robots) - 1
-        return {"slots": digits[:K], "robots": digits[K:-1], "recency": digits[-1]}
+        K, m_g = self.n_slots, len(self.robots)
+        fields = {
+            "slots": digits[:K],
+            "robots": digits[K : K + m_g],
+            "recency": digits[K + m_g],
+        }
+        if self.features == "time_to_free":
+            fields |= {"queue_high": digits[K + m_g + 1], "queue_low": digits[K + m_g + 2]}
+        return fields
 
 
-# One precomputed view per env (and per group), so the per-tick functions only index tables.
-_LOCAL: weakref.WeakKeyDictionary[AuctionEnv, LocalView] = weakref.WeakKeyDictionary()
-_GroupViews = dict[tuple[int, ...], GroupView]
+# One precomputed view per env (and per group and encoding), so per-tick calls only index tables.
+_LocalViews = dict[str, LocalView]
+_LOCAL: weakref.WeakKeyDictionary[AuctionEnv, _LocalViews] = weakref.WeakKeyDictionary()
+_GroupViews = dict[tuple[str, tuple[int, ...]], GroupView]
 _GROUP: weakref.WeakKeyDictionary[AuctionEnv, _GroupViews] = weakref.WeakKeyDictionary()
 
 
-def _local_view(env: AuctionEnv) -> LocalView:
-    view = _LOCAL.get(env)
-    if view is None:
-        view = _LOCAL[env] = LocalView(env)
-    return view
+def _local_view(env: AuctionEnv, features: str) -> LocalView:
+    views = _LOCAL.setdefault(env, {})
+    if features not in views:
+        views[features] = LocalView(env, features)
+    return views[features]
 
 
-def _group_view(env: AuctionEnv, robots: Sequence[int | str]) -> GroupView:
-    key = tuple(env.system.robots.index(r) if isinstance(r, str) else int(r) for r in robots)
+def _group_view(env: AuctionEnv, robots: Sequence[int | str], features: str) -> GroupView:
+    ids = tuple(env.system.robots.index(r) if isinstance(r, str) else int(r) for r in robots)
     views = _GROUP.setdefault(env, {})
-    if key not in views:
-        views[key] = GroupView(env, key)
-    return views[key]
+    if (features, ids) not in views:
+        views[(features, ids)] = GroupView(env, ids, features)
+    return views[(features, ids)]
 
 
-def local_state_index(env: AuctionEnv) -> np.ndarray:
+def local_state_index(env: AuctionEnv, features: str = "paper") -> np.ndarray:
     """Local state index of every robot (module docstring).
 
     Args:
         env: The auction environment.
+        features: ``"paper"`` or ``"time_to_free"``.
 
     Returns:
-        ``[B, m]`` int64, robot ``i``'s index in ``[0, local_state_count(env)[i])``.
+        ``[B, m]`` int64, robot ``i``'s index in ``[0, local_state_count(env, features)[i])``.
     """
-    return _local_view(env).index(env)
+    return _local_view(env, features).index(env)
 
 
-def local_state_count(env: AuctionEnv) -> list[int]:
-    """``[m]`` Python ints: ``|S_i| = 2 (1 + 2 |Lambda_i|)^K 2 * 3`` (paper eq. 10's ``|S_i|``)."""
-    return list(_local_view(env).counts)
+def local_state_count(env: AuctionEnv, features: str = "paper") -> list[int]:
+    """``[m]`` Python ints ``|S_i|`` (paper eq. 10's; formulas in the module docstring)."""
+    return list(_local_view(env, features).counts)
 
 
-def group_state_index(env: AuctionEnv, robots: Sequence[int | str]) -> np.ndarray:
+def group_state_index(
+    env: AuctionEnv, robots: Sequence[int | str], features: str = "paper"
+) -> np.ndarray:
     """Group state index of the given robots (module docstring).
 
     Args:
         env: The auction environment.
         robots: Robot indices (or ids) of the group.
+        features: ``"paper"`` or ``"time_to_free"``.
 
     Returns:
-        ``[B]`` int64 in ``[0, group_state_count(env, robots))``.
+        ``[B]`` int64 in ``[0, group_state_count(env, robots, features))``.
 
     Raises:
         OverflowError: if the count does not fit in int64.
     """
-    return _group_view(env, robots).index(env)
+    return _group_view(env, robots, features).index(env)
 
 
-def group_state_count(env: AuctionEnv, robots: Sequence[int | str]) -> int:
-    """Exact ``|S_g| = (1 + 2 |T_g|)^K 3^{m_g} 3`` as a Python int (paper eqs 13, 16)."""
-    return _group_view(env, robots).count
+def group_state_count(env: AuctionEnv, robots: Sequence[int | str], features: str = "paper") -> int:
+    """Exact ``|S_g|`` as a Python int (paper eqs 13, 16; formulas in the module docstring)."""
+    return _group_view(env, robots, features).count
 
 
-def local_feature_size(env: AuctionEnv) -> int:
-    """``F = 1 + K (1 + 2n) + 1 + 3 + m``, the last dimension of :func:`local_features`."""
-    return 1 + env.n_slots * (1 + 2 * env.n_task_types) + 1 + N_RECENCY_LEVELS + env.n_robots
+def _extra_local(env: AuctionEnv, features: str) -> int:
+    """Width of the "time_to_free" blocks of the local features: free level and queue levels."""
+    return N_FREE_LEVELS + 2 * N_QUEUE_LEVELS if check_features(features) == "time_to_free" else 0
 
 
-def global_feature_size(env: AuctionEnv) -> int:
-    """``G = K (1 + 2n) + 2m + 3n``, the last dimension of :func:`global_features`."""
-    n = env.n_task_types
-    return env.n_slots * (1 + 2 * n) + 2 * env.n_robots + N_RECENCY_LEVELS * n
+def local_feature_size(env: AuctionEnv, features: str = "paper") -> int:
+    """``F = 1 + K (1 + 2n) + 1 + 3 + m`` (+ 9 with ``"time_to_free"``), see the layout."""
+    paper = 1 + env.n_slots * (1 + 2 * env.n_task_types) + 1 + N_RECENCY_LEVELS + env.n_robots
+    return paper + _extra_local(env, features)
+
+
+def global_feature_size(env: AuctionEnv, features: str = "paper") -> int:
+    """``G = K (1 + 2n) + 2m + 3n`` (+ ``3m + 6n`` with ``"time_to_free"``)."""
+    n, m = env.n_task_types, env.n_robots
+    paper = env.n_slots * (1 + 2 * n) + 2 * m + N_RECENCY_LEVELS * n
+    if check_features(features) == "time_to_free":
+        return paper + N_FREE_LEVELS * m + 2 * N_QUEUE_LEVELS * n
+    return paper
 
 
 def _slot_codes(env: AuctionEnv) -> np.ndarray:
@@ -335,14 +496,15 @@ def _slot_codes(env: AuctionEnv) -> np.ndarray:
     return np.where(env.slot_type >= 0, 1 + 2 * env.slot_type + env.slot_high, 0)
 
 
-def local_features(env: AuctionEnv) -> np.ndarray:
+def local_features(env: AuctionEnv, features: str = "paper") -> np.ndarray:
     """One-hot local view of every robot, for neural nets (layout in the module docstring).
 
     Args:
         env: The auction environment.
+        features: ``"paper"`` or ``"time_to_free"`` (free and queue levels, "Features").
 
     Returns:
-        ``[B, m, F]`` float32, ``F = local_feature_size(env)``.
+        ``[B, m, F]`` float32, ``F = local_feature_size(env, features)``.
     """
     B, m, K, n = env.batch_size, env.n_robots, env.n_slots, env.n_task_types
     n_codes = 1 + 2 * n
@@ -351,8 +513,8 @@ def local_features(env: AuctionEnv) -> np.ndarray:
     # (an empty slot indexes row -1, a real type, but its code is 0 anyway)
     visible = env.active_tasks.T[env.slot_type] & (codes > 0)[:, :, None]  # [B, K, m]
     local_codes = np.where(visible, codes[:, :, None], 0).transpose(0, 2, 1)  # [B, m, K]
-    at = local_feature_layout(K, n)
-    out = np.zeros((B, m, local_feature_size(env)), np.float32)
+    at = local_feature_layout(K, n, features)
+    out = np.zeros((B, m, local_feature_size(env, features)), np.float32)
     out[..., at["idle"].start] = env.idle
     slot_block = out[..., at["slots"]].reshape(B, m, K, n_codes)
     np.put_along_axis(slot_block, local_codes[..., None], 1.0, axis=-1)
@@ -361,43 +523,60 @@ def local_features(env: AuctionEnv) -> np.ndarray:
     recency = recency_level(env, env.active_tasks)  # [B, m]
     np.put_along_axis(out, (at["recency"].start + recency)[..., None], 1.0, axis=-1)
     out[:, np.arange(m), at["robot"].start + np.arange(m)] = 1.0  # robot id one-hot
+    if features == "time_to_free":
+        np.put_along_axis(out, (at["free"].start + free_level(env))[..., None], 1.0, axis=-1)
+        queue = queue_level(env, env.active_tasks)  # [B, m, 2]: H, L levels over Lambda_i
+        offsets = at["queue"].start + np.array([0, N_QUEUE_LEVELS])
+        np.put_along_axis(out, queue + offsets, 1.0, axis=-1)
     return out
 
 
-def local_feature_layout(n_slots: int, n_task_types: int) -> dict[str, slice]:
+def local_feature_layout(
+    n_slots: int, n_task_types: int, features: str = "paper"
+) -> dict[str, slice]:
     """Where the parts of :func:`local_features` sit on the feature axis (module docstring).
 
     Args:
         n_slots: ``K``.
         n_task_types: ``n``.
+        features: ``"paper"`` or ``"time_to_free"``.
 
     Returns:
-        ``{"idle", "slots", "battery", "recency", "robot"}`` -> slice; ``"slots"`` holds ``K``
-        one-hots of ``1 + 2n`` codes (code ``1 + 2 type + high``), ``"recency"`` the 3 levels.
+        ``{"idle", "slots", "battery", "recency", "robot"}`` -> slice (and ``"free"``, the free
+        level one-hot, and ``"queue"``, the H then L queue-level one-hots, between ``"recency"``
+        and ``"robot"`` with ``"time_to_free"``); ``"slots"`` holds ``K`` one-hots of ``1 + 2n``
+        codes (code ``1 + 2 type + high``), ``"recency"`` the 3 levels.
     """
     slots_end = 1 + n_slots * (1 + 2 * n_task_types)
     recency_end = slots_end + 1 + N_RECENCY_LEVELS
-    return {
+    layout = {
         "idle": slice(0, 1),
         "slots": slice(1, slots_end),
         "battery": slice(slots_end, slots_end + 1),
         "recency": slice(slots_end + 1, recency_end),
-        "robot": slice(recency_end, None),
     }
+    if check_features(features) == "time_to_free":
+        free_end = recency_end + N_FREE_LEVELS
+        layout["free"] = slice(recency_end, free_end)
+        layout["queue"] = slice(free_end, free_end + 2 * N_QUEUE_LEVELS)
+        recency_end = free_end + 2 * N_QUEUE_LEVELS
+    layout["robot"] = slice(recency_end, None)
+    return layout
 
 
-def global_features(env: AuctionEnv) -> np.ndarray:
+def global_features(env: AuctionEnv, features: str = "paper") -> np.ndarray:
     """One-hot global state, for centralized critics and mixers (layout in the module docstring).
 
     Args:
         env: The auction environment.
+        features: ``"paper"`` or ``"time_to_free"`` (free and queue levels at the end).
 
     Returns:
-        ``[B, G]`` float32, ``G = global_feature_size(env)``.
+        ``[B, G]`` float32, ``G = global_feature_size(env, features)``.
     """
     B, m, K, n = env.batch_size, env.n_robots, env.n_slots, env.n_task_types
     n_codes = 1 + 2 * n
-    out = np.zeros((B, global_feature_size(env)), np.float32)
+    out = np.zeros((B, global_feature_size(env, features)), np.float32)
     slots = np.zeros((B, K, n_codes), np.float32)
     np.put_along_axis(slots, _slot_codes(env)[..., None], 1.0, axis=-1)
     out[:, : K * n_codes] = slots.reshape(B, K * n_codes)
@@ -407,5 +586,14 @@ def global_features(env: AuctionEnv) -> np.ndarray:
     recency = recency_level(env, np.eye(n, dtype=bool))  # [B, n], one level per task type
     rec = np.zeros((B, n, N_RECENCY_LEVELS), np.float32)
     np.put_along_axis(rec, recency[..., None], 1.0, axis=-1)
-    out[:, base + 2 * m :] = rec.reshape(B, n * N_RECENCY_LEVELS)
+    end = base + 2 * m + n * N_RECENCY_LEVELS
+    out[:, base + 2 * m : end] = rec.reshape(B, n * N_RECENCY_LEVELS)
+    if features == "time_to_free":
+        free = np.zeros((B, m, N_FREE_LEVELS), np.float32)
+        np.put_along_axis(free, free_level(env)[..., None], 1.0, axis=-1)
+        out[:, end : end + N_FREE_LEVELS * m] = free.reshape(B, -1)
+        queue = queue_level(env, np.eye(n, dtype=bool))  # [B, n, 2]: H, L level per type
+        one_hot = np.zeros((B, n, 2, N_QUEUE_LEVELS), np.float32)
+        np.put_along_axis(one_hot, queue[..., None], 1.0, axis=-1)
+        out[:, end + N_FREE_LEVELS * m :] = one_hot.reshape(B, -1)
     return out

@@ -73,7 +73,10 @@ def subgroup_dimension(groups: Sequence[tuple[int, Sequence[int]]]) -> int:
 
 
 def learning_space_dimension(
-    learner: TabularLearnerName, env: AuctionEnv, partition: Partition | None = None
+    learner: TabularLearnerName,
+    env: AuctionEnv,
+    partition: Partition | None = None,
+    features: str = "paper",
 ) -> int:
     """Analytic learning space dimension of one tabular learner on ``env``'s encodings.
 
@@ -81,6 +84,8 @@ def learning_space_dimension(
         learner: ``"cql"``, ``"semi_cql"``, ``"dql"`` or ``"subg_cql"``.
         env: The env the learner runs on (for subG-CQL: built with the partition's ``Lambda_i``).
         partition: The subG partition (required for ``"subg_cql"``).
+        features: The learner's encoding, ``"paper"`` or ``"time_to_free"``
+            (``envs/observations.py``).
 
     Returns:
         The exact dimension.
@@ -91,18 +96,19 @@ def learning_space_dimension(
     m = env.n_robots
     actions = [env.n_actions] * m  # |A_i| = K + 1
     if learner == "dql":
-        return decentralized_dimension(local_state_count(env), actions)
+        return decentralized_dimension(local_state_count(env, features), actions)
     if learner == "semi_cql":
-        whole = group_state_count(env, list(range(m)))
+        whole = group_state_count(env, list(range(m)), features)
         return decentralized_dimension([whole] * m, actions)
     if learner == "cql":
-        return centralized_dimension(group_state_count(env, list(range(m))), actions)
+        return centralized_dimension(group_state_count(env, list(range(m)), features), actions)
     if learner == "subg_cql":
         if partition is None:
             raise ValueError("subg_cql needs the partition")
         groups = []
         for robots in partition.group_map().values():
-            groups.append((group_state_count(env, robots), [env.n_actions] * len(robots)))
+            count = group_state_count(env, robots, features)
+            groups.append((count, [env.n_actions] * len(robots)))
         return subgroup_dimension(groups)
     raise ValueError(f"unknown tabular learner {learner!r}; expected one of {TABULAR_LEARNERS}")
 

@@ -50,3 +50,17 @@ def test_table9_ordering(name):
 def test_factorize():
     assert factorize(2**12 * 3**4 * 17) == "2^12 * 3^4 * 17"
     assert factorize(1) == "1"
+
+
+def test_time_to_free_dimensions_by_hand(tiny_system):
+    env = AuctionEnv(tiny_system)  # R1: T1, T2; R2: T2; K = 3 slots, 4 actions
+    # |S_i| = free level 3 x (1 + 2 |Lambda_i|)^3 x battery 2 x recency 3 x queue levels 3 x 3
+    s1, s2 = 3 * 5**3 * 2 * 3 * 9, 3 * 3**3 * 2 * 3 * 9
+    assert learning_space_dimension("dql", env, features="time_to_free") == (s1 + s2) * 4
+    whole = 5**3 * 4**2 * 3 * 9  # robot states 4: busy, idle ok, idle low, free soon
+    assert learning_space_dimension("cql", env, features="time_to_free") == whole * 4**2
+    partition = subg_partition(tiny_system)
+    sub_env = AuctionEnv(tiny_system, active_tasks=partition.active_tasks(tiny_system))
+    g = 3**3 * 4 * 3 * 9
+    dim = learning_space_dimension("subg_cql", sub_env, partition, "time_to_free")
+    assert dim == 2 * g * 4

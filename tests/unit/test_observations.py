@@ -199,3 +199,89 @@ def test_features_are_one_hot():
     np.testing.assert_array_equal(g_slots.argmax(-1), expected)
     rec = glob[:, K * c + 2 * m :].reshape(8, n, 3)
     assert (rec.sum(-1) == 1).all()
+
+
+def test_time_to_free_by_hand(quiet_env):
+    """Free levels, queue levels and the digits they add to the local and group views."""
+    env = quiet_env
+    # queue: T1 H, T2 L, T3 L, T1 L, T2 L (5 tasks); slots 1-3 = T1 H, T2 L, T3 L
+    tasks = [task(1, 0, 1), task(0, 1, 0), task(2, 0, 2), task(0, 0, 3), task(1, 0, 4)]
+    env.inject_tasks(0, tasks)
+    env.busy_until[0] = [-1, 2, 9]  # t = 0: R1 idle, R2 idle again at tick 3, R3 at tick 10
+    env._select_slots()
+    assert ob.free_level(env)[0].tolist() == [0, 1, 2]  # FREE_SOON = 3: 3 ticks is soon
+    counts = ob.queue_counts(env)[0]  # [n, 2], index 0 = L
+    assert counts.tolist() == [[1, 1], [2, 0], [1, 0]]
+    # over Lambda_i: R1 {T1, T3}: H 1 -> 1, L 2 -> 0; R2 {T2}: H 0, L 2 -> 0;
+    # R3 {T1, T2}: H 1 -> 1, L 3 -> 1 (L thresholds 2, 8)
+    assert ob.queue_level(env, env.active_tasks)[0].tolist() == [[1, 0], [0, 0], [1, 1]]
+    assert ob.queue_level(env, np.ones(3, bool))[0].tolist() == [1, 1]  # L 4 > 2 -> level 1
+    view = ob.LocalView(env, "time_to_free")
+    index = ob.local_state_index(env, "time_to_free")
+    paper = ob.LocalView(env).decode(0, ob.local_state_index(env)[0, 0])
+    assert paper.pop("idle") == 1
+    fields = view.decode(0, index[0, 0])
+    assert fields == {"free": 0, **paper, "queue_high": 1, "queue_low": 0}
+    assert view.decode(2, index[0, 2])["free"] == 2 and view.decode(1, index[0, 1])["free"] == 1
+    group = ob.GroupView(env, [0, 1, 2], "time_to_free")
+    g_fields = group.decode(ob.group_state_index(env, [0, 1, 2], "time_to_free")[0])
+    # robot states: 1 idle ok, 3 busy but free soon, 0 busy for longer
+    assert g_fields["robots"] == [1, 3, 0]
+    assert (g_fields["queue_high"], g_fields["queue_low"]) == (1, 1)
+    with pytest.raises(ValueError, match="features must be one of"):
+        ob.local_state_index(env, "nope")
+
+
+@pytest.mark.parametrize("name", ["system1", "system2"])
+def test_time_to_free_counts_and_indices(name):
+    env = AuctionEnv(load_system(name), AuctionParams(horizon=200), batch_size=16, seed=3)
+    K, m, n = env.n_slots, env.n_robots, env.n_task_types
+    lam = env.active_tasks.sum(axis=1)
+    counts = ob.local_state_count(env, "time_to_free")
+    assert counts == [3 * (1 + 2 * int(x)) ** K * 2 * 3 * 9 for x in lam]
+    team = list(range(m))
+    assert ob.group_state_count(env, team, "time_to_free") == (1 + 2 * n) ** K * 4**m * 3 * 9
+    local, group = ob.LocalView(env, "time_to_free"), ob.GroupView(env, team, "time_to_free")
+    paper_local, paper_group = ob.LocalView(env), ob.GroupView(env, team)
+    for _ in random_rollout(env, 40):
+        index = ob.local_state_index(env, "time_to_free")
+        assert (index >= 0).all() and (index < np.array(counts)).all()
+        free, queue = ob.free_level(env), ob.queue_level(env, env.active_tasks)
+        g_index = ob.group_state_index(env, team, "time_to_free")
+        g_paper = ob.group_state_index(env, team)
+        for b in range(0, 16, 3):
+            for i in range(m):
+                got = local.decode(i, index[b, i])
+                want = paper_local.decode(i, ob.local_state_index(env)[b, i])
+                assert got.pop("free") == free[b, i] and want.pop("idle") == env.idle[b, i]
+                assert got == {**want, "queue_high": queue[b, i, 0], "queue_low": queue[b, i, 1]}
+            got, want = group.decode(g_index[b]), paper_group.decode(g_paper[b])
+            assert got["slots"] == want["slots"] and got["recency"] == want["recency"]
+            assert [r % 3 if r < 3 else 0 for r in got["robots"]] == want["robots"]
+            assert [r == 3 for r in got["robots"]] == (free[b] == 1).tolist()
+
+
+def test_time_to_free_neural_features():
+    env = AuctionEnv(load_system("system2"), batch_size=8, seed=1)
+    for _ in random_rollout(env, 20):
+        pass
+    m, n, K = env.n_robots, env.n_task_types, env.n_slots
+    paper = ob.local_features(env)
+    local = ob.local_features(env, "time_to_free")
+    assert local.shape == (8, m, ob.local_feature_size(env, "time_to_free"))
+    assert local.shape[-1] == paper.shape[-1] + 9
+    at = ob.local_feature_layout(K, n, "time_to_free")
+    np.testing.assert_array_equal(local[..., : at["free"].start], paper[..., : at["free"].start])
+    np.testing.assert_array_equal(local[..., at["robot"]], paper[..., -m:])
+    np.testing.assert_array_equal(local[..., at["free"]].argmax(-1), ob.free_level(env))
+    q = local[..., at["queue"]].reshape(8, m, 2, 3)
+    assert (q.sum(-1) == 1).all()
+    np.testing.assert_array_equal(q.argmax(-1), ob.queue_level(env, env.active_tasks))
+    glob = ob.global_features(env, "time_to_free")
+    base = ob.global_feature_size(env)
+    assert glob.shape == (8, base + 3 * m + 6 * n)
+    np.testing.assert_array_equal(glob[:, :base], ob.global_features(env))
+    free = glob[:, base : base + 3 * m].reshape(8, m, 3)
+    np.testing.assert_array_equal(free.argmax(-1), ob.free_level(env))
+    queue = glob[:, base + 3 * m :].reshape(8, n, 2, 3)
+    np.testing.assert_array_equal(queue.argmax(-1), ob.queue_level(env, np.eye(n, dtype=bool)))
