@@ -133,6 +133,9 @@ class EpisodeSummary:
         itr: Robot -> ITR percent (paper eq. 9).
         return_by_type: Task type -> mean return per episode earned by its tasks (empty when
             the rewards were not given).
+        team_returns: The team return of every episode, in episode order (evaluation episode
+            ``e`` is played on the same task stream by every learner, so runs can be compared
+            episode by episode: paired differences).
     """
 
     episodes: int
@@ -142,6 +145,7 @@ class EpisodeSummary:
     ctr_overall: dict[Priority, float]
     itr: dict[RobotId, float]
     return_by_type: dict[TaskType, float] = field(default_factory=dict)
+    team_returns: tuple[float, ...] = ()
 
     def to_json(self) -> dict[str, Any]:
         """JSON-ready nested dict (the ``eval`` block of ``metrics.json``); NaN becomes None."""
@@ -150,6 +154,7 @@ class EpisodeSummary:
             "team_return": {
                 "mean": _json(self.team_return_mean),
                 "std": _json(self.team_return_std),
+                "per_episode": [_json(v) for v in self.team_returns],
             },
             "ctr": {t: {p: _json(v) for p, v in by_p.items()} for t, by_p in self.ctr.items()},
             "ctr_overall": {p: _json(v) for p, v in self.ctr_overall.items()},
@@ -221,6 +226,7 @@ def summarize(
             if params is None
             else dict(zip(task_types, map(float, return_by_type(stats, params)), strict=True))
         ),
+        team_returns=tuple(float(v) for v in stats.team_return),
     )
 
 

@@ -66,6 +66,9 @@ def test_itr_eq9_and_team_return():
     assert summary.episodes == 3
     assert summary.team_return_mean == pytest.approx(14.0)
     assert summary.team_return_std == pytest.approx(math.sqrt((36 + 36 + 0) / 3))
+    # per episode, in episode order (batch A's two copies, then batch B's), for paired tests
+    assert summary.team_returns == (20.0, 8.0, 14.0)
+    assert summary.to_json()["team_return"]["per_episode"] == [20.0, 8.0, 14.0]
 
 
 def test_functions_match_summary():
