@@ -23,7 +23,7 @@ from typing import Any
 
 from omegaconf import OmegaConf
 
-from mrta_rl.reports import figures, tables
+from mrta_rl.reports import figures, tables, yardsticks
 from mrta_rl.reports.aggregate import (
     CellSummary,
     learner_label,
@@ -197,7 +197,13 @@ def build_report(inputs: Iterable[Path | str], out_dir: Path | str | None = None
         by_system, out / "team_return.png", colors
     )
 
-    files.report.write_text(_report_markdown(collection, cells, by_system, claims, files))
+    # "Learning against the rules": every run counts, the settings of a rule grid included
+    rules_md, rules_files = yardsticks.write_section(
+        [*collection.runs, *collection.duplicates], out
+    )
+    for stem, path in rules_files.items():
+        (files.figures if path.suffix == ".png" else files.csvs)[stem] = path
+    files.report.write_text(_report_markdown(collection, cells, by_system, claims, files, rules_md))
     logger.info(
         "wrote %s (%d runs, %d missing)",
         files.report,
@@ -218,6 +224,7 @@ def _report_markdown(
     by_system: dict[str, list[CellSummary]],
     claims: list,
     files: ReportFiles,
+    rules_md: str = "",
 ) -> str:
     runs, missing = collection.runs, collection.missing
     verdicts = [c.verdict for c in claims]
@@ -280,6 +287,8 @@ def _report_markdown(
         ]
         for system, table in group_tables.items():
             md += [f"{system_label(system)}:", "", table, ""]
+    if rules_md:
+        md += [rules_md, ""]
     md += [
         "## Completed task ratio (paper Tables 5-6, Figures 1-4)",
         "",
