@@ -178,16 +178,20 @@ class RolloutPlanner(Learner):
             return chosen
         start = time.perf_counter()
         n_cand, n_plan, S = len(actions), len(plan), self.samples
-        # rollout rows ordered (copy, candidate, sample)
-        rows = np.repeat(plan, n_cand * S)
-        cand = np.tile(np.repeat(np.arange(n_cand), S), n_plan)
+        # a candidate equal to an earlier one for a copy is not rolled out again
+        same = (actions[:, None, plan] == actions[None, :, plan]).all(axis=-1)  # [C, C, P]
+        earlier = np.tril(np.ones((n_cand, n_cand), bool), -1)[:, :, None]
+        pairs = np.argwhere(~(same & earlier).any(axis=1).T)  # [(p, c)], by copy then candidate
+        # rollout rows: each (copy, candidate) pair once per sample
+        row_pair = np.repeat(np.arange(len(pairs)), S)
+        copy, cand = pairs[row_pair, 0], pairs[row_pair, 1]
         seeds = self.rng.integers(0, 2**62, size=(n_plan, S))  # one future per (copy, sample)
-        env = self._rollout_env(len(rows))
-        restore(env, state, rows)
-        reseed(env, np.repeat(seeds[:, None, :], n_cand, axis=1).reshape(-1))
-        first = actions[cand, rows]  # [N, m]
-        returns = self._roll(env, first)
-        score = returns.reshape(n_plan, n_cand, S).mean(axis=2)
+        env = self._rollout_env(len(row_pair))
+        restore(env, state, plan[copy])
+        reseed(env, seeds[copy, np.tile(np.arange(S), len(pairs))])
+        returns = self._roll(env, actions[cand, plan[copy]])
+        score = np.full((n_plan, n_cand), -np.inf)
+        score[pairs[:, 0], pairs[:, 1]] = returns.reshape(len(pairs), S).mean(axis=1)
         best = score.argmax(axis=1)  # first maximum: ties go to the base rule (index 0)
         chosen[plan] = actions[best, plan]
         self.decisions += 1
