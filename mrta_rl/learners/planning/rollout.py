@@ -31,7 +31,7 @@ from mrta_rl.learners.base import Learner, LearnerKind
 from mrta_rl.learners.fixed import GreedyLearner, TeamReserveLearner
 
 logger = logging.getLogger(__name__)
-LOG_EVERY = 1000  # planned ticks between two decision-time log lines
+LOG_EVERY = 250  # planned ticks between two decision-time log lines
 
 # candidate rule name -> factory(env, rng) of a fixed policy; the team_reserve settings are
 # whole-team rules (mrta_rl/learners/fixed.py), all conflict-free except greedy
