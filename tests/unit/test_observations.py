@@ -169,10 +169,17 @@ def test_group_overflow_is_a_clear_error():
         ob.GroupView(env, [])
 
 
-def test_features_are_one_hot():
+@pytest.fixture
+def played_env() -> AuctionEnv:
+    """System-II, 8 copies, after 20 ticks of random valid actions."""
     env = AuctionEnv(load_system("system2"), batch_size=8, seed=1)
     for _ in random_rollout(env, 20):
         pass
+    return env
+
+
+def test_features_are_one_hot(played_env):
+    env = played_env
     m, n, K = env.n_robots, env.n_task_types, env.n_slots
     local = ob.local_features(env)
     assert local.shape == (8, m, ob.local_feature_size(env)) and local.dtype == np.float32
@@ -261,10 +268,8 @@ def test_time_to_free_counts_and_indices(name):
             assert [r == 3 for r in got["robots"]] == (free[b] == 1).tolist()
 
 
-def test_time_to_free_neural_features():
-    env = AuctionEnv(load_system("system2"), batch_size=8, seed=1)
-    for _ in random_rollout(env, 20):
-        pass
+def test_time_to_free_neural_features(played_env):
+    env = played_env
     m, n, K = env.n_robots, env.n_task_types, env.n_slots
     paper = ob.local_features(env)
     local = ob.local_features(env, "time_to_free")
