@@ -207,7 +207,7 @@ def queue_counts(env: AuctionEnv) -> np.ndarray:
     Returns:
         ``[B, n, 2]`` int64 counts (priority index 0 = L, 1 = H).
     """
-    queue = env._queue[:, : env._queue_width]  # the env keeps every copy's tasks there
+    queue = env._queue  # [B, W] every copy's tasks, EMPTY elsewhere
     b, k = np.nonzero(queue != EMPTY)
     counts = np.zeros((env.batch_size, env.n_task_types, 2), np.int64)
     np.add.at(counts, (b, task_type(queue[b, k]), task_high(queue[b, k])), 1)

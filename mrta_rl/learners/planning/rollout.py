@@ -12,8 +12,9 @@ which no learner's observation holds, and it knows the arrival process of the sp
 training (``kind = "fixed"``). ``horizon=0`` or a single candidate plays the base rule.
 
 The snapshot, restore and re-seeding of env copies are the three functions :func:`snapshot`,
-:func:`restore` and :func:`reseed`, for now a private fallback on the numpy env's arrays; each
-becomes one call of ``AuctionEnv.get_state`` / ``set_state`` / ``reseed`` when the env has them.
+:func:`restore` and :func:`reseed`: one call of ``AuctionEnv.get_state`` / ``set_state`` /
+``reseed`` when the env has them, else a private fallback on the numpy env's arrays (to be
+deleted once the env's own ones are on main).
 """
 
 from __future__ import annotations
@@ -70,6 +71,8 @@ _STATS_FIELDS = ("assigned", "dropped", "busy_ticks", "team_return", "ticks")
 
 def snapshot(env: AuctionEnv) -> Any:
     """An independent copy of the state of every copy of ``env``."""
+    if hasattr(env, "get_state"):  # the env's own exact snapshot (issue 13)
+        return env.get_state()
     state = {f: getattr(env, f).copy() for f in _STATE_FIELDS}
     state |= {f"stats.{f}": getattr(env.stats, f).copy() for f in _STATS_FIELDS}
     state["_queue"] = env._queue.copy()
@@ -82,6 +85,9 @@ def restore(env: AuctionEnv, state: Any, rows: np.ndarray) -> None:
 
     ``env.batch_size`` must equal ``len(rows)``; rows may repeat (one state, many copies).
     """
+    if hasattr(env, "set_state"):  # get_state's dict: per-copy arrays [B, ...]
+        env.set_state({name: array[rows] for name, array in state.items()})
+        return
     for f in _STATE_FIELDS:
         setattr(env, f, state[f][rows])
     for f in _STATS_FIELDS:
