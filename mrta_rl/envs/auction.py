@@ -1,15 +1,13 @@
-"""The auction dynamics of ``docs/spec/auction_env.md``, batched over ``B`` copies (numpy).
+"""The auction dynamics of ``docs/spec/auction_env.md``, batched over ``B`` copies.
 
-This module is THE dynamics: every learner, view (TorchRL, PettingZoo, Gymnasium) and metric runs
-on :class:`AuctionEnv`. It is plain vectorised numpy over ``[B, ...]`` arrays with no Python loop
-over copies: at batch size 1 a numpy op costs about 0.7 us against 1.7 us for a torch op, and at
-large batches numpy's row sort is several times faster than torch's on CPU. The TorchRL adapter
-wraps these arrays zero-copy with ``torch.from_numpy``.
+:class:`AuctionEnv` is the interface every learner, view (TorchRL, PettingZoo, Gymnasium) and
+metric uses. It owns the per-copy arrays; the rules themselves are the compiled per-copy loops of
+``envs/kernel.py`` (numba), the one implementation of the spec. The TorchRL adapter wraps the
+arrays zero-copy with ``torch.from_numpy``.
 
 Design notes:
-- **Tasks are packed int64 keys.** A queued task is one non-negative int64 whose high bits are the
-  spec's queue order (H before L, due tick, id) and whose low bits carry type, duration and round,
-  so one ``np.sort`` per tick orders the queue (spec step 2) and an empty place is ``EMPTY``.
+- **Tasks are packed int64 keys** (``envs/tasks.py``): the high bits are the spec's queue order (H
+  before L, due tick, id), the low bits type, duration and round; an empty place is ``EMPTY``.
 - **Counter-based randomness.** Every random number is a hash of (copy seed, episode number, tick,
   draw index), never a shared generator's stream. A copy's episode therefore depends only on its
   own seed and actions, not on the batch size or on when other copies reset, and a plain scalar
@@ -18,21 +16,27 @@ Design notes:
   next tick (arrivals, queue order, slots) so that the caller sees the slots it decides on;
   ``step(actions)`` runs steps 4-8. Drops from step 2 (overflow) are paid in the reward of that
   same tick, returned by the following ``step``.
+- **Two entry points:** :meth:`AuctionEnv.step` (one tick under the caller's actions, for
+  learners and views) and :meth:`AuctionEnv.play` (many ticks under a compiled fixed policy, for
+  evaluation, baselines and benchmarks).
+- **Fresh views.** ``slot_type``, ``slot_high``, ``idle`` and ``action_mask`` are new arrays
+  every tick (callers may keep the last ones); the state arrays (``t``, ``busy_until``,
+  ``battery``, ``last_high_arrival``, ``done``, ``stats``) are updated in place.
 """
 
 from __future__ import annotations
 
-import sys
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from itertools import pairwise
 
 import numpy as np
 
 from mrta_rl.envs import counter_rng as rng
+from mrta_rl.envs import kernel
 from mrta_rl.envs.params import AuctionParams
 from mrta_rl.envs.tasks import (
     DUE_BITS,
-    DUE_FIELD,
-    DUE_SHIFT,
     DURATION_BITS,
     EMPTY,
     ID_BITS,
@@ -44,45 +48,8 @@ from mrta_rl.envs.tasks import (
     task_id,
     task_round,
     task_type,
-    to_second_round,
 )
 from mrta_rl.systems import RobotSystem
-
-_ONE = np.uint64(1)
-_BITMASK_ROWS = sys.byteorder == "little"  # 8 packed bytes read as one uint64
-
-
-def _first_true_positions(flags: np.ndarray, k: int, buffer: np.ndarray) -> np.ndarray:
-    """Positions of the first ``k`` True places of each row of ``flags`` ``[B, w<=64]``; 64: none.
-
-    Each row becomes one uint64 bitmask, and the lowest set bit is peeled off ``k`` times: a few
-    ``[B]`` operations instead of a reduction over a short last axis, which numpy does slowly.
-    """
-    packed = np.packbits(flags, axis=1, bitorder="little")  # [B, ceil(w / 8)]
-    buffer[:, : packed.shape[1]] = packed
-    buffer[:, packed.shape[1] :] = 0
-    bits = buffer.view(np.uint64)[:, 0].copy()  # [B]
-    positions = np.empty((flags.shape[0], k), np.int64)
-    for j in range(k):
-        lowest = bits & (~bits + _ONE)  # isolates the lowest set bit (0 if none)
-        positions[:, j] = np.bitwise_count(lowest - _ONE)  # its index; 64 when bits == 0
-        bits &= bits - _ONE
-    return positions
-
-
-def _occupied_width(queue: np.ndarray) -> int:
-    """Number of leading columns holding a task in some row of a row-sorted queue (empties last).
-
-    A binary search over columns: each probe reads one column, instead of counting every place.
-    """
-    lo, hi = 0, queue.shape[1]  # the width lies in [lo, hi]
-    while lo < hi:
-        mid = (lo + hi) // 2
-        if (queue[:, mid] != EMPTY).any():
-            lo = mid + 1
-        else:
-            hi = mid
-    return lo
 
 
 @dataclass
@@ -194,57 +161,73 @@ class AuctionEnv:
         self._check_limits()
 
         # per (type, priority) duration ranges: system file overrides, else the params' defaults
-        self._dur_lo = np.zeros((self.n_task_types, 2), np.int64)
-        self._dur_span = np.zeros((self.n_task_types, 2), np.int64)
+        dur_lo = np.zeros((self.n_task_types, 2), np.int64)
+        dur_span = np.zeros((self.n_task_types, 2), np.int64)
         for j, name in enumerate(system.task_types):
             for prio, key in enumerate(("duration_low", "duration_high")):
                 override = system.durations.get(name, {}).get(key)
                 lo, hi = (override.lo, override.hi) if override is not None else getattr(p, key)
-                self._dur_lo[j, prio], self._dur_span[j, prio] = lo, hi - lo + 1
-        # flat tables, indexed by 2 * type + high
-        self._dur_lo, self._dur_span = self._dur_lo.reshape(-1), self._dur_span.reshape(-1)
-        self._assign_reward = np.array([p.reward_assign_low, p.reward_assign_high])
-        self._drop_penalty = np.array([p.penalty_drop_low, p.penalty_drop_high])
-        # Lookup tables [n + 1, m] by slot type; the extra last row answers type -1, an empty slot.
+                dur_lo[j, prio], dur_span[j, prio] = lo, hi - lo + 1
         # spec step 8: a dropped task's penalty is shared by the robots whose Lambda holds its type
-        no_robot = np.zeros(self.n_robots)
-        self._penalty_share = np.vstack([(active / active.sum(axis=0)).T, no_robot])
-        self._willingness_by_type = np.vstack([system.willingness.T, no_robot])
-        self._uniform_willingness = np.ptp(system.willingness[capable]) == 0
-        self._can_do_by_type = np.vstack([active.T, np.zeros(self.n_robots, bool)])  # [n+1, m]
-        self._poisson_cdf = rng.poisson_cdf(p.arrival_rate)
-
-        B, m, n, K, Q = batch_size, self.n_robots, self.n_task_types, self.n_slots, p.queue_capacity
-        self._seeds = np.zeros(B, np.uint64)
-        self._episode = np.zeros(B, np.uint64)
-        self._episode_key = np.zeros(B, np.uint64)
-        self.t = np.zeros(B, np.int64)  # current tick per copy
-        self._queue = np.full((B, Q + 1), EMPTY)  # column Q is scratch, always empty
-        self._queue_width = 0  # no copy holds more than this many tasks
-        # flat index of each row's first place
-        self._queue_row_offsets = np.arange(B)[:, None] * (Q + 1)
-        self._next_id = np.zeros(B, np.int64)
-        self.busy_until = np.full((B, m), -1, np.int64)
-        self.battery = np.full((B, m), float(p.battery_capacity))
-        # tick of the last H arrival per type; far in the past until one arrives
-        self.last_high_arrival = np.full((B, n), -(1 << 30), np.int64)
-        self.done = np.zeros(B, bool)
-        self._pending_type_penalty = np.zeros((B, n))  # [B, n], shared among robots lazily
-        self.stats = EpisodeStats(
-            np.zeros((B, n, 2), np.int64),
-            np.zeros((B, n, 2), np.int64),
-            np.zeros((B, m), np.int64),
-            np.zeros(B),
-            np.zeros(B, np.int64),
+        self._penalty_share = (active / active.sum(axis=0)).T  # [n, m]
+        iparams = np.zeros(6, np.int64)
+        iparams[kernel.I_HORIZON], iparams[kernel.I_SLOTS] = p.horizon, p.slots
+        iparams[kernel.I_QUEUE_CAPACITY] = p.queue_capacity
+        iparams[kernel.I_REAUCTION_DELAY] = p.reauction_delay
+        iparams[kernel.I_CHARGE_TICKS] = p.charge_ticks
+        fparams = np.zeros(8)
+        fparams[kernel.F_P_HIGH], fparams[kernel.F_BATTERY_CAPACITY] = p.p_high, p.battery_capacity
+        fparams[kernel.F_DRAIN], fparams[kernel.F_THRESHOLD] = p.drain_per_tick, p.battery_threshold
+        fparams[kernel.F_ASSIGN : kernel.F_ASSIGN + 2] = p.reward_assign_low, p.reward_assign_high
+        fparams[kernel.F_DROP : kernel.F_DROP + 2] = p.penalty_drop_low, p.penalty_drop_high
+        cdf = rng.poisson_cdf(p.arrival_rate)
+        self._tables = (
+            iparams,
+            fparams,
+            cdf,
+            dur_lo.reshape(-1),  # by 2 * type + high
+            dur_span.reshape(-1),
+            np.ascontiguousarray(system.willingness.T, dtype=np.float64),  # d_iz by type, [n, m]
+            np.ascontiguousarray(active.T),  # Lambda_i by type, [n, m]
         )
-        self._slot_pos = np.full((B, K), Q, np.int64)
-        self._slot_numbers = np.arange(1, K + 1)[None, :, None]  # [1, K, 1]
-        self._bit_buffer = np.zeros((B, 8), np.uint8)  # one uint64 bitmask per copy
-        self._action_row_offsets = np.arange(B)[:, None] * (K + 1)  # flat (copy, action) index
-        # valid actions are stored action-major, [B, K + 1, m], so per-action slices are contiguous
-        self._mask_by_action = np.ones((B, K + 1, m), bool)
-        # flat index of (b, 0, i) in that layout
-        self._mask_offsets = np.arange(B)[:, None] * ((K + 1) * m) + np.arange(m)
+
+        B, m, n, K = batch_size, self.n_robots, self.n_task_types, self.n_slots
+        # a queue holds at most queue_capacity tasks between ticks, plus one tick's arrivals
+        width = p.queue_capacity + len(cdf)
+        shapes = {
+            "seed_key": ((B,), 0, np.uint64),
+            "episode": ((B,), 0, np.uint64),
+            "episode_key": ((B,), 0, np.uint64),
+            "t": ((B,), 0, np.int64),
+            "queue": ((B, width), EMPTY, np.int64),
+            "queue_len": ((B,), 0, np.int64),
+            "next_id": ((B,), 0, np.int64),
+            "busy_until": ((B, m), -1, np.int64),
+            "battery": ((B, m), p.battery_capacity, np.float64),
+            "last_type": ((B, m), -1, np.int64),
+            "last_high_arrival": ((B, n), kernel.NEVER, np.int64),
+            "done": ((B,), False, np.bool_),
+            "pending_penalty": ((B, n), 0.0, np.float64),
+            "assigned": ((B, n, 2), 0, np.int64),
+            "dropped": ((B, n, 2), 0, np.int64),
+            "busy_ticks": ((B, m), 0, np.int64),
+            "team_return": ((B,), 0.0, np.float64),
+            "ticks": ((B,), 0, np.int64),
+            "slot_pos": ((B, K), -1, np.int64),
+            "slot_keys": ((B, K), EMPTY, np.int64),
+        }
+        self._state = {name: np.full(*shapes[name]) for name in kernel.STATE_FIELDS}
+        state = self._state
+        self.t = state["t"]  # current tick per copy
+        self.busy_until, self.battery = state["busy_until"], state["battery"]  # [B, m]
+        # tick of the last H arrival per type; far in the past until one arrives
+        self.last_high_arrival = state["last_high_arrival"]  # [B, n]
+        self.done = state["done"]  # [B]
+        self._queue, self._queue_len = state["queue"], state["queue_len"]
+        self.stats = EpisodeStats(
+            *(state[f] for f in ("assigned", "dropped", "busy_ticks", "team_return", "ticks"))
+        )
+        self._new_views()
         self.seed(seed)
         self.reset()
 
@@ -271,15 +254,18 @@ class AuctionEnv:
     # ------------------------------------------------------------------ seeding and reset
     def seed(self, seed: int | np.ndarray) -> None:
         """Seed the copies: an int gives copy ``b`` the seed ``seed + b``; or one per copy."""
+        seeds = self._seed_array(seed, self.batch_size)
+        self._state["seed_key"][:] = rng.seed_keys(seeds)
+        self._state["episode"][:] = 0
+
+    @staticmethod
+    def _seed_array(seed: int | np.ndarray, count: int) -> np.ndarray:
         seeds = np.asarray(seed, dtype=np.int64)
         if seeds.ndim == 0:
-            seeds = seeds + np.arange(self.batch_size)
-        if seeds.shape != (self.batch_size,):
-            raise ValueError(
-                f"expected one seed or {self.batch_size} seeds, got shape {seeds.shape}"
-            )
-        self._seeds = rng.seed_keys(seeds)
-        self._episode[:] = 0
+            seeds = seeds + np.arange(count)
+        if seeds.shape != (count,):
+            raise ValueError(f"expected one seed or {count} seeds, got shape {seeds.shape}")
+        return seeds
 
     def reset(self, mask: np.ndarray | None = None, seed: int | np.ndarray | None = None) -> None:
         """Start a new episode in all copies, or in those where ``mask`` is True (partial reset).
@@ -292,96 +278,53 @@ class AuctionEnv:
             self.seed(seed)
         # a copy: the caller may pass self.done itself, which this method overwrites
         rows = np.ones(self.batch_size, bool) if mask is None else np.array(mask, bool)
-        self._episode_key[rows] = rng.episode_keys(self._seeds[rows], self._episode[rows])
-        self._episode[rows] += np.uint64(1)
-        self.t[rows] = 0
-        self._queue[rows] = EMPTY
-        self._next_id[rows] = 0
-        self.busy_until[rows] = -1
-        self.battery[rows] = self.params.battery_capacity
-        self.last_high_arrival[rows] = -(1 << 30)
-        self.done[rows] = False
-        for counter in (
-            self.stats.assigned,
-            self.stats.dropped,
-            self.stats.busy_ticks,
-            self.stats.team_return,
-            self.stats.ticks,
-        ):
-            counter[rows] = 0
-        self._pending_type_penalty[rows] = 0.0
-        self._begin_tick(rows)
+        self._refresh(rows, begin=2)
 
-    # ------------------------------------------------------------------ spec steps 1-3
+    def reseed(self, copies: np.ndarray | list[int] | None, seeds: int | np.ndarray) -> None:
+        """Re-seed the FUTURE arrivals of some copies without resetting them.
+
+        From the next tick on, the arrivals of copy ``copies[j]`` are those of episode 0 of seed
+        ``seeds[j]`` at the same ticks (the current tick's arrivals and slots are kept), and its
+        next :meth:`reset` starts episode 1 of that seed. With :meth:`set_state` this lets a
+        planner roll many copies of one state forward under different sampled arrivals.
+
+        Args:
+            copies: Copy indices (default: all copies).
+            seeds: One seed per copy, or an int ``s`` giving the ``j``-th listed copy ``s + j``.
+        """
+        rows = np.arange(self.batch_size) if copies is None else np.asarray(copies, np.int64)
+        keys = rng.seed_keys(self._seed_array(seeds, len(rows)))
+        self._state["seed_key"][rows] = keys
+        self._state["episode_key"][rows] = rng.episode_keys(keys, np.zeros(len(rows), np.uint64))
+        self._state["episode"][rows] = 1
+
+    # ------------------------------------------------------------------ the kernel's arguments
+    def _new_views(self) -> tuple[np.ndarray, ...]:
+        """Fresh arrays for the next decision's views (callers may keep the previous ones)."""
+        B, m, K = self.batch_size, self.n_robots, self.n_slots
+        self.slot_type = np.empty((B, K), np.int64)  # [B, K], -1 = empty slot
+        self.slot_high = np.empty((B, K), np.int64)  # [B, K], 1 = H, 0 = L, -1 = empty
+        self.idle = np.empty((B, m), np.bool_)  # spec step 4, [B, m]
+        self._mask = np.empty((B, m, K + 1), np.bool_)
+        return self.slot_type, self.slot_high, self.idle, self._mask
+
+    @property
+    def _fixed_args(self) -> tuple[np.ndarray, ...]:
+        """Tables, then the state arrays in ``kernel.STATE_FIELDS`` order (never replaced)."""
+        return self._tables + tuple(self._state[f] for f in kernel.STATE_FIELDS)
+
+    def _refresh(self, rows: np.ndarray | None, begin: int) -> None:
+        """Reset (``begin=2``) or begin the tick of (1) the ``rows``, then re-select all slots."""
+        rows = np.zeros(self.batch_size, bool) if rows is None else rows
+        kernel.refresh(rows, begin, *self._fixed_args, *self._new_views())
+
     def _begin_tick(self, rows: np.ndarray) -> None:
-        """Spec steps 1-3 of tick ``t`` for ``rows``; other copies keep their slots (idempotent)."""
-        p, t, Q = self.params, self.t, self.params.queue_capacity
-        # spec step 1: N ~ Poisson(arrival_rate) new tasks, one hash per copy and tick
-        tick_key = rng.tick_keys(self._episode_key, t)  # [B]
-        n_new = np.searchsorted(self._poisson_cdf, rng.unit_float(tick_key), side="right")
-        n_new[~rows] = 0
-        width = int(n_new.max())
-        self._pending_type_penalty[rows] = 0.0
-        end = self._queue_width + width
-        if end > self._queue.shape[1] - 1:  # grow the spare columns (the last one stays empty)
-            grow = np.full((self.batch_size, end + 1 - self._queue.shape[1] + 8), EMPTY)
-            self._queue = np.concatenate([self._queue, grow], axis=1)
-            self._queue_row_offsets = np.arange(self.batch_size)[:, None] * self._queue.shape[1]
-        if width:
-            h_prio, h_kind = rng.task_hashes(tick_key, width)  # [B, W] each
-            # priority H with probability p_high; type uniform over all n types (high 32 bits of
-            # h_kind); duration uniform over the type's range, ends included (low 32 bits)
-            high = (rng.unit_float(h_prio) < p.p_high).astype(np.int64)
-            ttype = rng.bounded_int(rng.high_bits(h_kind), self.n_task_types)
-            kind = 2 * ttype + high
-            duration = self._dur_lo[kind] + rng.bounded_int(h_kind, self._dur_span[kind])
-            arrived = np.arange(width) < n_new[:, None]  # [B, W]
-            ids = self._next_id[:, None] + np.arange(width)
-            new = np.where(arrived, pack_tasks(high, t[:, None], ids, ttype, duration, 0), EMPTY)
-            self._next_id += n_new
-            b_h, k_h = np.nonzero(arrived & (high == 1))
-            self.last_high_arrival[b_h, ttype[b_h, k_h]] = t[b_h]
-            self._queue[:, self._queue_width : end] = new  # places past the width are empty
-        queue = self._queue[:, :end]
-        queue.sort(axis=1)  # spec step 2: (H before L, due tick, id); empties last
-        if end > Q:  # spec step 2: overflow drops the last tasks
-            overflow = queue[:, Q:end]
-            if (overflow != EMPTY).any():
-                self._pending_type_penalty += self._drop(overflow)
-                overflow[:] = EMPTY
-        self._queue_width = _occupied_width(queue[:, : min(end, Q)])
-        self._select_slots()
+        """Spec steps 1-3 of tick ``t`` for ``rows``; other copies keep their slots."""
+        self._refresh(np.asarray(rows, bool), begin=1)
 
     def _select_slots(self) -> None:
-        """Spec step 3: the first K queued tasks due by now, in queue order, fill slots 1..K."""
-        Q = self.params.queue_capacity
-        # Only round-2 tasks can be due later than now, and at most K of them enter per tick for
-        # reauction_delay ticks, so the first K eligible tasks lie within K * (delay + 1) places.
-        width = min(self._queue_width, self.n_slots * (self.params.reauction_delay + 1))
-        queue = self._queue[:, :width]
-        # EMPTY's due field is all ones, later than any tick (see _check_limits): no separate test
-        due_now = (queue & DUE_FIELD) <= (self.t << DUE_SHIFT)[:, None]  # [B, width]
-        if self.done.any():
-            due_now &= ~self.done[:, None]
-        if width <= 64 and _BITMASK_ROWS:
-            pos = _first_true_positions(due_now, self.n_slots, self._bit_buffer)
-        else:  # the k-th due task sits where the running count first reaches k
-            count = np.cumsum(due_now, axis=1)
-            pos = (count[:, None, :] < self._slot_numbers[:, :, 0, None]).sum(axis=2)
-        self._slot_pos = np.where(pos < width, pos, Q)  # [B, K]; Q = the always-empty place
-        keys = self._queue.reshape(-1)[self._slot_pos + self._queue_row_offsets]  # [B, K]
-        self._slot_keys = keys
-        filled = keys != EMPTY
-        self.slot_type = np.where(filled, task_type(keys), -1)  # [B, K], -1 = empty slot
-        self.slot_high = np.where(filled, task_high(keys), -1)  # [B, K], 1 = H, 0 = L, -1 = empty
-        self.idle = self.t[:, None] > self.busy_until  # spec step 4, [B, m]
-        # spec step 4: a bid for slot k is valid if the robot is idle and may do the slot's type
-        can_do = self._can_do_by_type[self.slot_type]  # [B, K, m]; row -1 (empty slot) is all False
-        # a fresh array every tick: callers may keep the last one
-        mask = np.empty((self.batch_size, self.n_actions, self.n_robots), bool)
-        mask[:, 0] = True  # waiting is always valid
-        np.logical_and(can_do, self.idle[:, None, :], out=mask[:, 1:, :])
-        self._mask_by_action = mask
+        """Spec step 3 and the masks again, after a test or tool edited the state by hand."""
+        self._refresh(None, begin=0)
 
     # ------------------------------------------------------------------ spec steps 4-8
     def step(self, actions: np.ndarray, *, validated: bool = False) -> StepResult:
@@ -398,66 +341,32 @@ class AuctionEnv:
             ValueError: on a wrong shape, an invalid action (naming copy, robot and reason), or a
                 copy whose episode has ended and was not reset.
         """
-        actions = np.asarray(actions)
+        actions = self._as_actions(actions)
         if not validated:
             self.validate(actions)
-        p, t = self.params, self.t
-        # spec step 8 counts this tick's overflow drops (spec step 2)
-        team = -self._pending_type_penalty.sum(axis=1)
-        type_penalty = self._pending_type_penalty.copy()  # [B, n]
-        robot = np.zeros((self.batch_size, self.n_robots))  # assign rewards won
-        keys, slot_type, slot_high = self._slot_keys, self.slot_type, self.slot_high
-        # spec step 5: each robot bids for at most one slot, so all slots are settled at once.
-        # Per slot, the highest willingness wins; argmax takes the first maximum, so ties go to the
-        # lowest robot index.
-        bid_counts = np.bincount(
-            (actions + self._action_row_offsets).ravel(), minlength=self.batch_size * self.n_actions
+        B = self.batch_size
+        idle_before = self.idle
+        team = np.empty(B)
+        assign = np.empty((B, self.n_robots))  # assign rewards won
+        type_penalty = np.empty((B, self.n_task_types))  # drop penalties by type
+        kernel.step(
+            actions, *self._fixed_args, idle_before, *self._new_views(), team, assign, type_penalty
         )
-        assigned = bid_counts.reshape(self.batch_size, self.n_actions)[:, 1:] > 0  # [B, K]
-        b, k = np.nonzero(assigned)
-        if len(b):
-            bids = (
-                actions.astype(np.int8)[b] == (k + 1)[:, None]
-            )  # [P, m] bidders of each auctioned slot
-            if self._uniform_willingness:  # all d equal: the lowest-index bidder wins
-                w = bids.argmax(axis=1)
-            else:
-                w = np.where(bids, self._willingness_by_type[slot_type[b, k]], -1.0).argmax(axis=1)
-            duration = task_duration(keys[b, k])
-            busy_until = t[b] + duration  # executes during ticks t+1 .. t+duration
-            battery = self.battery[b, w] - p.drain_per_tick * duration
-            charge = battery < p.battery_threshold  # charges right after the task, then is full
-            self.busy_until[b, w] = busy_until + np.where(charge, p.charge_ticks, 0)
-            self.battery[b, w] = np.where(charge, p.battery_capacity, battery)
-            high = slot_high[b, k]
-            reward = self._assign_reward[high]
-            robot[b, w] += reward
-            np.add.at(team, b, reward)
-            np.add.at(self.stats.assigned, (b, slot_type[b, k], high), 1)
-        # spec step 6: unassigned slot tasks go to round 2 (due t + delay); in round 2, are dropped
-        unassigned = (keys != EMPTY) & ~assigned
-        round2 = task_round(keys) == 2
-        reauction = unassigned & ~round2
-        rekeyed = to_second_round(keys, t[:, None] + p.reauction_delay)
-        self._queue.reshape(-1)[self._slot_pos + self._queue_row_offsets] = np.where(
-            reauction, rekeyed, EMPTY
-        )
-        dropped = unassigned & round2
-        if dropped.any():
-            b, k = np.nonzero(dropped)
-            ttype, high = slot_type[b, k], slot_high[b, k]
-            penalty = self._drop_penalty[high]
-            np.add.at(self.stats.dropped, (b, ttype, high), 1)
-            np.add.at(type_penalty, (b, ttype), penalty)
-            np.subtract.at(team, b, penalty)
-        # spec step 7: busy if not idle at step 4, or if it bid (the auction takes its time)
-        self.stats.busy_ticks += ~self.idle | (actions > 0)
-        self.stats.team_return += team
-        self.stats.ticks += 1
-        self.t += 1
-        self.done = self.t >= p.horizon
-        self._begin_tick(~self.done)
-        return StepResult(team, self.done.copy(), robot, type_penalty, self._penalty_share[:-1])
+        return StepResult(team, self.done.copy(), assign, type_penalty, self._penalty_share)
+
+    def _as_actions(self, actions: np.ndarray) -> np.ndarray:
+        """``actions`` as a C-ordered int64 ``[B, m]`` array, or a ValueError naming the problem."""
+        actions = np.asarray(actions)
+        if actions.shape != (self.batch_size, self.n_robots):
+            raise ValueError(
+                f"actions must have shape (B, m) = {(self.batch_size, self.n_robots)}, "
+                f"got {actions.shape}"
+            )
+        if actions.dtype != np.int64:
+            if not np.issubdtype(actions.dtype, np.integer):
+                raise ValueError(f"actions must be integers, got dtype {actions.dtype}")
+            actions = actions.astype(np.int64)
+        return np.ascontiguousarray(actions)
 
     def validate(self, actions: np.ndarray) -> None:
         """Check a joint action against shape, episode end and the action mask (spec step 4).
@@ -465,23 +374,16 @@ class AuctionEnv:
         Raises:
             ValueError: naming the copy, the robot and the reason.
         """
-        if actions.shape != (self.batch_size, self.n_robots):
+        actions = self._as_actions(actions)
+        problem, where = kernel.first_invalid(actions, self.done, self._mask)
+        if problem == 1:
             raise ValueError(
-                f"actions must have shape (B, m) = {(self.batch_size, self.n_robots)}, "
-                f"got {actions.shape}"
+                f"copy {where + self.copy_offset} has finished its episode; reset it first"
             )
-        if self.done.any():
-            raise ValueError(
-                f"copy {int(np.flatnonzero(self.done)[0]) + self.copy_offset} has finished its "
-                "episode; reset it first"
-            )
-        in_range = (actions >= 0) & (actions < self.n_actions)
-        flat = self._mask_offsets + np.where(in_range, actions, 0) * self.n_robots
-        valid = in_range & self._mask_by_action.reshape(-1)[flat]
-        if not valid.all():
-            b, i = (int(x[0]) for x in np.nonzero(~valid))
+        if problem == 2:
+            b, i = divmod(int(where), self.n_robots)
             a, robot = int(actions[b, i]), self.system.robots[i]
-            if not in_range[b, i]:
+            if not 0 <= a < self.n_actions:
                 why = f"actions are 0..{self.n_slots}"
             elif not self.idle[b, i]:
                 why = f"{robot} is busy until tick {self.busy_until[b, i]}"
@@ -494,26 +396,157 @@ class AuctionEnv:
                 f"at tick {self.t[b]}: {why}"
             )
 
-    def _drop(self, keys: np.ndarray) -> np.ndarray:
-        """Count dropped tasks (``keys`` ``[B, W]``, ``EMPTY``: none); penalties ``[B, n]``."""
-        b, k = np.nonzero(keys != EMPTY)
-        dropped_keys = keys[b, k]
-        ttype, high = task_type(dropped_keys), task_high(dropped_keys)
-        np.add.at(self.stats.dropped, (b, ttype, high), 1)
-        penalty = np.zeros((self.batch_size, self.n_task_types))  # [B, n]
-        np.add.at(penalty, (b, ttype), self._drop_penalty[high])
-        return penalty
+    # ------------------------------------------------------------------ many ticks, compiled
+    def play(
+        self,
+        policy: str,
+        *,
+        episodes: int | None = None,
+        ticks: int | None = None,
+        threads: int = 1,
+    ) -> EpisodeStats | int:
+        """Play many ticks of every copy under a fixed policy, in one compiled call.
+
+        The spec's fixed policies (``greedy``, ``random``, ``high_only``) run inside the kernel.
+        ``greedy`` and ``high_only`` give exactly what stepping with
+        :class:`~mrta_rl.learners.fixed.GreedyLearner` / ``HighOnlyLearner`` gives; ``random``
+        draws from counter-based hashes of the copy's episode key, tick and robot (not from a
+        learner's generator), so it too is deterministic under the env's seed. A copy whose
+        episode has ended is reset first.
+
+        Args:
+            policy: ``greedy``, ``random`` or ``high_only``.
+            episodes: Play until every copy has finished this many episodes (resetting between
+                them; the last one is left done) and return their statistics.
+            ticks: Instead, play this many ticks per copy (finished episodes are reset) and
+                return the number of copy-ticks played.
+            threads: Split the copies into this many contiguous ranges played by concurrent
+                threads.
+
+        Returns:
+            With ``episodes``: :class:`EpisodeStats` ``[episodes * B, ...]``, episode ``r`` of
+            copy ``b`` in row ``r * B + b`` (as :func:`mrta_rl.runners.evaluate.evaluate_policy`
+            orders its rounds). With ``ticks``: copies x ticks.
+
+        Raises:
+            ValueError: on an unknown policy, or unless exactly one of ``episodes`` and
+                ``ticks`` is a positive int.
+        """
+        if not 1 <= threads <= self.batch_size:
+            raise ValueError(f"play: threads must be in 1..{self.batch_size}, got {threads}")
+        if policy not in kernel.POLICIES:
+            raise ValueError(f"unknown fixed policy {policy!r}; known: {sorted(kernel.POLICIES)}")
+        if (episodes is None) == (ticks is None):
+            raise ValueError("play: give exactly one of episodes= and ticks=")
+        count = episodes if ticks is None else ticks
+        if isinstance(count, bool) or not isinstance(count, int | np.integer) or count < 1:
+            raise ValueError(f"play: episodes/ticks must be a positive int, got {count!r}")
+        B, m, n = self.batch_size, self.n_robots, self.n_task_types
+        rounds = 0 if episodes is None else int(episodes)
+        out = EpisodeStats(
+            np.zeros((rounds * B, n, 2), np.int64),
+            np.zeros((rounds * B, n, 2), np.int64),
+            np.zeros((rounds * B, m), np.int64),
+            np.zeros(rounds * B),
+            np.zeros(rounds * B, np.int64),
+        )
+        current = (self.slot_type, self.slot_high, self.idle, self._mask)
+        views = self._new_views()
+        for fresh, now in zip(views, current, strict=True):
+            fresh[...] = now  # play_copy decides on them first
+        args = (
+            kernel.POLICIES[policy],
+            -1 if ticks is None else int(ticks),
+            rounds,
+            *self._fixed_args,
+            *views,
+            *(getattr(out, f) for f in EpisodeStats.__dataclass_fields__),
+        )
+        if threads == 1:
+            played = kernel.play(0, B, *args)
+        else:  # disjoint copy ranges in concurrent threads (the kernel releases the GIL)
+            bounds = np.linspace(0, B, threads + 1).astype(int)
+            with ThreadPoolExecutor(max_workers=threads) as pool:
+                jobs = [pool.submit(kernel.play, lo, hi, *args) for lo, hi in pairwise(bounds)]
+                played = sum(job.result() for job in jobs)
+        return out if episodes is not None else int(played)
+
+    # ------------------------------------------------------------------ snapshots
+    def get_state(self, copies: np.ndarray | list[int] | None = None) -> dict[str, np.ndarray]:
+        """An exact snapshot of the copies' state: a dict of numpy arrays (copies, not views).
+
+        Args:
+            copies: Copy indices to take (default: all); the arrays are ``[len(copies), ...]``.
+
+        Returns:
+            ``{name: array}`` for every name of ``kernel.STATE_FIELDS``; :meth:`set_state` takes
+            it back, here or in another env of the same system and parameters.
+        """
+        if copies is None:
+            return {name: array.copy() for name, array in self._state.items()}
+        rows = np.asarray(copies, np.int64)
+        return {name: array[rows] for name, array in self._state.items()}
+
+    def set_state(
+        self, state: dict[str, np.ndarray], copies: np.ndarray | list[int] | None = None
+    ) -> None:
+        """Restore a :meth:`get_state` snapshot into all copies, or into ``copies``.
+
+        A snapshot of one copy (arrays ``[1, ...]``) is broadcast into every listed copy, so one
+        state can be rolled forward in many copies (then :meth:`reseed` them apart). The copies
+        continue exactly as the snapshot's copies would have, tick by tick.
+
+        Args:
+            state: A snapshot of an env of the same system and parameters.
+            copies: Copy indices to overwrite (default: all).
+
+        Raises:
+            ValueError: naming a missing, unknown or wrongly shaped array, before any change.
+        """
+        if set(state) != set(self._state):
+            missing, unknown = set(self._state) - set(state), set(state) - set(self._state)
+            raise ValueError(f"set_state: missing {sorted(missing)}, unknown {sorted(unknown)}")
+        rows = slice(None) if copies is None else np.asarray(copies, np.int64)
+        count = self.batch_size if copies is None else len(rows)
+        values = {}
+        for name, target in self._state.items():
+            value = np.asarray(state[name], dtype=target.dtype)
+            if value.shape[1:] != target.shape[1:] or value.shape[0] not in (1, count):
+                raise ValueError(
+                    f"set_state: {name} has shape {value.shape}, expected "
+                    f"({count} or 1, {', '.join(map(str, target.shape[1:]))})"
+                )
+            values[name] = value
+        for name, value in values.items():
+            self._state[name][rows] = value
+        self._select_slots()
+
+    def clone(self) -> AuctionEnv:
+        """An independent env in exactly this state: it steps as this one would."""
+        twin = AuctionEnv(self.system, self.params, self.batch_size, self.active_tasks)
+        twin.copy_offset = self.copy_offset
+        twin.set_state(self.get_state())
+        return twin
 
     # ------------------------------------------------------------------ introspection
     @property
     def action_mask(self) -> np.ndarray:
-        """``[B, m, K + 1]`` bool valid actions (spec step 4), a view of this tick's own array."""
-        return self._mask_by_action.transpose(0, 2, 1)
+        """``[B, m, K + 1]`` bool valid actions (spec step 4), this tick's own array."""
+        return self._mask
 
     @property
     def queue_length(self) -> np.ndarray:
         """``[B]`` tasks waiting in the queue (slot tasks included)."""
-        return (self._queue[:, : self._queue_width] != EMPTY).sum(axis=1)
+        return (self._queue != EMPTY).sum(axis=1)
+
+    @property
+    def _queue_width(self) -> int:
+        """No copy holds more than this many places (tests write queues by hand)."""
+        return int(self._queue_len.max())
+
+    @_queue_width.setter
+    def _queue_width(self, width: int) -> None:
+        np.maximum(self._queue_len, width, out=self._queue_len)
 
     def queued_tasks(self, copy: int) -> list[dict[str, int]]:
         """The queue of one copy, decoded, in queue order (for tests and debugging)."""
@@ -550,5 +583,5 @@ class AuctionEnv:
         ).astype(np.int64)
         self._queue[copy] = EMPTY
         self._queue[copy, : len(keys)] = keys
-        self._queue_width = max(self._queue_width, len(keys))
+        self._queue_len[copy] = len(keys)
         self._select_slots()

@@ -1,14 +1,24 @@
-"""Env throughput benchmark (foundation issue): env-ticks per second under the greedy policy.
+"""Env throughput benchmark: env-ticks per second of the auction dynamics, three ways.
 
-Throughput is ``copies x ticks / wall seconds`` of :class:`AuctionEnv` stepping with the plain
-auction (greedy) policy, the policy's own cost included, in one process: one thread, or the copies
-split over threads by :class:`~mrta_rl.envs.threaded.ThreadedAuctionEnv`.
+Throughput is ``copies x ticks / wall seconds`` under the greedy policy, the policy's own cost
+included, in one process:
+
+- ``step``: :meth:`AuctionEnv.step` under :class:`~mrta_rl.learners.fixed.GreedyLearner`'s numpy
+  policy, as a learner drives it (one thread, or the copies split over threads by
+  :class:`~mrta_rl.envs.threaded.ThreadedAuctionEnv`);
+- ``play``: :meth:`AuctionEnv.play`, many ticks in one compiled call with the policy compiled in
+  (one thread, or the copies split over threads);
+- ``plain``: the plain per-copy Python loop of the spec, ``tests/unit/reference_auction.py``
+  under greedy, the yardstick the ratios are taken against.
 """
 
 from __future__ import annotations
 
+import importlib.util
 import time
 from dataclasses import asdict, dataclass
+from pathlib import Path
+from statistics import median
 
 import numpy as np
 
@@ -18,6 +28,8 @@ from mrta_rl.envs.threaded import ThreadedAuctionEnv
 from mrta_rl.learners.fixed import lowest_valid_bid
 from mrta_rl.systems import RobotSystem
 
+REFERENCE = Path(__file__).resolve().parents[2] / "tests" / "unit" / "reference_auction.py"
+
 
 @dataclass(frozen=True)
 class BenchResult:
@@ -25,6 +37,7 @@ class BenchResult:
 
     system: str
     n_robots: int
+    path: str  # step, play or plain
     batch_size: int
     threads: int
     ticks: int
@@ -36,63 +49,148 @@ class BenchResult:
         return asdict(self)
 
 
+def _timed(run_chunk, min_seconds: float, min_ticks: int) -> tuple[int, float]:
+    """Call ``run_chunk()`` (returns ticks per copy) until both minimums are met."""
+    ticks, start = 0, time.perf_counter()
+    while ticks < min_ticks or time.perf_counter() - start < min_seconds:
+        ticks += run_chunk()
+    return ticks, time.perf_counter() - start
+
+
 def bench_env(
     system: RobotSystem,
     batch_size: int,
     threads: int = 1,
     min_seconds: float = 1.0,
     min_ticks: int = 50,
+    path: str = "step",
 ) -> BenchResult:
-    """Step ``batch_size`` copies under greedy until ``min_seconds`` and ``min_ticks`` have passed.
+    """Run ``batch_size`` copies under greedy until ``min_seconds`` and ``min_ticks`` have passed.
 
-    Episodes restart as they end (the horizon is the spec default), so long runs include resets.
-    The greedy policy runs on the whole batch in the calling thread, as a learner would.
+    Episodes restart as they end (the horizon is the system's), so long runs include resets.
 
     Args:
         system: The robot team.
         batch_size: Number of copies ``B``.
-        threads: 1 for :class:`AuctionEnv`, more for a :class:`ThreadedAuctionEnv`.
+        threads: 1, or more: :class:`ThreadedAuctionEnv` shards (``step``) or copy ranges
+            (``play``).
         min_seconds: Least wall time to measure.
-        min_ticks: Least number of ticks to measure.
+        min_ticks: Least number of ticks per copy to measure.
+        path: ``step`` or ``play`` (module docstring).
 
     Returns:
         The measured cell.
+
+    Raises:
+        ValueError: on an unknown path.
     """
     params = AuctionParams.merged(system.env_overrides)
-    if threads == 1:
+    if path == "play":
         env = AuctionEnv(system, params, batch_size=batch_size, seed=0)
+        chunk = max(min_ticks, 1)
+        env.play("greedy", ticks=1, threads=threads)  # warm-up: compiled code, caches
+
+        def run_chunk() -> int:
+            env.play("greedy", ticks=chunk, threads=threads)
+            return chunk
+
+    elif path == "step":
+        if threads == 1:
+            env = AuctionEnv(system, params, batch_size=batch_size, seed=0)
+        else:
+            env = ThreadedAuctionEnv(system, params, batch_size=batch_size, seed=0, threads=threads)
+        for _ in range(5):  # warm-up: first allocations, caches
+            env.step(lowest_valid_bid(env.action_mask[:, :, 1:]))
+
+        def run_chunk() -> int:
+            env.step(lowest_valid_bid(env.action_mask[:, :, 1:]))
+            if env.done.any():
+                env.reset()
+            return 1
+
     else:
-        env = ThreadedAuctionEnv(system, params, batch_size=batch_size, seed=0, threads=threads)
-    for _ in range(5):  # warm-up: first allocations, caches
-        env.step(lowest_valid_bid(env.action_mask[:, :, 1:]))
-    ticks, start = 0, time.perf_counter()
-    while ticks < min_ticks or time.perf_counter() - start < min_seconds:
-        env.step(lowest_valid_bid(env.action_mask[:, :, 1:]))
-        ticks += 1
-        if env.done.any():
-            env.reset()
-    wall = time.perf_counter() - start
-    if threads > 1:
+        raise ValueError(f"unknown benchmark path {path!r}; known: step, play")
+    ticks, wall = _timed(run_chunk, min_seconds, min_ticks)
+    if isinstance(env, ThreadedAuctionEnv):
         env.close()
     return BenchResult(
-        system.name, system.n_robots, batch_size, threads, ticks, wall, batch_size * ticks / wall
+        system.name,
+        system.n_robots,
+        path,
+        batch_size,
+        threads,
+        ticks,
+        wall,
+        batch_size * ticks / wall,
     )
 
 
+def bench_plain_loop(system: RobotSystem, min_seconds: float = 1.0) -> BenchResult:
+    """Ticks per second of the plain per-copy Python loop (the tests' reference) under greedy.
+
+    Raises:
+        ValueError: outside a clone of the repository (no ``tests/unit/reference_auction.py``).
+    """
+    if not REFERENCE.exists():
+        raise ValueError(f"the plain loop is the repository's {REFERENCE}, not found")
+    spec = importlib.util.spec_from_file_location("reference_auction", REFERENCE)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    params = AuctionParams.merged(system.env_overrides).resolve(system.n_robots)
+    copy = module.ReferenceAuction(system, params, copy_seed=0)
+
+    def run_chunk() -> int:
+        # greedy: every idle robot bids for its lowest-numbered valid slot
+        valid = [copy.valid_actions(i) for i in range(system.n_robots)]
+        copy.step([v[1] if len(v) > 1 else 0 for v in valid])
+        if copy.t >= params.horizon:
+            copy.reset()
+        return 1
+
+    for _ in range(50):  # warm-up: the hashes' compiled scalar variants
+        run_chunk()
+    ticks, wall = _timed(run_chunk, min_seconds, 50)
+    return BenchResult(system.name, system.n_robots, "plain", 1, 1, ticks, wall, ticks / wall)
+
+
 def format_table(results: list[BenchResult]) -> str:
-    """Markdown table: a row per system and thread count, a column per batch size (env-ticks/s)."""
-    sizes = sorted({r.batch_size for r in results})
-    rows = list(dict.fromkeys((r.system, r.n_robots, r.threads) for r in results))
-    cells = {(r.system, r.threads, r.batch_size): r.ticks_per_s for r in results}
+    """Markdown table: a row per system, path and thread count, a column per batch size.
+
+    With several repeats of a cell, the cell shows the median; ``best`` is the best median, and
+    ``x plain`` the min and median over repeats of (best of the repeat) / (plain of the repeat).
+    """
+    sizes = sorted({r.batch_size for r in results if r.path != "plain"})
+    rows = list(dict.fromkeys((r.system, r.n_robots, r.path, r.threads) for r in results))
+    cells: dict[tuple, list[float]] = {}
+    for r in results:
+        cells.setdefault((r.system, r.path, r.threads, r.batch_size), []).append(r.ticks_per_s)
     lines = [
-        "| system (robots) | threads | " + " | ".join(f"B={b}" for b in sizes) + " | best |",
-        "| --- | ---: | " + " | ".join("---:" for _ in sizes) + " | ---: |",
+        "| system (robots) | path | threads | "
+        + " | ".join(f"B={b}" for b in sizes)
+        + " | best | x plain (min / median) |",
+        "| --- | --- | ---: | " + " | ".join("---:" for _ in sizes) + " | ---: | ---: |",
     ]
-    for name, m, threads in rows:
-        row = [cells.get((name, threads, b), np.nan) for b in sizes]
+    for name, m, path, threads in rows:
+        if path == "plain":
+            plain = cells[(name, path, threads, 1)]
+            lines.append(
+                f"| {name} ({m}) | plain loop | 1 | "
+                + " | ".join("-" for _ in sizes)
+                + f" | {median(plain):,.0f} | 1 |"
+            )
+            continue
+        row = [median(cells.get((name, path, threads, b), [np.nan])) for b in sizes]
+        ratio = ""
+        plain = cells.get((name, "plain", 1, 1))
+        if plain:  # repeat j of every cell is one side-by-side measurement
+            best = np.nanmax(
+                [cells.get((name, path, threads, b), [np.nan] * len(plain)) for b in sizes], axis=0
+            )
+            ratios = best[: len(plain)] / np.array(plain)
+            ratio = f"{ratios.min():,.0f} / {median(ratios):,.0f}"
         lines.append(
-            f"| {name} ({m}) | {threads} | "
+            f"| {name} ({m}) | {path} | {threads} | "
             + " | ".join("-" if np.isnan(x) else f"{x:,.0f}" for x in row)
-            + f" | {np.nanmax(row):,.0f} |"
+            + f" | {np.nanmax(row):,.0f} | {ratio} |"
         )
     return "\n".join(lines)

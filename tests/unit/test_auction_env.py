@@ -406,3 +406,149 @@ def test_reset_with_the_done_array_itself_starts_fresh_episodes():
     fresh.reset()  # the second episode of every copy
     np.testing.assert_array_equal(env.queue_length, fresh.queue_length)
     assert env.queue_length.sum() > 0
+
+
+# ---------------------------------------------------------------- many ticks in one call
+def greedy_actions(env):
+    mask = env.action_mask[:, :, 1:]
+    return np.where(mask.any(-1), mask.argmax(-1) + 1, 0)
+
+
+def high_only_actions(env):
+    mask = env.action_mask[:, :, 1:] & (env.slot_high == 1)[:, None, :]
+    return np.where(mask.any(-1), mask.argmax(-1) + 1, 0)
+
+
+@pytest.mark.parametrize(
+    "policy, act", [("greedy", greedy_actions), ("high_only", high_only_actions)]
+)
+@pytest.mark.parametrize("threads", [1, 2])
+def test_play_equals_stepping_the_same_policy(policy, act, threads):
+    system = build_system(SYSTEM1)
+    params = AuctionParams(horizon=60, queue_capacity=6, penalty_drop_low=1.0)
+    stepped = AuctionEnv(system, params, batch_size=3, seed=7)
+    rounds = []
+    for _ in range(2):
+        while not stepped.done.any():
+            stepped.step(act(stepped))
+        rounds.append(stepped.stats.copy())
+        stepped.reset()
+    played = AuctionEnv(system, params, batch_size=3, seed=7)
+    stats = played.play(policy, episodes=2, threads=threads)
+    for field in ("assigned", "dropped", "busy_ticks", "team_return", "ticks"):
+        expected = np.concatenate([getattr(r, field) for r in rounds])
+        np.testing.assert_array_equal(getattr(stats, field), expected, err_msg=field)
+    assert played.done.all() and stats.ticks.tolist() == [60] * 6
+    # the finished episodes are not recorded again: the next call starts with episode 3
+    while not stepped.done.any():  # the third episode of every copy (reset after the second)
+        stepped.step(act(stepped))
+    again = played.play(policy, episodes=1, threads=threads)
+    np.testing.assert_array_equal(again.team_return, stepped.stats.team_return)
+
+
+def test_play_ticks_leaves_the_state_of_stepping_with_resets():
+    system = build_system(SYSTEM1)
+    params = AuctionParams(horizon=25)
+    stepped = AuctionEnv(system, params, batch_size=2, seed=3)
+    for _ in range(70):
+        stepped.step(greedy_actions(stepped))
+        if stepped.done.any():
+            stepped.reset()
+    played = AuctionEnv(system, params, batch_size=2, seed=3)
+    assert played.play("greedy", ticks=70) == 140
+    for name, value in stepped.get_state().items():
+        np.testing.assert_array_equal(played.get_state()[name], value, err_msg=name)
+    np.testing.assert_array_equal(played.action_mask, stepped.action_mask)
+
+
+def test_play_random_is_deterministic_valid_and_not_greedy():
+    system = build_system(SYSTEM1)
+    params = AuctionParams(horizon=100)
+    a = AuctionEnv(system, params, batch_size=4, seed=1).play("random", episodes=1)
+    b = AuctionEnv(system, params, batch_size=4, seed=1).play("random", episodes=1)
+    greedy = AuctionEnv(system, params, batch_size=4, seed=1).play("greedy", episodes=1)
+    np.testing.assert_array_equal(a.team_return, b.team_return)
+    assert a.assigned.sum() > 0 and not np.array_equal(a.assigned, greedy.assigned)
+    # random robots wait often, so they bid (and are busy) less than greedy ones
+    assert a.busy_ticks.sum() < greedy.busy_ticks.sum()
+
+
+def test_play_rejects_unknown_policies_and_bad_counts():
+    env = AuctionEnv(build_system(SYSTEM1), AuctionParams(horizon=5))
+    with pytest.raises(ValueError, match="unknown fixed policy 'greedyy'"):
+        env.play("greedyy", episodes=1)
+    with pytest.raises(ValueError, match="exactly one"):
+        env.play("greedy")
+    with pytest.raises(ValueError, match="positive int"):
+        env.play("greedy", ticks=0)
+
+
+# ---------------------------------------------------------------- snapshots
+def test_restored_snapshot_replays_the_future_exactly_and_a_clone_steps_the_same():
+    system = build_system(MIXED)
+    params = AuctionParams(horizon=120, arrival_rate=1.5, queue_capacity=4, penalty_drop_low=1.0)
+    env = AuctionEnv(system, params, batch_size=3, seed=5)
+    rng = np.random.default_rng(2)
+    for _ in range(30):
+        env.step(random_valid_actions(env, rng))
+    snapshot, twin = env.get_state(), env.clone()
+    history = []
+    for _ in range(40):
+        actions = random_valid_actions(env, rng)
+        mask = env.action_mask.copy()
+        result = env.step(actions)
+        history.append((actions, mask, result.team_reward, result.robot_reward))
+        np.testing.assert_array_equal(twin.action_mask, mask)
+        twin_result = twin.step(actions)
+        np.testing.assert_array_equal(twin_result.team_reward, result.team_reward)
+    end = env.get_state()
+    env.set_state(snapshot)
+    assert env.t.tolist() == [30, 30, 30]
+    for actions, mask, team, robot in history:
+        np.testing.assert_array_equal(env.action_mask, mask)
+        result = env.step(actions)
+        np.testing.assert_array_equal(result.team_reward, team)
+        np.testing.assert_array_equal(result.robot_reward, robot)
+    for name, value in end.items():
+        np.testing.assert_array_equal(env.get_state()[name], value, err_msg=name)
+        np.testing.assert_array_equal(twin.get_state()[name], value, err_msg=name)
+
+
+def test_one_copy_broadcast_into_many_then_reseeded_apart():
+    system = build_system(SYSTEM1)
+    params = AuctionParams(horizon=200)
+    source = AuctionEnv(system, params, batch_size=2, seed=8)
+    for _ in range(15):
+        source.step(greedy_actions(source))
+    rollouts = AuctionEnv(system, params, batch_size=4, seed=100)
+    rollouts.set_state(source.get_state(copies=[1]))  # [1, ...] arrays into every copy
+    for b in range(4):
+        np.testing.assert_array_equal(rollouts.action_mask[b], source.action_mask[1])
+    same = rollouts.clone()
+    for _ in range(10):  # unseeded apart, every copy follows copy 1 of the source
+        result, expected = same.step(greedy_actions(same)), source.step(greedy_actions(source))
+        assert (result.team_reward == expected.team_reward[1]).all()
+    rollouts.reseed([1, 2, 3], [11, 12, 13])
+    np.testing.assert_array_equal(
+        rollouts._state["episode_key"][1:],
+        AuctionEnv(system, params, 3, seed=11)._state["episode_key"],
+    )
+    slots = rollouts.slot_type.copy()
+    returns = []
+    for _ in range(60):
+        rollouts.step(greedy_actions(rollouts))
+        returns.append(rollouts.stats.team_return.copy())
+    assert (slots == slots[0]).all()  # the current tick is kept
+    assert len({tuple(np.array(returns)[:, b]) for b in range(4)}) == 4  # then they diverge
+
+
+def test_set_state_rejects_a_snapshot_of_another_shape():
+    system = build_system(SYSTEM1)
+    env = AuctionEnv(system, AuctionParams(horizon=20), batch_size=2)
+    other = AuctionEnv(system, AuctionParams(horizon=20, queue_capacity=40), batch_size=2)
+    t_before = env.t.copy()
+    with pytest.raises(ValueError, match="set_state: queue has shape"):
+        env.set_state(other.get_state())
+    with pytest.raises(ValueError, match="missing \\['t'\\]"):
+        env.set_state({k: v for k, v in env.get_state().items() if k != "t"})
+    np.testing.assert_array_equal(env.t, t_before)

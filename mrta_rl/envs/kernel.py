@@ -1,0 +1,471 @@
+"""The tick of ``auction_env.md`` as compiled per-copy loops (numba): THE dynamics of the project.
+
+:class:`~mrta_rl.envs.auction.AuctionEnv` owns the arrays and calls these functions; nothing else
+implements a rule of the spec. Each function loops over copies and, per copy, over the spec's
+steps in order, reading and writing the env's arrays in place. All are compiled once per process
+(``cache=True``: the machine code is stored in ``__pycache__`` next to this file, so later
+processes only load it) and release the GIL, so threads over shards of copies run concurrently.
+
+A tick is split at the decision: :func:`begin_copy` runs spec steps 1-3 (arrivals, queue order
+and overflow, slots) so that the caller sees the slots it decides on, :func:`step_copy` steps 4-8
+and then steps 1-3 of the next tick. Overflow drops of step 2 are paid in the reward of that same
+tick, returned by the following step.
+
+Arguments keep one order everywhere (the env builds them once, see ``AuctionEnv``):
+
+- ``tables``: ``iparams`` (int64, indices ``I_*``), ``fparams`` (float64, indices ``F_*``),
+  ``cdf`` (Poisson CDF of the arrival count), ``dur_lo`` / ``dur_span`` (``[2n]`` by
+  ``2 * type + high``), ``willingness`` (``[n, m]`` ``d_iz`` by type), ``can_do`` (``[n, m]``
+  bool, ``Lambda_i`` by type).
+- ``state``: :data:`STATE_FIELDS`, per-copy arrays ``[B, ...]``.
+- ``views``: ``slot_type``, ``slot_high`` ``[B, K]`` (-1: empty), ``idle`` ``[B, m]``, ``mask``
+  ``[B, m, K + 1]``: what a decision sees, written fresh by the env each tick.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from mrta_rl.envs.counter_rng import (
+    bounded_uint,
+    episode_key,
+    high_bits,
+    mix64,
+    task_hash_pair,
+    tick_key,
+    unit_float,
+)
+from mrta_rl.envs.tasks import (
+    EMPTY,
+    pack_tasks,
+    task_due,
+    task_duration,
+    task_high,
+    task_round,
+    task_type,
+    to_second_round,
+)
+
+# integer parameters (iparams)
+I_HORIZON, I_SLOTS, I_QUEUE_CAPACITY, I_REAUCTION_DELAY, I_CHARGE_TICKS, I_SWITCH_TICKS = range(6)
+# float parameters (fparams); assign / drop amounts are indexed by F_* + high
+F_P_HIGH, F_BATTERY_CAPACITY, F_DRAIN, F_THRESHOLD, F_ASSIGN, F_DROP = 0, 1, 2, 3, 4, 6
+NEVER = -(1 << 30)  # last_high_arrival before any H arrival: far in the past
+
+STATE_FIELDS = (
+    "seed_key",  # [B] uint64, key of the copy's seed
+    "episode",  # [B] uint64, episodes started so far (the next episode's number)
+    "episode_key",  # [B] uint64, key of the current episode's draws
+    "t",  # [B] current tick
+    "queue",  # [B, W] packed tasks (envs/tasks.py), EMPTY after queue_len
+    "queue_len",  # [B] places in use (may hold EMPTY holes until the next compaction)
+    "next_id",  # [B] id of the next arriving task
+    "busy_until",  # [B, m] robot i is idle at t when t > busy_until
+    "battery",  # [B, m]
+    "last_type",  # [B, m] type of the robot's previous task, -1: none yet (switch cost)
+    "last_high_arrival",  # [B, n] tick of the last H arrival per type
+    "done",  # [B] the episode has reached the horizon
+    "pending_penalty",  # [B, n] drop penalties of this tick's overflow, paid by the next step
+    "assigned",  # [B, n, 2] stats: tasks assigned per type and priority (0 = L, 1 = H)
+    "dropped",  # [B, n, 2] stats: tasks dropped per type and priority
+    "busy_ticks",  # [B, m] stats: busy ticks per robot (spec step 7)
+    "team_return",  # [B] stats: sum of team rewards
+    "ticks",  # [B] stats: ticks played
+    "slot_pos",  # [B, K] queue place of each slot's task, -1: empty slot
+    "slot_keys",  # [B, K] packed task of each slot, EMPTY: empty slot
+)
+POLICIES = {"greedy": 0, "random": 1, "high_only": 2}  # the spec's fixed policies
+_POLICY_SALT = np.uint64(0x5851F42D4C957F2D)  # keys the random policy's draws apart from arrivals
+
+
+# ---------------------------------------------------------------------------- spec steps 1-3
+@njit(cache=True, nogil=True)
+def begin_copy(
+    b, iparams, fparams, cdf, dur_lo, dur_span, state_episode_key, t, queue, queue_len, next_id,
+    last_high_arrival, pending_penalty, dropped,
+):  # fmt: skip
+    """Spec steps 1-2 of tick ``t[b]`` in copy ``b``: arrivals, queue order, overflow drops."""
+    n = last_high_arrival.shape[1]
+    now = t[b]
+    pending_penalty[b, :] = 0.0
+    # drop the holes left by the last step's slot tasks (assigned or dropped)
+    length = 0
+    for j in range(queue_len[b]):
+        if queue[b, j] != EMPTY:
+            queue[b, length] = queue[b, j]
+            length += 1
+    for j in range(length, queue_len[b]):
+        queue[b, j] = EMPTY
+    # spec step 1: N ~ Poisson(arrival_rate) new tasks, all counter-based hashes (counter_rng)
+    key = tick_key(state_episode_key[b], np.uint64(now))
+    count = np.searchsorted(cdf, unit_float(key), side="right")
+    for k in range(count):
+        h_priority, h_kind = task_hash_pair(key, np.uint64(k + 1))
+        # H with probability p_high; type uniform over the n types (high 32 bits of h_kind),
+        # duration uniform over its type and priority's range, ends included (low 32 bits)
+        high = np.int64(unit_float(h_priority) < fparams[F_P_HIGH])
+        ttype = np.int64(bounded_uint(high_bits(h_kind), np.uint64(n)))
+        kind = 2 * ttype + high
+        duration = dur_lo[kind] + np.int64(bounded_uint(h_kind, np.uint64(dur_span[kind])))
+        queue[b, length] = pack_tasks(high, now, next_id[b] + k, ttype, duration, np.int64(0))
+        length += 1
+        if high:
+            last_high_arrival[b, ttype] = now
+    next_id[b] += count
+    # spec step 2: queue order (H before L, due tick, id) is the keys' order; insertion sort, as
+    # the queue is sorted already but for the new tasks and the re-auctioned ones
+    for j in range(1, length):
+        x = queue[b, j]
+        i = j - 1
+        while i >= 0 and queue[b, i] > x:
+            queue[b, i + 1] = queue[b, i]
+            i -= 1
+        queue[b, i + 1] = x
+    # spec step 2: while the queue holds more than queue_capacity tasks, the last one is dropped
+    capacity = iparams[I_QUEUE_CAPACITY]
+    for j in range(capacity, length):
+        x = queue[b, j]
+        ttype, high = task_type(x), task_high(x)
+        dropped[b, ttype, high] += 1
+        pending_penalty[b, ttype] += fparams[F_DROP + high]
+        queue[b, j] = EMPTY
+    queue_len[b] = min(length, capacity)
+
+
+@njit(cache=True, nogil=True)
+def select_copy(
+    b, t, queue, queue_len, busy_until, done, slot_pos, slot_keys, can_do, slot_type, slot_high,
+    idle, mask,
+):  # fmt: skip
+    """Spec step 3 and the decision's inputs (step 4) of copy ``b``; idempotent."""
+    K, m = slot_pos.shape[1], busy_until.shape[1]
+    now = t[b]
+    k = 0
+    if not done[b]:  # a finished copy auctions nothing
+        # the first K queued tasks due by now, in queue order (EMPTY is never due)
+        for j in range(queue_len[b]):
+            x = queue[b, j]
+            if x != EMPTY and task_due(x) <= now:
+                slot_pos[b, k], slot_keys[b, k] = j, x
+                slot_type[b, k], slot_high[b, k] = task_type(x), task_high(x)
+                k += 1
+                if k == K:
+                    break
+    for kk in range(k, K):
+        slot_pos[b, kk], slot_keys[b, kk], slot_type[b, kk], slot_high[b, kk] = -1, EMPTY, -1, -1
+    # spec step 4: idle when t > busy_until; a bid for slot k is valid if the robot is idle and
+    # the slot holds a task of one of its active types (Lambda_i); waiting is always valid
+    for i in range(m):
+        free = now > busy_until[b, i]
+        idle[b, i] = free
+        mask[b, i, 0] = True
+        for kk in range(K):
+            ttype = slot_type[b, kk]
+            mask[b, i, kk + 1] = free and ttype >= 0 and can_do[ttype, i]
+
+
+# ---------------------------------------------------------------------------- spec steps 4-8
+@njit(cache=True, nogil=True)
+def step_copy(
+    b, actions, iparams, fparams, cdf, dur_lo, dur_span, willingness, can_do,
+    seed_key, episode, state_episode_key, t, queue, queue_len, next_id, busy_until, battery,
+    last_type, last_high_arrival, done, pending_penalty, assigned, dropped, busy_ticks,
+    team_return, ticks, slot_pos, slot_keys,
+    idle_before, slot_type, slot_high, idle, mask,
+    team_reward, assign_reward, type_penalty,
+):  # fmt: skip
+    """Spec steps 4-8 of copy ``b`` under ``actions[b]`` (valid), then steps 1-3 of its next tick.
+
+    ``idle_before`` holds the idle flags the actions were decided on (spec step 7 reads them);
+    the next tick's views are written into ``slot_type``, ``slot_high``, ``idle`` and ``mask``
+    (the same arrays or fresh ones).
+
+    Writes the tick's team reward ``team_reward[b]``, the assign reward each robot won
+    ``assign_reward[b]`` and the drop penalties by type ``type_penalty[b]`` (spec step 8).
+    """
+    K, m, n = slot_pos.shape[1], busy_until.shape[1], last_high_arrival.shape[1]
+    now = t[b]
+    # spec step 8 counts this tick's overflow drops (spec step 2)
+    team = 0.0
+    for j in range(n):
+        team += pending_penalty[b, j]
+        type_penalty[b, j] = pending_penalty[b, j]
+    team = -team
+    for i in range(m):
+        assign_reward[b, i] = 0.0
+    # spec step 5, slot by slot: among the bidders, the highest willingness wins, ties to the
+    # lowest robot index
+    for k in range(K):
+        x = slot_keys[b, k]
+        if x == EMPTY:
+            continue
+        ttype, high = task_type(x), task_high(x)
+        winner, best = -1, -1.0
+        for i in range(m):
+            if actions[b, i] == k + 1 and willingness[ttype, i] > best:
+                winner, best = i, willingness[ttype, i]
+        if winner < 0:
+            continue
+        duration = task_duration(x)
+        # spec step 5: executes during ticks t+1 .. t+duration, draining the battery; below the
+        # threshold afterwards, it charges right after and is full again
+        ready = now + duration
+        level = battery[b, winner] - fparams[F_DRAIN] * duration
+        if level < fparams[F_THRESHOLD]:
+            ready += iparams[I_CHARGE_TICKS]
+            level = fparams[F_BATTERY_CAPACITY]
+        busy_until[b, winner], battery[b, winner] = ready, level
+        last_type[b, winner] = ttype
+        reward = fparams[F_ASSIGN + high]
+        assign_reward[b, winner] += reward
+        team += reward
+        assigned[b, ttype, high] += 1
+        queue[b, slot_pos[b, k]] = EMPTY
+        slot_keys[b, k] = -1  # marks the slot as assigned for the loop below
+    # spec step 6: an unassigned slot task goes to round 2, due t + delay; in round 2, dropped
+    for k in range(K):
+        x = slot_keys[b, k]
+        if x == EMPTY or x == -1:
+            continue
+        if task_round(x) == 1:
+            queue[b, slot_pos[b, k]] = to_second_round(x, now + iparams[I_REAUCTION_DELAY])
+        else:
+            ttype, high = task_type(x), task_high(x)
+            dropped[b, ttype, high] += 1
+            penalty = fparams[F_DROP + high]
+            type_penalty[b, ttype] += penalty
+            team -= penalty
+            queue[b, slot_pos[b, k]] = EMPTY
+    # spec step 7: busy if not idle at step 4, or if it bid (the auction takes its time)
+    for i in range(m):
+        if not idle_before[b, i] or actions[b, i] > 0:
+            busy_ticks[b, i] += 1
+    team_reward[b] = team
+    team_return[b] += team
+    ticks[b] += 1
+    t[b] = now + 1
+    done[b] = t[b] >= iparams[I_HORIZON]
+    if not done[b]:
+        begin_copy(
+            b, iparams, fparams, cdf, dur_lo, dur_span, state_episode_key, t, queue, queue_len,
+            next_id, last_high_arrival, pending_penalty, dropped,
+        )  # fmt: skip
+    select_copy(
+        b, t, queue, queue_len, busy_until, done, slot_pos, slot_keys, can_do, slot_type,
+        slot_high, idle, mask,
+    )  # fmt: skip
+
+
+@njit(cache=True, nogil=True)
+def reset_copy(
+    b, iparams, fparams, cdf, dur_lo, dur_span, seed_key, episode, state_episode_key, t, queue,
+    queue_len, next_id, busy_until, battery, last_type, last_high_arrival, done, pending_penalty,
+    assigned, dropped, busy_ticks, team_return, ticks,
+):  # fmt: skip
+    """Start copy ``b``'s next episode (full batteries, idle robots, empty queue) and its tick 0.
+
+    The slots are left to :func:`select_copy`.
+    """
+    state_episode_key[b] = episode_key(seed_key[b], episode[b])
+    episode[b] += np.uint64(1)
+    t[b], next_id[b], done[b] = 0, 0, False
+    queue[b, :] = EMPTY
+    queue_len[b] = 0
+    busy_until[b, :] = -1
+    battery[b, :] = fparams[F_BATTERY_CAPACITY]
+    last_type[b, :] = -1
+    last_high_arrival[b, :] = NEVER
+    assigned[b], dropped[b], busy_ticks[b] = 0, 0, 0
+    team_return[b], ticks[b] = 0.0, 0
+    begin_copy(
+        b, iparams, fparams, cdf, dur_lo, dur_span, state_episode_key, t, queue, queue_len, next_id,
+        last_high_arrival, pending_penalty, dropped,
+    )  # fmt: skip
+
+
+# ---------------------------------------------------------------------------- batch entry points
+@njit(cache=True, nogil=True)
+def first_invalid(actions, done, mask):
+    """``(0, 0)`` if every copy may step under ``actions``, else the first problem found.
+
+    ``(1, b)``: copy ``b`` has finished its episode; ``(2, b * m + i)``: robot ``i``'s action in
+    copy ``b`` is out of range or masked (spec step 4).
+    """
+    B, m = actions.shape
+    n_actions = mask.shape[2]
+    for b in range(B):
+        if done[b]:
+            return 1, b
+    for b in range(B):
+        for i in range(m):
+            a = actions[b, i]
+            if a < 0 or a >= n_actions or not mask[b, i, a]:
+                return 2, b * m + i
+    return 0, 0
+
+
+@njit(cache=True, nogil=True)
+def step(
+    actions, iparams, fparams, cdf, dur_lo, dur_span, willingness, can_do,
+    seed_key, episode, state_episode_key, t, queue, queue_len, next_id, busy_until, battery,
+    last_type, last_high_arrival, done, pending_penalty, assigned, dropped, busy_ticks,
+    team_return, ticks, slot_pos, slot_keys,
+    idle_before, slot_type, slot_high, idle, mask,
+    team_reward, assign_reward, type_penalty,
+):  # fmt: skip
+    """One tick of every copy (:func:`step_copy`); ``actions`` are valid (:func:`first_invalid`)."""
+    for b in range(actions.shape[0]):
+        step_copy(
+            b, actions, iparams, fparams, cdf, dur_lo, dur_span, willingness, can_do,
+            seed_key, episode, state_episode_key, t, queue, queue_len, next_id, busy_until,
+            battery, last_type, last_high_arrival, done, pending_penalty, assigned, dropped,
+            busy_ticks, team_return, ticks, slot_pos, slot_keys,
+            idle_before, slot_type, slot_high, idle, mask,
+            team_reward, assign_reward, type_penalty,
+        )  # fmt: skip
+
+
+@njit(cache=True, nogil=True)
+def refresh(
+    rows, begin, iparams, fparams, cdf, dur_lo, dur_span, willingness, can_do,
+    seed_key, episode, state_episode_key, t, queue, queue_len, next_id, busy_until, battery,
+    last_type, last_high_arrival, done, pending_penalty, assigned, dropped, busy_ticks,
+    team_return, ticks, slot_pos, slot_keys,
+    slot_type, slot_high, idle, mask,
+):  # fmt: skip
+    """Reset (``begin=2``), begin the tick (``begin=1``) or only re-select (0) the ``rows``.
+
+    Every copy's slots and mask are (re)written, as the views are fresh arrays.
+    """
+    for b in range(t.shape[0]):
+        if rows[b] and begin == 2:
+            reset_copy(
+                b, iparams, fparams, cdf, dur_lo, dur_span, seed_key, episode, state_episode_key,
+                t, queue, queue_len, next_id, busy_until, battery, last_type, last_high_arrival,
+                done, pending_penalty, assigned, dropped, busy_ticks, team_return, ticks,
+            )  # fmt: skip
+        elif rows[b] and begin == 1:
+            begin_copy(
+                b, iparams, fparams, cdf, dur_lo, dur_span, state_episode_key, t, queue,
+                queue_len, next_id, last_high_arrival, pending_penalty, dropped,
+            )  # fmt: skip
+        select_copy(
+            b, t, queue, queue_len, busy_until, done, slot_pos, slot_keys, can_do, slot_type,
+            slot_high, idle, mask,
+        )  # fmt: skip
+
+
+@njit(cache=True, nogil=True)
+def fixed_policy_copy(b, policy, actions, slot_high, mask, state_episode_key, t):
+    """The spec's fixed policies for copy ``b``, into ``actions[b]``.
+
+    ``greedy`` bids for the lowest-numbered valid slot, ``high_only`` for the lowest-numbered
+    valid slot holding an H task; ``random`` picks uniformly among the valid bids and waiting,
+    from counter-based hashes of the copy's episode key, tick and robot.
+    """
+    m, n_actions = mask.shape[1], mask.shape[2]
+    key = mix64(tick_key(state_episode_key[b], np.uint64(t[b])) ^ _POLICY_SALT)
+    for i in range(m):
+        choice = 0
+        if policy == 1:  # random
+            valid = 0
+            for a in range(1, n_actions):
+                valid += mask[b, i, a]
+            pick = np.int64(bounded_uint(mix64(key + np.uint64(i + 1)), np.uint64(valid + 1)))
+            for a in range(1, n_actions):
+                if pick > 0 and mask[b, i, a]:
+                    pick -= 1
+                    if pick == 0:
+                        choice = a
+        else:
+            for a in range(1, n_actions):
+                if mask[b, i, a] and (policy == 0 or slot_high[b, a - 1] == 1):
+                    choice = a
+                    break
+        actions[b, i] = choice
+
+
+@njit(cache=True, nogil=True)
+def play_copy(
+    b, policy, max_ticks, rounds, iparams, fparams, cdf, dur_lo, dur_span, willingness, can_do,
+    seed_key, episode, state_episode_key, t, queue, queue_len, next_id, busy_until, battery,
+    last_type, last_high_arrival, done, pending_penalty, assigned, dropped, busy_ticks,
+    team_return, ticks, slot_pos, slot_keys,
+    slot_type, slot_high, idle, mask,
+    actions, team_reward, assign_reward, type_penalty,
+    out_assigned, out_dropped, out_busy_ticks, out_team_return, out_ticks,
+):  # fmt: skip
+    """Copy ``b`` under fixed policy ``policy`` (:data:`POLICIES`), many ticks in one call.
+
+    A copy whose episode has ended is first reset. With ``rounds > 0`` the copy plays until
+    ``rounds`` episodes have ended, recording episode ``r``'s statistics in row ``r * B + b`` of
+    the ``out_*`` arrays and resetting between episodes (the last one is left done). With
+    ``rounds = 0`` it plays ``max_ticks`` ticks, resetting finished episodes, and records
+    nothing. Returns the number of ticks played.
+    """
+    B = t.shape[0]
+    played, recorded = 0, 0
+    while True:
+        if done[b]:
+            if played > 0 and recorded < rounds:  # (an episode ended before this call: not)
+                row = recorded * B + b
+                out_assigned[row], out_dropped[row] = assigned[b], dropped[b]
+                out_busy_ticks[row] = busy_ticks[b]
+                out_team_return[row], out_ticks[row] = team_return[b], ticks[b]
+                recorded += 1
+            if rounds > 0 and recorded == rounds:
+                break
+            reset_copy(
+                b, iparams, fparams, cdf, dur_lo, dur_span, seed_key, episode, state_episode_key,
+                t, queue, queue_len, next_id, busy_until, battery, last_type, last_high_arrival,
+                done, pending_penalty, assigned, dropped, busy_ticks, team_return, ticks,
+            )  # fmt: skip
+            select_copy(
+                b, t, queue, queue_len, busy_until, done, slot_pos, slot_keys, can_do,
+                slot_type, slot_high, idle, mask,
+            )  # fmt: skip
+        if played == max_ticks:
+            break
+        fixed_policy_copy(b, policy, actions, slot_high, mask, state_episode_key, t)
+        step_copy(
+            b, actions, iparams, fparams, cdf, dur_lo, dur_span, willingness, can_do,
+            seed_key, episode, state_episode_key, t, queue, queue_len, next_id, busy_until,
+            battery, last_type, last_high_arrival, done, pending_penalty, assigned, dropped,
+            busy_ticks, team_return, ticks, slot_pos, slot_keys,
+            idle, slot_type, slot_high, idle, mask,
+            team_reward, assign_reward, type_penalty,
+        )  # fmt: skip
+        played += 1
+    return played
+
+
+@njit(cache=True, nogil=True)
+def play(
+    lo, hi, policy, max_ticks, rounds, iparams, fparams, cdf, dur_lo, dur_span, willingness,
+    can_do, seed_key, episode, state_episode_key, t, queue, queue_len, next_id, busy_until,
+    battery, last_type, last_high_arrival, done, pending_penalty, assigned, dropped, busy_ticks,
+    team_return, ticks, slot_pos, slot_keys,
+    slot_type, slot_high, idle, mask,
+    out_assigned, out_dropped, out_busy_ticks, out_team_return, out_ticks,
+):  # fmt: skip
+    """:func:`play_copy` of copies ``lo .. hi - 1`` in turn; returns the ticks they played.
+
+    Calls on disjoint copy ranges may run in concurrent threads (the GIL is released).
+    """
+    B, m = busy_until.shape
+    n = last_high_arrival.shape[1]
+    actions = np.zeros((B, m), np.int64)  # scratch rows of play_copy
+    team_reward, assign_reward, type_penalty = np.zeros(B), np.zeros((B, m)), np.zeros((B, n))
+    played = 0
+    for b in range(lo, hi):
+        played += play_copy(
+            b, policy, max_ticks, rounds, iparams, fparams, cdf, dur_lo, dur_span, willingness,
+            can_do, seed_key, episode, state_episode_key, t, queue, queue_len, next_id,
+            busy_until, battery, last_type, last_high_arrival, done, pending_penalty, assigned,
+            dropped, busy_ticks, team_return, ticks, slot_pos, slot_keys,
+            slot_type, slot_high, idle, mask,
+            actions, team_reward, assign_reward, type_penalty,
+            out_assigned, out_dropped, out_busy_ticks, out_team_return, out_ticks,
+        )  # fmt: skip
+    return played
