@@ -175,6 +175,7 @@ class AuctionEnv:
         iparams[kernel.I_QUEUE_CAPACITY] = p.queue_capacity
         iparams[kernel.I_REAUCTION_DELAY] = p.reauction_delay
         iparams[kernel.I_CHARGE_TICKS] = p.charge_ticks
+        iparams[kernel.I_SWITCH_TICKS] = p.switch_ticks
         fparams = np.zeros(8)
         fparams[kernel.F_P_HIGH], fparams[kernel.F_BATTERY_CAPACITY] = p.p_high, p.battery_capacity
         fparams[kernel.F_DRAIN], fparams[kernel.F_THRESHOLD] = p.drain_per_tick, p.battery_threshold

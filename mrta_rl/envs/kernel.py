@@ -207,7 +207,11 @@ def step_copy(
                 winner, best = i, willingness[ttype, i]
         if winner < 0:
             continue
+        # a task of another type than the robot's previous one first needs switch_ticks of
+        # setup, busy and draining as execution does (docs/spec_switch_cost.md)
         duration = task_duration(x)
+        if last_type[b, winner] >= 0 and last_type[b, winner] != ttype:
+            duration += iparams[I_SWITCH_TICKS]
         # spec step 5: executes during ticks t+1 .. t+duration, draining the battery; below the
         # threshold afterwards, it charges right after and is full again
         ready = now + duration

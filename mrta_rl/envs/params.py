@@ -31,6 +31,9 @@ class AuctionParams:
     penalty_drop_low: float = 0.0  # subtracted when an L task is dropped
     duration_low: tuple[int, int] = (3, 6)  # default duration range of L tasks, ends included
     duration_high: tuple[int, int] = (6, 12)  # default duration range of H tasks, ends included
+    # extra busy ticks before a task of another type than the robot's previous one (issue 11;
+    # docs/spec_switch_cost.md); 0 = no switch cost
+    switch_ticks: int = 0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "duration_low", tuple(int(x) for x in self.duration_low))
@@ -45,6 +48,7 @@ class AuctionParams:
             "battery_capacity": self.battery_capacity > 0,
             "drain_per_tick": self.drain_per_tick >= 0,
             "charge_ticks": self.charge_ticks >= 0,
+            "switch_ticks": self.switch_ticks >= 0,
             "duration_low": len(self.duration_low) == 2
             and 1 <= self.duration_low[0] <= self.duration_low[1],
             "duration_high": len(self.duration_high) == 2

@@ -33,6 +33,7 @@ class ReferenceAuction:
         self.t, self.next_id, self.queue = 0, 0, []
         self.busy_until = [-1] * self.m
         self.battery = [float(self.p.battery_capacity)] * self.m
+        self.last_type = [None] * self.m  # type of each robot's previous task (switch cost)
         self.assigned = np.zeros((self.n, 2), int)
         self.dropped = np.zeros((self.n, 2), int)
         self.busy_ticks = np.zeros(self.m, int)
@@ -88,8 +89,12 @@ class ReferenceAuction:
             if bidders:
                 best = max(self.d[i, task["type"]] for i in bidders)
                 w = min(i for i in bidders if self.d[i, task["type"]] == best)
-                self.busy_until[w] = self.t + task["duration"]
-                self.battery[w] -= p.drain_per_tick * task["duration"]
+                # docs/spec_switch_cost.md: another type than the previous task's needs a setup
+                switch = self.last_type[w] not in (None, task["type"])
+                busy = task["duration"] + (p.switch_ticks if switch else 0)
+                self.last_type[w] = task["type"]
+                self.busy_until[w] = self.t + busy
+                self.battery[w] -= p.drain_per_tick * busy
                 if self.battery[w] < p.battery_threshold:
                     self.busy_until[w] += p.charge_ticks
                     self.battery[w] = float(p.battery_capacity)

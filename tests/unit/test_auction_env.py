@@ -552,3 +552,84 @@ def test_set_state_rejects_a_snapshot_of_another_shape():
     with pytest.raises(ValueError, match="missing \\['t'\\]"):
         env.set_state({k: v for k, v in env.get_state().items() if k != "t"})
     np.testing.assert_array_equal(env.t, t_before)
+
+
+# ---------------------------------------------------------------- task-switch cost (issue 11)
+def win(env, robot, ttype, duration, id=0):
+    """Robot ``robot`` (0-based) alone bids for a fresh task at the current tick of copy 0."""
+    env.inject_tasks(0, [task(type=ttype, due=int(env.t[0]), id=id, duration=duration)])
+    actions = waits(env)
+    actions[0, robot] = 1
+    env.step(actions)
+
+
+def test_switch_cost_only_when_the_type_changes_and_not_for_the_first_task():
+    env = quiet_env(SYSTEM1, switch_ticks=2)
+    win(env, 0, ttype=4, duration=5)  # t=0, R1's first task (T5): no setup
+    assert env.busy_until[0, 0] == 5 and env.battery[0, 0] == pytest.approx(95.0)
+    while env.t[0] < 6:
+        env.step(waits(env))
+    win(env, 0, ttype=0, duration=3, id=1)  # t=6, T1 after T5: 2 setup ticks, then 3 of work
+    assert env.busy_until[0, 0] == 6 + 2 + 3
+    assert env.battery[0, 0] == pytest.approx(95.0 - 5.0)  # setup drains as execution does
+    for _ in range(5):  # setting up and executing: busy
+        assert not env.idle[0, 0]
+        env.step(waits(env))
+    win(env, 0, ttype=0, duration=4, id=2)  # t=12, T1 again: no setup
+    assert env.busy_until[0, 0] == 12 + 4 and env.battery[0, 0] == pytest.approx(86.0)
+    while env.t[0] < 17:
+        env.step(waits(env))
+    # busy (spec step 7): bids at 0, 6, 12; work 1-5; setup 7-8 and work 9-11; work 13-16
+    assert env.stats.busy_ticks[0, 0] == 3 + 5 + 5 + 4
+    assert env.stats.assigned[0].sum() == 3
+
+
+@pytest.mark.parametrize("switch_ticks, busy_until, battery", [(0, 5, 21.0), (2, 7 + 10, 100.0)])
+def test_switch_setup_counts_before_the_battery_threshold(switch_ticks, busy_until, battery):
+    env = quiet_env(SYSTEM1, switch_ticks=switch_ticks)
+    env._state["last_type"][0, 0] = 4  # R1's previous task was a T5
+    env.battery[0, 0] = 26.0
+    win(env, 0, ttype=0, duration=5)  # 26 - 5 = 21 stays; 26 - 7 = 19 < 20 charges
+    assert env.busy_until[0, 0] == busy_until
+    assert env.battery[0, 0] == pytest.approx(battery)
+
+
+def test_switch_memory_survives_charging_and_a_reset_forgets_it():
+    env = quiet_env(SYSTEM1, switch_ticks=3, battery_threshold=99)
+    win(env, 0, ttype=4, duration=2)  # 100 - 2 < 99: charges after its T5
+    assert env.busy_until[0, 0] == 2 + 10
+    while env.t[0] < 13:
+        env.step(waits(env))
+    win(env, 0, ttype=4, duration=2, id=1)  # still a T5 after charging: no setup
+    assert env.busy_until[0, 0] == 13 + 2 + 10
+    env.reset()
+    win(env, 0, ttype=0, duration=2)  # first task of the new episode: no setup
+    assert env.busy_until[0, 0] == 2 + 10
+
+
+@pytest.mark.parametrize("system", [SYSTEM1, MIXED])
+def test_switch_cost_equals_the_reference_tick_by_tick(system):
+    params = AuctionParams(horizon=150, arrival_rate=1.5, queue_capacity=6, switch_ticks=3)
+    rng = np.random.default_rng(4)
+    env = AuctionEnv(build_system(system), params, batch_size=3, seed=21)
+    refs = [ReferenceAuction(build_system(system), params, copy_seed=21 + b) for b in range(3)]
+    while not env.done.any():
+        for b, ref in enumerate(refs):
+            for i in range(env.n_robots):
+                assert list(np.flatnonzero(env.action_mask[b, i])) == ref.valid_actions(i)
+        actions = random_valid_actions(env, rng)
+        result = env.step(actions)
+        for b, ref in enumerate(refs):
+            team, robot = ref.step(list(actions[b]))
+            assert result.team_reward[b] == pytest.approx(team)
+            np.testing.assert_allclose(result.robot_reward[b], robot, atol=1e-9)
+            assert list(env.busy_until[b]) == ref.busy_until
+    for b, ref in enumerate(refs):
+        np.testing.assert_array_equal(env.stats.busy_ticks[b], ref.busy_ticks)
+    # the cost matters: greedy on the same task streams earns another return without it
+    plain = AuctionEnv(build_system(system), AuctionParams(**{**vars(params), "switch_ticks": 0}))
+    costly = AuctionEnv(build_system(system), params)
+    assert (
+        plain.play("greedy", episodes=1).team_return
+        != costly.play("greedy", episodes=1).team_return
+    )
