@@ -1,7 +1,7 @@
 """ThreadedAuctionEnv: the batched auction env split over threads, one shard of copies each.
 
-numpy releases the GIL inside its loops (elementwise ops, sorts, gathers), so shards of an
-:class:`AuctionEnv` stepped by concurrent threads use several cores. Copies are independent and
+The compiled kernel of :class:`AuctionEnv` (``envs/kernel.py``) releases the GIL, so shards of
+an :class:`AuctionEnv` stepped by concurrent threads use several cores. Copies are independent and
 their random draws depend only on their own seeds (``counter_rng``), so a threaded env gives
 exactly the results of one ``AuctionEnv`` with the same seed: copy ``b`` is copy ``b`` of the
 same shard-less env. It exposes the same interface; per-copy arrays are the shards' arrays

@@ -67,6 +67,9 @@ def random_valid_actions(env, rng):
             SYSTEM1,
             AuctionParams(horizon=120, arrival_rate=4.0, queue_capacity=5, battery_threshold=90),
         ),
+        # task-switch setup cost (docs/spec_switch_cost.md)
+        (SYSTEM1, AuctionParams(horizon=150, arrival_rate=1.5, queue_capacity=6, switch_ticks=3)),
+        (MIXED, AuctionParams(horizon=150, arrival_rate=1.5, switch_ticks=2, battery_threshold=60)),
     ],
 )
 def test_batched_dynamics_equal_the_reference_tick_by_tick(system, params):
@@ -84,6 +87,7 @@ def test_batched_dynamics_equal_the_reference_tick_by_tick(system, params):
                 team, robot = ref.step(list(actions[b]))
                 assert result.team_reward[b] == pytest.approx(team)
                 np.testing.assert_allclose(result.robot_reward[b], robot, atol=1e-9)
+                assert list(env.busy_until[b]) == ref.busy_until
         assert env.done.all()
         for b, ref in enumerate(refs):
             np.testing.assert_array_equal(env.stats.assigned[b], ref.assigned)
@@ -607,29 +611,11 @@ def test_switch_memory_survives_charging_and_a_reset_forgets_it():
     assert env.busy_until[0, 0] == 2 + 10
 
 
-@pytest.mark.parametrize("system", [SYSTEM1, MIXED])
-def test_switch_cost_equals_the_reference_tick_by_tick(system):
-    params = AuctionParams(horizon=150, arrival_rate=1.5, queue_capacity=6, switch_ticks=3)
-    rng = np.random.default_rng(4)
-    env = AuctionEnv(build_system(system), params, batch_size=3, seed=21)
-    refs = [ReferenceAuction(build_system(system), params, copy_seed=21 + b) for b in range(3)]
-    while not env.done.any():
-        for b, ref in enumerate(refs):
-            for i in range(env.n_robots):
-                assert list(np.flatnonzero(env.action_mask[b, i])) == ref.valid_actions(i)
-        actions = random_valid_actions(env, rng)
-        result = env.step(actions)
-        for b, ref in enumerate(refs):
-            team, robot = ref.step(list(actions[b]))
-            assert result.team_reward[b] == pytest.approx(team)
-            np.testing.assert_allclose(result.robot_reward[b], robot, atol=1e-9)
-            assert list(env.busy_until[b]) == ref.busy_until
-    for b, ref in enumerate(refs):
-        np.testing.assert_array_equal(env.stats.busy_ticks[b], ref.busy_ticks)
-    # the cost matters: greedy on the same task streams earns another return without it
-    plain = AuctionEnv(build_system(system), AuctionParams(**{**vars(params), "switch_ticks": 0}))
-    costly = AuctionEnv(build_system(system), params)
-    assert (
-        plain.play("greedy", episodes=1).team_return
-        != costly.play("greedy", episodes=1).team_return
+def test_switch_cost_changes_greedy_on_the_same_task_streams():
+    system = build_system(SYSTEM1)
+    plain = AuctionEnv(system, AuctionParams(horizon=150)).play("greedy", episodes=1)
+    costly = AuctionEnv(system, AuctionParams(horizon=150, switch_ticks=3)).play(
+        "greedy", episodes=1
     )
+    assert plain.assigned.sum() > costly.assigned.sum()
+    assert plain.team_return[0] > costly.team_return[0]
