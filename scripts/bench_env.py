@@ -1,7 +1,8 @@
 """Env-ticks per second of the auction env under greedy: step and play paths, plain-loop ratios.
 
 Usage: python scripts/bench_env.py [--batch-sizes 1 16 64 1024 8192] [--threads 1 2]
-       [--paths step play] [--repeats 3] [--seconds 1.0] [--out FILE]
+       [--paths step play] [--repeats 3] [--seconds 1.0] [--systems system1 system2 random100]
+       [--clock wall|cpu] [--out FILE]
 """
 
 from __future__ import annotations
@@ -25,13 +26,16 @@ if __name__ == "__main__":
     parser.add_argument("--paths", nargs="+", default=["step", "play"], choices=["step", "play"])
     parser.add_argument("--repeats", type=int, default=3, help="side-by-side repeats (ratios)")
     parser.add_argument("--seconds", type=float, default=1.0, help="least wall time per cell")
+    parser.add_argument("--systems", nargs="+", default=["system1", "system2", "random100"])
+    parser.add_argument("--clock", default="wall", choices=["wall", "cpu"], help="cpu: steadier")
     parser.add_argument("--out", default="bench_env.json")
     args = parser.parse_args()
     systems = [
-        build_system(yaml.safe_load((CONF / f"{name}.yaml").read_text()))
-        for name in ("system1", "system2")
+        random_system(100, 20, 0.15, seed=0, name="random100")
+        if name == "random100"
+        else build_system(yaml.safe_load((CONF / f"{name}.yaml").read_text()))
+        for name in args.systems
     ]
-    systems.append(random_system(100, 20, 0.15, seed=0, name="random100"))
     cells = [(s, None, 1, 1) for s in systems] + [
         (s, path, b, n)
         for s in systems
@@ -45,9 +49,11 @@ if __name__ == "__main__":
         for _ in range(args.repeats):  # one repeat = every cell, side by side
             for system, path, b, n in cells:
                 if path is None:
-                    results.append(bench_plain_loop(system, min_seconds=args.seconds))
+                    results.append(bench_plain_loop(system, args.seconds, args.clock))
                 else:
-                    results.append(bench_env(system, b, n, args.seconds, path=path))
+                    results.append(
+                        bench_env(system, b, n, args.seconds, path=path, clock=args.clock)
+                    )
                 bar.update()
     print(format_table(results))
     Path(args.out).write_text(json.dumps([r.as_dict() for r in results], indent=2))

@@ -228,6 +228,9 @@ class AuctionEnv:
         self.stats = EpisodeStats(
             *(state[f] for f in ("assigned", "dropped", "busy_ticks", "team_return", "ticks"))
         )
+        # the kernel's leading arguments: tables, then the state arrays (updated in place, never
+        # replaced) in kernel.STATE_FIELDS order
+        self._fixed_args = self._tables + tuple(state[f] for f in kernel.STATE_FIELDS)
         self._new_views()
         self.seed(seed)
         self.reset()
@@ -308,11 +311,6 @@ class AuctionEnv:
         self.idle = np.empty((B, m), np.bool_)  # spec step 4, [B, m]
         self._mask = np.empty((B, m, K + 1), np.bool_)
         return self.slot_type, self.slot_high, self.idle, self._mask
-
-    @property
-    def _fixed_args(self) -> tuple[np.ndarray, ...]:
-        """Tables, then the state arrays in ``kernel.STATE_FIELDS`` order (never replaced)."""
-        return self._tables + tuple(self._state[f] for f in kernel.STATE_FIELDS)
 
     def _refresh(self, rows: np.ndarray | None, begin: int) -> None:
         """Reset (``begin=2``) or begin the tick of (1) the ``rows``, then re-select all slots."""

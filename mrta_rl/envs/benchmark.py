@@ -42,19 +42,40 @@ class BenchResult:
     threads: int
     ticks: int
     wall_s: float
-    ticks_per_s: float
+    cpu_s: float  # CPU time of this process (all its threads)
+    ticks_per_s: float  # copies x ticks per second of the chosen clock
 
     def as_dict(self) -> dict:
         """JSON-ready dict."""
         return asdict(self)
 
 
-def _timed(run_chunk, min_seconds: float, min_ticks: int) -> tuple[int, float]:
-    """Call ``run_chunk()`` (returns ticks per copy) until both minimums are met."""
-    ticks, start = 0, time.perf_counter()
+def _timed(run_chunk, min_seconds: float, min_ticks: int) -> tuple[int, float, float]:
+    """Call ``run_chunk()`` (returns ticks per copy) until both minimums are met.
+
+    Returns the ticks per copy, the wall seconds and the CPU seconds of the process.
+    """
+    ticks, start, cpu = 0, time.perf_counter(), time.process_time()
     while ticks < min_ticks or time.perf_counter() - start < min_seconds:
         ticks += run_chunk()
-    return ticks, time.perf_counter() - start
+    return ticks, time.perf_counter() - start, time.process_time() - cpu
+
+
+def _result(system, path, batch_size, threads, ticks, wall, cpu, clock) -> BenchResult:
+    if clock not in ("wall", "cpu"):
+        raise ValueError(f"unknown clock {clock!r}; known: wall, cpu")
+    seconds = wall if clock == "wall" else cpu
+    return BenchResult(
+        system.name,
+        system.n_robots,
+        path,
+        batch_size,
+        threads,
+        ticks,
+        wall,
+        cpu,
+        batch_size * ticks / seconds,
+    )
 
 
 def bench_env(
@@ -64,6 +85,7 @@ def bench_env(
     min_seconds: float = 1.0,
     min_ticks: int = 50,
     path: str = "step",
+    clock: str = "wall",
 ) -> BenchResult:
     """Run ``batch_size`` copies under greedy until ``min_seconds`` and ``min_ticks`` have passed.
 
@@ -77,6 +99,8 @@ def bench_env(
         min_seconds: Least wall time to measure.
         min_ticks: Least number of ticks per copy to measure.
         path: ``step`` or ``play`` (module docstring).
+        clock: ``wall``, or ``cpu`` (the process's CPU time: steadier on a shared machine, but
+            it adds up the threads' times).
 
     Returns:
         The measured cell.
@@ -110,22 +134,15 @@ def bench_env(
 
     else:
         raise ValueError(f"unknown benchmark path {path!r}; known: step, play")
-    ticks, wall = _timed(run_chunk, min_seconds, min_ticks)
+    ticks, wall, cpu = _timed(run_chunk, min_seconds, min_ticks)
     if isinstance(env, ThreadedAuctionEnv):
         env.close()
-    return BenchResult(
-        system.name,
-        system.n_robots,
-        path,
-        batch_size,
-        threads,
-        ticks,
-        wall,
-        batch_size * ticks / wall,
-    )
+    return _result(system, path, batch_size, threads, ticks, wall, cpu, clock)
 
 
-def bench_plain_loop(system: RobotSystem, min_seconds: float = 1.0) -> BenchResult:
+def bench_plain_loop(
+    system: RobotSystem, min_seconds: float = 1.0, clock: str = "wall"
+) -> BenchResult:
     """Ticks per second of the plain per-copy Python loop (the tests' reference) under greedy.
 
     Raises:
@@ -149,8 +166,8 @@ def bench_plain_loop(system: RobotSystem, min_seconds: float = 1.0) -> BenchResu
 
     for _ in range(50):  # warm-up: the hashes' compiled scalar variants
         run_chunk()
-    ticks, wall = _timed(run_chunk, min_seconds, 50)
-    return BenchResult(system.name, system.n_robots, "plain", 1, 1, ticks, wall, ticks / wall)
+    ticks, wall, cpu = _timed(run_chunk, min_seconds, 50)
+    return _result(system, "plain", 1, 1, ticks, wall, cpu, clock)
 
 
 def format_table(results: list[BenchResult]) -> str:
