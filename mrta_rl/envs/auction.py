@@ -296,11 +296,24 @@ class AuctionEnv:
             copies: Copy indices (default: all copies).
             seeds: One seed per copy, or an int ``s`` giving the ``j``-th listed copy ``s + j``.
         """
-        rows = np.arange(self.batch_size) if copies is None else np.asarray(copies, np.int64)
+        rows = np.arange(self.batch_size) if copies is None else self._rows(copies)
         keys = rng.seed_keys(self._seed_array(seeds, len(rows)))
         self._state["seed_key"][rows] = keys
         self._state["episode_key"][rows] = rng.episode_keys(keys, np.zeros(len(rows), np.uint64))
         self._state["episode"][rows] = 1
+
+    def _rows(self, copies: np.ndarray | list[int]) -> np.ndarray:
+        """Copy indices from indices or a ``[B]`` bool mask; a ValueError names a bad one."""
+        rows = np.asarray(copies)
+        if rows.dtype == np.bool_:
+            if rows.shape != (self.batch_size,):
+                raise ValueError(f"a copy mask must have shape ({self.batch_size},)")
+            return np.flatnonzero(rows)
+        rows = rows.astype(np.int64).reshape(-1)
+        bad = rows[(rows < 0) | (rows >= self.batch_size)]
+        if len(bad):
+            raise ValueError(f"copy {bad[0]} is not in 0..{self.batch_size - 1}")
+        return rows
 
     # ------------------------------------------------------------------ the kernel's arguments
     def _new_views(self) -> tuple[np.ndarray, ...]:
@@ -483,7 +496,7 @@ class AuctionEnv:
         """
         if copies is None:
             return {name: array.copy() for name, array in self._state.items()}
-        rows = np.asarray(copies, np.int64)
+        rows = self._rows(copies)
         return {name: array[rows] for name, array in self._state.items()}
 
     def set_state(
@@ -505,7 +518,7 @@ class AuctionEnv:
         if set(state) != set(self._state):
             missing, unknown = set(self._state) - set(state), set(state) - set(self._state)
             raise ValueError(f"set_state: missing {sorted(missing)}, unknown {sorted(unknown)}")
-        rows = slice(None) if copies is None else np.asarray(copies, np.int64)
+        rows = slice(None) if copies is None else self._rows(copies)
         count = self.batch_size if copies is None else len(rows)
         values = {}
         for name, target in self._state.items():
