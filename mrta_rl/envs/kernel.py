@@ -208,7 +208,7 @@ def step_copy(
         if winner < 0:
             continue
         # a task of another type than the robot's previous one first needs switch_ticks of
-        # setup, busy and draining as execution does (docs/spec_switch_cost.md)
+        # setup, busy and draining as execution does (docs/spec/auction_env.md, task-switch cost)
         duration = task_duration(x)
         if last_type[b, winner] >= 0 and last_type[b, winner] != ttype:
             duration += iparams[I_SWITCH_TICKS]

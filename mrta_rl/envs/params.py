@@ -32,7 +32,7 @@ class AuctionParams:
     duration_low: tuple[int, int] = (3, 6)  # default duration range of L tasks, ends included
     duration_high: tuple[int, int] = (6, 12)  # default duration range of H tasks, ends included
     # extra busy ticks before a task of another type than the robot's previous one (issue 11;
-    # docs/spec_switch_cost.md); 0 = no switch cost
+    # docs/spec/auction_env.md); 0 = no switch cost
     switch_ticks: int = 0
 
     def __post_init__(self) -> None:

@@ -89,7 +89,7 @@ class ReferenceAuction:
             if bidders:
                 best = max(self.d[i, task["type"]] for i in bidders)
                 w = min(i for i in bidders if self.d[i, task["type"]] == best)
-                # docs/spec_switch_cost.md: another type than the previous task's needs a setup
+                # spec, task-switch setup cost: another type than the previous task's needs a setup
                 switch = self.last_type[w] not in (None, task["type"])
                 busy = task["duration"] + (p.switch_ticks if switch else 0)
                 self.last_type[w] = task["type"]

@@ -67,7 +67,7 @@ def random_valid_actions(env, rng):
             SYSTEM1,
             AuctionParams(horizon=120, arrival_rate=4.0, queue_capacity=5, battery_threshold=90),
         ),
-        # task-switch setup cost (docs/spec_switch_cost.md)
+        # task-switch setup cost (docs/spec/auction_env.md)
         (SYSTEM1, AuctionParams(horizon=150, arrival_rate=1.5, queue_capacity=6, switch_ticks=3)),
         (MIXED, AuctionParams(horizon=150, arrival_rate=1.5, switch_ticks=2, battery_threshold=60)),
     ],
