@@ -1,5 +1,5 @@
 """The rollout planner (mrta_rl/learners/planning/rollout.py): valid, deterministic, reduces to
-its base rule, and its snapshot / restore / reseed fallback copies an env copy exactly."""
+its base rule, and restoring env snapshots into other copies replays them exactly."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import pytest
 
 from mrta_rl.envs import AuctionEnv, AuctionParams
 from mrta_rl.learners import GreedyLearner, TeamReserveLearner
-from mrta_rl.learners.planning.rollout import RolloutPlanner, reseed, restore, snapshot
+from mrta_rl.learners.planning.rollout import RolloutPlanner, restore
 from tests.conftest import paper_system
 
 
@@ -75,7 +75,7 @@ def test_restored_copies_replay_the_source_and_reseeding_changes_arrivals():
     greedy = GreedyLearner(env=src, rng=np.random.default_rng(0))
     for _ in range(25):
         src.step(greedy.act(None, src.action_mask, explore=False))
-    state = snapshot(src)
+    state = src.get_state()
     rows = np.array([2, 0, 2, 2])
     dst = AuctionEnv(system, params, batch_size=4, seed=123)
     restore(dst, state, rows)  # the arrival keys come with the state
@@ -88,7 +88,7 @@ def test_restored_copies_replay_the_source_and_reseeding_changes_arrivals():
     np.testing.assert_array_equal(dst.stats.team_return, src.stats.team_return[rows])
     # reseeded copies of one state: the same future for the same seed, another for another
     restore(dst, state, np.array([1, 1, 1, 1]))
-    reseed(dst, np.array([3, 3, 4, 5]))
+    dst.reseed(None, np.array([3, 3, 4, 5]))
     for _ in range(10):
         dst.step(greedy.act(None, dst.action_mask, explore=False))
     assert dst.queued_tasks(0) == dst.queued_tasks(1)

@@ -11,10 +11,9 @@ This is a reference, not a learner: it reads the full env state (queue, busy tim
 which no learner's observation holds, and it knows the arrival process of the spec. It has no
 training (``kind = "fixed"``). ``horizon=0`` or a single candidate plays the base rule.
 
-The snapshot, restore and re-seeding of env copies are the three functions :func:`snapshot`,
-:func:`restore` and :func:`reseed`: one call of ``AuctionEnv.get_state`` / ``set_state`` /
-``reseed`` when the env has them, else a private fallback on the numpy env's arrays (to be
-deleted once the env's own ones are on main).
+Copies are snapshot, restored and re-seeded with the env's own exact ``AuctionEnv.get_state`` /
+``set_state`` / ``reseed`` (docs/spec/auction_env.md); ``reseed`` draws the future arrivals of a
+copy from a new key, so its queue and robots stay those of the snapshot.
 """
 
 from __future__ import annotations
@@ -26,8 +25,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from mrta_rl.envs import AuctionEnv, counter_rng
-from mrta_rl.envs.tasks import EMPTY
+from mrta_rl.envs import AuctionEnv
 from mrta_rl.learners.base import Learner, LearnerKind
 from mrta_rl.learners.fixed import GreedyLearner, TeamReserveLearner
 
@@ -46,68 +44,13 @@ CANDIDATES: dict[str, Callable[[AuctionEnv, np.random.Generator], Learner]] = {
     "high_only": lambda env, rng: TeamReserveLearner(env=env, rng=rng, hold_level=3),  # wait for L
 }
 
-# per-copy state of the numpy AuctionEnv (fallback snapshot); the slot and mask arrays are derived
-# from it but copied too, so a restored copy is bit-identical without recomputation
-_STATE_FIELDS = (
-    "_seeds",
-    "_episode",
-    "_episode_key",
-    "t",
-    "_next_id",
-    "busy_until",
-    "battery",
-    "last_high_arrival",
-    "done",
-    "_pending_type_penalty",
-    "_slot_pos",
-    "_slot_keys",
-    "slot_type",
-    "slot_high",
-    "idle",
-    "_mask_by_action",
-)
-_STATS_FIELDS = ("assigned", "dropped", "busy_ticks", "team_return", "ticks")
 
-
-def snapshot(env: AuctionEnv) -> Any:
-    """An independent copy of the state of every copy of ``env``."""
-    if hasattr(env, "get_state"):  # the env's own exact snapshot (issue 13)
-        return env.get_state()
-    state = {f: getattr(env, f).copy() for f in _STATE_FIELDS}
-    state |= {f"stats.{f}": getattr(env.stats, f).copy() for f in _STATS_FIELDS}
-    state["_queue"] = env._queue.copy()
-    state["_queue_width"] = env._queue_width
-    return state
-
-
-def restore(env: AuctionEnv, state: Any, rows: np.ndarray) -> None:
-    """Load copy ``rows[i]`` of ``state`` (from :func:`snapshot`) into copy ``i`` of ``env``.
+def restore(env: AuctionEnv, state: dict[str, np.ndarray], rows: np.ndarray) -> None:
+    """Load copy ``rows[i]`` of ``state`` (``AuctionEnv.get_state``) into copy ``i`` of ``env``.
 
     ``env.batch_size`` must equal ``len(rows)``; rows may repeat (one state, many copies).
     """
-    if hasattr(env, "set_state"):  # get_state's dict: per-copy arrays [B, ...]
-        env.set_state({name: array[rows] for name, array in state.items()})
-        return
-    for f in _STATE_FIELDS:
-        setattr(env, f, state[f][rows])
-    for f in _STATS_FIELDS:
-        setattr(env.stats, f, state[f"stats.{f}"][rows])
-    queue = state["_queue"][rows]
-    if queue.shape[1] < env._queue.shape[1]:  # keep the env's spare columns (all empty)
-        pad = np.full((len(rows), env._queue.shape[1] - queue.shape[1]), EMPTY)
-        queue = np.concatenate([queue, pad], axis=1)
-    env._queue = queue
-    env._queue_row_offsets = np.arange(env.batch_size)[:, None] * queue.shape[1]
-    env._queue_width = state["_queue_width"]
-
-
-def reseed(env: AuctionEnv, seeds: np.ndarray) -> None:
-    """Draw the future arrivals of every copy of ``env`` from new keys (one seed per copy).
-
-    Arrivals of tick ``t`` are a hash of (episode key, ``t``) (``envs/counter_rng.py``), so a new
-    episode key changes every arrival after the current tick and nothing already in the queue.
-    """
-    env._episode_key = counter_rng.episode_keys(counter_rng.seed_keys(seeds), env._episode)
+    env.set_state({name: array[rows] for name, array in state.items()})
 
 
 class RolloutPlanner(Learner):
@@ -163,7 +106,7 @@ class RolloutPlanner(Learner):
         actions = np.stack(
             [rule.act(rule.encode(env), mask, explore=False) for rule in self._rules]
         )
-        return snapshot(env), actions
+        return env.get_state(), actions
 
     def act(self, view: tuple[Any, np.ndarray], mask: np.ndarray, *, explore: bool) -> np.ndarray:
         """The candidate with the best mean rollout return, per copy.
@@ -194,7 +137,7 @@ class RolloutPlanner(Learner):
         seeds = self.rng.integers(0, 2**62, size=(n_plan, S))  # one future per (copy, sample)
         env = self._rollout_env(len(row_pair))
         restore(env, state, plan[copy])
-        reseed(env, seeds[copy, np.tile(np.arange(S), len(pairs))])
+        env.reseed(None, seeds[copy, np.tile(np.arange(S), len(pairs))])
         returns = self._roll(env, actions[cand, plan[copy]])
         score = np.full((n_plan, n_cand), -np.inf)
         score[pairs[:, 0], pairs[:, 1]] = returns.reshape(len(pairs), S).mean(axis=1)
