@@ -18,7 +18,6 @@ measured side by side, in turns, with this same module (:func:`run_worker`).
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import logging
 import os
@@ -69,42 +68,6 @@ def _train_once(name: str, system: str, overrides: list[str]) -> tuple[int, floa
     return int(info["env_ticks"]), wall, int(run.env.batch_size)
 
 
-def plain_loop_ticks_per_s(system: str, min_seconds: float) -> float:
-    """Copy-ticks/s of ``tests/unit/reference_auction.py`` (one copy at a time) under greedy.
-
-    Args:
-        system: ``conf/system`` name.
-        min_seconds: Least wall time to measure.
-
-    Returns:
-        Copy-ticks per second.
-    """
-    from mrta_rl.envs import AuctionParams
-    from mrta_rl.systems import build_system
-
-    path = _repo_root() / "tests" / "unit" / "reference_auction.py"
-    spec = importlib.util.spec_from_file_location("_reference_auction", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    cfg = _compose([f"system={system}"])
-    from omegaconf import OmegaConf
-
-    built = build_system(OmegaConf.to_container(cfg.system, resolve=True))
-    params = AuctionParams.merged(built.env_overrides, OmegaConf.to_container(cfg.env))
-    ref = module.ReferenceAuction(built, params, copy_seed=0)
-    ticks, start = 0, time.perf_counter()
-    while ticks < 100 or time.perf_counter() - start < min_seconds:
-        actions = []
-        for i in range(ref.m):  # greedy: the lowest valid slot, else wait
-            valid = ref.valid_actions(i)
-            actions.append(valid[1] if len(valid) > 1 else 0)
-        ref.step(actions)
-        ticks += 1
-        if ref.t >= ref.p.horizon:
-            ref.reset()
-    return ticks / (time.perf_counter() - start)
-
-
 def measure(learners: list[str], system: str, episodes: int, seconds: float) -> dict[str, Any]:
     """One worker's measurements: the two yardsticks and every learner's training speed.
 
@@ -117,14 +80,15 @@ def measure(learners: list[str], system: str, episodes: int, seconds: float) -> 
     Returns:
         ``{"plain": ticks/s, "env": {batch: ticks/s}, "learners": {name: {...}}}``.
     """
-    from mrta_rl.envs.benchmark import bench_env
+    from mrta_rl.envs.benchmark import bench_env, bench_plain_loop
     from mrta_rl.systems import build_system
 
     cfg = _compose([f"system={system}"])
     from omegaconf import OmegaConf
 
     built = build_system(OmegaConf.to_container(cfg.system, resolve=True))
-    out: dict[str, Any] = {"plain": plain_loop_ticks_per_s(system, seconds), "env": {}}
+    plain = bench_plain_loop(built, min_seconds=seconds).ticks_per_s
+    out: dict[str, Any] = {"plain": plain, "env": {}}
     out["learners"] = {}
     for name in learners:
         warm_start = time.perf_counter()
