@@ -9,10 +9,11 @@ All are vectorised over ``[B, m]``.
 
 from __future__ import annotations
 
-from typing import ClassVar
+from typing import Annotated, ClassVar
 
 import numpy as np
 
+from mrta_rl.config import Range
 from mrta_rl.envs import AuctionEnv
 from mrta_rl.envs.observations import N_RECENCY_LEVELS, recency_level
 from mrta_rl.learners.base import Learner, LearnerKind
@@ -147,12 +148,14 @@ class SubGReserveLearner(Learner):
     kind: ClassVar[LearnerKind] = "fixed"
     requires_partition: ClassVar[bool] = True
 
-    def __init__(self, *, reserve: int = 0, hold_level: int = 1, **kwargs) -> None:
-        super().__init__(**kwargs)
-        if reserve < 0:
-            raise ValueError(f"subg_reserve: reserve must be >= 0, got {reserve}")
-        if not 0 <= hold_level <= N_RECENCY_LEVELS:
-            raise ValueError(f"subg_reserve: hold_level must be in 0..3, got {hold_level}")
+    def __init__(
+        self,
+        *,
+        reserve: Annotated[int, Range(0)] = 0,
+        hold_level: Annotated[int, Range(0, N_RECENCY_LEVELS)] = 1,
+        **kwargs,
+    ) -> None:
+        super().__init__(**kwargs)  # types and ranges: the annotations (mrta_rl.config)
         self.reserve, self.hold_level = reserve, hold_level
         active = self.env.active_tasks  # Lambda_i, [m, n]
         self._groups = []  # (robots in bidding preference order, T_g)

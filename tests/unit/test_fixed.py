@@ -165,9 +165,9 @@ def test_subg_reserve_counts_idle_robots_without_a_bid(rng):
 def test_subg_reserve_needs_a_partition_and_valid_rule(tiny_system, rng):
     with pytest.raises(ValueError, match="requires a subG partition"):
         SubGReserveLearner(env=AuctionEnv(tiny_system), rng=rng)
-    with pytest.raises(ValueError, match="reserve must be >= 0"):
+    with pytest.raises(ValueError, match="reserve: must be an integer >= 0, got -1"):
         make_reserve(rng, tiny_system, reserve=-1)
-    with pytest.raises(ValueError, match="hold_level must be in 0..3"):
+    with pytest.raises(ValueError, match=r"hold_level: must be an integer in \[0, 3\], got 4"):
         make_reserve(rng, tiny_system, hold_level=4)
 
 
