@@ -10,14 +10,15 @@ from __future__ import annotations
 import hydra
 from omegaconf import DictConfig
 
-from mrta_rl.runners import evaluate_checkpoint, format_summary
+from mrta_rl.runners import cli, evaluate_checkpoint, format_summary
 
 
 @hydra.main(config_path="../conf", config_name="evaluate", version_base=None)
+@cli.job
 def main(cfg: DictConfig) -> None:
     metrics = evaluate_checkpoint(hydra.utils.to_absolute_path(cfg.checkpoint), cfg.episodes)
     print(format_summary(metrics))
 
 
 if __name__ == "__main__":
-    main()
+    cli.run(main)

@@ -10,6 +10,7 @@ from pathlib import Path
 from omegaconf import OmegaConf
 
 from mrta_rl.metrics.learning_space import format_learning_space_table, learning_space_table
+from mrta_rl.runners import cli
 from mrta_rl.systems import build_system
 
 SYSTEMS = ("system1", "system2")
@@ -25,4 +26,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    cli.run(main)

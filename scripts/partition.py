@@ -10,11 +10,14 @@ import json
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
+from mrta_rl.config import ConfigError
 from mrta_rl.partition import format_partition, subg_partition
+from mrta_rl.runners import cli
 from mrta_rl.systems import build_system
 
 
 @hydra.main(config_path="../conf", config_name="partition", version_base=None)
+@cli.job
 def main(cfg: DictConfig) -> None:
     partition = subg_partition(build_system(OmegaConf.to_container(cfg.system, resolve=True)))
     if cfg.format == "json":
@@ -22,8 +25,8 @@ def main(cfg: DictConfig) -> None:
     elif cfg.format == "table":
         print(format_partition(partition))
     else:
-        raise ValueError(f"format must be 'table' or 'json', got {cfg.format!r}")
+        raise ConfigError(f"format: must be 'table' or 'json', got {cfg.format!r}")
 
 
 if __name__ == "__main__":
-    main()
+    cli.run(main)

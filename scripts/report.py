@@ -11,6 +11,7 @@ import argparse
 import logging
 
 from mrta_rl.reports import build_report
+from mrta_rl.runners import cli
 
 
 def main() -> None:
@@ -28,4 +29,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    cli.run(main)

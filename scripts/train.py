@@ -12,13 +12,14 @@ from __future__ import annotations
 import hydra
 from omegaconf import DictConfig
 
-from mrta_rl.runners import format_summary, train
+from mrta_rl.runners import cli, format_summary, train
 
 
 @hydra.main(config_path="../conf", config_name="config", version_base=None)
+@cli.job
 def main(cfg: DictConfig) -> None:
     print(format_summary(train(cfg)))
 
 
 if __name__ == "__main__":
-    main()
+    cli.run(main)

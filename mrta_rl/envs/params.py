@@ -5,7 +5,9 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import Annotated, Any
+
+from mrta_rl.config import ConfigError, Range, check_fields
 
 
 @dataclass(frozen=True)
@@ -15,51 +17,44 @@ class AuctionParams:
     ``arrival_rate=None`` means the spec default ``m / 6``; :meth:`resolve` fills it in.
     """
 
-    horizon: int = 1000  # ticks per episode (truncation)
-    arrival_rate: float | None = None  # Poisson mean of new tasks per tick; None -> m / 6
-    p_high: float = 0.33  # probability that a new task is high-priority
-    slots: int = 3  # K: tasks auctioned at the same tick, at most
-    queue_capacity: int = 32  # tasks waiting at once, at most
-    reauction_delay: int = 3  # ticks between a failed first auction and the second
-    battery_capacity: float = 100.0  # battery of a full robot
-    drain_per_tick: float = 1.0  # battery used per tick of task execution
+    horizon: Annotated[int, Range(1)] = 1000  # ticks per episode (truncation)
+    arrival_rate: Annotated[float | None, Range(0)] = None  # Poisson tasks per tick; None: m / 6
+    p_high: Annotated[float, Range(0, 1)] = 0.33  # probability that a new task is high-priority
+    slots: Annotated[int, Range(1)] = 3  # K: tasks auctioned at the same tick, at most
+    queue_capacity: Annotated[int, Range(1)] = 32  # tasks waiting at once, at most (>= slots)
+    reauction_delay: Annotated[int, Range(1)] = 3  # ticks from a failed first auction to the 2nd
+    battery_capacity: Annotated[float, Range(0, low_open=True)] = 100.0  # battery of a full robot
+    drain_per_tick: Annotated[float, Range(0)] = 1.0  # battery used per tick of task execution
     battery_threshold: float = 20.0  # below this after a task, the robot charges
-    charge_ticks: int = 10  # length of a charge
+    charge_ticks: Annotated[int, Range(0)] = 10  # length of a charge
     reward_assign_high: float = 10.0  # team reward when an H task is assigned
     reward_assign_low: float = 2.0  # team reward when an L task is assigned
     penalty_drop_high: float = 5.0  # subtracted when an H task is dropped
     penalty_drop_low: float = 0.0  # subtracted when an L task is dropped
-    duration_low: tuple[int, int] = (3, 6)  # default duration range of L tasks, ends included
-    duration_high: tuple[int, int] = (6, 12)  # default duration range of H tasks, ends included
+    # default duration ranges [lo, hi] of L and H tasks, ends included (lo <= hi)
+    duration_low: Annotated[tuple[int, int], Range(1)] = (3, 6)
+    duration_high: Annotated[tuple[int, int], Range(1)] = (6, 12)
     # extra busy ticks before a task of another type than the robot's previous one (issue 11;
     # docs/spec/auction_env.md); 0 = no switch cost
-    switch_ticks: int = 0
+    switch_ticks: Annotated[int, Range(0)] = 0
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "duration_low", tuple(int(x) for x in self.duration_low))
-        object.__setattr__(self, "duration_high", tuple(int(x) for x in self.duration_high))
-        checks = {
-            "horizon": self.horizon >= 1,
-            "arrival_rate": self.arrival_rate is None or self.arrival_rate >= 0,
-            "p_high": 0.0 <= self.p_high <= 1.0,
-            "slots": self.slots >= 1,
-            "queue_capacity": self.queue_capacity >= self.slots,
-            "reauction_delay": self.reauction_delay >= 1,
-            "battery_capacity": self.battery_capacity > 0,
-            "drain_per_tick": self.drain_per_tick >= 0,
-            "charge_ticks": self.charge_ticks >= 0,
-            "switch_ticks": self.switch_ticks >= 0,
-            "duration_low": len(self.duration_low) == 2
-            and 1 <= self.duration_low[0] <= self.duration_low[1],
-            "duration_high": len(self.duration_high) == 2
-            and 1 <= self.duration_high[0] <= self.duration_high[1],
+        # the declarations above are the checks (mrta_rl.config); only relations between
+        # fields are written here
+        for name, value in check_fields(AuctionParams, self.as_dict(), "AuctionParams").items():
+            object.__setattr__(self, name, value)
+        relations = {
+            "queue_capacity": (self.queue_capacity >= self.slots, "must be >= slots"),
+            "duration_low": (self.duration_low[0] <= self.duration_low[1], "needs lo <= hi"),
+            "duration_high": (self.duration_high[0] <= self.duration_high[1], "needs lo <= hi"),
         }
-        bad = [name for name, ok in checks.items() if not ok]
-        if bad:
-            raise ValueError(
-                f"AuctionParams: invalid value for {bad}: "
-                + ", ".join(f"{b}={getattr(self, b)!r}" for b in bad)
-            )
+        for name, (ok, rule) in relations.items():
+            if not ok:
+                raise ConfigError(f"AuctionParams.{name}: {rule}, got {getattr(self, name)!r}")
+
+    def as_dict(self) -> dict[str, Any]:
+        """The fields as a plain dict (not resolved)."""
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
 
     def resolve(self, n_robots: int) -> AuctionParams:
         """Fill the defaults that depend on the system (arrival_rate = m / 6)."""
@@ -75,16 +70,9 @@ class AuctionParams:
         file's ``env:`` block, then the run's ``env.*`` settings.
 
         Raises:
-            ValueError: naming an unknown parameter.
+            ConfigError: naming an unknown parameter or a value out of its declaration.
         """
-        names = {f.name for f in dataclasses.fields(cls)}
         values: dict[str, Any] = {}
         for layer in layers:
-            for key, value in dict(layer or {}).items():
-                if key not in names:
-                    raise ValueError(
-                        f"unknown environment parameter {key!r}; known: {sorted(names)}"
-                    )
-                if value is not None:
-                    values[key] = tuple(value) if key.startswith("duration_") else value
+            values.update(check_fields(cls, dict(layer or {}), "env", null_is_default=True))
         return cls(**values)

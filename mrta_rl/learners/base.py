@@ -26,6 +26,7 @@ from typing import Any, ClassVar, Literal
 
 import numpy as np
 
+from mrta_rl.config import RUNNER_ARGUMENTS, check_keywords
 from mrta_rl.envs import AuctionEnv, StepResult
 from mrta_rl.partition import Partition
 
@@ -36,8 +37,10 @@ class Learner(ABC):
     """Base class of every learner; subclasses implement at least :meth:`act`.
 
     Hyperparameters are typed keyword-only ``__init__`` arguments with defaults, so the signature
-    is the schema of ``conf/learner/<name>.yaml``. A learner with epsilon-greedy exploration
-    exposes its current value as a float attribute ``epsilon``; the runner shows it when present.
+    is the schema of ``conf/learner/<name>.yaml``; ``Annotated`` ranges and choices complete the
+    declaration (``mrta_rl.config``), checked before ``__init__`` runs. A learner with
+    epsilon-greedy exploration exposes its current value as a float attribute ``epsilon``; the
+    runner shows it when present.
 
     Attributes:
         kind: Selects the runner: ``"fixed"`` (no training), ``"tabular"`` or ``"neural"``.
@@ -52,6 +55,20 @@ class Learner(ABC):
 
     kind: ClassVar[LearnerKind]
     requires_partition: ClassVar[bool] = False
+
+    def __new__(cls, *args: Any, **hyperparameters: Any) -> Learner:
+        """Check the hyperparameters against their declarations before ``__init__`` runs.
+
+        The annotations of the keyword-only ``__init__`` arguments are the one declaration of
+        each hyperparameter's type and range (``mrta_rl.config``); the runner checks a config
+        against them before any work, and this checks a learner built directly in Python.
+
+        Raises:
+            ConfigError: naming the hyperparameter and what it allows.
+        """
+        settings = {k: v for k, v in hyperparameters.items() if k not in RUNNER_ARGUMENTS}
+        check_keywords(cls, settings, cls.__name__)
+        return super().__new__(cls)
 
     def __init__(
         self, *, env: AuctionEnv, rng: np.random.Generator, partition: Partition | None = None

@@ -10,10 +10,11 @@ All are vectorised over ``[B, m]``.
 
 from __future__ import annotations
 
-from typing import ClassVar
+from typing import Annotated, ClassVar
 
 import numpy as np
 
+from mrta_rl.config import Choices, Range
 from mrta_rl.envs import AuctionEnv
 from mrta_rl.envs.observations import N_RECENCY_LEVELS, recency_level
 from mrta_rl.learners.base import Learner, LearnerKind
@@ -119,6 +120,9 @@ class HighOnlyLearner(Learner):
         return lowest_valid_bid(mask[:, :, 1:] & (view[:, None, :] == 1))
 
 
+# the rule's two numbers, declared once for team_reserve and subg_reserve (mrta_rl.config)
+Reserve = Annotated[int, Range(0)]  # idle robots kept back for H work
+HoldLevel = Annotated[int, Range(0, N_RECENCY_LEVELS)]  # recency level below which L waits
 GROUPINGS = ("team", "subg")  # team_reserve: one group of all robots, or the subG sub-groups
 HOLD_SCOPES = ("group", "robot")  # whose recency level holds an L bid back
 ORDERS = ("fewest_types", "index")  # which idle robot of a group is asked first
@@ -155,8 +159,8 @@ class TeamReserveLearner(Learner):
         **kwargs: Env, generator and partition of :class:`~mrta_rl.learners.base.Learner`.
 
     Raises:
-        ValueError: on a negative ``reserve``, a ``hold_level`` outside 0..3 or an unknown
-            ``hold_scope``, ``grouping`` or ``order``.
+        ConfigError: on a negative ``reserve``, a ``hold_level`` outside 0..3 or an unknown
+            ``hold_scope``, ``grouping`` or ``order`` (the declarations of the signature).
     """
 
     kind: ClassVar[LearnerKind] = "fixed"
@@ -165,26 +169,14 @@ class TeamReserveLearner(Learner):
     def __init__(
         self,
         *,
-        reserve: int = 0,
-        hold_level: int = 1,
-        hold_scope: str = "group",
-        grouping: str = "team",
-        order: str = "fewest_types",
+        reserve: Reserve = 0,
+        hold_level: HoldLevel = 1,
+        hold_scope: Annotated[str, Choices(*HOLD_SCOPES)] = "group",
+        grouping: Annotated[str, Choices(*GROUPINGS)] = "team",
+        order: Annotated[str, Choices(*ORDERS)] = "fewest_types",
         **kwargs,
     ) -> None:
-        super().__init__(**kwargs)
-        name = self._rule_name
-        if reserve < 0:
-            raise ValueError(f"{name}: reserve must be >= 0, got {reserve}")
-        if not 0 <= hold_level <= N_RECENCY_LEVELS:
-            raise ValueError(f"{name}: hold_level must be in 0..3, got {hold_level}")
-        for key, value, known in (
-            ("hold_scope", hold_scope, HOLD_SCOPES),
-            ("grouping", grouping, GROUPINGS),
-            ("order", order, ORDERS),
-        ):
-            if value not in known:
-                raise ValueError(f"{name}: {key} must be one of {known}, got {value!r}")
+        super().__init__(**kwargs)  # types, ranges and choices: the annotations (mrta_rl.config)
         self.reserve, self.hold_level, self.hold_scope = reserve, hold_level, hold_scope
         active = self.env.active_tasks  # Lambda_i, [m, n]
         if grouping == "team":
@@ -270,5 +262,5 @@ class SubGReserveLearner(TeamReserveLearner):
     requires_partition: ClassVar[bool] = True
     _rule_name: ClassVar[str] = "subg_reserve"
 
-    def __init__(self, *, reserve: int = 0, hold_level: int = 1, **kwargs) -> None:
+    def __init__(self, *, reserve: Reserve = 0, hold_level: HoldLevel = 1, **kwargs) -> None:
         super().__init__(reserve=reserve, hold_level=hold_level, grouping="subg", **kwargs)

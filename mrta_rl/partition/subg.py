@@ -48,7 +48,7 @@ from typing import Any
 
 import numpy as np
 
-from mrta_rl.systems import RobotSystem
+from mrta_rl.systems import RobotSystem, natural_key
 from mrta_rl.types import GroupMap, GroupName, RobotId, TaskType
 
 logger = logging.getLogger(__name__)
@@ -81,7 +81,7 @@ class Partition:
         out = {}
         for name, robots in self.groups.items():
             tasks = {t for kept in robots.values() for t in kept}
-            out[name] = sorted(tasks, key=_number)
+            out[name] = sorted(tasks, key=natural_key)
         return out
 
     def active_tasks(self, system: RobotSystem) -> np.ndarray:
@@ -288,11 +288,6 @@ def format_partition(partition: Partition) -> str:
     n_groups, n_dropped = len(partition.groups), len(partition.dropped)
     out.append(f"{n_groups} sub-groups, {len(rows)} robots, {n_dropped} dropped pairs")
     return "\n".join(out)
-
-
-def _number(name: str) -> int:
-    """Numeric part of an id like ``T12`` (for numeric ordering)."""
-    return int(name[1:])
 
 
 def _validate(

@@ -4,13 +4,8 @@ from __future__ import annotations
 
 from mrta_rl.runners.checkpoint import register_resolvers
 from mrta_rl.runners.evaluate import evaluate_policy, evaluate_run, format_summary
-from mrta_rl.runners.train import (
-    TRAINING_LOOPS,
-    RunSetup,
-    build_run,
-    evaluate_checkpoint,
-    train,
-)
+from mrta_rl.runners.train import RunSetup, build_run, evaluate_checkpoint, train
+from mrta_rl.runners.validation import TRAINING_LOOPS, validate_config
 
 register_resolvers()  # before Hydra composes conf/config.yaml (run dirs, see checkpoint.py)
 
@@ -23,4 +18,5 @@ __all__ = [
     "evaluate_run",
     "format_summary",
     "train",
+    "validate_config",
 ]

@@ -36,6 +36,7 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
+from mrta_rl.config import UserError
 from mrta_rl.learners import Learner
 from mrta_rl.metrics.logger import CSVLogger
 
@@ -51,7 +52,7 @@ PACKAGE = "mrta_rl."
 SCALARS = (str, int, float, bool, type(None))
 
 
-class RunDirError(ValueError):
+class RunDirError(UserError):
     """A run dir that cannot be used; the message names the file and what is wrong."""
 
 

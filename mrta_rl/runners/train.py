@@ -13,7 +13,6 @@ on identical streams.
 
 from __future__ import annotations
 
-import importlib
 import logging
 import time
 from dataclasses import dataclass
@@ -22,12 +21,12 @@ from typing import Any
 
 import numpy as np
 from hydra.core.hydra_config import HydraConfig
-from hydra.utils import get_class, instantiate
 from omegaconf import DictConfig, OmegaConf, open_dict
 
+from mrta_rl.config import ConfigError
 from mrta_rl.envs import AuctionEnv, AuctionParams
 from mrta_rl.learners import Learner
-from mrta_rl.partition import Partition, subg_partition
+from mrta_rl.partition import Partition
 from mrta_rl.runners.checkpoint import (
     CHECKPOINT_DIR,
     LEARNER_DIR,
@@ -41,19 +40,15 @@ from mrta_rl.runners.checkpoint import (
     write_json,
 )
 from mrta_rl.runners.evaluate import evaluate_run
-from mrta_rl.systems import RobotSystem, build_system
+from mrta_rl.runners.validation import (
+    SEED_STRIDE,
+    hydra_choice,
+    training_loop,
+    validate_config,
+)
+from mrta_rl.systems import RobotSystem
 
 logger = logging.getLogger(__name__)
-
-# Learner kind -> "module:function" of its training loop, imported only when used. A loop has the
-# signature ``loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict`` and returns
-# ``{"env_ticks": int, "wall_s": float, "episodes": int}``; it writes curve.csv in ``run_dir``.
-TRAINING_LOOPS: dict[str, str] = {
-    "fixed": "mrta_rl.runners.tabular:skip_training",
-    "tabular": "mrta_rl.runners.tabular:train_loop",
-    "neural": "mrta_rl.runners.torchrl:train_loop",
-}
-SEED_STRIDE = 2**32  # training env seed = seed * SEED_STRIDE + copy; eval seeds stay below it
 
 
 @dataclass
@@ -82,87 +77,6 @@ class RunSetup:
     checkpoint: TrainingCheckpoint | None = None
 
 
-def _check(condition: bool, message: str) -> None:
-    if not condition:
-        raise ValueError(f"invalid config: {message}")
-
-
-def _validate_numbers(cfg: DictConfig) -> None:
-    """Ranges of the run-level keys of conf/config.yaml."""
-    _check(
-        isinstance(cfg.seed, int) and 0 <= cfg.seed < 2**31,
-        f"seed must be in [0, 2**31), got {cfg.seed!r}",
-    )
-    for key, least in (
-        ("train.episodes", 0),
-        ("train.batch_size", 1),
-        ("eval.episodes", 1),
-        ("eval.batch_size", 1),
-    ):
-        value = OmegaConf.select(cfg, key)
-        _check(
-            isinstance(value, int) and value >= least,
-            f"{key} must be an integer >= {least}, got {value!r}",
-        )
-    _check(
-        isinstance(cfg.eval.seed, int) and 0 <= cfg.eval.seed <= SEED_STRIDE - cfg.eval.batch_size,
-        f"eval.seed must be in [0, 2**32 - eval.batch_size], got {cfg.eval.seed!r}",
-    )
-
-
-def learner_class(cfg_learner: DictConfig) -> type[Learner]:
-    """The learner class named by a ``conf/learner/*.yaml``, checked.
-
-    Args:
-        cfg_learner: The ``learner`` config group content.
-
-    Returns:
-        The :class:`Learner` subclass.
-
-    Raises:
-        ValueError: if ``_target_``/``_partial_`` are missing, the class cannot be imported, is
-            not a :class:`Learner`, or its ``kind`` has no training loop.
-    """
-    target = cfg_learner.get("_target_")
-    _check(target is not None, "the learner config has no _target_")
-    _check(cfg_learner.get("_partial_") is True, f"learner {target}: set `_partial_: true`")
-    try:
-        cls = get_class(target)
-    except Exception as err:  # Hydra wraps import errors in several exception types
-        raise ValueError(f"invalid config: cannot import learner class {target!r}: {err}") from err
-    _check(isinstance(cls, type) and issubclass(cls, Learner), f"{target} is not a mrta_rl Learner")
-    kind = getattr(cls, "kind", None)
-    _check(
-        kind in TRAINING_LOOPS, f"{target}: unknown kind {kind!r} (known: {sorted(TRAINING_LOOPS)})"
-    )
-    return cls
-
-
-def training_loop(kind: str) -> Any:
-    """Import the training loop of a learner kind (see :data:`TRAINING_LOOPS`).
-
-    Raises:
-        ValueError: if the loop's module is missing (e.g. no neural runner installed yet).
-    """
-    module_name, function = TRAINING_LOOPS[kind].split(":")
-    try:
-        module = importlib.import_module(module_name)
-    except ModuleNotFoundError as err:
-        raise ValueError(
-            f"no training loop for learner kind {kind!r}: {module_name} is missing"
-        ) from err
-    return getattr(module, function)
-
-
-def hydra_choice(group: str, default: str) -> str:
-    """The config-group choice of the current Hydra run (``learner`` -> ``greedy``) or default."""
-    if HydraConfig.initialized():
-        choice = HydraConfig.get().runtime.choices.get(group)
-        if choice:
-            return str(choice)
-    return default
-
-
 def build_run(cfg: DictConfig, name: str | None = None) -> RunSetup:
     """Validate the config and build system, params, partition, training env and learner.
 
@@ -174,32 +88,31 @@ def build_run(cfg: DictConfig, name: str | None = None) -> RunSetup:
         The run's components; nothing has been written yet.
 
     Raises:
-        ValueError: on any invalid setting (the message names it); ``SystemConfigError`` (a
-            ``ValueError``) on a malformed system.
+        ConfigError: on any invalid setting, system file or a learner too big for the machine
+            (the message names it; see ``runners/validation.py``).
     """
-    _validate_numbers(cfg)
-    cls = learner_class(cfg.learner)
-    training_loop(cls.kind)  # fail now, not after building everything, if the loop is missing
+    checked = validate_config(cfg)
+    cls = checked.learner_cls
     name = name or hydra_choice("learner", cls.__name__)
-    system = build_system(OmegaConf.to_container(cfg.system, resolve=True))
-    params = AuctionParams.merged(
-        system.env_overrides, OmegaConf.to_container(cfg.env, resolve=True)
-    )
-    partition = subg_partition(system) if cls.requires_partition else None
-    active_tasks = partition.active_tasks(system) if partition is not None else None
     env = AuctionEnv(
-        system,
-        params,
+        checked.system,
+        checked.params,
         batch_size=cfg.train.batch_size,
-        active_tasks=active_tasks,
+        active_tasks=checked.active_tasks,
         seed=cfg.seed * SEED_STRIDE,
     )
-    factory = instantiate(cfg.learner)
-    try:
-        learner = factory(env=env, rng=np.random.default_rng(cfg.seed), partition=partition)
-    except TypeError as err:  # e.g. a hyperparameter the class does not take
-        raise ValueError(f"invalid config: learner {name!r} ({cls.__name__}): {err}") from err
-    return RunSetup(name, system, env.params, partition, active_tasks, env, learner)
+    try:  # the settings are checked plain values: the class is called, nothing else is built
+        learner = cls(
+            env=env,
+            rng=np.random.default_rng(cfg.seed),
+            partition=checked.partition,
+            **checked.hyperparameters,
+        )
+    except (TypeError, ValueError) as err:  # a relation between settings (eps_end <= eps_start)
+        raise ConfigError(f"learner {name!r} ({cls.__name__}): {err}") from err
+    return RunSetup(
+        name, checked.system, env.params, checked.partition, checked.active_tasks, env, learner
+    )
 
 
 def train(cfg: DictConfig, run_dir: Path | str | None = None) -> dict[str, Any]:
@@ -246,12 +159,8 @@ def train(cfg: DictConfig, run_dir: Path | str | None = None) -> dict[str, Any]:
             f"{run_dir} holds the checkpoint of an interrupted run: continue it with "
             f"resume={run_dir}, or choose another hydra.run.dir"
         )
-    # runs written before checkpoints existed have no train.checkpoint_every: none then
+    # checked by validate_config; absent in runs written before checkpoints existed: none
     every = OmegaConf.select(cfg, "train.checkpoint_every", default=0)
-    _check(
-        isinstance(every, int) and not isinstance(every, bool) and every >= 0,
-        f"train.checkpoint_every must be an integer >= 0, got {every!r}",
-    )
     run_dir.mkdir(parents=True, exist_ok=True)
     run.checkpoint = TrainingCheckpoint(run.learner, run_dir, every, resume=bool(resume))
     logger.info(
@@ -306,9 +215,7 @@ def _check_resume_overrides() -> None:
     given = [str(o) for o in HydraConfig.get().overrides.task]
     other = [o for o in given if o.split("=")[0].lstrip("+~") not in RESUME_KEEPS]
     if other:
-        raise ValueError(
-            f"invalid config: resume= continues a run with its own config; drop {other}"
-        )
+        raise ConfigError(f"resume= continues a run with its own config; drop {other}")
 
 
 def evaluate_checkpoint(checkpoint: Path | str, episodes: int | None = None) -> dict[str, Any]:

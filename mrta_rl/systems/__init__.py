@@ -7,7 +7,15 @@ from mrta_rl.systems.robot_system import (
     RobotSystem,
     SystemConfigError,
     build_system,
+    natural_key,
     random_system,
 )
 
-__all__ = ["DurationRange", "RobotSystem", "SystemConfigError", "build_system", "random_system"]
+__all__ = [
+    "DurationRange",
+    "RobotSystem",
+    "SystemConfigError",
+    "build_system",
+    "natural_key",
+    "random_system",
+]

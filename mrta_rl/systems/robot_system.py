@@ -12,6 +12,12 @@ A system file (``conf/system/*.yaml``) is plain data::
 
 or describes a reproducible random team (``n_robots``, ``n_task_types``, ``density``, ``seed``).
 Every check runs at construction, so a malformed file fails before any work starts.
+
+Names are labels: robots and task types may be called anything (``R1``, ``arm_2``, ``pick``),
+as long as names are unique and not empty. Robots keep the file's order; task types are in
+natural order of their names (digits compared as numbers: ``T2`` before ``T10``), so the paper's
+``T1..Tn`` keep their numeric order. A task type is known from the robots that can do it; a
+``task_types`` entry no robot can do is an error.
 """
 
 from __future__ import annotations
@@ -20,19 +26,34 @@ import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
 
+from mrta_rl.config import ConfigError, Range, check_keywords
 from mrta_rl.types import RobotId, TaskType
 
-_ROBOT_RE = re.compile(r"^R[1-9][0-9]*$")
-_TASK_RE = re.compile(r"^T[1-9][0-9]*$")
 _DURATION_KEYS = ("duration_low", "duration_high")
 
 
-class SystemConfigError(ValueError):
+class SystemConfigError(ConfigError):
     """A system description is malformed; the message names the robot or task type at fault."""
+
+
+def natural_key(name: str) -> tuple[tuple[int, int, str], ...]:
+    """Sort key of a name with its digit runs compared as numbers (``T2`` < ``T10``)."""
+    return tuple(
+        (0, int(part), "") if part.isdigit() else (1, 0, part)
+        for part in re.split(r"(\d+)", name)
+        if part
+    )
+
+
+def _label(value: Any, what: str) -> str:
+    """A robot or task type name from a system file: a non-empty string (or an integer)."""
+    if isinstance(value, bool) or not isinstance(value, (str, int)) or str(value).strip() == "":
+        raise SystemConfigError(f"{what} must be a non-empty string, got {value!r}")
+    return str(value)
 
 
 @dataclass(frozen=True)
@@ -59,7 +80,7 @@ class RobotSystem:
     Attributes:
         name: System name (``system1``...).
         robots: Robot ids in order, ``("R1", ...)``; robot index ``i`` is position in this tuple.
-        task_types: Task type ids ``("T1", ..., "Tn")`` in numeric order.
+        task_types: Task type names (``("T1", ..., "Tn")`` for the paper's systems), in order.
         willingness: ``[m, n]`` floats, ``d_ij`` in (0, 1] where ``R_i`` can do ``T_j``, else 0.
         durations: Per task type overrides ``{"T2": {"duration_low": DurationRange, ...}}``.
         env_overrides: Per-system environment parameters (see ``AuctionParams``).
@@ -79,21 +100,18 @@ class RobotSystem:
                 f"willingness has shape {d.shape}, "
                 f"expected ({len(self.robots)}, {len(self.task_types)})"
             )
-        if len(set(self.robots)) != len(self.robots):
-            raise SystemConfigError(f"system {self.name!r}: duplicate robot id in {self.robots}")
+        for kind, names in (("robot", self.robots), ("task type", self.task_types)):
+            for name in names:
+                _label(name, f"system {self.name!r}: {kind} name")
+            if len(set(names)) != len(names):
+                raise SystemConfigError(f"system {self.name!r}: duplicate {kind} name in {names}")
         for i, robot in enumerate(self.robots):
-            if not _ROBOT_RE.match(robot):
-                raise SystemConfigError(f"robot {robot!r}: ids must look like R1, R2, ...")
             bad = [self.task_types[j] for j in range(d.shape[1]) if not (0.0 <= d[i, j] <= 1.0)]
             if bad or np.isnan(d[i]).any():
                 raise SystemConfigError(f"robot {robot}: willingness for {bad} is outside (0, 1]")
             if not (d[i] > 0).any():
                 raise SystemConfigError(f"robot {robot} has no task type")
         for j, task in enumerate(self.task_types):
-            if task != f"T{j + 1}":
-                raise SystemConfigError(
-                    f"task types must be T1..Tn in order, got {task!r} at {j + 1}"
-                )
             if not (d[:, j] > 0).any():
                 raise SystemConfigError(f"task type {task}: no robot can do it")
         for task in self.durations:
@@ -156,28 +174,22 @@ class RobotSystem:
             )
         entries: dict[str, dict[str, float]] = {}
         for robot, spec in robots.items():
-            robot = str(robot)
-            if not _ROBOT_RE.match(robot):
-                raise SystemConfigError(f"robot {robot!r}: ids must look like R1, R2, ...")
+            robot = _label(robot, f"system {name!r}: robot name")
             if spec is None or (hasattr(spec, "__len__") and len(spec) == 0):
                 raise SystemConfigError(f"robot {robot} has no task type")
             if isinstance(spec, Mapping):
-                pairs = {str(k): v for k, v in spec.items()}
+                pairs = {_label(k, f"robot {robot}: task type name"): v for k, v in spec.items()}
             elif (
                 isinstance(spec, (list, tuple))
                 or hasattr(spec, "__iter__")
                 and not isinstance(spec, str)
             ):
-                pairs = {str(k): 1.0 for k in spec}
+                pairs = {_label(k, f"robot {robot}: task type name"): 1.0 for k in spec}
             else:
                 raise SystemConfigError(
                     f"robot {robot}: expected a list of task types or a mapping, got {spec!r}"
                 )
             for task, d in pairs.items():
-                if not _TASK_RE.match(task):
-                    raise SystemConfigError(
-                        f"robot {robot}: unknown task type name {task!r} (expected T1, T2, ...)"
-                    )
                 if (
                     isinstance(d, bool)
                     or not isinstance(d, (int, float))
@@ -187,25 +199,26 @@ class RobotSystem:
                         f"robot {robot}: willingness {d!r} for {task} is outside (0, 1]"
                     )
             entries[robot] = {t: float(d) for t, d in pairs.items()}
-        durations_cfg = dict(task_types or {})
-        for task in durations_cfg:
-            if not _TASK_RE.match(str(task)):
-                raise SystemConfigError(
-                    f"task_types: unknown task type name {task!r} (expected T1, T2, ...)"
-                )
-        numbers = {int(t[1:]) for pairs in entries.values() for t in pairs} | {
-            int(str(t)[1:]) for t in durations_cfg
+        if task_types is not None and not isinstance(task_types, Mapping):
+            raise SystemConfigError(
+                f"system {name!r}: 'task_types' must be a mapping task type -> duration ranges"
+            )
+        durations_cfg = {
+            _label(t, "task_types: task type name"): spec for t, spec in (task_types or {}).items()
         }
-        names = tuple(f"T{k}" for k in range(1, max(numbers) + 1))
         capable = {t for pairs in entries.values() for t in pairs}
-        for task in names:
+        for task in durations_cfg:
             if task not in capable:
-                raise SystemConfigError(f"task type {task}: no robot can do it")
+                raise SystemConfigError(
+                    f"task_types: task type {task!r} is listed, but no robot in 'robots' can do it"
+                )
+        names = tuple(sorted(capable, key=natural_key))
+        column = {task: j for j, task in enumerate(names)}
         willingness = np.zeros((len(entries), len(names)))
         for i, pairs in enumerate(entries.values()):
             for task, d in pairs.items():
-                willingness[i, int(task[1:]) - 1] = d
-        durations = {str(t): _parse_durations(str(t), spec) for t, spec in durations_cfg.items()}
+                willingness[i, column[task]] = d
+        durations = {t: _parse_durations(t, spec) for t, spec in durations_cfg.items()}
         return cls(name, tuple(entries), names, willingness, durations, dict(env or {}))
 
 
@@ -231,10 +244,10 @@ def _parse_durations(task: str, spec: Any) -> dict[str, DurationRange]:
 
 
 def random_system(
-    n_robots: int,
-    n_task_types: int,
-    density: float,
-    seed: int,
+    n_robots: Annotated[int, Range(1)],
+    n_task_types: Annotated[int, Range(1)] = 8,
+    density: Annotated[float, Range(0, 1)] = 0.3,
+    seed: Annotated[int, Range(0)] = 0,
     name: str = "random",
     env: Mapping[str, Any] | None = None,
 ) -> RobotSystem:
@@ -256,15 +269,13 @@ def random_system(
         The system.
 
     Raises:
-        SystemConfigError: on arguments out of range.
+        SystemConfigError: on arguments out of range (the annotations are the declarations).
     """
-    if n_robots < 1 or n_task_types < 1:
-        raise SystemConfigError(
-            "random system needs n_robots >= 1 and n_task_types >= 1, "
-            f"got {n_robots}, {n_task_types}"
-        )
-    if not 0.0 <= density <= 1.0:
-        raise SystemConfigError(f"random system: density {density} is outside [0, 1]")
+    given = {"n_robots": n_robots, "n_task_types": n_task_types, "density": density, "seed": seed}
+    try:
+        check_keywords(random_system, given, "system")
+    except ConfigError as err:
+        raise SystemConfigError(str(err)) from None
     rng = np.random.default_rng(seed)
     rtm = rng.random((n_robots, n_task_types)) < density
     for i in np.flatnonzero(~rtm.any(axis=1)):
@@ -307,14 +318,8 @@ def build_system(cfg: Mapping[str, Any]) -> RobotSystem:
             raise SystemConfigError(
                 f"system {name!r}: unknown keys {sorted(unknown)} (allowed: {sorted(_RANDOM_KEYS)})"
             )
-        return random_system(
-            int(cfg["n_robots"]),
-            int(cfg.get("n_task_types", 8)),
-            float(cfg.get("density", 0.3)),
-            int(cfg.get("seed", 0)),
-            name,
-            cfg.get("env"),
-        )
+        sizes = {k: v for k, v in cfg.items() if k not in ("name", "env")}
+        return random_system(**sizes, name=name, env=cfg.get("env"))
     raise SystemConfigError(
         f"system {name!r}: needs either 'robots' (a table) or 'n_robots' (a random team)"
     )

@@ -52,7 +52,7 @@ def sweep(tmp_path_factory) -> tuple[Path, subprocess.CompletedProcess]:
 def test_sweep_continues_after_a_failed_job(sweep):
     sweep_dir, result = sweep
     assert result.returncode != 0  # Hydra reports the failure once every job has run
-    assert "seed must be in [0, 2**31)" in result.stderr
+    assert "seed: must be an integer in [0, 2147483647], got -1" in result.stderr
     finished = sorted(sweep_dir.glob("*/metrics.json"))
     assert len(finished) == 8  # the 8 good jobs ran and kept their results
     assert (sweep_dir / "multirun.yaml").is_file()

@@ -151,12 +151,12 @@ def test_evaluation_is_identical_across_learners_streams(compose_cfg, tmp_path):
 
 def test_bad_system_is_a_clear_error_and_writes_nothing(compose_cfg, tmp_path):
     bad = tmp_path / "bad.yaml"
-    bad.write_text("name: bad\nrobots:\n  R1: [T1, X2]\n")
+    bad.write_text("name: bad\nrobots:\n  R1: {T1: 1.0, T2: 2.0}\n")
     cfg = compose_cfg(["system=system1", "debug=smoke"])
     with open_dict(cfg):
         cfg.system = OmegaConf.load(bad)
     run_dir = tmp_path / "run"
-    with pytest.raises(SystemConfigError, match="R1.*X2"):
+    with pytest.raises(SystemConfigError, match="R1.*2.0.*T2"):
         train(cfg, run_dir=run_dir)
     assert not (run_dir / "metrics.json").exists() and not (run_dir / "curve.csv").exists()
 
@@ -166,7 +166,7 @@ def test_bad_system_is_a_clear_error_and_writes_nothing(compose_cfg, tmp_path):
     [
         ("train.episodes=-1", "train.episodes"),
         ("eval.episodes=0", "eval.episodes"),
-        ("+learner.alpha=0.1", "greedy"),
+        ("+learner.alpha=0.1", "learner.alpha: unknown setting of GreedyLearner"),
         ("+env.horizonn=5", "horizonn"),
     ],
 )

@@ -395,7 +395,7 @@ def test_system_env_block_sets_parameters_and_run_layer_wins():
     system = RobotSystem.from_table("s", {"R1": ["T1"]}, env={"horizon": 40, "slots": 2})
     params = AuctionParams.merged(system.env_overrides, {"horizon": 30, "p_high": None})
     assert (params.horizon, params.slots, params.p_high) == (30, 2, 0.33)
-    with pytest.raises(ValueError, match="unknown environment parameter 'horizn'"):
+    with pytest.raises(ValueError, match="env.horizn: unknown setting of AuctionParams"):
         AuctionParams.merged({"horizn": 3})
 
 

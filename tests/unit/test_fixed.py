@@ -173,9 +173,9 @@ def test_subg_reserve_counts_idle_robots_without_a_bid(rng):
 def test_subg_reserve_needs_a_partition_and_valid_rule(tiny_system, rng):
     with pytest.raises(ValueError, match="requires a subG partition"):
         SubGReserveLearner(env=AuctionEnv(tiny_system), rng=rng)
-    with pytest.raises(ValueError, match="reserve must be >= 0"):
+    with pytest.raises(ValueError, match="reserve: must be an integer >= 0, got -1"):
         make_reserve(rng, tiny_system, reserve=-1)
-    with pytest.raises(ValueError, match="hold_level must be in 0..3"):
+    with pytest.raises(ValueError, match=r"hold_level: must be an integer in \[0, 3\], got 4"):
         make_reserve(rng, tiny_system, hold_level=4)
 
 
@@ -261,10 +261,10 @@ def test_team_reserve_on_subg_grouping_plays_subg_reserve(reserve, hold_level):
 
 def test_team_reserve_rejects_bad_settings(rng):
     for bad, match in (
-        ({"hold_scope": "nope"}, "hold_scope must be one of"),
-        ({"grouping": "nope"}, "grouping must be one of"),
-        ({"order": "nope"}, "order must be one of"),
-        ({"reserve": -1}, "team_reserve: reserve must be >= 0"),
+        ({"hold_scope": "nope"}, "hold_scope: must be one of 'group', 'robot', got 'nope'"),
+        ({"grouping": "nope"}, "grouping: must be one of 'team', 'subg', got 'nope'"),
+        ({"order": "nope"}, "order: must be one of 'fewest_types', 'index', got 'nope'"),
+        ({"reserve": -1}, "reserve: must be an integer >= 0, got -1"),
     ):
         with pytest.raises(ValueError, match=match):
             make_team(rng, **bad)

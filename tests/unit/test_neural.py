@@ -130,9 +130,9 @@ def test_untrained_subg_dqn_plays_the_subg_cql_prior():
         held += int(((expected == 0) & mask[:, :, 1:].any(-1)).sum())  # a robot kept back
         env.step(expected)
     assert held > 0  # the rule did hold robots back, so this is not the plain auction again
-    with pytest.raises(ValueError, match="prior must be one of"):
+    with pytest.raises(ValueError, match="prior: must be one of"):
         make(SubGDQNLearner, system2, prior="nope")
-    with pytest.raises(ValueError, match="prior_order must be one of"):
+    with pytest.raises(ValueError, match="prior_order: must be one of"):
         make(SubGDQNLearner, system2, prior_order="nope")
 
 

@@ -58,10 +58,10 @@ def test_greedy_base_with_no_planning_is_greedy():
 
 def test_rejects_bad_settings():
     for bad, match in (
-        ({"samples": 0}, "samples must be >= 1"),
-        ({"horizon": -1}, "horizon must be >= 0"),
-        ({"gamma": 0.0}, "gamma must be in"),
-        ({"base": "nope"}, "unknown rule 'nope'"),
+        ({"samples": 0}, "samples: must be an integer >= 1"),
+        ({"horizon": -1}, "horizon: must be an integer >= 0"),
+        ({"gamma": 0.0}, r"gamma: must be a number in \(0, 1\]"),
+        ({"base": "nope"}, "base: must be one of 'greedy'"),
         ({"candidates": ["greedy", "nope"]}, "unknown rule 'nope'"),
     ):
         with pytest.raises(ValueError, match=match):

@@ -54,13 +54,17 @@ def test_willingness_mapping_and_duration_override():
     [
         ({"R1": ["T1"], "R2": []}, None, "robot R2 has no task type"),
         ({"R1": ["T1"], "R2": None}, None, "robot R2 has no task type"),
-        ({"R1": ["T1", "T3"]}, None, "task type T2: no robot can do it"),
-        ({"R1": ["T1"]}, {"T2": {"duration_low": [1, 2]}}, "task type T2: no robot can do it"),
+        (
+            {"R1": ["T1"]},
+            {"T9": {"duration_low": [1, 2]}},
+            "task_types: task type 'T9' is listed, but no robot in 'robots' can do it",
+        ),
         ({"R1": {"T1": 1.5}}, None, r"robot R1: willingness 1.5 for T1 is outside \(0, 1\]"),
         ({"R1": {"T1": 0}}, None, r"robot R1: willingness 0 for T1 is outside \(0, 1\]"),
         ({"R1": {"T1": "high"}}, None, "robot R1: willingness 'high' for T1"),
-        ({"R1": ["T1", "X2"]}, None, "robot R1: unknown task type name 'X2'"),
-        ({"robot1": ["T1"]}, None, "robot 'robot1': ids must look like R1"),
+        ({"R1": ["T1", 1.5]}, None, "robot R1: task type name must be a non-empty string, got 1.5"),
+        ({"R1": ["T1", ""]}, None, "robot R1: task type name must be a non-empty string, got ''"),
+        ({"R1": ["T1"]}, ["T1"], "'task_types' must be a mapping"),
         ({"R1": ["T1"]}, {"T1": {"duration_low": [5, 2]}}, "task type T1: duration_low must be"),
         ({"R1": ["T1"]}, {"T1": {"duration": [1, 2]}}, "task type T1: unknown key 'duration'"),
     ],
@@ -71,6 +75,42 @@ def test_malformed_system_is_a_clear_error_naming_the_culprit(robots, task_types
         cfg["task_types"] = task_types
     with pytest.raises(SystemConfigError, match=message):
         build_system(cfg)
+
+
+def test_task_and_robot_names_are_labels():
+    """Issue 9 defect 7: any names; task types in natural order, paper names unchanged."""
+    s = build_system(
+        {
+            "name": "labels",
+            "robots": {"R1": ["pick", "T99"], "arm_2": {"T10": 0.5, "T2": 1}},
+            "task_types": {"pick": {"duration_high": [2, 4]}},
+        }
+    )
+    assert s.robots == ("R1", "arm_2")
+    assert s.task_types == ("T2", "T10", "T99", "pick")  # digits compared as numbers
+    assert s.task_set("R1") == {"T99": 1.0, "pick": 1.0}
+    assert s.task_set("arm_2") == {"T2": 1.0, "T10": 0.5}
+    assert s.durations["pick"]["duration_high"].hi == 4
+    # a gap in T1..Tn is no longer a phantom task type nobody can do
+    assert build_system({"robots": {"R1": ["T1", "T3"]}}).task_types == ("T1", "T3")
+
+
+def test_labelled_system_trains_and_reports_by_name(compose_cfg, tmp_path):
+    """Issue 9 defect 7 end to end: a greedy run on a labelled system, CTR keyed by the names."""
+    from omegaconf import OmegaConf, open_dict
+
+    from mrta_rl.runners import train
+
+    cfg = compose_cfg(["learner=subg_reserve", "debug=smoke"])
+    with open_dict(cfg):
+        cfg.system = OmegaConf.create(
+            {"name": "labels", "robots": {"R1": ["pick", "T99"], "R2": ["T99"], "R3": ["pick"]}}
+        )
+    metrics = train(cfg, run_dir=tmp_path)
+    assert list(metrics["eval"]["ctr"]) == ["T99", "pick"]
+    assert list(metrics["eval"]["itr"]) == ["R1", "R2", "R3"]
+    groups = metrics["eval"]["return_by_group"]
+    assert sorted(t for g in groups.values() for t in g["types"]) == ["T99", "pick"]
 
 
 def test_unknown_top_level_key_is_named():
@@ -121,5 +161,5 @@ def test_random_system_config_and_scaling_size():
         {"name": "random", "n_robots": 300, "n_task_types": 30, "density": 0.1, "seed": 4}
     )
     assert s.n_robots == 300 and s.n_task_types == 30
-    with pytest.raises(SystemConfigError, match="density 1.5"):
+    with pytest.raises(SystemConfigError, match=r"system.density: must be a number in \[0, 1\]"):
         random_system(3, 3, 1.5, 0)

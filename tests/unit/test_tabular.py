@@ -213,7 +213,7 @@ def test_table_prior_is_the_tie_break(prior):
     # spread: R1 slot 1, R2 slot 2; spread_wait holds the L slots: nobody bids
     assert best_actions(storage, row, 2) == ([1, 2] if prior == "spread" else [0, 0])
     assert len(storage.state_q(0, 7)) == 7  # the stored actions still follow the full mask
-    with pytest.raises(ValueError, match="prior must be one of"):
+    with pytest.raises(ValueError, match="prior: must be one of"):
         make(CQLLearner, build_system({"name": "x", "robots": {"R1": ["T1"]}}), prior="nope")
 
 

@@ -64,7 +64,7 @@ def test_resolve_inputs():
         resolve_system("system9")
     with pytest.raises(ValueError, match="invalid_action must be one of"):
         AuctionGymEnv("system9", invalid_action="skip")  # checked first, before the system
-    with pytest.raises(ValueError, match="unknown environment parameter 'horizn'"):
+    with pytest.raises(ValueError, match="env.horizn: unknown setting of AuctionParams"):
         resolve_params(system, {"horizn": 7})
 
 

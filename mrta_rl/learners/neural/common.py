@@ -29,7 +29,7 @@ from __future__ import annotations
 import json
 import logging
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
 import torch
@@ -41,6 +41,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import EGreedyModule, QValueModule
 from torchrl.objectives import HardUpdate, LossModule, SoftUpdate
 
+from mrta_rl.config import Choices, Range
 from mrta_rl.envs import AuctionEnv, observations
 from mrta_rl.learners.base import Learner
 from mrta_rl.learners.neural.networks import PerRobotQ
@@ -100,26 +101,26 @@ class NeuralLearner(Learner):
         env: AuctionEnv,
         rng: np.random.Generator,
         partition: Partition | None = None,
-        hidden: int = 128,
-        depth: int = 2,
-        lr: float = 5e-4,
-        gamma: float = 0.95,
+        hidden: Annotated[int, Range(1)] = 128,
+        depth: Annotated[int, Range(1)] = 2,
+        lr: Annotated[float, Range(0, low_open=True)] = 5e-4,
+        gamma: Annotated[float, Range(0, 1, low_open=True, high_open=True)] = 0.95,
         loss_function: Literal["l2", "smooth_l1"] = "smooth_l1",
-        reward_scale: float = 0.1,
-        auction_prior: float = 1.0,
-        eps_start: float = 0.3,
-        eps_end: float = 0.02,
-        eps_decay_frames: int = 200_000,
-        buffer_size: int = 100_000,
-        batch_size: int = 256,
-        collect_ticks: int = 50,
-        updates_per_collect: int = 25,
-        warmup_frames: int = 2_000,
+        reward_scale: Annotated[float, Range(0, low_open=True)] = 0.1,
+        auction_prior: Annotated[float, Range(0)] = 1.0,
+        eps_start: Annotated[float, Range(0, 1)] = 0.3,
+        eps_end: Annotated[float, Range(0, 1)] = 0.02,
+        eps_decay_frames: Annotated[int, Range(1)] = 200_000,
+        buffer_size: Annotated[int, Range(1)] = 100_000,
+        batch_size: Annotated[int, Range(1)] = 256,
+        collect_ticks: Annotated[int, Range(1)] = 50,
+        updates_per_collect: Annotated[int, Range(0)] = 25,
+        warmup_frames: Annotated[int, Range(0)] = 2_000,
         target_update: Literal["soft", "hard"] = "soft",
-        tau: float = 0.01,
-        hard_update_interval: int = 500,
-        max_grad_norm: float = 10.0,
-        device: str = "cpu",
+        tau: Annotated[float, Range(0, 1, low_open=True)] = 0.01,
+        hard_update_interval: Annotated[int, Range(1)] = 500,
+        max_grad_norm: Annotated[float, Range(0, low_open=True)] = 10.0,
+        device: Annotated[str, Choices("cpu", "cuda")] = "cpu",
     ) -> None:
         """Store the hyperparameters and build the networks (see ``conf/learner/*.yaml``).
 
@@ -156,12 +157,9 @@ class NeuralLearner(Learner):
         super().__init__(env=env, rng=rng, partition=partition)
         if torch.device(device).type == "cuda" and not torch.cuda.is_available():
             raise ValueError("device=cuda but CUDA is not available")
-        if not 0.0 <= eps_end <= eps_start <= 1.0:
-            raise ValueError(f"need 0 <= eps_end <= eps_start <= 1, got {eps_end}, {eps_start}")
-        if not 0.0 < gamma < 1.0 or not 0.0 < tau <= 1.0:
-            raise ValueError(f"need gamma in (0, 1) and tau in (0, 1], got {gamma}, {tau}")
-        if min(hidden, depth, batch_size, collect_ticks, buffer_size, eps_decay_frames) < 1:
-            raise ValueError("hidden, depth, batch sizes, ticks and frames must be >= 1")
+        # types and ranges: the annotations (mrta_rl.config); here only a relation
+        if eps_end > eps_start:
+            raise ValueError(f"need eps_end <= eps_start, got {eps_end}, {eps_start}")
         self.device = torch.device(device)
         self.hp = {
             "hidden": hidden,

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+from typing import Annotated
+
 from tensordict.nn import TensorDictModule
 from torchrl.modules import QMixer
 
+from mrta_rl.config import Range
 from mrta_rl.learners.neural.common import MixedQLearner
 
 
@@ -15,7 +18,9 @@ class QMIXLearner(MixedQLearner):
     everything else is :class:`~mrta_rl.learners.neural.common.MixedQLearner`.
     """
 
-    def __init__(self, *, mixing_embed_dim: int = 32, **hyperparameters) -> None:
+    def __init__(
+        self, *, mixing_embed_dim: Annotated[int, Range(1)] = 32, **hyperparameters
+    ) -> None:
         """Keep the mixer width, then build as every mixed learner.
 
         Args:

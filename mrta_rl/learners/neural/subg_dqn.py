@@ -2,15 +2,18 @@
 
 from __future__ import annotations
 
+from typing import Annotated
+
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torchrl.modules import QValueModule
 from torchrl.objectives import DQNLoss
 
+from mrta_rl.config import Choices
 from mrta_rl.envs.observations import local_feature_layout
 from mrta_rl.learners.neural.common import JOINT, NeuralLearner
-from mrta_rl.learners.neural.networks import JointDecode, JointQ
-from mrta_rl.learners.tabular.priors import spread_order
+from mrta_rl.learners.neural.networks import JOINT_PRIORS, JointDecode, JointQ
+from mrta_rl.learners.tabular.priors import PRIOR_ORDERS, spread_order
 from mrta_rl.types import GroupMap
 
 
@@ -30,7 +33,13 @@ class SubGDQNLearner(NeuralLearner):
 
     requires_partition = True
 
-    def __init__(self, *, prior: str = "spread_wait", prior_order: str = "fewest_types", **hp):
+    def __init__(
+        self,
+        *,
+        prior: Annotated[str, Choices(*JOINT_PRIORS)] = "spread_wait",
+        prior_order: Annotated[str, Choices(*PRIOR_ORDERS)] = "fewest_types",
+        **hp,
+    ):
         """Keep the prior's settings, then build (see :class:`NeuralLearner`).
 
         Args:

@@ -21,10 +21,11 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Sequence
-from typing import Any, ClassVar
+from typing import Annotated, Any, ClassVar
 
 import numpy as np
 
+from mrta_rl.config import Choices, ConfigError, Range
 from mrta_rl.envs import AuctionEnv
 from mrta_rl.learners.base import Learner, LearnerKind
 from mrta_rl.learners.fixed import GreedyLearner, TeamReserveLearner
@@ -65,8 +66,7 @@ class RolloutPlanner(Learner):
         **kwargs: Env, generator and partition of :class:`~mrta_rl.learners.base.Learner`.
 
     Raises:
-        ValueError: on ``samples`` < 1, ``horizon`` < 0, ``gamma`` outside (0, 1], or an unknown
-            rule name.
+        ConfigError: on an unknown candidate rule name (the other ranges are declared).
     """
 
     kind: ClassVar[LearnerKind] = "fixed"
@@ -74,24 +74,20 @@ class RolloutPlanner(Learner):
     def __init__(
         self,
         *,
-        samples: int = 4,
-        horizon: int = 20,
+        samples: Annotated[int, Range(1)] = 4,
+        horizon: Annotated[int, Range(0)] = 20,
         candidates: Sequence[str] = ("greedy", "spread", "hold", "reserve1", "high_only"),
-        base: str = "hold",
-        gamma: float = 1.0,
+        base: Annotated[str, Choices(*CANDIDATES)] = "hold",
+        gamma: Annotated[float, Range(0, 1, low_open=True)] = 1.0,
         **kwargs,
     ) -> None:
-        super().__init__(**kwargs)
-        if samples < 1:
-            raise ValueError(f"rollout: samples must be >= 1, got {samples}")
-        if horizon < 0:
-            raise ValueError(f"rollout: horizon must be >= 0, got {horizon}")
-        if not 0.0 < gamma <= 1.0:
-            raise ValueError(f"rollout: gamma must be in (0, 1], got {gamma}")
+        super().__init__(**kwargs)  # types and ranges: the annotations (mrta_rl.config)
         names = [base, *(c for c in candidates if c != base)]  # the base rule first: ties go to it
         for name in names:
             if name not in CANDIDATES:
-                raise ValueError(f"rollout: unknown rule {name!r} (known: {sorted(CANDIDATES)})")
+                raise ConfigError(
+                    f"learner.candidates: unknown rule {name!r} (known: {sorted(CANDIDATES)})"
+                )
         self.samples, self.horizon, self.gamma = samples, horizon, gamma
         self.names = names
         self._rules = [CANDIDATES[name](self.env, self.rng) for name in names]

@@ -12,10 +12,11 @@ from __future__ import annotations
 import json
 import logging
 from pathlib import Path
-from typing import ClassVar
+from typing import Annotated, ClassVar
 
 import numpy as np
 
+from mrta_rl.config import Range
 from mrta_rl.envs import AuctionEnv
 from mrta_rl.learners.base import Learner
 from mrta_rl.learners.tabular.schedules import LinearSchedule
@@ -88,20 +89,17 @@ class TabularLearner(Learner):
         env: AuctionEnv,
         rng: np.random.Generator,
         partition: Partition | None = None,
-        alpha: float = 0.1,
-        alpha_power: float = 0.0,
-        alpha_min: float = 0.0,
-        gamma: float = 0.9,
-        epsilon_start: float = 0.2,
-        epsilon_end: float = 0.0,
-        epsilon_decay_episodes: int = 20,
+        alpha: Annotated[float, Range(0, 1, low_open=True)] = 0.1,
+        alpha_power: Annotated[float, Range(0)] = 0.0,
+        alpha_min: Annotated[float, Range(0, 1)] = 0.0,
+        gamma: Annotated[float, Range(0, 1)] = 0.9,
+        epsilon_start: Annotated[float, Range(0, 1)] = 0.2,
+        epsilon_end: Annotated[float, Range(0, 1)] = 0.0,
+        epsilon_decay_episodes: Annotated[int, Range(0)] = 20,
         decisions_only: bool = True,
     ) -> None:
+        # types and ranges: the annotations, checked before __init__ (mrta_rl.config)
         super().__init__(env=env, rng=rng, partition=partition)
-        if not 0.0 < alpha <= 1.0 or not 0.0 <= gamma <= 1.0:
-            raise ValueError(f"need 0 < alpha <= 1 and 0 <= gamma <= 1, got {alpha}, {gamma}")
-        if not (0.0 <= epsilon_start <= 1.0 and 0.0 <= epsilon_end <= 1.0):
-            raise ValueError("epsilon_start and epsilon_end must be in [0, 1]")
         self.alpha, self.alpha_power, self.alpha_min = alpha, alpha_power, alpha_min
         self.gamma = gamma
         self.epsilon_schedule = LinearSchedule(epsilon_start, epsilon_end, epsilon_decay_episodes)

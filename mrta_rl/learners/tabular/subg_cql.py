@@ -12,16 +12,17 @@ in the compiled loops of :mod:`~mrta_rl.learners.tabular.group_kernels`.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import Annotated, ClassVar
 
 import numpy as np
 
+from mrta_rl.config import Choices, Range
 from mrta_rl.envs import AuctionEnv, StepResult
 from mrta_rl.learners.tabular import group_kernels as kernels
 from mrta_rl.learners.tabular.base import TabularLearner
 from mrta_rl.learners.tabular.encoding import GroupEncoder
 from mrta_rl.learners.tabular.joint_actions import JointActions, max_valid_joint_actions
-from mrta_rl.learners.tabular.priors import PRIOR_CODES, PRIORS, spread_order
+from mrta_rl.learners.tabular.priors import PRIOR_CODES, PRIOR_ORDERS, PRIORS, spread_order
 from mrta_rl.learners.tabular.qtable import TABLE_KEYS, JointQStorage
 from mrta_rl.metrics.learning_space import learning_space_dimension
 
@@ -75,9 +76,9 @@ class GroupQLearner(TabularLearner):
         self,
         *,
         prune_conflicts: bool = True,
-        prior: str | None = None,
-        prior_order: str | None = None,
-        min_visits: int = 0,
+        prior: Annotated[str | None, Choices(*PRIORS)] = None,
+        prior_order: Annotated[str | None, Choices(*PRIOR_ORDERS)] = None,
+        min_visits: Annotated[int, Range(0)] = 0,
         **hyperparameters,
     ) -> None:
         super().__init__(**hyperparameters)

@@ -1,0 +1,284 @@
+"""What a learner will need, estimated from the system and hyperparameters before it is built.
+
+:func:`estimate_resources` answers, without building the learner or training anything, whether a
+learner can run on a system at all (its joint actions and state indices fit the int64 codes of
+the tables and networks) and how much memory it takes:
+
+* ``up_front``: memory the run takes for sure: the env copies of training and evaluation, dense
+  tables (DQL), network weights with their target copies, gradients and Adam moments, a full
+  replay buffer and a collector batch;
+* ``worst``: ``up_front`` plus an upper bound of the tables that grow with the states met
+  (CQL, subG-CQL, semi-CQL store only visited states: at most ``min(|S_g|, decisions)`` rows, a
+  decision being one copy-tick of training).
+
+The runner refuses a run whose ``up_front`` passes ``limits.memory_gb`` and warns when ``worst``
+does (the bound is loose: a run visits far fewer states). The counts follow the learners' storage:
+``tabular.qtable`` (per state, the conflict-free joint actions; int64 code, float64 Q, int64
+visits), the neural networks of ``learners/neural`` (float32; checked against built learners in
+``tests/unit/test_resources.py``) and the transitions their TorchRL replay buffer keeps.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+from dataclasses import dataclass, field
+from typing import Any
+
+from mrta_rl.config import declared_keywords
+from mrta_rl.envs import AuctionEnv, AuctionParams
+from mrta_rl.envs.observations import (
+    global_feature_size,
+    group_state_count,
+    local_feature_size,
+    local_state_count,
+)
+from mrta_rl.partition import Partition, subg_partition
+from mrta_rl.systems import RobotSystem
+
+INT64_CODES = 2**63  # joint-action codes and state indices are int64
+JOINT_ENTRY_BYTES = 8 + 8 + 8  # joint Q-table entry: code int64, Q float64, visits int64
+JOINT_ROW_BYTES = 4 * 8 + 120  # row arrays (state, offset, length, greedy) + its dict entry
+GROWTH = 2  # growable arrays double their capacity
+TABLE_ENTRY_BYTES = 8 + 8  # dense tables: Q float64 and visits int64
+# per float32 weight: itself, its target copy, its gradient and Adam's two moments
+BYTES_PER_WEIGHT = 4 * 5
+
+
+@dataclass(frozen=True)
+class ResourceEstimate:
+    """What a learner needs on a system (see module docstring).
+
+    Attributes:
+        learner: Class name.
+        up_front: Bytes the learner takes for sure.
+        worst: Upper bound of the bytes, tables grown to every state they could meet.
+        parts: Bytes by part (``"G1 table"``, ``"replay buffer"``, ``"networks"``...), worst case.
+        reason: Why the learner cannot run at all (e.g. joint actions beyond int64), else None.
+        advice: What to change, for the messages.
+    """
+
+    learner: str
+    up_front: int = 0
+    worst: int = 0
+    parts: dict[str, int] = field(default_factory=dict)
+    reason: str | None = None
+    advice: str = ""
+
+    def refusal(self, limit_bytes: int) -> str | None:
+        """Why the run must not start under a memory limit, or None if it may.
+
+        Args:
+            limit_bytes: The memory allowed.
+
+        Returns:
+            The reason (what is too big), without advice, or None.
+        """
+        if self.reason is not None:
+            return self.reason
+        if self.up_front > limit_bytes:
+            biggest = sorted(self.parts.items(), key=lambda kv: -kv[1])[:3]
+            detail = ", ".join(f"{name} {format_bytes(b)}" for name, b in biggest)
+            return (
+                f"needs about {format_bytes(self.up_front)} up front ({detail}), more than the "
+                f"limit of {format_bytes(limit_bytes)}"
+            )
+        return None
+
+
+def format_bytes(n: float) -> str:
+    """``1.5 GB``, ``12 MB``: decimal units, three significant digits."""
+    for unit, size in (("TB", 1e12), ("GB", 1e9), ("MB", 1e6), ("kB", 1e3)):
+        if n >= size:
+            return f"{n / size:.3g} {unit}"
+    return f"{int(n)} B"
+
+
+def conflict_free_joint_actions(n_robots: int, n_slots: int) -> int:
+    """Joint actions of ``n_robots`` with at most one bidder per slot (all idle, all slots open).
+
+    Sum over ``j`` bidders of ``C(m, j) K! / (K - j)!``: the most a joint Q-table row holds with
+    ``prune_conflicts``.
+    """
+    return sum(
+        math.comb(n_robots, j) * math.perm(n_slots, j) for j in range(min(n_robots, n_slots) + 1)
+    )
+
+
+def mlp_weights(n_in: int, n_out: int, depth: int, hidden: int) -> int:
+    """Weights and biases of a TorchRL ``MLP`` with ``depth`` hidden layers of ``hidden`` units."""
+    inner = (depth - 1) * (hidden * hidden + hidden)
+    return n_in * hidden + hidden + inner + hidden * n_out + n_out
+
+
+def probe_env(system: RobotSystem, params: AuctionParams, active_tasks: Any = None) -> AuctionEnv:
+    """A one-copy env with the smallest queue: the sizes and limits of the real env, no memory.
+
+    Raises:
+        ValueError: if the parameters pass the env's limits (``AuctionEnv`` names which).
+    """
+    small = dataclasses.replace(params, queue_capacity=params.slots)
+    return AuctionEnv(system, small, batch_size=1, active_tasks=active_tasks)
+
+
+def env_copy_bytes(env: AuctionEnv, queue_capacity: int) -> int:
+    """Bytes of one env copy: its task queue and the per-robot, per-type and per-slot state."""
+    m, n, K = env.n_robots, env.n_task_types, env.n_slots
+    return 8 * (queue_capacity + 1) + 16 * m + 40 * n + 32 * K + 24 + (K + 1) * m
+
+
+def estimate_resources(
+    cls: type,
+    system: RobotSystem,
+    params: AuctionParams,
+    partition: Partition | None = None,
+    hyperparameters: dict[str, Any] | None = None,
+    *,
+    batch_size: int = 1,
+    episodes: int = 1,
+    eval_batch_size: int = 0,
+) -> ResourceEstimate:
+    """Estimate what a learner class needs on a system, without building it.
+
+    Args:
+        cls: The learner class (``conf/learner/*.yaml`` ``_target_``).
+        system: The robot team.
+        params: Dynamics parameters (``slots``, ``horizon`` and ``queue_capacity`` matter).
+        partition: The subG partition, for learners that require one (default: computed).
+        hyperparameters: Settings of the learner; the rest take their declared defaults.
+        batch_size: Training copies (``train.batch_size``), bounds the states met.
+        episodes: Training episodes (``train.episodes``), bounds the states met.
+        eval_batch_size: Evaluation copies played at once.
+
+    Returns:
+        The estimate; a fixed policy needs only its env copies.
+
+    Raises:
+        ValueError: if the parameters pass the env's limits (see :func:`probe_env`).
+    """
+    hp = {k: d.default for k, d in declared_keywords(cls).items() if not d.required}
+    hp.update(hyperparameters or {})
+    active = None
+    if getattr(cls, "requires_partition", False):
+        partition = partition if partition is not None else subg_partition(system)
+        active = partition.active_tasks(system)
+    env = probe_env(system, params, active)
+    decisions = max(1, episodes * batch_size * env.params.horizon)
+    kind = getattr(cls, "kind", "fixed")
+    if kind == "tabular":
+        estimate = _tabular(cls, env, partition, hp, decisions)
+    elif kind == "neural":
+        estimate = _neural(cls, env, partition, hp, batch_size)
+    else:
+        estimate = ResourceEstimate(cls.__name__)
+    copies = (batch_size + eval_batch_size) * env_copy_bytes(env, params.queue_capacity)
+    return dataclasses.replace(
+        estimate,
+        up_front=estimate.up_front + copies,
+        worst=estimate.worst + copies,
+        parts={"env copies": copies, **estimate.parts},
+        advice=estimate.advice or "lower train.batch_size, eval.batch_size or env.queue_capacity",
+    )
+
+
+def _groups(env: AuctionEnv, partition: Partition | None, space: str) -> dict[str, list[int]]:
+    robots = env.system.robots
+    if space == "subg_cql" and partition is not None:
+        return {g: [robots.index(r) for r in ids] for g, ids in partition.group_map().items()}
+    return {"team": list(range(env.n_robots))}
+
+
+def _too_many_joint_actions(group: str, size: int, n_actions: int) -> str:
+    where = "the team" if group == "team" else f"sub-group {group}"
+    return f"{where} has {size} robots: {n_actions}^{size} joint actions do not fit in int64"
+
+
+GROUP_ADVICE = "use fewer robots per group (smaller sub-groups) or a smaller system"
+
+
+def _tabular(
+    cls: type, env: AuctionEnv, partition: Partition | None, hp: dict[str, Any], decisions: int
+) -> ResourceEstimate:
+    name, space = cls.__name__, getattr(cls, "space_name", None)
+    A, K = env.n_actions, env.n_slots
+    parts: dict[str, int] = {}
+    if space in ("cql", "subg_cql"):
+        for group, robots in _groups(env, partition, space).items():
+            if A ** len(robots) >= INT64_CODES:
+                reason = _too_many_joint_actions(group, len(robots), A)
+                return ResourceEstimate(name, reason=reason, advice=GROUP_ADVICE)
+            states = group_state_count(env, robots)
+            if states >= INT64_CODES:
+                reason = f"{group}: {states:.3g} group states do not fit in int64"
+                return ResourceEstimate(name, reason=reason, advice=GROUP_ADVICE)
+            per_row = (
+                conflict_free_joint_actions(len(robots), K)
+                if hp.get("prune_conflicts", True)
+                else A ** len(robots)
+            )
+            rows = min(states, decisions)
+            row = per_row * JOINT_ENTRY_BYTES + JOINT_ROW_BYTES
+            parts[f"{group} table"] = GROWTH * rows * row
+        return ResourceEstimate(name, 0, sum(parts.values()), parts)
+    if space == "semi_cql":
+        states = group_state_count(env, list(range(env.n_robots)))
+        if states >= INT64_CODES:
+            reason = f"{states:.3g} whole-system states do not fit in int64"
+            return ResourceEstimate(name, reason=reason, advice="use a smaller system")
+        row = env.n_robots * A * TABLE_ENTRY_BYTES + JOINT_ROW_BYTES
+        parts["table"] = GROWTH * min(states, decisions) * row
+        return ResourceEstimate(name, 0, parts["table"], parts)
+    if space == "dql":
+        try:
+            stride = max(local_state_count(env))
+        except OverflowError as err:
+            return ResourceEstimate(name, reason=str(err), advice="use fewer task types or slots")
+        parts["tables"] = env.n_robots * stride * A * TABLE_ENTRY_BYTES  # dense, allocated
+        return ResourceEstimate(name, parts["tables"], parts["tables"], parts)
+    return ResourceEstimate(name)  # a tabular learner this module does not know: no estimate
+
+
+def _neural(
+    cls: type, env: AuctionEnv, partition: Partition | None, hp: dict[str, Any], copies: int
+) -> ResourceEstimate:
+    # the neural classes import torch: only when a neural learner is estimated
+    from mrta_rl.learners.neural import IQLLearner, QMIXLearner, SubGDQNLearner
+
+    name = cls.__name__
+    m, A = env.n_robots, env.n_actions
+    F, S = local_feature_size(env), global_feature_size(env)
+    depth, hidden = int(hp["depth"]), int(hp["hidden"])
+    advice = "lower learner.buffer_size or learner.hidden, or use a smaller system"
+    if issubclass(cls, SubGDQNLearner):
+        weights = 0
+        for group, robots in _groups(env, partition, "subg_cql").items():
+            size = len(robots)
+            if A**size >= INT64_CODES:
+                reason = _too_many_joint_actions(group, size, A)
+                return ResourceEstimate(name, reason=reason, advice=GROUP_ADVICE)
+            weights += mlp_weights(size * F, A**size, depth, hidden)
+        advice = f"{GROUP_ADVICE}, or {advice}"
+    elif issubclass(cls, IQLLearner):
+        weights = m * mlp_weights(F, A, depth, hidden)  # one network per robot
+    else:
+        weights = mlp_weights(F, A, depth, hidden)  # one network shared by the robots
+        if issubclass(cls, QMIXLearner):
+            E = int(hp["mixing_embed_dim"])
+            # TorchRL QMixer: hypernetworks W1 (S -> E m), W_final and b1 (S -> E), V (S -> E -> 1)
+            weights += (S * E * m + E * m) + 3 * (S * E + E) + (E + 1)
+    # one transition: observation, mask (and their next), state and next state, action and
+    # rewards per robot, flags (measured on the buffer, tests/unit/test_resources.py)
+    transition = 2 * (m * F * 4 + S * 4 + m * A) + m * (8 + 4 + 4) + 32
+    parts = {
+        "networks": weights * BYTES_PER_WEIGHT,
+        "replay buffer": int(hp["buffer_size"]) * transition,
+        "collector batch": int(hp["collect_ticks"]) * copies * transition,
+    }
+    total = sum(parts.values())
+    return ResourceEstimate(name, total, total, parts, advice=advice)
+
+
+def machine_memory() -> int:
+    """Physical memory of the machine in bytes (``os.sysconf``)."""
+    return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))

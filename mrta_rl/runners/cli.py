@@ -1,0 +1,156 @@
+"""How the scripts end: one clear message for a user error, exit codes, no half-made run dir.
+
+Every script in ``scripts/`` is a thin entry point::
+
+    @hydra.main(config_path="../conf", config_name="config", version_base=None)
+    @cli.job
+    def main(cfg): ...
+
+    if __name__ == "__main__":
+        cli.run(main)
+
+* A **user error** -- a :class:`~mrta_rl.config.UserError` (bad setting, malformed system file,
+  bad checkpoint path), a Hydra composition error (unknown config group option, bad override
+  syntax) or a YAML syntax error in a config or system file -- prints ``error: <message>`` on
+  stderr, the message naming the culprit, and exits with :data:`EXIT_USER_ERROR`.
+* **Ctrl-C** prints ``interrupted`` and exits with :data:`EXIT_INTERRUPTED` (130, the shell's
+  convention), without a traceback. A training loop that saves on Ctrl-C does so before the
+  ``KeyboardInterrupt`` reaches this layer.
+* Either way :func:`job` removes the run directory Hydra made for the failed job when it holds
+  nothing but Hydra's own files (``.hydra/`` and the job log), then empty parent folders up to
+  the working directory. A directory holding anything else (a checkpoint, an earlier run's
+  results) is never touched.
+* Anything else is a bug and keeps its full traceback; ``HYDRA_FULL_ERROR=1`` also gives the
+  traceback of user errors.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import os
+import shutil
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import yaml
+from hydra.core.hydra_config import HydraConfig
+from hydra.errors import HydraException
+from hydra.types import RunMode
+from omegaconf.errors import OmegaConfBaseException
+
+from mrta_rl.config import UserError
+
+EXIT_USER_ERROR = 2  # bad input (as argparse); 1 stays Python's exit code for a crash
+EXIT_INTERRUPTED = 130  # 128 + SIGINT
+USER_ERRORS = (UserError, HydraException, yaml.YAMLError)
+HYDRA_FILES = frozenset({"config.yaml", "hydra.yaml", "overrides.yaml"})  # of <run dir>/.hydra
+SWEEP_FILES = frozenset({"multirun.yaml"})  # what Hydra writes in a sweep dir before the jobs
+
+
+def _message(err: BaseException) -> str:
+    if isinstance(err, yaml.YAMLError):
+        return f"YAML syntax error: {err}"
+    text = str(err)
+    if isinstance(err.__cause__, OmegaConfBaseException):  # Hydra's compact errors
+        text += f"\n{err.__cause__}"
+    return text
+
+
+def _exit(err: BaseException) -> None:
+    """Print the one message of a user error or Ctrl-C and exit, unless tracebacks are wanted."""
+    if _FULL_ERROR:
+        return  # the caller re-raises: the traceback is printed
+    if isinstance(err, KeyboardInterrupt):
+        print("interrupted", file=sys.stderr)
+        sys.exit(EXIT_INTERRUPTED)
+    print(f"error: {_message(err)}", file=sys.stderr)
+    sys.exit(EXIT_USER_ERROR)
+
+
+_FULL_ERROR = os.environ.get("HYDRA_FULL_ERROR") == "1"  # as the user started the script
+
+
+def run(main: Callable[[], Any]) -> None:
+    """Run a script's entry point; turn user errors and Ctrl-C into a message and an exit code.
+
+    Errors of the job itself are handled by :func:`job`; this catches those of Hydra's start
+    (composition, override syntax, YAML) and a Ctrl-C outside the job.
+
+    Args:
+        main: The script's ``main`` (a ``@hydra.main`` function or a plain one).
+    """
+    # Hydra then re-raises instead of printing its own stack trace; the handlers below decide
+    os.environ["HYDRA_FULL_ERROR"] = "1"
+    try:
+        main()
+    except (*USER_ERRORS, KeyboardInterrupt) as err:
+        _exit(err)
+        raise
+
+
+def job(task: Callable[[Any], Any]) -> Callable[[Any], Any]:
+    """Decorate a Hydra task function: on a user error or Ctrl-C, remove its unused run dir.
+
+    Args:
+        task: The task function, called with the composed config.
+
+    Returns:
+        The wrapped task function. In a single run it exits the process on a user error or
+        Ctrl-C (re-raises under ``HYDRA_FULL_ERROR=1``). In a sweep it re-raises: Hydra runs the
+        other jobs, then names the failed job and :func:`run` prints the message; Ctrl-C stops
+        the sweep.
+    """
+
+    @functools.wraps(task)
+    def wrapper(cfg: Any) -> Any:
+        try:
+            return task(cfg)
+        except (*USER_ERRORS, KeyboardInterrupt) as err:
+            remove_unused_run_dir()
+            if HydraConfig.get().mode != RunMode.MULTIRUN:
+                _exit(err)
+            raise
+
+    return wrapper
+
+
+def remove_unused_run_dir() -> Path | None:
+    """Remove the current Hydra job's run dir if it holds only Hydra's own files.
+
+    Returns:
+        The removed directory, or None when nothing was removed.
+    """
+    if not HydraConfig.initialized():
+        return None
+    hydra_cfg = HydraConfig.get()
+    run_dir = Path(hydra_cfg.runtime.output_dir).resolve()
+    top = Path(hydra_cfg.runtime.cwd).resolve()
+    log_file = f"{hydra_cfg.job.name}.log"
+    if run_dir == top or top.is_relative_to(run_dir) or not _only_hydra_files(run_dir, log_file):
+        return None
+    for handler in list(logging.root.handlers):  # Hydra's job log is open in the run dir
+        if (
+            isinstance(handler, logging.FileHandler)
+            and Path(handler.baseFilename).parent == run_dir
+        ):
+            handler.close()
+            logging.root.removeHandler(handler)
+    shutil.rmtree(run_dir)
+    parent = run_dir.parent
+    while parent != top and parent.is_relative_to(top):
+        if any(p.name not in SWEEP_FILES for p in parent.iterdir()):
+            break
+        shutil.rmtree(parent)
+        parent = parent.parent
+    return run_dir
+
+
+def _only_hydra_files(run_dir: Path, log_file: str) -> bool:
+    """True if ``run_dir`` has Hydra's ``.hydra/`` snapshot and nothing but it and the job log."""
+    snapshot = run_dir / ".hydra"
+    if not snapshot.is_dir() or any(p.name not in HYDRA_FILES for p in snapshot.iterdir()):
+        return False
+    return all(p.name in (".hydra", log_file) for p in run_dir.iterdir())

@@ -1,0 +1,279 @@
+"""Check a whole run config before any work: settings, learner, system, env, memory.
+
+:func:`validate_config` is the one gate of ``scripts/train.py`` (and of re-evaluation): it checks
+every setting against its single declaration (``mrta_rl.config``), namely
+
+* the run-level keys of ``conf/config.yaml`` (``seed``, ``train.*``, ``eval.*``, ``limits.*``),
+  declared here by :class:`RunSettings`, :class:`TrainSettings`, :class:`EvalSettings`,
+  :class:`LimitSettings` (their defaults stay in ``conf/config.yaml``, the one place of defaults);
+* the learner's hyperparameters against its ``__init__`` signature (``conf/learner/*.yaml``);
+* the system file (``mrta_rl.systems``) and the env parameters, the system's ``env:`` block and
+  the run's ``env.*`` (``AuctionParams``);
+
+then builds the system, parameters and partition and estimates what the learner will need
+(``mrta_rl.learners.resources``), refusing a learner that cannot run on the system or needs more
+memory than ``limits.memory_gb``. Every refusal is a :class:`~mrta_rl.config.ConfigError` whose
+message names the key or the culprit; nothing has been written when it is raised.
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+from dataclasses import dataclass
+from typing import Annotated, Any
+
+import numpy as np
+from hydra.core.hydra_config import HydraConfig
+from hydra.utils import get_class
+from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
+
+from mrta_rl.config import ConfigError, Range, check_fields, check_keywords
+from mrta_rl.envs import AuctionParams
+from mrta_rl.learners import Learner
+from mrta_rl.learners.resources import (
+    ResourceEstimate,
+    estimate_resources,
+    format_bytes,
+    machine_memory,
+)
+from mrta_rl.partition import Partition, subg_partition
+from mrta_rl.systems import RobotSystem, SystemConfigError, build_system
+
+logger = logging.getLogger(__name__)
+
+# Learner kind -> "module:function" of its training loop, imported only when used. A loop has the
+# signature ``loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict`` and returns
+# ``{"env_ticks": int, "wall_s": float, "episodes": int}``; it writes curve.csv in ``run_dir``.
+TRAINING_LOOPS: dict[str, str] = {
+    "fixed": "mrta_rl.runners.tabular:skip_training",
+    "tabular": "mrta_rl.runners.tabular:train_loop",
+    "neural": "mrta_rl.runners.torchrl:train_loop",
+}
+SEED_STRIDE = 2**32  # training env seed = seed * SEED_STRIDE + copy; eval seeds stay below it
+MEMORY_FRACTION = 0.5  # default limits.memory_gb: this fraction of the machine's memory
+
+
+@dataclass(frozen=True)
+class RunSettings:
+    """Top-level keys of ``conf/config.yaml``."""
+
+    seed: Annotated[int, Range(0, 2**31 - 1)]  # learner generator; training env seeds from it
+
+
+@dataclass(frozen=True)
+class TrainSettings:
+    """``train:`` of ``conf/config.yaml``."""
+
+    episodes: Annotated[int, Range(0)]  # training episodes of all copies
+    batch_size: Annotated[int, Range(1)]  # B: copies played in parallel
+    progress_bar: bool  # tqdm bar on stderr
+    # episodes between training checkpoints, 0 = only on Ctrl-C; absent from the configs of runs
+    # written before checkpoints existed, which then have none
+    checkpoint_every: Annotated[int, Range(0)] = 0
+
+
+@dataclass(frozen=True)
+class EvalSettings:
+    """``eval:`` of ``conf/config.yaml``."""
+
+    episodes: Annotated[int, Range(1)]  # evaluation copy-episodes
+    batch_size: Annotated[int, Range(1)]  # copies per round
+    seed: Annotated[int, Range(0, SEED_STRIDE - 1)]  # copy b uses seed + b, below SEED_STRIDE
+
+
+@dataclass(frozen=True)
+class LimitSettings:
+    """``limits:`` of ``conf/config.yaml``; refused before any work when passed."""
+
+    # memory the learner may take (GB); null: MEMORY_FRACTION of the machine's memory
+    memory_gb: Annotated[float | None, Range(0, low_open=True)] = None
+
+
+@dataclass
+class CheckedConfig:
+    """A run config that passed :func:`validate_config`, with what it was built into.
+
+    Attributes:
+        learner_cls: The learner class.
+        hyperparameters: The learner's settings, checked (declared defaults not filled in).
+        system: The robot team.
+        params: The dynamics parameters (system layer, then run layer).
+        partition: The subG partition if the learner requires one, else None.
+        estimate: What the learner will need.
+    """
+
+    learner_cls: type[Learner]
+    hyperparameters: dict[str, Any]
+    system: RobotSystem
+    params: AuctionParams
+    partition: Partition | None
+    estimate: ResourceEstimate
+
+    @property
+    def active_tasks(self) -> np.ndarray | None:
+        """``[m, n]`` bool ``Lambda_i`` of the learner's envs, None = ``Gamma_i``."""
+        return self.partition.active_tasks(self.system) if self.partition is not None else None
+
+
+def _check(condition: bool, message: str) -> None:
+    if not condition:
+        raise ConfigError(message)
+
+
+def hydra_choice(group: str, default: str) -> str:
+    """The config-group choice of the current Hydra run (``learner`` -> ``greedy``) or default."""
+    if HydraConfig.initialized():
+        choice = HydraConfig.get().runtime.choices.get(group)
+        if choice:
+            return str(choice)
+    return default
+
+
+def _plain(cfg: DictConfig, key: str) -> Any:
+    """The content of ``cfg.<key>`` as plain Python, interpolations resolved; None if absent."""
+    try:
+        node = OmegaConf.select(cfg, key, throw_on_missing=True)
+        return OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) else node
+    except OmegaConfBaseException as err:
+        raise ConfigError(f"{key}: {type(err).__name__}: {err}".splitlines()[0]) from None
+
+
+def _section(cfg: DictConfig, key: str, declaration: type) -> dict[str, Any]:
+    values = _plain(cfg, key)
+    _check(values is not None, f"{key}: missing (see conf/config.yaml)")
+    return check_fields(declaration, values, key, require=True)
+
+
+def learner_class(cfg_learner: Any) -> type[Learner]:
+    """The learner class named by a ``conf/learner/*.yaml``, checked.
+
+    Args:
+        cfg_learner: The ``learner`` config group content.
+
+    Returns:
+        The :class:`Learner` subclass.
+
+    Raises:
+        ConfigError: if ``_target_``/``_partial_`` are missing, the class cannot be imported, is
+            not a :class:`Learner`, or its ``kind`` has no training loop.
+    """
+    _check(
+        OmegaConf.is_dict(cfg_learner) or isinstance(cfg_learner, dict),
+        f"learner: must be a learner config (conf/learner/*.yaml), got {cfg_learner!r}",
+    )
+    target = cfg_learner.get("_target_")
+    _check(target is not None, "learner: the learner config has no _target_")
+    _check(cfg_learner.get("_partial_") is True, f"learner {target}: set `_partial_: true`")
+    try:
+        cls = get_class(str(target))
+    except Exception as err:  # Hydra wraps import errors in several exception types
+        raise ConfigError(f"learner._target_: cannot import learner class {target!r}") from err
+    _check(
+        isinstance(cls, type) and issubclass(cls, Learner),
+        f"learner._target_: {target} is not a mrta_rl Learner",
+    )
+    kind = getattr(cls, "kind", None)
+    _check(
+        kind in TRAINING_LOOPS, f"{target}: unknown kind {kind!r} (known: {sorted(TRAINING_LOOPS)})"
+    )
+    return cls
+
+
+def training_loop(kind: str) -> Any:
+    """Import the training loop of a learner kind (see :data:`TRAINING_LOOPS`).
+
+    Raises:
+        ConfigError: if the loop's module is missing (e.g. no neural runner installed yet).
+    """
+    module_name, function = TRAINING_LOOPS[kind].split(":")
+    try:
+        module = importlib.import_module(module_name)
+    except ModuleNotFoundError as err:
+        raise ConfigError(
+            f"no training loop for learner kind {kind!r}: {module_name} is missing"
+        ) from err
+    return getattr(module, function)
+
+
+def memory_limit(limits: dict[str, Any]) -> int:
+    """Bytes a learner may take: ``limits.memory_gb``, else a fraction of the machine's memory."""
+    if limits.get("memory_gb") is not None:
+        return int(limits["memory_gb"] * 1e9)
+    return int(MEMORY_FRACTION * machine_memory())
+
+
+def validate_config(cfg: DictConfig) -> CheckedConfig:
+    """Check a composed run config, build system, params and partition, estimate the memory.
+
+    Args:
+        cfg: The composed run config (``conf/config.yaml``).
+
+    Returns:
+        The checked pieces; nothing has been written and no learner or env has been built.
+
+    Raises:
+        ConfigError: naming the key or culprit (``SystemConfigError`` for a system file).
+    """
+    check_fields(RunSettings, {"seed": _plain(cfg, "seed")}, "", require=True)
+    train = _section(cfg, "train", TrainSettings)
+    evaluation = _section(cfg, "eval", EvalSettings)
+    _check(
+        evaluation["seed"] + evaluation["batch_size"] <= SEED_STRIDE,
+        f"eval.seed: must be <= 2**32 - eval.batch_size, got {evaluation['seed']}",
+    )
+    limits = check_fields(LimitSettings, _plain(cfg, "limits") or {}, "limits")
+
+    cls = learner_class(cfg.get("learner"))
+    training_loop(cls.kind)  # fail now, not after building everything, if the loop is missing
+    hyperparameters = check_keywords(cls, _plain(cfg, "learner"), "learner")
+
+    system_cfg = _plain(cfg, "system")
+    _check(isinstance(system_cfg, dict), f"system: must be a system file, got {system_cfg!r}")
+    file = hydra_choice("system", str(system_cfg.get("name", "?")))
+    try:
+        system = build_system(system_cfg)
+        params = AuctionParams.merged(
+            check_fields(AuctionParams, system.env_overrides, "system.env", null_is_default=True),
+            _plain(cfg, "env") or {},
+        )
+    except SystemConfigError as err:
+        message = str(err)
+        raise SystemConfigError(
+            message if message.startswith("system") else f"system {file}: {message}"
+        ) from None
+    partition = subg_partition(system) if cls.requires_partition else None
+
+    try:
+        estimate = estimate_resources(
+            cls,
+            system,
+            params,
+            partition,
+            hyperparameters,
+            batch_size=train["batch_size"],
+            episodes=train["episodes"],
+            eval_batch_size=min(evaluation["batch_size"], evaluation["episodes"]),
+        )
+    except ConfigError:
+        raise
+    except ValueError as err:  # the env's own limits (AuctionEnv._check_limits)
+        raise ConfigError(f"env: {err}") from None
+    limit = memory_limit(limits)
+    refusal = estimate.refusal(limit)
+    name = hydra_choice("learner", cls.__name__)
+    where = f"{name} on system {file} ({system.n_robots} robots)"
+    if refusal is not None:
+        advice = estimate.advice
+        if estimate.reason is None:
+            advice += ", or raise limits.memory_gb"
+        raise ConfigError(f"{where}: {refusal}; {advice}")
+    if estimate.worst > limit:
+        logger.warning(
+            "%s: its tables could grow to %s if every state were met (limit %s); watch the memory",
+            where,
+            format_bytes(estimate.worst),
+            format_bytes(limit),
+        )
+    return CheckedConfig(cls, hyperparameters, system, params, partition, estimate)

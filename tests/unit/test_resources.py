@@ -1,0 +1,117 @@
+"""What a learner needs, estimated before any work (issue 9, defect 8)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mrta_rl.envs import AuctionEnv, AuctionParams
+from mrta_rl.learners.resources import (
+    BYTES_PER_WEIGHT,
+    conflict_free_joint_actions,
+    estimate_resources,
+    format_bytes,
+)
+from mrta_rl.learners.tabular.dql import DQLLearner
+from mrta_rl.learners.tabular.joint_actions import JointActions
+from mrta_rl.learners.tabular.subg_cql import SubGCQLLearner
+from mrta_rl.partition import subg_partition
+from mrta_rl.runners import build_run
+from mrta_rl.systems import random_system
+from tests.conftest import paper_system
+
+BIG = ["system=random", "system.n_robots=300", "debug=smoke"]
+
+
+@pytest.mark.parametrize(
+    ("learner", "message"),
+    [
+        (
+            "subg_cql",
+            r"subg_cql on system random \(300 robots\): sub-group G\d+ has \d\d robots: "
+            r"4\^\d\d joint actions do not fit in int64; use fewer robots per group",
+        ),
+        ("cql", r"the team has 300 robots: 4\^300 joint actions do not fit in int64"),
+        (
+            "qmix",
+            r"qmix on system random \(300 robots\): needs about [\d.]+ GB up front "
+            r"\(replay buffer .*more than the limit .*lower learner.buffer_size.*limits.memory_gb",
+        ),
+    ],
+)
+def test_large_teams_are_refused_before_any_work(learner, message, compose_cfg):
+    """Issue 9 defect 8: OverflowError (subg_cql, cql) or a 25 GB allocation (qmix) on main."""
+    cfg = compose_cfg([f"learner={learner}", *BIG])
+    with pytest.raises(ValueError, match=message):
+        build_run(cfg)
+
+
+def test_memory_limit_is_a_setting(compose_cfg):
+    cfg = compose_cfg(["learner=greedy", "system=system1", "debug=smoke", "limits.memory_gb=1e-6"])
+    with pytest.raises(ValueError, match=r"env copies .*limit of 1 kB.*limits.memory_gb"):
+        build_run(cfg)
+
+
+def test_estimate_needs_no_learner_and_gives_a_reason():
+    """The scaling study calls it directly: a structured answer, nothing built."""
+    system = random_system(300, 20, 0.15, seed=0)
+    partition = subg_partition(system)
+    estimate = estimate_resources(SubGCQLLearner, system, AuctionParams(), partition)
+    assert estimate.reason is not None and "do not fit in int64" in estimate.reason
+    assert estimate.refusal(10**12) == estimate.reason
+    fine = estimate_resources(SubGCQLLearner, paper_system("system2"), AuctionParams(), None)
+    assert fine.reason is None and fine.refusal(10**12) is None
+    assert fine.up_front < 10**6 <= fine.worst  # tables grow with the states met
+
+
+def test_conflict_free_joint_actions_match_the_table_enumeration():
+    # 2 robots, 3 slots, all valid: both wait (1), one bids (2 x 3), both on distinct slots (6)
+    assert conflict_free_joint_actions(2, 3) == 13
+    for m, K in [(1, 3), (3, 3), (4, 2), (5, 3)]:
+        masks = np.ones((1, m, K + 1), bool)
+        _, codes = JointActions(m, K + 1).enumerate_valid(masks, prune_conflicts=True)
+        assert conflict_free_joint_actions(m, K) == len(codes)
+
+
+def test_dense_dql_tables_are_counted_exactly(rng):
+    system = paper_system("system2")
+    estimate = estimate_resources(DQLLearner, system, AuctionParams())
+    learner = DQLLearner(env=AuctionEnv(system), rng=rng)
+    assert estimate.parts["tables"] == learner.q.nbytes + learner.visits.nbytes
+
+
+@pytest.mark.parametrize("learner", ["iql", "vdn", "qmix", "subg_dqn"])
+def test_network_and_transition_sizes_match_built_learners(learner, compose_cfg):
+    from torchrl.collectors import Collector
+
+    from mrta_rl.envs.torchrl_env import AuctionTorchRLEnv
+
+    cfg = compose_cfg([f"learner={learner}", "system=system1", "debug=smoke"])
+    run = build_run(cfg)
+    hp = run.learner.hp
+    estimate = estimate_resources(
+        type(run.learner), run.system, run.params, run.partition, dict(hp), batch_size=4
+    )
+    weights = sum(p.numel() for p in run.learner.networks.parameters())
+    assert estimate.parts["networks"] == weights * BYTES_PER_WEIGHT
+    env = AuctionTorchRLEnv(run.env, group_map=run.learner.group_map)
+    collector = Collector(
+        env,
+        run.learner.explore_policy,
+        frames_per_batch=run.env.batch_size,
+        total_frames=run.env.batch_size,
+        auto_register_policy_transforms=False,
+    )
+    data = run.learner.transitions(next(iter(collector)))
+    collector.shutdown()
+    measured = (
+        sum(
+            v.element_size() * v.numel() for v in data.values(include_nested=True, leaves_only=True)
+        )
+        / data.numel()
+    )
+    assert estimate.parts["replay buffer"] / hp["buffer_size"] == pytest.approx(measured, rel=0.03)
+
+
+def test_format_bytes():
+    assert format_bytes(25.7e9) == "25.7 GB" and format_bytes(512) == "512 B"
