@@ -27,6 +27,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 
 from mrta_rl.envs import AuctionEnv, AuctionParams
 from mrta_rl.learners import Learner
+from mrta_rl.metrics.resources import RunResources
 from mrta_rl.partition import Partition, subg_partition
 from mrta_rl.runners.checkpoint import (
     CHECKPOINT_DIR,
@@ -185,7 +186,8 @@ def build_run(cfg: DictConfig, name: str | None = None) -> RunSetup:
     params = AuctionParams.merged(
         system.env_overrides, OmegaConf.to_container(cfg.env, resolve=True)
     )
-    partition = subg_partition(system) if cls.requires_partition else None
+    bound = OmegaConf.select(cfg, "partition.max_group_size", default=None)
+    partition = subg_partition(system, bound) if cls.requires_partition else None
     active_tasks = partition.active_tasks(system) if partition is not None else None
     env = AuctionEnv(
         system,
@@ -220,6 +222,7 @@ def train(cfg: DictConfig, run_dir: Path | str | None = None) -> dict[str, Any]:
         ValueError: on an invalid config or run dir, before anything is written.
         SystemExit: with code 130 after Ctrl-C (a checkpoint is saved first).
     """
+    resources = RunResources().start()  # wall time and peak memory of the whole run (build to eval)
     resume = cfg.get("resume")
     if resume:
         run_dir = Path(resume)
@@ -287,6 +290,7 @@ def train(cfg: DictConfig, run_dir: Path | str | None = None) -> dict[str, Any]:
         **results,
         "train": train_info,
         "learning_space": {k: int(v) for k, v in run.learner.learning_space().items()},
+        "resources": resources.result(),
     }
     if run.partition is not None:
         write_json(run_dir / "partition.json", run.partition.to_json())
