@@ -284,7 +284,7 @@ class SweepPanel:
         ylabel: Y axis label.
         log_x: Log-scale x axis (team sizes 10 to 200).
         log_y: Log-scale y axis.
-        reference: A horizontal reference line (1.0 = greedy's return), or None.
+        reference: A horizontal reference line (0.0 = greedy's return), or None.
     """
 
     title: str
@@ -365,8 +365,8 @@ def profile_figure(
         ax.plot(profile.tau, profile.fraction, color=color, label=name, lw=1.5)
         if not np.isnan(profile.low).all():
             ax.fill_between(profile.tau, profile.low, profile.high, color=color, alpha=0.15, lw=0)
-    ax.axvline(1.0, color="black", ls="--", lw=1, label="greedy's return")
-    ax.set_xlabel("team return / greedy's team return (tau)")
+    ax.axvline(0.0, color="black", ls="--", lw=1, label="greedy's return")
+    ax.set_xlabel("team return relative to greedy's, (R - G) / |G| (tau)")
     ax.set_ylabel("fraction of runs with score > tau")
     ax.set_ylim(-0.02, 1.02)
     ax.set_title("Performance profiles (95% stratified bootstrap bands)", fontsize=11)

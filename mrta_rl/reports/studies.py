@@ -14,8 +14,10 @@
 
 A *series* is a learner with its partition bound (``subG-CQL (g=4)``); a *task* (the stratum of
 the bootstrap) is one robot team under one setting: the system, the values of the swept
-dimensions and the team seed ``system.seed``. A run's *score* is its evaluation team return
-divided by the greedy auction's on the same evaluation task streams.
+dimensions and the team seed ``system.seed``. A run's *score* is its gain over the greedy auction
+on the same evaluation task streams, relative to greedy's: ``(R - G) / |G|`` (0 = greedy's
+return, 0.1 = 10 % better). A plain ratio ``R / G`` would flip its meaning where greedy's return
+is negative, as on large random teams where greedy's robots collide on the same tasks.
 """
 
 from __future__ import annotations
@@ -70,7 +72,7 @@ class StudyPoint:
         seed: Run seed.
         settings: Swept dimension -> value in this run.
         team_seed: ``system.seed`` of a random team (None for a table system).
-        score: Team return / greedy's team return (NaN if refused or greedy earned nothing).
+        score: ``(R - G) / |G|``, team return relative to greedy's (NaN if refused or G = 0).
         team_return: Evaluation team return per episode (NaN if refused).
         learning_space: ``analytic`` / ``visited`` / ``parameters`` of metrics.json.
         wall_s: Wall time of the run (``resources.wall_s``, else ``train.wall_s``).
@@ -114,6 +116,7 @@ def _point(
     metrics = metrics or {}
     ret = ((metrics.get("eval") or {}).get("team_return") or {}).get("mean")
     greedy = ((metrics.get("baseline_greedy") or {}).get("team_return") or {}).get("mean")
+    greedy = None if greedy is None else float(greedy)
     resources = metrics.get("resources") or {}
     wall = resources.get("wall_s", (metrics.get("train") or {}).get("wall_s"))
     return StudyPoint(
@@ -125,7 +128,7 @@ def _point(
         team_seed=config_value(config, TEAM_SEED_KEY)
         if "n_robots" in (config.get("system") or {})
         else None,
-        score=float(ret) / float(greedy) if ret is not None and greedy else math.nan,
+        score=(float(ret) - greedy) / abs(greedy) if ret is not None and greedy else math.nan,
         team_return=math.nan if ret is None else float(ret),
         learning_space={k: int(v) for k, v in (metrics.get("learning_space") or {}).items()},
         wall_s=math.nan if wall is None else float(wall),
@@ -324,9 +327,9 @@ def dimension_figures(
             f"{system_label(system)}: team return relative to greedy",
             panel([p for p in finished if p.system == system], lambda p: p.score),
             label,
-            "team return / greedy's (mean, 95% CI)",
+            "(R - greedy) / |greedy| (mean, 95% CI)",
             log_x=log_x,
-            reference=1.0,
+            reference=0.0,
         )
         for system in systems
     ]
@@ -459,7 +462,7 @@ def field_statistics_markdown(
     ]
     md = [
         tables.markdown_table(
-            ["learner", "tasks", "runs", "IQM of return / greedy [95% CI]"], rows
+            ["learner", "tasks", "runs", "IQM of (R - greedy) / |greedy| [95% CI]"], rows
         ),
         "",
     ]
@@ -559,7 +562,8 @@ def study_sections(runs: Sequence[RunRecord], inputs: Sequence[Path], out: Path)
     md = [
         "## Statistics as the field reports them (IQM, probability of improvement)",
         "",
-        "Score of a run = its evaluation team return / greedy's on the same task streams. "
+        "Score of a run = (R - G) / |G|, its evaluation team return R relative to greedy's G on "
+        "the same task streams (0 = greedy, 0.1 = 10 % better). "
         "IQM = interquartile mean over the runs of all tasks (a task = a system under one "
         "setting and team seed); 95 % stratified bootstrap intervals (runs resampled within each "
         f"task, {BOOTSTRAP_REPS} resamples, percentile method; Agarwal et al. 2021, as rliable). "
