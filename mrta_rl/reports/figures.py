@@ -211,8 +211,7 @@ def curve_figure(
     for name, curve in curves.items():
         color = colors[name]
         label = f"{learner_label(name)} ({curve.seeds} seed{'s' if curve.seeds != 1 else ''})"
-        ax.plot(curve.env_ticks, curve.mean, color=color, label=label, lw=1.5)
-        ax.fill_between(curve.env_ticks, curve.low, curve.high, color=color, alpha=0.2, lw=0)
+        _line_with_band(ax, curve.env_ticks, curve, color, label, alpha=0.2)
     if greedy is not None and greedy.n:
         ax.axhline(greedy.mean, color="black", ls="--", lw=1, label="greedy (evaluation)")
     ax.set_xlabel("training env ticks (ticks x parallel copies)")
@@ -272,6 +271,25 @@ def team_return_figure(
     return path
 
 
+def _line_with_band(
+    ax: Any,
+    x: Any,
+    data: Any,
+    color: Any,
+    label: str,
+    *,
+    value: str = "mean",
+    style: str = "-",
+    marker: str | None = None,
+    alpha: float = 0.15,
+) -> None:
+    """A line (``data.<value>``) and its interval band (``data.low`` to ``data.high``)."""
+    ax.plot(x, getattr(data, value), style, marker=marker, ms=3, color=color, label=label, lw=1.5)
+    low, high = np.asarray(data.low, dtype=float), np.asarray(data.high, dtype=float)
+    if not np.isnan(low).all():
+        ax.fill_between(x, low, high, color=color, alpha=alpha, lw=0)
+
+
 @dataclass(frozen=True)
 class SweepPanel:
     """One panel of a sweep figure: a value per series against a swept parameter.
@@ -321,9 +339,15 @@ def sweep_figure(
     axes = fig.subplots(1, len(panels), squeeze=False)[0]
     for ax, panel in zip(axes, panels, strict=True):
         for name, line in panel.lines.items():
-            color = colors.get(name, "gray")
-            ax.plot(line.x, line.mean, _line_style(name), marker="o", ms=3, color=color, label=name)
-            ax.fill_between(line.x, line.low, line.high, color=color, alpha=0.15, lw=0)
+            _line_with_band(
+                ax,
+                line.x,
+                line,
+                colors.get(name, "gray"),
+                name,
+                style=_line_style(name),
+                marker="o",
+            )
         if panel.reference is not None:
             ax.axhline(panel.reference, color="black", ls="--", lw=1, label="greedy")
         if panel.log_x:
@@ -361,10 +385,7 @@ def profile_figure(
     fig = Figure(figsize=(7.5, 4.6), dpi=DPI)
     ax = fig.add_subplot()
     for name, profile in profiles.items():
-        color = colors.get(name, "gray")
-        ax.plot(profile.tau, profile.fraction, color=color, label=name, lw=1.5)
-        if not np.isnan(profile.low).all():
-            ax.fill_between(profile.tau, profile.low, profile.high, color=color, alpha=0.15, lw=0)
+        _line_with_band(ax, profile.tau, profile, colors.get(name, "gray"), name, value="fraction")
     ax.axvline(0.0, color="black", ls="--", lw=1, label="greedy's return")
     ax.set_xlabel("team return relative to greedy's, (R - G) / |G| (tau)")
     ax.set_ylabel("fraction of runs with score > tau")

@@ -360,24 +360,21 @@ def dimension_figures(
         out / f"{stem}_space.png",
         colors,
     )
+    costs = (
+        ("wall time per run", "wall_s", "seconds"),
+        ("peak memory per run", "peak_rss_mb", "peak RSS (MiB)"),
+    )
     written[f"{stem}_cost"] = figures.sweep_figure(
         [
             figures.SweepPanel(
-                "wall time per run",
-                panel(finished, lambda p: p.wall_s),
+                title,
+                panel(finished, lambda p, key=key: getattr(p, key)),
                 label,
-                "seconds",
+                unit,
                 log_x=log_x,
                 log_y=True,
-            ),
-            figures.SweepPanel(
-                "peak memory per run",
-                panel(finished, lambda p: p.peak_rss_mb),
-                label,
-                "peak RSS (MiB)",
-                log_x=log_x,
-                log_y=True,
-            ),
+            )
+            for title, key, unit in costs
         ],
         out / f"{stem}_cost.png",
         colors,
