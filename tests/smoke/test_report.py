@@ -73,6 +73,7 @@ def test_report_files_and_numbers(sweep, tmp_path):
     assert {p.stem for p in pngs} == {
         "ctr_system1_L", "ctr_system1_H", "ctr_system2_L", "ctr_system2_H", "itr_system1",
         "itr_system2", "team_return",  # fixed policies do not train: no learning curves
+        "performance_profile",  # IQM / profiles of the return relative to greedy
     }
     for png in pngs:
         assert png.read_bytes()[:8] == PNG_MAGIC and png.stat().st_size > 10_000
