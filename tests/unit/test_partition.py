@@ -439,3 +439,30 @@ def test_script_prints_only_json(tmp_path):
         cwd=tmp_path, capture_output=True, text=True, check=True, timeout=120,
     )  # fmt: skip
     assert json.loads(bounded.stdout) == subg_partition(load_system("system2"), 2).to_json()
+
+
+@pytest.mark.parametrize(("bound", "disjoint"), [(2, True), (1, False)])
+def test_training_run_uses_the_bound(bound, disjoint, compose_cfg, tmp_path):
+    # partition.max_group_size reaches build_run: subg_greedy on System-II plays on the bounded
+    # partition and writes it. g = 2 keeps every task type in one sub-group (R5 and R8 give T2 to
+    # {R2, R6}); with g = 1 the robots anchored to T2 share it, and the return is not split.
+    from mrta_rl.runners import train
+
+    cfg = compose_cfg(
+        [
+            "learner=subg_greedy",
+            "system=system2",
+            "debug=smoke",
+            f"partition.max_group_size={bound}",
+        ]
+    )
+    metrics = train(cfg, run_dir=tmp_path)
+    expected = subg_partition(load_system("system2"), bound)
+    assert json.loads((tmp_path / "partition.json").read_text()) == expected.to_json()
+    assert max(len(robots) for robots in expected.groups.values()) == bound
+    assert expected.types_disjoint() is disjoint
+    split = metrics["eval"].get("return_by_group")
+    assert (split is not None) is disjoint
+    if disjoint:
+        assert list(split) == list(expected.groups)
+    assert metrics["resources"]["peak_rss_mb"] > 0 and metrics["resources"]["wall_s"] > 0
