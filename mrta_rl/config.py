@@ -11,9 +11,10 @@ dataclass (``AuctionParams``, the run settings), annotated with its type and, th
     prior: Annotated[str | None, Choices("spread", "greedy")] = None
 
 Supported types: ``bool``, ``int`` (not bool), ``float`` (int accepted, finite), ``str``,
-``Literal[...]``, ``X | None``, fixed-length ``tuple[...]`` (a list or tuple in a config; a
-``Range`` applies to each item). Any other annotation is not a hyperparameter's (the runner supplies
-``env``, ``rng``, ``partition``) and is not checked.
+``Literal[...]``, ``X | None``, fixed-length ``tuple[...]`` and any-length ``tuple[X, ...]`` (a
+list or tuple in a config; a ``Range`` or ``Choices`` applies to each item). Any other
+annotation is not a hyperparameter's (the runner supplies ``env``, ``rng``, ``partition``) and
+is not checked.
 
 :func:`check_value` checks one value, :func:`check_keywords` a config mapping against a class's
 ``__init__`` (following ``**kwargs`` up the base classes) or a function, :func:`check_fields`
@@ -152,9 +153,15 @@ def is_checked(annotation: Any) -> bool:
     if typing.get_origin(tp) is Literal or tp in (bool, int, float, str):
         return True
     if typing.get_origin(tp) is tuple:
-        args = typing.get_args(tp)
-        return bool(args) and Ellipsis not in args and all(is_checked(a) for a in args)
+        args = [a for a in typing.get_args(tp) if a is not Ellipsis]
+        return bool(args) and all(is_checked(a) for a in args)
     return False
+
+
+def _is_list(tp: Any) -> bool:
+    """``tuple[X, ...]``: a list of any length (a Range or Choices applies to each item)."""
+    args = typing.get_args(tp)
+    return typing.get_origin(tp) is tuple and len(args) == 2 and args[1] is Ellipsis
 
 
 def describe(annotation: Any) -> str:
@@ -167,6 +174,9 @@ def describe(annotation: Any) -> str:
         inner = [m for m in members if m is not type(None)]
         core = describe(_rebuild(inner, extras))
         return f"{core} or null" if type(None) in members else core
+    if _is_list(tp):
+        item = typing.get_args(tp)[0]
+        return "a list, each item " + describe(Annotated[(item, *extras)] if extras else item)
     if choices:
         return "one of " + ", ".join(repr(c) for c in choices[0].values)
     if typing.get_origin(tp) is Literal:
@@ -224,6 +234,16 @@ def check_value(key: str, value: Any, annotation: Any) -> Any:
             except ConfigError:
                 continue
         raise _fail(key, annotation, value)
+    if _is_list(tp):
+        item = typing.get_args(tp)[0]
+        if not isinstance(value, (list, tuple)):
+            raise _fail(key, annotation, value)
+        try:
+            return tuple(
+                check_value(key, v, Annotated[(item, *extras)] if extras else item) for v in value
+            )
+        except ConfigError:
+            raise _fail(key, annotation, value) from None
     for extra in extras:
         if isinstance(extra, Choices) and value not in extra.values:
             raise _fail(key, annotation, value)

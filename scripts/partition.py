@@ -1,6 +1,6 @@
 """Print the subG-CQL partition (paper §4) of a system.
 
-Usage: ``python scripts/partition.py system=system1 [format=json]``.
+Usage: ``python scripts/partition.py system=system1 [format=json] [partition.max_group_size=4]``.
 """
 
 from __future__ import annotations
@@ -19,7 +19,8 @@ from mrta_rl.systems import build_system
 @hydra.main(config_path="../conf", config_name="partition", version_base=None)
 @cli.job
 def main(cfg: DictConfig) -> None:
-    partition = subg_partition(build_system(OmegaConf.to_container(cfg.system, resolve=True)))
+    system = build_system(OmegaConf.to_container(cfg.system, resolve=True))
+    partition = subg_partition(system, cfg.partition.max_group_size)
     if cfg.format == "json":
         print(json.dumps(partition.to_json()))
     elif cfg.format == "table":

@@ -61,6 +61,16 @@ class GreedyLearner(Learner):
         return lowest_valid_bid(mask[:, :, 1:])
 
 
+class SubGGreedyLearner(GreedyLearner):
+    """Greedy on the subG partition: the plain auction, each robot bidding only for ``Lambda_i``.
+
+    The switch-cost study (issue 11) compares it with greedy on the whole team: the partition's
+    specialization can only pay when switching task types costs time (``env.switch_ticks``).
+    """
+
+    requires_partition: ClassVar[bool] = True
+
+
 class RandomLearner(Learner):
     """Random bidding (spec "Fixed policies"): uniform over the ``v`` valid bids plus waiting.
 

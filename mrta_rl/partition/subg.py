@@ -30,6 +30,18 @@ task type that lost all its robots goes back to the sub-group whose capable robo
 it most) and the deletion of empty sub-groups, which are then renumbered ``G1, G2, ...`` in
 order of creation.
 
+**Size bound (issue 11, not in the paper).** With ``max_group_size=g`` a sub-group of more than
+``g`` robots is split after step 4 (:func:`_split_group`): every robot stays with its *anchor*,
+the kept task type it depends on most (largest ``w_ij``, ties to the lowest type), so the pairs
+that are cut are each robot's weaker ones. The robots anchored to one type form a class (strongest
+first); a class larger than ``g`` is cut into pieces of ``g`` robots, and the pieces are packed
+first-fit decreasing into chunks of at most ``g`` robots. A chunk handles its robots' anchors; a
+type of the sub-group that is nobody's anchor goes to the chunk whose robots keeping it depend on
+it most (sum of ``w_ij``, ties to the lowest chunk). So every chunk has at most ``g`` robots, every
+robot keeps at least its anchor, every task type keeps a robot, and a task type is shared by
+several sub-groups only when more than ``g`` robots are anchored to it. The chunks replace the
+sub-group in the numbering. Without the bound (``None``, the default) nothing changes.
+
 System-I hangs on two exact ties (R4: 1/6 against 1/6, R1: 1/9 against 1/9), so weights and
 dependencies are exact ``fractions.Fraction`` values. Willingness values are floats; each is
 converted with ``Fraction(d).limit_denominator(10**6)``, i.e. to the closest fraction with a
@@ -77,12 +89,21 @@ class Partition:
         return {name: list(robots) for name, robots in self.groups.items()}
 
     def group_tasks(self) -> dict[GroupName, list[TaskType]]:
-        """Task types handled by each sub-group, in numeric order (each type is in exactly one)."""
+        """Task types handled by each sub-group, in numeric order.
+
+        Without a size bound each type is in exactly one sub-group; with one, a type more than
+        ``max_group_size`` robots are anchored to is shared (see :meth:`types_disjoint`).
+        """
         out = {}
         for name, robots in self.groups.items():
             tasks = {t for kept in robots.values() for t in kept}
             out[name] = sorted(tasks, key=natural_key)
         return out
+
+    def types_disjoint(self) -> bool:
+        """True if every task type is handled by exactly one sub-group (always without a bound)."""
+        types = [t for tasks in self.group_tasks().values() for t in tasks]
+        return len(types) == len(set(types))
 
     def active_tasks(self, system: RobotSystem) -> np.ndarray:
         """New task sets ``Lambda_i`` as a mask aligned with ``system``.
@@ -134,11 +155,13 @@ class Partition:
         }
 
 
-def subg_partition(system: RobotSystem) -> Partition:
+def subg_partition(system: RobotSystem, max_group_size: int | None = None) -> Partition:
     """Partition a robot system into subG-CQL sub-groups (paper §4, spec docs/spec/partition.md).
 
     Args:
         system: The robot team; ``M`` is ``system.rtm`` and ``D`` is ``system.willingness``.
+        max_group_size: ``g``: split sub-groups of more than ``g`` robots (module docstring,
+            "Size bound"); None = the paper's rule, unbounded.
 
     Returns:
         The partition.
@@ -146,7 +169,9 @@ def subg_partition(system: RobotSystem) -> Partition:
     Raises:
         ValueError: on invalid input, naming the robot or task type at fault.
     """
-    return partition_matrices(system.rtm, system.willingness, system.robots, system.task_types)
+    return partition_matrices(
+        system.rtm, system.willingness, system.robots, system.task_types, max_group_size
+    )
 
 
 def partition_matrices(
@@ -154,6 +179,7 @@ def partition_matrices(
     willingness: Any | None = None,
     robots: Sequence[RobotId] | None = None,
     task_types: Sequence[TaskType] | None = None,
+    max_group_size: int | None = None,
 ) -> Partition:
     """Run the subG-CQL partition on a raw relation matrix (spec docs/spec/partition.md, steps 1-5).
 
@@ -163,6 +189,8 @@ def partition_matrices(
             ``m_ij = 0`` are ignored. Defaults to all ones.
         robots: Robot ids, default ``R1..Rm``.
         task_types: Task type ids in numeric order, default ``T1..Tn``.
+        max_group_size: ``g``, at most this many robots per sub-group (module docstring, "Size
+            bound"); None = unbounded, the paper's rule.
 
     Returns:
         The partition.
@@ -170,8 +198,16 @@ def partition_matrices(
     Raises:
         ValueError: on a malformed matrix, naming the robot or task type at fault: an entry of
             ``M`` that is not 0/1, a willingness outside (0, 1], a robot with no task type, or a
-            task type no robot can do.
+            task type no robot can do; or on a ``max_group_size`` that is not an integer >= 1.
     """
+    if max_group_size is not None and (
+        isinstance(max_group_size, bool)
+        or not isinstance(max_group_size, int | np.integer)
+        or max_group_size < 1
+    ):
+        raise ValueError(
+            f"partition.max_group_size must be an integer >= 1 or null, got {max_group_size!r}"
+        )
     relation, d_exact, robots, task_types = _validate(rtm, willingness, robots, task_types)
     m, n = relation.shape
     capable = [[j for j in range(n) if relation[i, j]] for i in range(m)]  # Gamma_i as indices
@@ -243,16 +279,83 @@ def partition_matrices(
             if relation[i, j] and chosen[i] == g:
                 kept[i].add(j)
 
-    # spec step 5: delete empty sub-groups, renumber the rest G1.. in order of creation
+    # spec step 5: delete empty sub-groups, renumber the rest G1.. in order of creation; with a
+    # size bound an oversized sub-group is replaced by its chunks (module docstring)
     groups: dict[GroupName, dict[RobotId, list[TaskType]]] = {}
     for g in range(n_created):
         members = [i for i in range(m) if chosen[i] == g]
-        if members:
-            groups[f"G{len(groups) + 1}"] = {
-                robots[i]: [task_types[j] for j in sorted(kept[i])] for i in members
-            }
+        chunks = [members]
+        if max_group_size is not None and len(members) > max_group_size:
+            chunks = _split_group(members, kept, weight, int(max_group_size))
+            logger.debug(
+                "bound: sub-group %d (%d robots) split into %s",
+                g + 1,
+                len(members),
+                [len(c) for c in chunks],
+            )
+        for chunk in chunks:
+            if chunk:
+                groups[f"G{len(groups) + 1}"] = {
+                    robots[i]: [task_types[j] for j in sorted(kept[i])] for i in chunk
+                }
     dropped = [(robots[i], task_types[j]) for i in range(m) for j in capable[i] if j not in kept[i]]
     return Partition(groups=groups, dropped=dropped)
+
+
+def _split_group(
+    members: list[int],
+    kept: list[set[int]],
+    weight: dict[tuple[int, int], Fraction],
+    bound: int,
+) -> list[list[int]]:
+    """Split one oversized sub-group into chunks of at most ``bound`` robots (size bound rule).
+
+    Narrows ``kept`` of the members in place to the task types of their chunk.
+
+    Args:
+        members: Robot indices of the sub-group, in system order.
+        kept: ``Lambda_i`` per robot (task indices), after step 4.
+        weight: The fixed ``w_ij`` of step 1.
+        bound: ``g``.
+
+    Returns:
+        The chunks, each a list of robot indices in system order.
+    """
+    # each robot's anchor: the kept type it depends on most (largest w_ij, ties to the lowest)
+    anchor = {i: min(kept[i], key=lambda j, i=i: (-weight[i, j], j)) for i in members}
+    classes: dict[int, list[int]] = {}
+    for i in sorted(members, key=lambda i: (-weight[i, anchor[i]], i)):  # strongest first
+        classes.setdefault(anchor[i], []).append(i)
+    # a class larger than the bound is cut into pieces of `bound` robots, strongest first
+    pieces = [
+        (j, robots_[k : k + bound])
+        for j, robots_ in classes.items()
+        for k in range(0, len(robots_), bound)
+    ]
+    pieces.sort(key=lambda piece: (-len(piece[1]), piece[0]))  # first-fit decreasing
+    chunks: list[list[int]] = []
+    chunk_types: list[set[int]] = []
+    for j, piece in pieces:
+        for c, chunk in enumerate(chunks):
+            if len(chunk) + len(piece) <= bound:
+                chunk.extend(piece)
+                chunk_types[c].add(j)
+                break
+        else:
+            chunks.append(list(piece))
+            chunk_types.append({j})
+    # a type that is nobody's anchor goes to the chunk whose robots keeping it depend on it most
+    for j in sorted({j for i in members for j in kept[i]} - set(anchor.values())):
+        score = {
+            c: sum((weight[i, j] for i in chunk if j in kept[i]), Fraction(0))
+            for c, chunk in enumerate(chunks)
+        }
+        best = min((c for c in score if score[c] > 0), key=lambda c: (-score[c], c))
+        chunk_types[best].add(j)
+    for chunk, types in zip(chunks, chunk_types, strict=True):
+        for i in chunk:
+            kept[i] &= types
+    return [sorted(chunk) for chunk in chunks]
 
 
 def format_partition(partition: Partition) -> str:

@@ -33,6 +33,7 @@ LEARNER_LABELS: dict[str, str] = {
     "random": "random",
     "high_only": "high-only",
     "subg_reserve": "subG-reserve",
+    "subg_greedy": "subG-greedy",
 }
 SYSTEM_LABELS: dict[str, str] = {"system1": "System-I", "system2": "System-II"}
 PRIORITY_LABELS: dict[str, str] = {"L": "low-priority", "H": "high-priority"}

@@ -11,8 +11,9 @@ may be noise). Vague words get a stated threshold: "a bit lower" = lower by at m
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -359,3 +360,56 @@ def _claim_system2_larger(summaries: dict[tuple[str, str], CellSummary]) -> Clai
             "needs a tabular learner on both system1 and system2",
         )
     return ClaimResult("space_system2_larger", statement, "all", _verdict(ok), "", "; ".join(parts))
+
+
+@dataclass(frozen=True)
+class ClaimAlong:
+    """Where one claim holds along a swept parameter (``env.switch_ticks``, team size...).
+
+    Attributes:
+        claim: Claim id.
+        statement: The paper's claim.
+        system: System name (or ``"all"``).
+        holds_at: Values of the parameter where it holds, ascending.
+        fails_at: Values where it does not hold.
+        not_evaluable_at: Values where a learner it compares is missing.
+    """
+
+    claim: str
+    statement: str
+    system: str
+    holds_at: tuple[Any, ...]
+    fails_at: tuple[Any, ...]
+    not_evaluable_at: tuple[Any, ...]
+
+
+def claims_along(
+    summaries_by_value: Mapping[Any, dict[tuple[str, str], CellSummary]],
+) -> list[ClaimAlong]:
+    """Check every claim at every value of a swept parameter.
+
+    Args:
+        summaries_by_value: Parameter value -> the summaries of the runs made with that value.
+
+    Returns:
+        One row per claim and system, in :func:`check_claims` order, listing the values where the
+        claim holds, does not hold, and cannot be evaluated.
+    """
+    verdicts: dict[tuple[str, str], dict[str, list[Any]]] = {}
+    statements: dict[str, str] = {}
+    for value in sorted(summaries_by_value):
+        for result in check_claims(summaries_by_value[value]):
+            statements[result.claim] = result.statement
+            cell = verdicts.setdefault((result.claim, result.system), {})
+            cell.setdefault(result.verdict, []).append(value)
+    return [
+        ClaimAlong(
+            claim,
+            statements[claim],
+            system,
+            tuple(cell.get(HOLDS, ())),
+            tuple(cell.get(FAILS, ())),
+            tuple(cell.get(NOT_EVALUABLE, ())),
+        )
+        for (claim, system), cell in verdicts.items()
+    ]

@@ -35,9 +35,10 @@ from typing import Any
 
 from omegaconf import OmegaConf
 
+from mrta_rl.runners.checkpoint import METRICS_FILE, REFUSED_FILE
+
 logger = logging.getLogger(__name__)
 
-METRICS_FILE = "metrics.json"
 CURVE_FILE = "curve.csv"
 BASIC_SWEEPER = "hydra._internal.core_plugins.basic_sweeper.BasicSweeper"
 # settings that do not change what a run computes: never part of a configuration's name
@@ -240,6 +241,18 @@ def natural_key(text: str) -> tuple[Any, ...]:
     )
 
 
+def refusal_reason(run_dir: Path) -> str | None:
+    """``"refused: <reason>"`` if the run was refused up front (its ``refused.json``), else None."""
+    path = run_dir / REFUSED_FILE
+    if not path.is_file():
+        return None
+    try:
+        reason = json.loads(path.read_text()).get("reason", "no reason given")
+    except (json.JSONDecodeError, AttributeError):
+        reason = f"unreadable {REFUSED_FILE}"
+    return f"refused: {reason}"
+
+
 def expected_sweep_jobs(multirun_yaml: Path) -> list[list[str]] | None:
     """The job list Hydra's BasicSweeper built for a multirun, in job-number order.
 
@@ -361,7 +374,8 @@ def collect_runs(inputs: Iterable[Path | str]) -> Collection:
             reason = (
                 "never started (no job dir)"
                 if job_dir is None
-                else "failed or unfinished: no metrics.json (see train.log, sweep output)"
+                else refusal_reason(job_dir)
+                or "failed or unfinished: no metrics.json (see train.log, sweep output)"
             )
             collection.missing.append(
                 MissingJob(learner, system, seed, tuple(job), job_dir, reason)

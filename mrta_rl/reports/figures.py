@@ -6,6 +6,8 @@
 * Learning curves: training team return per episode against training env ticks, the mean over
   seeds with its 95 % band, and the greedy baseline's evaluation return as a reference line.
 * Team return of every learner per system next to the greedy baseline.
+* Studies (issue 11): a value per learner against a swept parameter (team size, task-switch
+  cost), and performance profiles of the greedy-normalized return (issue 12).
 
 Figures are built on :class:`matplotlib.figure.Figure` directly (no pyplot state, no GUI
 backend), so the report can be made in a headless process or a parallel job.
@@ -15,10 +17,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from matplotlib.figure import Figure
+from matplotlib.ticker import NullFormatter
 
 from mrta_rl.reports.aggregate import (
     PRIORITY_LABELS,
@@ -206,8 +211,7 @@ def curve_figure(
     for name, curve in curves.items():
         color = colors[name]
         label = f"{learner_label(name)} ({curve.seeds} seed{'s' if curve.seeds != 1 else ''})"
-        ax.plot(curve.env_ticks, curve.mean, color=color, label=label, lw=1.5)
-        ax.fill_between(curve.env_ticks, curve.low, curve.high, color=color, alpha=0.2, lw=0)
+        _line_with_band(ax, curve.env_ticks, curve, color, label, alpha=0.2)
     if greedy is not None and greedy.n:
         ax.axhline(greedy.mean, color="black", ls="--", lw=1, label="greedy (evaluation)")
     ax.set_xlabel("training env ticks (ticks x parallel copies)")
@@ -262,6 +266,133 @@ def team_return_figure(
         ax.set_title(f"{system_label(system)} ({_seed_note(cells)})", fontsize=10)
         ax.grid(axis="y", alpha=0.3)
         ax.set_axisbelow(True)
+    fig.tight_layout()
+    fig.savefig(path)
+    return path
+
+
+def _line_with_band(
+    ax: Any,
+    x: Any,
+    data: Any,
+    color: Any,
+    label: str,
+    *,
+    value: str = "mean",
+    style: str = "-",
+    marker: str | None = None,
+    alpha: float = 0.15,
+) -> None:
+    """A line (``data.<value>``) and its interval band (``data.low`` to ``data.high``)."""
+    ax.plot(x, getattr(data, value), style, marker=marker, ms=3, color=color, label=label, lw=1.5)
+    low, high = np.asarray(data.low, dtype=float), np.asarray(data.high, dtype=float)
+    if not np.isnan(low).all():
+        ax.fill_between(x, low, high, color=color, alpha=alpha, lw=0)
+
+
+@dataclass(frozen=True)
+class SweepPanel:
+    """One panel of a sweep figure: a value per series against a swept parameter.
+
+    Attributes:
+        title: Panel title.
+        lines: Series -> line (an object with ``x``, ``mean``, ``low``, ``high`` lists). A series
+            named ``"... (visited)"`` is drawn dashed, ``"... (parameters)"`` dotted.
+        xlabel: X axis label.
+        ylabel: Y axis label.
+        log_x: Log-scale x axis (team sizes 10 to 200).
+        log_y: Log-scale y axis.
+        reference: A horizontal reference line (0.0 = greedy's return), or None.
+    """
+
+    title: str
+    lines: dict[str, Any]
+    xlabel: str
+    ylabel: str
+    log_x: bool = False
+    log_y: bool = False
+    reference: float | None = None
+
+
+def _line_style(name: str) -> str:
+    if name.endswith("(visited)"):
+        return "--"
+    if name.endswith("(parameters)"):
+        return ":"
+    return "-"
+
+
+def sweep_figure(
+    panels: Sequence[SweepPanel], path: Path, colors: dict[str, tuple[float, float, float, float]]
+) -> Path:
+    """Lines with 95 % bands against a swept parameter (team size, switch cost), one panel each.
+
+    Args:
+        panels: The panels, side by side.
+        path: PNG to write.
+        colors: Series -> color.
+
+    Returns:
+        ``path``.
+    """
+    fig = Figure(figsize=(max(6.5, 5.2 * len(panels)), 4.8), dpi=DPI)
+    axes = fig.subplots(1, len(panels), squeeze=False)[0]
+    for ax, panel in zip(axes, panels, strict=True):
+        for name, line in panel.lines.items():
+            _line_with_band(
+                ax,
+                line.x,
+                line,
+                colors.get(name, "gray"),
+                name,
+                style=_line_style(name),
+                marker="o",
+            )
+        if panel.reference is not None:
+            ax.axhline(panel.reference, color="black", ls="--", lw=1, label="greedy")
+        if panel.log_x:
+            ax.set_xscale("log")
+            xs = sorted({x for line in panel.lines.values() for x in line.x})
+            if xs:
+                ax.set_xticks(xs, [f"{x:g}" for x in xs])
+                ax.xaxis.set_minor_formatter(NullFormatter())  # only the swept values labelled
+        if panel.log_y:
+            ax.set_yscale("log")
+        ax.set_xlabel(panel.xlabel)
+        ax.set_ylabel(panel.ylabel)
+        ax.set_title(panel.title, fontsize=10)
+        ax.grid(alpha=0.3)
+        if panel.lines:
+            ax.legend(fontsize=7, loc="best")
+    fig.tight_layout()
+    fig.savefig(path)
+    return path
+
+
+def profile_figure(
+    profiles: dict[str, Any], path: Path, colors: dict[str, tuple[float, float, float, float]]
+) -> Path:
+    """Performance profiles: fraction of runs with a score above tau, 95 % bootstrap band.
+
+    Args:
+        profiles: Series -> :class:`~mrta_rl.reports.stats.Profile`.
+        path: PNG to write.
+        colors: Series -> color.
+
+    Returns:
+        ``path``.
+    """
+    fig = Figure(figsize=(7.5, 4.6), dpi=DPI)
+    ax = fig.add_subplot()
+    for name, profile in profiles.items():
+        _line_with_band(ax, profile.tau, profile, colors.get(name, "gray"), name, value="fraction")
+    ax.axvline(0.0, color="black", ls="--", lw=1, label="greedy's return")
+    ax.set_xlabel("team return relative to greedy's, (R - G) / |G| (tau)")
+    ax.set_ylabel("fraction of runs with score > tau")
+    ax.set_ylim(-0.02, 1.02)
+    ax.set_title("Performance profiles (95% stratified bootstrap bands)", fontsize=11)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="best")
     fig.tight_layout()
     fig.savefig(path)
     return path

@@ -6,10 +6,12 @@
 * ``report.md``: the tables (paper Tables 5-9 analogues, team return vs greedy), the figures
   (linked), the check of the paper's Section 6 claims and the list of missing jobs;
 * ``runs.csv`` (one row per run), ``ctr.csv``, ``itr.csv``, ``team_return.csv``,
-  ``learning_space.csv``, ``claims.csv``, ``missing.csv``;
+  ``learning_space.csv``, ``claims.csv``, ``missing.csv``, ``field_stats.csv`` (IQM and
+  probability of improvement), ``study.csv`` (runs of a swept dimension);
 * ``ctr_<system>_L.png``, ``ctr_<system>_H.png`` (paper Figures 1-4), ``itr_<system>.png``
   (Figures 5-6), ``curve_<system>.png`` (learning curves, for learners that train) and
-  ``team_return.png``.
+  ``team_return.png``, ``performance_profile.png`` and, for a swept team size or task-switch
+  cost, ``team_size_*.png`` / ``switch_ticks_return.png`` (see ``reports/studies.py``).
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ from typing import Any
 
 from omegaconf import OmegaConf
 
-from mrta_rl.reports import figures, tables, yardsticks
+from mrta_rl.reports import figures, studies, tables, yardsticks
 from mrta_rl.reports.aggregate import (
     CellSummary,
     learner_label,
@@ -203,7 +205,11 @@ def build_report(inputs: Iterable[Path | str], out_dir: Path | str | None = None
     )
     for stem, path in rules_files.items():
         (files.figures if path.suffix == ".png" else files.csvs)[stem] = path
-    files.report.write_text(_report_markdown(collection, cells, by_system, claims, files, rules_md))
+    study = studies.study_sections(collection.runs, inputs, out)
+    files.csvs.update(study.csvs)
+    files.figures.update(study.figures)
+    markdown = _report_markdown(collection, cells, by_system, claims, files, rules_md)
+    files.report.write_text(markdown + "\n" + study.markdown + "\n")
     logger.info(
         "wrote %s (%d runs, %d missing)",
         files.report,

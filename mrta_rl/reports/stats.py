@@ -1,17 +1,25 @@
-"""Mean and 95 % confidence interval over seeds (Student t), without SciPy.
+"""Statistics over seeds: mean and 95 % t interval; IQM, probability of improvement, profiles.
 
 A report aggregates one number per training seed (e.g. the evaluation CTR of T1_H of each of the
 five seeds of CQL on System-I). The interval is the usual two-sided t interval of the mean,
 ``mean ± t_{0.975, n-1} * s / sqrt(n)`` with ``s`` the sample standard deviation (``ddof=1``):
 seeds are few (the paper uses one run, we use five), so the normal quantile 1.96 would be too
 narrow (``t_{0.975, 4} = 2.776``).
+
+The second half of the module reports results as the field does (rliable): the interquartile
+mean with a stratified bootstrap interval, the probability of improvement between two learners,
+and performance profiles (see the comment above :class:`Estimate`).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy import stats as scipy_stats
 
 CONFIDENCE = 0.95  # two-sided level of every interval in the reports
 
@@ -123,3 +131,199 @@ def mean_ci(values: Iterable[float | None]) -> MeanCI:
         return MeanCI(1, mean, math.nan, math.nan)
     std = math.sqrt(math.fsum((v - mean) ** 2 for v in kept) / (n - 1))
     return MeanCI(n, mean, t_quantile(n - 1) * std / math.sqrt(n), std)
+
+
+# --- statistics as the field reports them (Agarwal et al. 2021, "Deep RL at the edge of the
+# statistical precipice"; the rliable library, used by BenchMARL and marl-eval) ----------------
+#
+# Scores are grouped by *task* (here: a system, i.e. a robot team), one value per run (seed) of a
+# task. The resampling is scipy's bootstrap with one sample per task, resampled independently:
+# that is the stratified bootstrap of rliable (runs are resampled within each task, tasks are
+# kept). rliable itself is not a dependency: rliable 1.2 imports ``arch``, ``statsmodels``,
+# ``pandas`` and ``seaborn``, and ``arch`` 7.2 fails to import under pandas 3.
+
+BOOTSTRAP_REPS = 2000  # bootstrap resamples of every interval
+BOOTSTRAP_SEED = 0  # fixed, so a report is reproducible
+IQM_CUT = 0.25  # interquartile mean: drop the lowest and highest 25 % of the runs
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """A point estimate with its 95 % stratified bootstrap (percentile) interval.
+
+    Attributes:
+        value: The statistic on the data; NaN without data.
+        low: Lower end of the interval; NaN if undefined (a task with fewer than 2 runs).
+        high: Upper end of the interval.
+        n: Number of runs (all tasks).
+    """
+
+    value: float
+    low: float
+    high: float
+    n: int
+
+    def format(self, digits: int = 2) -> str:
+        """``"0.97 [0.95, 0.99]"``; just the value without an interval; ``"–"`` without data."""
+        if self.n == 0 or math.isnan(self.value):
+            return "–"
+        if math.isnan(self.low):
+            return f"{self.value:.{digits}f}"
+        return f"{self.value:.{digits}f} [{self.low:.{digits}f}, {self.high:.{digits}f}]"
+
+
+def _tasks(scores_by_task: Iterable[Iterable[float]]) -> list[Any]:
+    tasks = [np.asarray([float(v) for v in task], dtype=float) for task in scores_by_task]
+    tasks = [t[~np.isnan(t)] for t in tasks]
+    return [t for t in tasks if t.size]
+
+
+def _interquartile_mean(*tasks: Any, axis: int = -1) -> Any:
+    """IQM of the runs of all tasks pooled (rliable ``aggregate_iqm``), vectorized on ``axis``."""
+    return scipy_stats.trim_mean(np.concatenate(tasks, axis=axis), IQM_CUT, axis=axis)
+
+
+def _bootstrap(
+    samples: Sequence[Any], statistic: Callable[..., Any], value: Any, reps: int, seed: int
+) -> tuple[Any, Any]:
+    """Stratified percentile bootstrap interval of ``statistic`` (each sample resampled alone)."""
+    if any(s.size < 2 for s in samples):  # no spread to resample within a task
+        nan = np.full(np.shape(value), np.nan)
+        return nan, nan
+    if all(np.ptp(s) == 0 for s in samples) and len({float(s[0]) for s in samples}) == 1:
+        return value, value  # every run has the same score: the interval is that point
+    result = scipy_stats.bootstrap(
+        tuple(samples),
+        statistic,
+        n_resamples=reps,
+        confidence_level=CONFIDENCE,
+        method="percentile",
+        paired=False,
+        vectorized=True,
+        rng=np.random.default_rng(seed),
+    )
+    return result.confidence_interval.low, result.confidence_interval.high
+
+
+def iqm_ci(
+    scores_by_task: Iterable[Iterable[float]],
+    reps: int = BOOTSTRAP_REPS,
+    seed: int = BOOTSTRAP_SEED,
+) -> Estimate:
+    """Interquartile mean of the runs with its 95 % stratified bootstrap interval.
+
+    Args:
+        scores_by_task: Per task, one score per run (NaN/None ignored).
+        reps: Bootstrap resamples.
+        seed: Bootstrap generator seed.
+
+    Returns:
+        The estimate (``n == 0`` without any score).
+    """
+    tasks = _tasks(scores_by_task)
+    if not tasks:
+        return Estimate(math.nan, math.nan, math.nan, 0)
+    value = float(_interquartile_mean(*tasks))
+    low, high = _bootstrap(tasks, _interquartile_mean, value, reps, seed)
+    return Estimate(value, float(low), float(high), sum(t.size for t in tasks))
+
+
+def _improvement(*samples: Any, axis: int = -1) -> Any:
+    """Mean over tasks of P(X > Y) + P(X = Y) / 2; samples are the X tasks then the Y tasks."""
+    half = len(samples) // 2
+    per_task = []
+    for x, y in zip(samples[:half], samples[half:], strict=True):
+        x, y = np.moveaxis(x, axis, -1), np.moveaxis(y, axis, -1)
+        greater = (x[..., :, None] > y[..., None, :]).mean(axis=(-2, -1))
+        equal = (x[..., :, None] == y[..., None, :]).mean(axis=(-2, -1))
+        per_task.append(greater + 0.5 * equal)  # Mann-Whitney U / (n m) of the task
+    return np.mean(per_task, axis=0)
+
+
+def probability_of_improvement(
+    x_by_task: Sequence[Iterable[float]],
+    y_by_task: Sequence[Iterable[float]],
+    reps: int = BOOTSTRAP_REPS,
+    seed: int = BOOTSTRAP_SEED,
+) -> Estimate:
+    """P(X > Y): the chance that a run of X beats a run of Y on a task, averaged over tasks.
+
+    Ties count one half (rliable ``probability_of_improvement``, the Mann-Whitney U statistic
+    divided by ``n * m``). The interval resamples the runs of X and of Y independently within
+    each task.
+
+    Args:
+        x_by_task: Per task, the scores of X's runs.
+        y_by_task: Per task, the scores of Y's runs, tasks in the same order.
+        reps: Bootstrap resamples.
+        seed: Bootstrap generator seed.
+
+    Returns:
+        The estimate over the tasks where both have runs.
+
+    Raises:
+        ValueError: if the two lists have different numbers of tasks.
+    """
+    if len(x_by_task) != len(y_by_task):
+        raise ValueError(f"X has {len(x_by_task)} tasks but Y has {len(y_by_task)}")
+    pairs = [(_tasks([x]), _tasks([y])) for x, y in zip(x_by_task, y_by_task, strict=True)]
+    pairs = [(x[0], y[0]) for x, y in pairs if x and y]
+    if not pairs:
+        return Estimate(math.nan, math.nan, math.nan, 0)
+    xs, ys = [x for x, _ in pairs], [y for _, y in pairs]
+    value = float(_improvement(*xs, *ys))
+    low, high = _bootstrap([*xs, *ys], _improvement, value, reps, seed)
+    return Estimate(value, float(low), float(high), sum(x.size + y.size for x, y in pairs))
+
+
+@dataclass(frozen=True)
+class Profile:
+    """Performance profile: fraction of runs scoring above each threshold ``tau``.
+
+    Attributes:
+        tau: The thresholds.
+        fraction: Mean over tasks of the fraction of the task's runs with a score > tau.
+        low: Lower end of the 95 % stratified bootstrap band (NaN if undefined).
+        high: Upper end of the band.
+    """
+
+    tau: Any
+    fraction: Any
+    low: Any
+    high: Any
+
+
+def performance_profile(
+    scores_by_task: Iterable[Iterable[float]],
+    tau: Sequence[float],
+    reps: int = BOOTSTRAP_REPS,
+    seed: int = BOOTSTRAP_SEED,
+) -> Profile:
+    """Run-score distribution (rliable ``create_performance_profile``) with a bootstrap band.
+
+    Args:
+        scores_by_task: Per task, one score per run.
+        tau: Thresholds (x axis).
+        reps: Bootstrap resamples.
+        seed: Bootstrap generator seed.
+
+    Returns:
+        The profile; all NaN without any score.
+    """
+    taus = np.asarray(tau, dtype=float)
+    tasks = _tasks(scores_by_task)
+    if not tasks:
+        nan = np.full(taus.shape, np.nan)
+        return Profile(taus, nan, nan, nan)
+
+    def fraction(*samples: Any, axis: int = -1) -> Any:
+        # [..., tau]: per task the share of runs above tau, then the mean over tasks
+        per_task = [
+            (np.moveaxis(s, axis, -1)[..., None, :] > taus[:, None]).mean(axis=-1) for s in samples
+        ]
+        # scipy's bootstrap wants the statistic's own axis first, the resamples last
+        return np.moveaxis(np.mean(per_task, axis=0), -1, 0)
+
+    value = fraction(*tasks)
+    low, high = _bootstrap(tasks, fraction, value, reps, seed)
+    return Profile(taus, value, np.asarray(low, dtype=float), np.asarray(high, dtype=float))

@@ -210,8 +210,8 @@ def group_return_markdown(summaries: Sequence[CellSummary]) -> str:
     one system share it). Empty string if no cell ran on a partition.
     """
     cells = [c for c in summaries if c.group_return]
-    if not cells:
-        return ""
+    if not cells or any(c.group_types != cells[0].group_types for c in cells):
+        return ""  # no partition, or runs on different partitions (random teams of a sweep)
     groups = cells[0].group_types
     header = ["learner", *(f"{g} ({' '.join(types)})" for g, types in groups.items()), "team"]
     rows = [

@@ -47,6 +47,7 @@ HYDRA_FILE = Path(".hydra") / "hydra.yaml"
 LEARNER_DIR = "learner"  # final learner state (Learner.save)
 CHECKPOINT_DIR = "checkpoint"  # latest training checkpoint
 METRICS_FILE = "metrics.json"
+REFUSED_FILE = "refused.json"  # instead of metrics.json: the run was refused up front, and why
 STATE_FILE = "training.json"  # loop counters, curve so far, learner checkpoint_state
 PACKAGE = "mrta_rl."
 SCALARS = (str, int, float, bool, type(None))

@@ -87,7 +87,8 @@ def evaluate_run(run: RunSetup, cfg: DictConfig) -> dict[str, Any]:
         learned.episodes,
     )
     results = {"eval": learned.to_json(), "baseline_greedy": baseline.to_json()}
-    if run.partition is not None:
+    # the split adds up to the team return only if no task type is shared (partition size bound)
+    if run.partition is not None and run.partition.types_disjoint():
         for summary in results.values():
             summary["return_by_group"] = return_by_group(summary, run.partition)
     return results

@@ -26,11 +26,13 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from mrta_rl.config import ConfigError
 from mrta_rl.envs import AuctionEnv, AuctionParams
 from mrta_rl.learners import Learner
+from mrta_rl.metrics.resources import RunResources
 from mrta_rl.partition import Partition
 from mrta_rl.runners.checkpoint import (
     CHECKPOINT_DIR,
     LEARNER_DIR,
     METRICS_FILE,
+    REFUSED_FILE,
     RunDirError,
     TrainingCheckpoint,
     TrainingInterrupted,
@@ -42,6 +44,7 @@ from mrta_rl.runners.checkpoint import (
 from mrta_rl.runners.evaluate import evaluate_run
 from mrta_rl.runners.validation import (
     SEED_STRIDE,
+    ResourceRefusal,
     hydra_choice,
     training_loop,
     validate_config,
@@ -115,6 +118,18 @@ def build_run(cfg: DictConfig, name: str | None = None) -> RunSetup:
     )
 
 
+def _write_refusal(run_dir: Path, cfg: DictConfig, reason: str) -> None:
+    """``refused.json`` (``reports/collect.py``): this run was refused up front, and why."""
+    run_dir.mkdir(parents=True, exist_ok=True)
+    record = {
+        "learner": hydra_choice("learner", "?"),
+        "system": hydra_choice("system", "?"),
+        "seed": int(cfg.seed),
+        "reason": reason,
+    }
+    write_json(run_dir / REFUSED_FILE, record)
+
+
 def train(cfg: DictConfig, run_dir: Path | str | None = None) -> dict[str, Any]:
     """Train the configured learner, evaluate it and greedy, write ``metrics.json``.
 
@@ -133,6 +148,7 @@ def train(cfg: DictConfig, run_dir: Path | str | None = None) -> dict[str, Any]:
         ValueError: on an invalid config or run dir, before anything is written.
         SystemExit: with code 130 after Ctrl-C (a checkpoint is saved first).
     """
+    resources = RunResources().start()  # wall time and peak memory of the whole run (build to eval)
     resume = cfg.get("resume")
     if resume:
         run_dir = Path(resume)
@@ -146,8 +162,12 @@ def train(cfg: DictConfig, run_dir: Path | str | None = None) -> dict[str, Any]:
         run = build_run(cfg, name=choices.get("learner"))
         system_name = choices.get("system", run.system.name)
     else:
-        run = build_run(cfg)
         run_dir = Path(run_dir if run_dir is not None else HydraConfig.get().runtime.output_dir)
+        try:
+            run = build_run(cfg)
+        except ResourceRefusal as refusal:  # kept as data: a sweep's report shows the reason
+            _write_refusal(run_dir, cfg, str(refusal))
+            raise
         system_name = hydra_choice("system", run.system.name)
     if (run_dir / METRICS_FILE).exists():
         raise RunDirError(
@@ -196,6 +216,7 @@ def train(cfg: DictConfig, run_dir: Path | str | None = None) -> dict[str, Any]:
         **results,
         "train": train_info,
         "learning_space": {k: int(v) for k, v in run.learner.learning_space().items()},
+        "resources": resources.result(),
     }
     if run.partition is not None:
         write_json(run_dir / "partition.json", run.partition.to_json())

@@ -91,6 +91,22 @@ class LimitSettings:
     memory_gb: Annotated[float | None, Range(0, low_open=True)] = None
 
 
+@dataclass(frozen=True)
+class PartitionSettings:
+    """``partition:`` of ``conf/config.yaml`` (conf/partition/subg.yaml; docs/spec/partition.md)."""
+
+    # g: at most g robots per sub-group (oversized ones are split); None = the paper's rule
+    max_group_size: Annotated[int | None, Range(1)] = None
+
+
+class ResourceRefusal(ConfigError):
+    """A run refused up front because the learner would not fit (its reason is the message).
+
+    ``train`` records it in the run dir (``refused.json``), so a sweep's report shows the run as
+    refused with its reason instead of missing.
+    """
+
+
 @dataclass
 class CheckedConfig:
     """A run config that passed :func:`validate_config`, with what it was built into.
@@ -224,6 +240,7 @@ def validate_config(cfg: DictConfig) -> CheckedConfig:
         f"eval.seed: must be <= 2**32 - eval.batch_size, got {evaluation['seed']}",
     )
     limits = check_fields(LimitSettings, _plain(cfg, "limits") or {}, "limits")
+    bound = check_fields(PartitionSettings, _plain(cfg, "partition") or {}, "partition")
 
     cls = learner_class(cfg.get("learner"))
     training_loop(cls.kind)  # fail now, not after building everything, if the loop is missing
@@ -243,7 +260,9 @@ def validate_config(cfg: DictConfig) -> CheckedConfig:
         raise SystemConfigError(
             message if message.startswith("system") else f"system {file}: {message}"
         ) from None
-    partition = subg_partition(system) if cls.requires_partition else None
+    partition = (
+        subg_partition(system, bound.get("max_group_size")) if cls.requires_partition else None
+    )
 
     try:
         estimate = estimate_resources(
@@ -268,7 +287,7 @@ def validate_config(cfg: DictConfig) -> CheckedConfig:
         advice = estimate.advice
         if estimate.reason is None:
             advice += ", or raise limits.memory_gb"
-        raise ConfigError(f"{where}: {refusal}; {advice}")
+        raise ResourceRefusal(f"{where}: {refusal}; {advice}")
     if estimate.worst > limit:
         logger.warning(
             "%s: its tables could grow to %s if every state were met (limit %s); watch the memory",

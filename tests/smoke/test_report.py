@@ -21,9 +21,19 @@ PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 def run_sweep(sweep_dir: Path, *overrides: str) -> subprocess.CompletedProcess:
     return subprocess.run(
-        [sys.executable, str(TRAIN), "-m", "experiment=paper", "debug=smoke",
-         f"hydra.sweep.dir={sweep_dir}", *overrides],
-        cwd=ROOT, capture_output=True, text=True, timeout=300,
+        [
+            sys.executable,
+            str(TRAIN),
+            "-m",
+            "experiment=paper",
+            "debug=smoke",
+            f"hydra.sweep.dir={sweep_dir}",
+            *overrides,
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
     )
 
 
@@ -61,8 +71,13 @@ def test_sweep_continues_after_a_failed_job(sweep):
 def test_report_files_and_numbers(sweep, tmp_path):
     sweep_dir, _ = sweep
     out = tmp_path / "report"
-    done = subprocess.run([sys.executable, str(REPORT), str(sweep_dir), "--out", str(out)],
-                          cwd=ROOT, capture_output=True, text=True, timeout=120)
+    done = subprocess.run(
+        [sys.executable, str(REPORT), str(sweep_dir), "--out", str(out)],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert done.returncode == 0, done.stderr
     assert "8 runs, 4 missing" in done.stdout
 
@@ -71,8 +86,14 @@ def test_report_files_and_numbers(sweep, tmp_path):
     report = (out / "report.md").read_text()
     pngs = sorted(out.glob("*.png"))
     assert {p.stem for p in pngs} == {
-        "ctr_system1_L", "ctr_system1_H", "ctr_system2_L", "ctr_system2_H", "itr_system1",
-        "itr_system2", "team_return",  # fixed policies do not train: no learning curves
+        "ctr_system1_L",
+        "ctr_system1_H",
+        "ctr_system2_L",
+        "ctr_system2_H",
+        "itr_system1",
+        "itr_system2",
+        "team_return",  # fixed policies do not train: no learning curves
+        "performance_profile",  # IQM / profiles of the return relative to greedy
     }
     for png in pngs:
         assert png.read_bytes()[:8] == PNG_MAGIC and png.stat().st_size > 10_000
@@ -84,8 +105,10 @@ def test_report_files_and_numbers(sweep, tmp_path):
         by_cell.setdefault((m["system"], m["learner"]), []).append(m)
     assert all(len(runs) == 2 for runs in by_cell.values()) and len(by_cell) == 4
 
-    ctr = {(r["system"], r["learner"], r["task_type"], r["priority"]): r
-           for r in read_csv(out / "ctr.csv")}
+    ctr = {
+        (r["system"], r["learner"], r["task_type"], r["priority"]): r
+        for r in read_csv(out / "ctr.csv")
+    }
     itr = {(r["system"], r["learner"], r["robot"]): r for r in read_csv(out / "itr.csv")}
     returns = {(r["system"], r["learner"]): r for r in read_csv(out / "team_return.csv")}
     for (system, learner), runs in by_cell.items():
@@ -110,8 +133,10 @@ def test_report_files_and_numbers(sweep, tmp_path):
     assert len(read_csv(out / "runs.csv")) == 8
     missing = read_csv(out / "missing.csv")
     assert sorted((m["learner"], m["system"], m["seed"]) for m in missing) == [
-        ("greedy", "system1", "-1"), ("greedy", "system2", "-1"),
-        ("random", "system1", "-1"), ("random", "system2", "-1"),
+        ("greedy", "system1", "-1"),
+        ("greedy", "system2", "-1"),
+        ("random", "system1", "-1"),
+        ("random", "system2", "-1"),
     ]
     assert "**8 finished runs** of 12 expected" in report and "## Missing jobs" in report
     # a markdown cell is the CSV's mean ± ci95 rounded to one decimal
@@ -124,12 +149,23 @@ def test_report_files_and_numbers(sweep, tmp_path):
 
 def test_joblib_launcher(tmp_path):
     sweep_dir = tmp_path / "sweep"
-    result = run_sweep(sweep_dir, "hydra/launcher=joblib", "hydra.launcher.n_jobs=2",
-                       "learner=greedy", "system=system1", "seed=0,1")
+    result = run_sweep(
+        sweep_dir,
+        "hydra/launcher=joblib",
+        "hydra.launcher.n_jobs=2",
+        "learner=greedy",
+        "system=system1",
+        "seed=0,1",
+    )
     assert result.returncode == 0, result.stderr
     assert "Joblib.Parallel" in result.stdout + result.stderr
-    done = subprocess.run([sys.executable, str(REPORT), str(sweep_dir)], cwd=ROOT,
-                          capture_output=True, text=True, timeout=120)
+    done = subprocess.run(
+        [sys.executable, str(REPORT), str(sweep_dir)],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert done.returncode == 0, done.stderr
     assert "2 runs, 0 missing" in done.stdout
     assert (sweep_dir / "report" / "report.md").is_file()

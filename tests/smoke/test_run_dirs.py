@@ -50,6 +50,7 @@ def without_timings(metrics: dict) -> dict:
     metrics = json.loads(json.dumps(metrics))
     for key in TIMINGS:
         metrics["train"].pop(key, None)
+    metrics.pop("resources", None)  # wall time and peak memory of the run, measured
     return metrics
 
 

@@ -24,8 +24,13 @@ ROBOTS, TYPES = ["R1", "R2"], ["T1", "T2"]
 
 
 def stats(assigned, dropped, busy, team_return, ticks) -> EpisodeStats:
-    return EpisodeStats(np.array(assigned), np.array(dropped), np.array(busy),
-                        np.array(team_return, float), np.array(ticks))
+    return EpisodeStats(
+        np.array(assigned),
+        np.array(dropped),
+        np.array(busy),
+        np.array(team_return, float),
+        np.array(ticks),
+    )
 
 
 # two batches: the first of two episodes, the second of one; horizon 10
@@ -72,16 +77,18 @@ def test_itr_eq9_and_team_return():
 
 
 def test_functions_match_summary():
-    pooled = stats(BATCH_A.assigned, BATCH_A.dropped, BATCH_A.busy_ticks, BATCH_A.team_return,
-                   BATCH_A.ticks)
+    pooled = stats(
+        BATCH_A.assigned, BATCH_A.dropped, BATCH_A.busy_ticks, BATCH_A.team_return, BATCH_A.ticks
+    )
     np.testing.assert_allclose(ctr(pooled), [[80.0, 50.0], [np.nan, np.nan]])
     np.testing.assert_allclose(ctr_overall(pooled), [80.0, 50.0])
     np.testing.assert_allclose(itr(pooled), [80.0, 25.0])  # idle (20-4)/20 and (20-15)/20
 
 
 def test_return_by_task_type_by_hand():
-    params = AuctionParams(reward_assign_high=10, reward_assign_low=2, penalty_drop_high=5,
-                           penalty_drop_low=1)
+    params = AuctionParams(
+        reward_assign_high=10, reward_assign_low=2, penalty_drop_high=5, penalty_drop_low=1
+    )
     summary = summarize([BATCH_A, BATCH_B], ROBOTS, TYPES, params)
     # T1: assigned 4 L and 3 H, dropped 1 L and 1 H: 4*2 + 3*10 - 1*1 - 1*5 = 32 over 3 episodes
     # T2: dropped 2 L: -2 over 3 episodes
@@ -132,4 +139,6 @@ def test_csv_logger(tmp_path):
         with pytest.raises(ValueError, match="columns"):
             logger.log({"episode": 2})
     assert (tmp_path / "curve.csv").read_text().splitlines() == [
-        "env_ticks,episode,team_return_mean", "10,1,2.5"]
+        "env_ticks,episode,team_return_mean",
+        "10,1,2.5",
+    ]

@@ -236,6 +236,120 @@ def test_random_willingness_invariants(n_robots, n_task_types, density, seed):
     check_invariants(system, subg_partition(system))
 
 
+# --- size bound (issue 11): partition.max_group_size -----------------------------------------
+
+
+@pytest.mark.parametrize("name", ["system1", "system2"])
+@pytest.mark.parametrize("bound", [None, 4, 100])
+def test_bound_not_reached_keeps_tables_3_and_4(name, bound):
+    # Table 3 and 4 sub-groups have at most 4 robots: a bound of 4 or more changes nothing.
+    system = load_system(name)
+    assert subg_partition(system, bound) == subg_partition(system)
+
+
+def test_bound_splits_system2():
+    # g = 3: G1 {R2, R5, R6, R8} and G3 {R3, R4, R7, R9} of Table 4 are split, G2 {R1, R10} stays.
+    system = load_system("system2")
+    partition = subg_partition(system, 3)
+    assert max(len(r) for r in partition.groups.values()) <= 3
+    assert partition.group_map()["G3"] == ["R1", "R10"]  # untouched, renumbered after G1's chunks
+    check_bounded(system, partition, 3)
+
+
+def test_bound_hand_computed_split():
+    # Five robots that can all do T1 and T2; the paper's rule gives one sub-group of five.
+    # r0_i = 2, c0_j = 5, so w_ij = d_ij / 10.
+    # Anchors (largest w, ties to the lowest type): R1 T1 (.1 > .05), R2 T2 (.1 > .05), R3 T1 (tie),
+    #   R4 T1 (tie .05), R5 T1 (.1 > .025). Classes, strongest first: T1 [R1, R3, R5, R4], T2 [R2].
+    # g = 2: pieces T1 [R1, R3], T1 [R5, R4], T2 [R2]; first-fit decreasing -> three chunks.
+    # Each robot keeps its chunk's types: only its anchor. T1 is shared by the first two chunks.
+    d = [[1, 0.5], [0.5, 1], [1, 1], [0.5, 0.5], [1, 0.25]]
+    assert partition_matrices(np.ones((5, 2)), d).group_map() == {
+        "G1": ["R1", "R2", "R3", "R4", "R5"]
+    }
+    partition = partition_matrices(np.ones((5, 2)), d, max_group_size=2)
+    assert partition.groups == {
+        "G1": {"R1": ["T1"], "R3": ["T1"]},
+        "G2": {"R4": ["T1"], "R5": ["T1"]},
+        "G3": {"R2": ["T2"]},
+    }
+    assert partition.dropped == [
+        ("R1", "T2"),
+        ("R2", "T1"),
+        ("R3", "T2"),
+        ("R4", "T2"),
+        ("R5", "T2"),
+    ]
+    assert not partition.types_disjoint()
+    assert partition.group_tasks() == {"G1": ["T1"], "G2": ["T1"], "G3": ["T2"]}
+
+
+def test_bound_repair_of_a_type_nobody_anchors():
+    # R1 {T1, T2}, R2 {T1}, R3 {T1}, d = 1: r0 = (2, 1, 1), c0 = (3, 1).
+    # w_11 = 1/6, w_12 = 1/2, w_21 = w_31 = 1/3. Unbounded: one sub-group (R1 keeps both).
+    # g = 2: anchors R1 T2 (1/2), R2 T1, R3 T1. Pieces: T1 [R2, R3], T2 [R1] -> two chunks;
+    # every type is somebody's anchor, so R1 keeps only T2 and drops T1.
+    rtm = [[1, 1], [1, 0], [1, 0]]
+    assert partition_matrices(rtm).group_map() == {"G1": ["R1", "R2", "R3"]}
+    partition = partition_matrices(rtm, max_group_size=2)
+    assert partition.groups == {"G1": {"R2": ["T1"], "R3": ["T1"]}, "G2": {"R1": ["T2"]}}
+    # R1 {T1, T2, T3}, R2 {T1}: r0 = (3, 1), c0 = (2, 1, 1); w_11 = 1/6, w_12 = w_13 = 1/3,
+    # w_21 = 1/2. g = 1: anchors R1 T2 (tie with T3 -> lowest), R2 T1. Pieces [R2] (T1) and
+    # [R1] (T2), equal size -> type order: R2's chunk first. T3 is nobody's anchor: it goes to the
+    # chunk whose robots keeping it depend on it most, R1's (1/3 vs 0); R1 drops T1.
+    partition = partition_matrices([[1, 1, 1], [1, 0, 0]], max_group_size=1)
+    assert partition.groups == {"G1": {"R2": ["T1"]}, "G2": {"R1": ["T2", "T3"]}}
+    assert partition.dropped == [("R1", "T1")]
+
+
+def check_bounded(system: RobotSystem, partition: Partition, bound: int) -> None:
+    """Acceptance 1 of issue 11: <= g robots per group, every type served, every robot once."""
+    seen = [r for robots in partition.groups.values() for r in robots]
+    assert sorted(seen, key=system.robots.index) == list(system.robots)  # each robot exactly once
+    assert all(1 <= len(robots) <= bound for robots in partition.groups.values())
+    active = partition.active_tasks(system)
+    assert active.any(axis=0).all(), "every task type keeps a robot"
+    assert active.any(axis=1).all(), "every robot keeps a task type"
+    assert not (active & (system.rtm == 0)).any()
+    assert list(partition.groups) == [f"G{k}" for k in range(1, len(partition.groups) + 1)]
+    expected_dropped = [
+        (r, t)
+        for name, robots in partition.groups.items()
+        for r in robots
+        for t in system.task_set(r)
+        if t not in partition.groups[name][r]
+    ]
+    assert sorted(partition.dropped) == sorted(expected_dropped)
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    n_robots=st.integers(1, 80),
+    n_task_types=st.integers(1, 15),
+    density=st.floats(0.0, 1.0),
+    seed=st.integers(0, 2**31 - 1),
+    bound=st.integers(1, 8),
+)
+def test_bounded_random_team_invariants(n_robots, n_task_types, density, seed, bound):
+    system = random_system(n_robots, n_task_types, density, seed)
+    partition = subg_partition(system, bound)
+    check_bounded(system, partition, bound)
+    assert subg_partition(system, bound) == partition  # deterministic
+    unbounded = subg_partition(system)
+    if max(len(r) for r in unbounded.groups.values()) <= bound:
+        assert partition == unbounded  # the bound only acts on oversized sub-groups
+    else:
+        # groups within the bound are kept as they are
+        small = [g for g in unbounded.groups.values() if len(g) <= bound]
+        assert all(g in partition.groups.values() for g in small)
+
+
+@pytest.mark.parametrize("bad", [0, -1, 2.5, "4", True])
+def test_bound_invalid_names_the_key(bad):
+    with pytest.raises(ValueError, match="partition.max_group_size"):
+        subg_partition(load_system("system1"), bad)
+
+
 # --- invalid input ---------------------------------------------------------------------------
 
 
@@ -319,3 +433,36 @@ def test_script_prints_only_json(tmp_path):
     )  # fmt: skip
     assert json.loads(result.stdout) == subg_partition(load_system("system2")).to_json()
     assert list(tmp_path.iterdir()) == []  # no outputs/ or .hydra/ written
+    bounded = subprocess.run(
+        [sys.executable, str(ROOT / "scripts" / "partition.py"), "system=system2", "format=json",
+         "partition.max_group_size=2"],
+        cwd=tmp_path, capture_output=True, text=True, check=True, timeout=120,
+    )  # fmt: skip
+    assert json.loads(bounded.stdout) == subg_partition(load_system("system2"), 2).to_json()
+
+
+@pytest.mark.parametrize(("bound", "disjoint"), [(2, True), (1, False)])
+def test_training_run_uses_the_bound(bound, disjoint, compose_cfg, tmp_path):
+    # partition.max_group_size reaches build_run: subg_greedy on System-II plays on the bounded
+    # partition and writes it. g = 2 keeps every task type in one sub-group (R5 and R8 give T2 to
+    # {R2, R6}); with g = 1 the robots anchored to T2 share it, and the return is not split.
+    from mrta_rl.runners import train
+
+    cfg = compose_cfg(
+        [
+            "learner=subg_greedy",
+            "system=system2",
+            "debug=smoke",
+            f"partition.max_group_size={bound}",
+        ]
+    )
+    metrics = train(cfg, run_dir=tmp_path)
+    expected = subg_partition(load_system("system2"), bound)
+    assert json.loads((tmp_path / "partition.json").read_text()) == expected.to_json()
+    assert max(len(robots) for robots in expected.groups.values()) == bound
+    assert expected.types_disjoint() is disjoint
+    split = metrics["eval"].get("return_by_group")
+    assert (split is not None) is disjoint
+    if disjoint:
+        assert list(split) == list(expected.groups)
+    assert metrics["resources"]["peak_rss_mb"] > 0 and metrics["resources"]["wall_s"] > 0

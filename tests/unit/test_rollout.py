@@ -62,7 +62,7 @@ def test_rejects_bad_settings():
         ({"horizon": -1}, "horizon: must be an integer >= 0"),
         ({"gamma": 0.0}, r"gamma: must be a number in \(0, 1\]"),
         ({"base": "nope"}, "base: must be one of 'greedy'"),
-        ({"candidates": ["greedy", "nope"]}, "unknown rule 'nope'"),
+        ({"candidates": ["greedy", "nope"]}, "candidates: must be a list, each item one of"),
     ):
         with pytest.raises(ValueError, match=match):
             make(**bad)

@@ -20,12 +20,12 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from typing import Annotated, Any, ClassVar
 
 import numpy as np
 
-from mrta_rl.config import Choices, ConfigError, Range
+from mrta_rl.config import Choices, Range
 from mrta_rl.envs import AuctionEnv
 from mrta_rl.learners.base import Learner, LearnerKind
 from mrta_rl.learners.fixed import GreedyLearner, TeamReserveLearner
@@ -66,7 +66,7 @@ class RolloutPlanner(Learner):
         **kwargs: Env, generator and partition of :class:`~mrta_rl.learners.base.Learner`.
 
     Raises:
-        ConfigError: on an unknown candidate rule name (the other ranges are declared).
+        ConfigError: on a setting outside its declaration (an unknown rule name included).
     """
 
     kind: ClassVar[LearnerKind] = "fixed"
@@ -76,18 +76,19 @@ class RolloutPlanner(Learner):
         *,
         samples: Annotated[int, Range(1)] = 4,
         horizon: Annotated[int, Range(0)] = 20,
-        candidates: Sequence[str] = ("greedy", "spread", "hold", "reserve1", "high_only"),
+        candidates: Annotated[tuple[str, ...], Choices(*CANDIDATES)] = (
+            "greedy",
+            "spread",
+            "hold",
+            "reserve1",
+            "high_only",
+        ),
         base: Annotated[str, Choices(*CANDIDATES)] = "hold",
         gamma: Annotated[float, Range(0, 1, low_open=True)] = 1.0,
         **kwargs,
     ) -> None:
         super().__init__(**kwargs)  # types and ranges: the annotations (mrta_rl.config)
         names = [base, *(c for c in candidates if c != base)]  # the base rule first: ties go to it
-        for name in names:
-            if name not in CANDIDATES:
-                raise ConfigError(
-                    f"learner.candidates: unknown rule {name!r} (known: {sorted(CANDIDATES)})"
-                )
         self.samples, self.horizon, self.gamma = samples, horizon, gamma
         self.names = names
         self._rules = [CANDIDATES[name](self.env, self.rng) for name in names]
