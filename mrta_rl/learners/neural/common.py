@@ -4,7 +4,9 @@ The neural learners (``subg_dqn``, ``vdn``, ``qmix``, ``iql``) are built from To
 keys of :class:`~mrta_rl.envs.torchrl_env.AuctionTorchRLEnv`: per group ``(group,
 "observation")`` ``[*, n_g, F]`` (:func:`~mrta_rl.envs.observations.local_features`), ``(group,
 "action_mask")`` ``[*, n_g, K + 1]`` and ``(group, "action")`` ``[*, n_g]``, root ``"state"``
-(global features) and root team ``"reward"``. The same modules serve
+(global features), and the rewards ``(group, "reward")`` (team reward, TorchRL's reward key),
+``(group, "robot_reward")`` and ``(group, "group_reward")``, all ``[*, n_g, 1]``. The same
+modules serve
 
 * the TorchRL training loop (``mrta_rl.runners.torchrl``): :attr:`NeuralLearner.explore_policy`
   (Q-network -> ``QValueModule`` -> ``EGreedyModule`` with the action mask) runs inside a
@@ -53,6 +55,9 @@ WEIGHTS_FILE = "weights.pt"  # state_dict of the Q-networks (and mixer), torch.l
 META_FILE = "learner.json"  # group map and sizes, to check a checkpoint fits the run
 TRAINING_FILE = "training.pt"  # optimizer, target networks, epsilon (training checkpoints)
 JOINT = "joint"  # root sub-TensorDict of joint-action keys: (JOINT, group, leaf), batch [*]
+# per-robot reward leaves of AuctionTorchRLEnv, [*, n_g, 1]: team (TorchRL's reward key),
+# individual, and sub-group reward (spec step 8)
+REWARD_KEYS = ("reward", "robot_reward", "group_reward")
 
 
 # ---------------------------------------------------------------------------------- features
@@ -283,9 +288,8 @@ class NeuralLearner(Learner):
         """
         data = data.reshape(-1)
         scale = self.hp["reward_scale"]
-        data.set(("next", "reward"), data.get(("next", "reward")) * scale)
         for group in self.group_map:
-            for key in ("reward", "group_reward"):
+            for key in REWARD_KEYS:
                 data.set(("next", group, key), data.get(("next", group, key)) * scale)
         return data
 
@@ -503,13 +507,17 @@ class MixedQLearner(NeuralLearner):
             local_value=(group, "chosen_action_value"),
             global_value="chosen_action_value",
             action=(group, "action"),
-            reward="reward",  # team reward (spec step 8)
+            reward="reward",  # team reward (spec step 8), set at the root by transitions()
             done="done",
             terminated="terminated",
         )
         self.losses[group] = loss
 
     def transitions(self, data: TensorDictBase) -> TensorDictBase:
-        """Scaled team reward; Q-values are recomputed by the loss, so they are not stored."""
+        """Scaled team reward, also at the root ``[N, 1]`` where ``QMixerLoss`` reads it.
+
+        As in TorchRL's QMIX example; Q-values are recomputed by the loss, so not stored.
+        """
         data = super().transitions(data)
+        data.set(("next", "reward"), data.get(("next", "agents", "reward"))[:, 0])
         return data.exclude(("agents", "action_value"), ("agents", "chosen_action_value"))
