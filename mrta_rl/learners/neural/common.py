@@ -212,6 +212,7 @@ class NeuralLearner(Learner):
             for loss in self.losses.values()
         ]
         self.gradient_steps = 0
+        self.frames_collected = 0  # copy-ticks seen by anneal(): the epsilon schedule's clock
 
     # -------------------------------------------------------------- for subclasses
     def _group_map(self) -> GroupMap:
@@ -273,9 +274,19 @@ class NeuralLearner(Learner):
         return float(self.egreedy[0].eps) if self.egreedy else 0.0
 
     def anneal(self, frames: int) -> None:
-        """Advance the epsilon schedules by ``frames`` collected copy-ticks."""
+        """Advance the epsilon schedules by ``frames`` collected copy-ticks.
+
+        The linear decay of ``EGreedyModule.step`` in closed form: ``EGreedyModule.step(n)``
+        loops in Python over the ``n`` frames (one tensor op each), which cost as much as
+        collecting them; ``eps = max(eps_end, eps_start - (eps_start - eps_end) f / F)``
+        after ``f`` frames (``F = eps_decay_frames``) is the same schedule.
+        """
+        self.frames_collected += frames
+        start, end = self.hp["eps_start"], self.hp["eps_end"]
+        progress = min(self.frames_collected / self.hp["eps_decay_frames"], 1.0)
+        eps = start - (start - end) * progress
         for module in self.egreedy:
-            module.step(frames)
+            module.eps.fill_(eps)
 
     def transitions(self, data: TensorDictBase) -> TensorDictBase:
         """Collector batch -> replay transitions (flattened; rewards scaled).
