@@ -9,7 +9,6 @@ group with shape ``[B, n_g]``, per-agent leaves under it and root ``done`` flags
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from typing import Literal
 
 import numpy as np
 import torch
@@ -19,11 +18,15 @@ from torchrl.envs import EnvBase, MarlGroupMapType
 
 from mrta_rl.envs import observations
 from mrta_rl.envs.auction import AuctionEnv
+from mrta_rl.envs.view_inputs import (
+    DEFAULT_INVALID_ACTION,
+    InvalidAction,
+    check_invalid_action,
+    sanitize_actions,
+)
 from mrta_rl.types import GroupMap
 
 GroupMapArg = Mapping[str, Sequence[str | int]] | MarlGroupMapType | str | None
-InvalidAction = Literal["raise", "wait"]
-INVALID_ACTION_MODES = ("raise", "wait")
 
 
 def resolve_group_map(robots: Sequence[str], group_map: GroupMapArg) -> GroupMap:
@@ -123,14 +126,11 @@ class AuctionTorchRLEnv(EnvBase):
         env: AuctionEnv,
         group_map: GroupMapArg = None,
         device: str | torch.device = "cpu",
-        invalid_action: InvalidAction = "wait",
+        invalid_action: InvalidAction = DEFAULT_INVALID_ACTION,
     ) -> None:
         if torch.device(device).type != "cpu":
             raise ValueError("AuctionTorchRLEnv runs on cpu (the dynamics are numpy)")
-        if invalid_action not in INVALID_ACTION_MODES:
-            raise ValueError(
-                f"invalid_action must be one of {INVALID_ACTION_MODES}, got {invalid_action!r}"
-            )
+        check_invalid_action(invalid_action)
         self.invalid_action = invalid_action
         super().__init__(device="cpu", batch_size=torch.Size([env.batch_size]))
         self.auction = env
@@ -266,13 +266,9 @@ class AuctionTorchRLEnv(EnvBase):
                 action = action.argmax(-1)
             actions[:, idx] = action.reshape(core.batch_size, len(idx)).numpy()
         invalid = None
-        if self.invalid_action == "wait":
-            mask = core.action_mask  # [B, m, K + 1]
-            in_range = (actions >= 0) & (actions < mask.shape[-1])
-            safe = np.where(in_range, actions, 0)
-            valid = in_range & np.take_along_axis(mask, safe[..., None], axis=-1)[..., 0]
-            np.copyto(actions, 0, where=~valid)  # spec step 4: an invalid bid becomes a wait
-            invalid = torch.from_numpy(~valid)
+        if self.invalid_action == "wait":  # spec step 4: an invalid bid is played as a wait
+            actions, flags = sanitize_actions(actions, core.action_mask, "wait")
+            invalid = torch.from_numpy(flags)
         result = core.step(actions)  # the core validates (ValueError naming copy, robot, reason)
         return self._output(
             torch.from_numpy(result.team_reward.astype(np.float32)),

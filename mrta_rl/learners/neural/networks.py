@@ -144,28 +144,19 @@ class PerRobotQ(nn.Module):
             device: Parameter device.
         """
         super().__init__()
+        layers = {
+            "depth": depth,
+            "num_cells": hidden,
+            "activation_class": nn.ReLU,
+            "device": device,
+        }
         if share_params:
-            self.mlp = MLP(
-                in_features=n_features,
-                out_features=n_actions,
-                depth=depth,
-                num_cells=hidden,
-                activation_class=nn.ReLU,
-                device=device,
-            )
+            self.mlp = MLP(in_features=n_features, out_features=n_actions, **layers)
             # checkpoints written with the shared MultiAgentMLP keep loading
             self._register_load_state_dict_pre_hook(_shared_multiagent_keys)
         else:
             self.mlp = MultiAgentMLP(
-                n_features,
-                n_actions,
-                n_robots,
-                centralized=False,
-                share_params=False,
-                depth=depth,
-                num_cells=hidden,
-                activation_class=nn.ReLU,
-                device=device,
+                n_features, n_actions, n_robots, centralized=False, share_params=False, **layers
             )
         zero_last_layer(self.mlp)
         self.auction_prior = auction_prior
