@@ -9,9 +9,10 @@ the local wheel; check with ``pip install --dry-run`` that no CUDA torch is pull
     python3 -m venv /tmp/bm_venv
     /tmp/bm_venv/bin/pip install torch==2.13.0 benchmarl     # torch 2.13.0+cpu, torchrl 0.11.1
     /tmp/bm_venv/bin/pip install --no-deps -e .              # this project, without its pins
+    /tmp/bm_venv/bin/pip install gymnasium                   # mrta_rl.envs registers gym ids
     /tmp/bm_venv/bin/python examples/benchmarl_qmix.py       # a few minutes
 
-(numpy, PyYAML and hydra-core, all the env needs, come with BenchMARL.) It prints BenchMARL's
+(numpy, PyYAML and hydra-core, the rest the env needs, come with BenchMARL.) It prints BenchMARL's
 evaluation team return (``eval/agents/reward/episode_reward_mean``: the team reward is repeated
 per robot, so the per-robot mean is the team return) next to the greedy auction on the same task
 streams (copy ``b`` of the evaluation env is seeded ``seed + b`` in both).
