@@ -60,6 +60,28 @@ JOINT = "joint"  # root sub-TensorDict of joint-action keys: (JOINT, group, leaf
 REWARD_KEYS = ("reward", "robot_reward", "group_reward")
 
 
+MIN_TORCHRL = (0, 14)  # Collector(auto_register_policy_transforms=...), torchrl 0.14 names
+
+
+def require_torchrl() -> None:
+    """Fail clearly under an older torchrl (e.g. BenchMARL's venv, which pins ``torchrl<0.12``).
+
+    The env and its TorchRL view run under BenchMARL's torchrl; the project's own learners and
+    runner use torchrl 0.14 parts.
+
+    Raises:
+        RuntimeError: naming the installed and the needed version.
+    """
+    import torchrl
+
+    installed = tuple(int(part) for part in torchrl.__version__.split(".")[:2])
+    if installed < MIN_TORCHRL:
+        raise RuntimeError(
+            f"the neural learners need torchrl>=0.14 (installed: {torchrl.__version__}); "
+            "BenchMARL's venv pins torchrl<0.12: train them from the project's own venv"
+        )
+
+
 # ---------------------------------------------------------------------------------- features
 def observation_td(env: AuctionEnv, group_map: GroupMap, mask: np.ndarray) -> TensorDict:
     """The TorchRL observation of the env's decision point, as ``AuctionTorchRLEnv`` writes it.
@@ -158,6 +180,7 @@ class NeuralLearner(Learner):
         Raises:
             ValueError: on an out-of-range hyperparameter or an unavailable device.
         """
+        require_torchrl()
         super().__init__(env=env, rng=rng, partition=partition)
         if torch.device(device).type == "cuda" and not torch.cuda.is_available():
             raise ValueError("device=cuda but CUDA is not available")
