@@ -18,6 +18,12 @@ from torchrl.envs import EnvBase, MarlGroupMapType
 
 from mrta_rl.envs import observations
 from mrta_rl.envs.auction import AuctionEnv
+from mrta_rl.envs.view_inputs import (
+    DEFAULT_INVALID_ACTION,
+    InvalidAction,
+    check_invalid_action,
+    sanitize_actions,
+)
 from mrta_rl.types import GroupMap
 
 GroupMapArg = Mapping[str, Sequence[str | int]] | MarlGroupMapType | str | None
@@ -72,21 +78,35 @@ class AuctionTorchRLEnv(EnvBase):
 
     Action Space:
         ``(group, "action")``: ``Categorical(K + 1)`` of shape ``[B, n_g]`` (0 = wait, ``k`` = bid
-        for slot ``k``, spec step 4); a one-hot ``[B, n_g, K + 1]`` tensor is accepted too.
-        Invalid bids raise the core's ``ValueError``; :meth:`rand_action` samples valid ones.
+        for slot ``k``, spec step 4) whose ``mask`` is the current action mask (updated at every
+        reset and step), so sampling the spec -- ``rand_action``, ``Collector(env, None)``,
+        rollouts without a policy -- draws valid actions only. A one-hot ``[B, n_g, K + 1]``
+        tensor is accepted too. TorchRL clones specs where it wraps an env (``RandomPolicy`` of
+        ``Collector(env, None)``, ``TransformedEnv``, the parent of a ``SerialEnv`` /
+        ``ParallelEnv``), and a clone's mask no longer follows the env: TorchRL's
+        ``ActionMask((group, "action"), (group, "action_mask"))`` transform on the outer env
+        keeps it current. Actions sampled from a stale mask are what ``invalid_action`` is for:
+        ``"wait"`` (default, as the Gymnasium and PettingZoo views) plays an invalid or
+        out-of-range bid as a wait and flags it in ``(group, "invalid_action")`` ``[B, n_g, 1]``;
+        ``"raise"`` keeps the core's ``ValueError`` (spec step 4; the training runner uses it).
 
     Observation Space:
         ``(group, "observation")``: float32 ``[B, n_g, F]`` local features
         (:func:`~mrta_rl.envs.observations.local_features`); ``(group, "action_mask")``: bool
         ``[B, n_g, K + 1]`` (the core's mask); root ``"state"``: float32 ``[B, G]`` global
-        features (:func:`~mrta_rl.envs.observations.global_features`) for mixers.
+        features (:func:`~mrta_rl.envs.observations.global_features`) for mixers. Two reward
+        breakdowns ride along as observations of the step (zero after a reset):
+        ``(group, "robot_reward")`` ``[B, n_g, 1]``, each robot's individual reward, and
+        ``(group, "group_reward")`` ``[B, n_g, 1]``, the sub-group reward (sum of its robots'
+        rewards, spec step 8) repeated for every robot of the group.
 
     Reward:
-        Root ``"reward"`` ``[B, 1]``: team reward (spec step 8). ``(group, "reward")``
-        ``[B, n_g, 1]``: each robot's individual reward. ``(group, "group_reward")``
-        ``[B, n_g, 1]``: the sub-group reward (sum of its robots' rewards, spec step 8), repeated
-        for every robot of the group (the shared-reward convention of VMAS and BenchMARL; take
-        ``[..., 0, :]`` for a ``[B, 1]`` group reward). All float32.
+        TorchRL's multi-agent convention (VMAS, BenchMARL): the only reward key of a group is
+        ``(group, "reward")`` ``[B, n_g, 1]``, the *team* reward (spec step 8) repeated for
+        every robot. With one group (the default) ``env.reward_key`` is ``("agents",
+        "reward")`` and a plain ``RewardSum()`` sums the team return; with several groups
+        ``env.reward_keys`` lists one per group (all equal). Learners that train on the
+        individual or sub-group reward read ``robot_reward`` / ``group_reward``. All float32.
 
     Episode End:
         Root ``"truncated"``/``"done"`` ``[B, 1]`` after ``horizon`` ticks; ``"terminated"`` is
@@ -96,22 +116,39 @@ class AuctionTorchRLEnv(EnvBase):
         env: The core environment (its batch size is the TorchRL batch size).
         group_map: See :func:`resolve_group_map`.
         device: Only ``"cpu"``.
+        invalid_action: ``"wait"`` or ``"raise"`` (see Action Space).
     """
 
     batch_locked = True
 
     def __init__(
-        self, env: AuctionEnv, group_map: GroupMapArg = None, device: str | torch.device = "cpu"
+        self,
+        env: AuctionEnv,
+        group_map: GroupMapArg = None,
+        device: str | torch.device = "cpu",
+        invalid_action: InvalidAction = DEFAULT_INVALID_ACTION,
     ) -> None:
         if torch.device(device).type != "cpu":
             raise ValueError("AuctionTorchRLEnv runs on cpu (the dynamics are numpy)")
+        check_invalid_action(invalid_action)
+        self.invalid_action = invalid_action
         super().__init__(device="cpu", batch_size=torch.Size([env.batch_size]))
         self.auction = env
         self.group_map = resolve_group_map(env.system.robots, group_map)
-        self._group_index = {
-            g: np.array([env.system.robots.index(r) for r in ids])
-            for g, ids in self.group_map.items()
-        }
+        m = env.n_robots
+        self._group_index: dict[str, np.ndarray] = {}
+        # per group: the robots' columns, as a slice when contiguous (basic indexing is a view,
+        # no gather) else as an index tensor
+        self._columns: dict[str, slice | torch.Tensor] = {}
+        for g, ids in self.group_map.items():
+            idx = np.array([env.system.robots.index(r) for r in ids])
+            self._group_index[g] = idx
+            contiguous = np.array_equal(idx, np.arange(idx[0], idx[0] + len(idx)))
+            self._columns[g] = (
+                slice(int(idx[0]), int(idx[0]) + len(idx)) if contiguous else torch.from_numpy(idx)
+            )
+        self._whole = {g: len(idx) == m for g, idx in self._group_index.items()}
+        self._actions = np.zeros((env.batch_size, m), np.int64)  # [B, m], reused every step
         self._make_specs()
 
     # ------------------------------------------------------------------ specs
@@ -127,19 +164,22 @@ class AuctionTorchRLEnv(EnvBase):
             obs[group] = Composite(
                 observation=Bounded(0.0, 1.0, shape=(*shape, F), dtype=torch.float32),
                 action_mask=Binary(n=A, shape=(*shape, A), dtype=torch.bool),
-                shape=shape,
-            )
-            act[group] = Composite(action=Categorical(A, shape=shape), shape=shape)
-            rew[group] = Composite(
-                reward=Unbounded(shape=(*shape, 1)),
+                robot_reward=Unbounded(shape=(*shape, 1)),
                 group_reward=Unbounded(shape=(*shape, 1)),
                 shape=shape,
             )
+            if self.invalid_action == "wait":
+                obs[group]["invalid_action"] = Binary(n=1, shape=(*shape, 1), dtype=torch.bool)
+            act[group] = Composite(
+                action=Categorical(A, shape=shape, mask=torch.ones(*shape, A, dtype=torch.bool)),
+                shape=shape,
+            )
+            rew[group] = Composite(reward=Unbounded(shape=(*shape, 1)), shape=shape)
         self.observation_spec = Composite(
             **obs, state=Bounded(0.0, 1.0, shape=(B, G), dtype=torch.float32), shape=(B,)
         )
         self.action_spec = Composite(**act, shape=(B,))
-        self.reward_spec = Composite(**rew, reward=Unbounded(shape=(B, 1)), shape=(B,))
+        self.reward_spec = Composite(**rew, shape=(B,))
         self.done_spec = Composite(
             {
                 key: Categorical(2, shape=(B, 1), dtype=torch.bool)
@@ -148,86 +188,96 @@ class AuctionTorchRLEnv(EnvBase):
             shape=(B,),
         )
 
+    def _update_masks(self, out: TensorDictBase) -> None:
+        """Write the new action masks into the action spec (TorchRL's masked ``Categorical``)."""
+        spec = self.input_spec["full_action_spec"]
+        for group in self.group_map:
+            spec[group, "action"].update_mask(out.get((group, "action_mask")))
+
     # ------------------------------------------------------------------ EnvBase hooks
-    def _observe(self) -> dict[str, torch.Tensor | TensorDict]:
-        """Observation leaves of the current decision point (fresh arrays, wrapped zero-copy)."""
-        core = self.auction
-        local = torch.from_numpy(observations.local_features(core))  # [B, m, F]
-        # [B, m, K + 1]: a view of the core's buffer, overwritten next tick; the per-group
-        # advanced indexing below copies it, so returned data never changes afterwards
-        mask = torch.from_numpy(core.action_mask)
-        out: dict[str, torch.Tensor | TensorDict] = {
-            "state": torch.from_numpy(observations.global_features(core))
-        }
-        for group, idx in self._group_index.items():
-            out[group] = TensorDict(
-                observation=local[:, idx],
-                action_mask=mask[:, idx],
-                batch_size=(len(mask), len(idx)),
-            )
+    def _output(
+        self,
+        team: torch.Tensor | None,
+        robot: torch.Tensor | None,
+        done: torch.Tensor,
+        invalid: torch.Tensor | None,
+    ) -> TensorDict:
+        """The TensorDict of a decision point: observations, rewards (None: zero) and flags.
+
+        Args:
+            team: ``[B]`` float32 team reward, None after a reset (no reward then).
+            robot: ``[B, m]`` float32 individual rewards, None after a reset (zeros).
+            done: ``[B]`` bool episode-end flags.
+            invalid: ``[B, m]`` bool actions played as waits (``invalid_action="wait"``), None
+                after a reset (none).
+
+        Returns:
+            A TensorDict of batch ``[B]`` on cpu; every tensor is fresh (never aliases the core).
+        """
+        core, cpu = self.auction, self.device
+        B = core.batch_size
+        local = torch.from_numpy(observations.local_features(core))  # [B, m, F], a fresh array
+        mask = torch.from_numpy(core.action_mask)  # [B, m, K + 1], a view of the core's buffer
+        out = TensorDict(
+            {"state": torch.from_numpy(observations.global_features(core))},
+            batch_size=self.batch_size,
+            device=cpu,
+        )
+        if robot is None:
+            robot = torch.zeros(B, core.n_robots)
+        if invalid is None and self.invalid_action == "wait":
+            invalid = torch.zeros(B, core.n_robots, dtype=torch.bool)
+        for group, cols in self._columns.items():
+            n_g = len(self._group_index[group])
+            whole = self._whole[group]
+            group_robot = robot[:, cols].unsqueeze(-1)  # [B, n_g, 1]
+            leaves = {
+                "observation": local if whole else local[:, cols],
+                # the mask is copied: the core overwrites its buffer next tick
+                "action_mask": mask.clone() if whole else mask[:, cols].clone(),
+                "robot_reward": group_robot,
+                "group_reward": group_robot.sum(1, keepdim=True).expand(B, n_g, 1).clone(),
+            }
+            if invalid is not None:
+                leaves["invalid_action"] = invalid[:, cols].unsqueeze(-1)
+            if team is not None:
+                leaves["reward"] = team.reshape(B, 1, 1).expand(B, n_g, 1).clone()
+            out.set(group, TensorDict(leaves, batch_size=(B, n_g), device=cpu))
+        done = done.reshape(B, 1)
+        out.set("done", done)
+        out.set("terminated", torch.zeros_like(done))  # no terminal state, only the horizon
+        out.set("truncated", done.clone())
+        self._update_masks(out)
         return out
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
-        B = self.auction.batch_size
         mask = None
         if tensordict is not None and "_reset" in tensordict.keys():
-            mask = tensordict.get("_reset").reshape(B).numpy()
+            mask = tensordict.get("_reset").reshape(self.auction.batch_size).numpy()
         self.auction.reset(mask)
-        done = torch.from_numpy(self.auction.done.copy()).reshape(B, 1)
-        return TensorDict(
-            {
-                **self._observe(),
-                "done": done,
-                "terminated": torch.zeros_like(done),
-                "truncated": done.clone(),
-            },
-            batch_size=self.batch_size,
-        )
+        return self._output(None, None, torch.from_numpy(self.auction.done.copy()), None)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         core = self.auction
-        B = core.batch_size
-        actions = np.zeros((B, core.n_robots), np.int64)  # [B, m]
+        actions = self._actions  # [B, m]
         for group, idx in self._group_index.items():
             action = tensordict.get((group, "action"))
             if action.dim() == 3:  # one-hot [B, n_g, K + 1]
                 action = action.argmax(-1)
-            actions[:, idx] = action.reshape(B, len(idx)).numpy()
-        result = core.step(actions)  # the core validates (ValueError on invalid bids)
-        robot = torch.from_numpy(result.robot_reward.astype(np.float32))  # [B, m]
-        out = self._observe()
-        for group, idx in self._group_index.items():
-            group_robot = robot[:, idx].unsqueeze(-1)  # [B, n_g, 1]
-            group_sum = group_robot.sum(dim=1, keepdim=True).expand_as(group_robot)  # spec step 8
-            out[group].update(reward=group_robot, group_reward=group_sum)
-        done = torch.from_numpy(result.done).reshape(B, 1)
-        out.update(
-            reward=torch.from_numpy(result.team_reward.astype(np.float32)).reshape(B, 1),
-            done=done,
-            terminated=torch.zeros_like(done),  # the spec has no terminal state, only the horizon
-            truncated=done.clone(),
+            actions[:, idx] = action.reshape(core.batch_size, len(idx)).numpy()
+        invalid = None
+        if self.invalid_action == "wait":  # spec step 4: an invalid bid is played as a wait
+            actions, flags = sanitize_actions(actions, core.action_mask, "wait")
+            invalid = torch.from_numpy(flags)
+        result = core.step(actions)  # the core validates (ValueError naming copy, robot, reason)
+        return self._output(
+            torch.from_numpy(result.team_reward.astype(np.float32)),
+            torch.from_numpy(result.robot_reward.astype(np.float32)),
+            torch.from_numpy(result.done.copy()),
+            invalid,
         )
-        return TensorDict(out, batch_size=self.batch_size)
 
     def _set_seed(self, seed: int | None) -> None:
         """Seed the copies (copy ``b`` gets ``seed + b``); applied at the next reset."""
         if seed is not None:
             self.auction.seed(seed)
-
-    def rand_action(self, tensordict: TensorDictBase | None = None) -> TensorDictBase:
-        """Uniformly random *valid* actions (the core's mask), so random rollouts never raise."""
-        mask = torch.from_numpy(self.auction.action_mask)  # [B, m, K + 1]
-        B = mask.shape[0]
-        action = torch.multinomial(mask.reshape(-1, mask.shape[-1]).float(), 1).reshape(
-            mask.shape[:2]
-        )
-        out = TensorDict(
-            {
-                g: TensorDict(action=action[:, idx], batch_size=(B, len(idx)))
-                for g, idx in self._group_index.items()
-            },
-            batch_size=self.batch_size,
-        )
-        if tensordict is None:
-            return out
-        return tensordict.update(out)

@@ -111,7 +111,9 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     total_frames = int(cfg.train.episodes) * horizon * batch
     # a short run (debug=smoke) still reaches the gradient steps: warm up at most half of it
     warmup = min(int(hp["warmup_frames"]), total_frames // 2)
-    env = AuctionTorchRLEnv(run.env, group_map=learner.group_map)
+    # the learners play masked actions only: an invalid one is a bug, so it must raise
+    env = AuctionTorchRLEnv(run.env, group_map=learner.group_map, invalid_action="raise")
+    team_group = next(iter(learner.group_map))
     buffer = TensorDictReplayBuffer(
         storage=LazyTensorStorage(int(hp["buffer_size"]), device=device),
         batch_size=int(hp["batch_size"]),
@@ -179,7 +181,8 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
             seconds["collect"] += time.perf_counter() - tick
             n_frames = data.numel()
             frames += n_frames
-            reward = data.get(("next", "reward")).reshape(batch, -1).cpu()  # [B, T] team reward
+            # [B, T] team reward: every group's (group, "reward") is the team reward, per robot
+            reward = data.get(("next", team_group, "reward"))[..., 0, 0].reshape(batch, -1).cpu()
             done = data.get(("next", "done")).reshape(batch, -1).cpu()  # [B, T]
             for t in range(reward.shape[1]):
                 running += reward[:, t]

@@ -7,13 +7,15 @@ import pytest
 import torch
 from tensordict import TensorDict
 from torchrl.collectors import Collector
+from torchrl.data import Categorical
+from torchrl.modules import EGreedyModule, MultiAgentMLP
 
 from mrta_rl.envs import AuctionEnv, AuctionParams
 from mrta_rl.envs.torchrl_env import AuctionTorchRLEnv
 from mrta_rl.learners import SubGReserveLearner
 from mrta_rl.learners.neural import IQLLearner, QMIXLearner, SubGDQNLearner, VDNLearner
 from mrta_rl.learners.neural.common import WEIGHTS_FILE
-from mrta_rl.learners.neural.networks import greedy_bid, joint_combine, joint_decode
+from mrta_rl.learners.neural.networks import PerRobotQ, greedy_bid, joint_combine, joint_decode
 from mrta_rl.partition import subg_partition
 from mrta_rl.runners.evaluate import evaluate_policy
 from mrta_rl.systems import build_system
@@ -243,3 +245,50 @@ def test_cuda_runs_the_same_code(cls, system):
     assert np.isfinite(learner.train_step(batch)["train/loss"])
     actions = learner.act(learner.encode(env), env.action_mask, explore=False)
     assert actions.shape == (env.batch_size, env.n_robots)
+
+
+def test_epsilon_in_closed_form_follows_the_egreedy_schedule(system):
+    """anneal(): EGreedyModule.step's linear decay, computed from the frame count."""
+    learner, _ = make(QMIXLearner, system, eps_start=0.3, eps_end=0.02, eps_decay_frames=1000)
+    reference = EGreedyModule(Categorical(5), eps_init=0.3, eps_end=0.02, annealing_num_steps=1000)
+    assert learner.epsilon == pytest.approx(0.3)
+    for frames in (100, 250, 400, 600):  # 100, 350, 750, 1350 frames: past the decay at the end
+        learner.anneal(frames)
+        reference.step(frames)
+        assert learner.epsilon == pytest.approx(float(reference.eps), abs=1e-5)
+    assert learner.epsilon == pytest.approx(0.02)
+    learner, _ = make(QMIXLearner, system, eps_start=0.3, eps_end=0.02, eps_decay_frames=1000)
+    learner.anneal(500)  # half way: 0.3 - 0.28 / 2, by hand
+    assert learner.epsilon == pytest.approx(0.16)
+
+
+def test_shared_q_network_loads_multiagent_mlp_checkpoints():
+    """The shared per-robot net is TorchRL's MLP; weights saved from the former shared
+    MultiAgentMLP (keys mlp.params.*) load into it and give the same Q-values."""
+    torch.manual_seed(3)
+    old = MultiAgentMLP(
+        7,
+        4,
+        5,
+        centralized=False,
+        share_params=True,
+        depth=2,
+        num_cells=16,
+        activation_class=torch.nn.ReLU,
+    )
+    with torch.no_grad():
+        for p in old.parameters():
+            p.normal_()
+    net = PerRobotQ(
+        7,
+        5,
+        4,
+        share_params=True,
+        hidden=16,
+        depth=2,
+        auction_prior=0.0,
+        device=torch.device("cpu"),
+    )
+    net.load_state_dict({f"mlp.{k}": v for k, v in old.state_dict().items()})
+    x, mask = torch.rand(3, 5, 7), torch.ones(3, 5, 4, dtype=torch.bool)
+    torch.testing.assert_close(net(x, mask), old(x))

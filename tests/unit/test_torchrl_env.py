@@ -9,6 +9,8 @@ import pytest
 import torch
 import yaml
 from tensordict import TensorDict
+from torchrl.collectors import Collector
+from torchrl.envs import ActionMask, ParallelEnv, RewardSum, SerialEnv, TransformedEnv
 from torchrl.envs.utils import check_env_specs
 
 from mrta_rl.envs import AuctionEnv, AuctionParams
@@ -101,24 +103,26 @@ def test_same_results_as_core(kind):
         actions = random_valid(mask, rng)
         result = core.step(actions)
         out = env.step(to_td(env, actions))["next"]
-        np.testing.assert_allclose(out["reward"].numpy()[:, 0], result.team_reward, rtol=1e-6)
         np.testing.assert_array_equal(out["done"].numpy()[:, 0], result.done)
         np.testing.assert_array_equal(out["truncated"].numpy()[:, 0], result.done)
         assert not out["terminated"].any()
-        group_total = torch.zeros(4, 1)
+        group_total = np.zeros(4)
         for g, idx in env._group_index.items():
+            # TorchRL's reward key of every group: the team reward, repeated per robot
+            team = np.repeat(result.team_reward[:, None], len(idx), axis=1)
+            np.testing.assert_allclose(out[g, "reward"].numpy()[..., 0], team, rtol=1e-6)
             np.testing.assert_allclose(
-                out[g, "reward"].numpy()[..., 0], result.robot_reward[:, idx], atol=1e-5
+                out[g, "robot_reward"].numpy()[..., 0], result.robot_reward[:, idx], atol=1e-5
             )
             # spec step 8: a sub-group's reward is the sum of its robots', repeated per robot
-            expected = out[g, "reward"].sum(dim=1)  # [B, 1]
-            torch.testing.assert_close(
-                out[g, "group_reward"], expected[:, None].expand_as(out[g, "reward"])
+            expected = result.robot_reward[:, idx].sum(1)  # [B]
+            np.testing.assert_allclose(
+                out[g, "group_reward"].numpy()[..., 0],
+                np.repeat(expected[:, None], len(idx), axis=1),
+                atol=1e-4,
             )
-            group_total += out[g, "group_reward"][:, 0]
-        torch.testing.assert_close(
-            group_total, out["reward"], atol=1e-4, rtol=1e-5
-        )  # groups add up
+            group_total += out[g, "group_reward"].numpy()[:, 0, 0]
+        np.testing.assert_allclose(group_total, result.team_reward, atol=1e-3)  # groups add up
         team_return += result.team_reward
         td = out
     assert result.done.all()
@@ -142,7 +146,7 @@ def test_rollout_with_auto_reset_matches_core():
             core.reset(core.done.copy())  # a copy: reset(mask) writes core.done, which would alias
         rewards.append(core.step(actions[:, tick]).team_reward)
     np.testing.assert_allclose(
-        data["next", "reward"].numpy()[..., 0], np.stack(rewards, 1), rtol=1e-6
+        data["next", "agents", "reward"].numpy()[..., 0, 0], np.stack(rewards, 1), rtol=1e-6
     )
 
 
@@ -192,9 +196,9 @@ def test_seeding_and_one_hot_and_invalid_actions():
     )
     out = env.step(one_hot)["next"]
     np.testing.assert_allclose(
-        out["reward"].numpy()[:, 0], core.step(np.zeros((3, 6), int)).team_reward
+        out["R1", "reward"].numpy()[:, 0, 0], core.step(np.zeros((3, 6), int)).team_reward
     )
-    # an invalid bid raises the core's error; rand_action only samples valid bids
+    # rand_action samples the masked action spec: valid bids only
     for _ in range(20):
         action = env.rand_action()
         for g, idx in env._group_index.items():
@@ -204,5 +208,90 @@ def test_seeding_and_one_hot_and_invalid_actions():
     bad = np.zeros((3, 6), int)
     empty = np.flatnonzero(env.auction.slot_type[0] < 0)
     bad[0, 0] = empty[0] + 1 if len(empty) else 9
+    # invalid_action="raise": the core's error; "wait" (default): played as a wait, flagged
+    strict = AuctionTorchRLEnv(env.auction, env.group_map, invalid_action="raise")
     with pytest.raises(ValueError, match="invalid action"):
-        env.step(to_td(env, bad))
+        strict.step(to_td(strict, bad))
+    out = env.step(to_td(env, bad))["next"]
+    flags = np.concatenate([out[g, "invalid_action"].numpy()[:, :, 0] for g in env.group_map], 1)
+    expected_flags = np.zeros((3, 6), bool)
+    expected_flags[0, 0] = True
+    np.testing.assert_array_equal(flags, expected_flags)
+    waited = core.step(np.zeros((3, 6), int))  # the twin core, all waiting: the same tick
+    np.testing.assert_allclose(out["R1", "reward"].numpy()[:, 0, 0], waited.team_reward)
+    with pytest.raises(ValueError, match="invalid_action must be one of"):
+        AuctionTorchRLEnv(env.auction, invalid_action="ignore")
+
+
+# ---------------------------------------------------------------- outside clients (issue 12)
+def paper_env(batch_size: int = 4, horizon: int = 8, seed: int = 0) -> AuctionTorchRLEnv:
+    """System-II in the default configuration (one group, invalid_action="wait")."""
+    core = AuctionEnv(load_system("system2"), AuctionParams(horizon=horizon), batch_size, seed=seed)
+    return AuctionTorchRLEnv(core)
+
+
+def test_reward_key_and_plain_reward_sum_give_the_team_return():
+    env = paper_env()
+    assert env.reward_key == ("agents", "reward")
+    assert env.reward_keys == [("agents", "reward")]
+    torch.manual_seed(0)
+    data = TransformedEnv(env, RewardSum()).rollout(8)  # one episode: horizon 8
+    summed = data["next", "agents", "episode_reward"][:, -1, :, 0]  # [B, m]
+    expected = torch.as_tensor(env.auction.stats.team_return, dtype=torch.float32)  # [B]
+    torch.testing.assert_close(summed, expected[:, None].expand_as(summed))
+
+
+def test_spec_sampling_is_valid_and_follows_the_mask():
+    """The action spec's mask is the current mask: spec samples are valid, every tick."""
+    env = paper_env(batch_size=6, horizon=30)
+    td = env.reset()
+    spec = env.full_action_spec["agents", "action"]
+    for _ in range(30):
+        mask = td["agents", "action_mask"]
+        assert torch.equal(spec.mask, mask)
+        sample = spec.rand()
+        assert mask.gather(-1, sample.unsqueeze(-1)).all()
+        td = env.step(env.rand_action(td))
+        assert not td["next", "agents", "invalid_action"].any()
+        td = td["next"]
+
+
+def test_collector_without_policy():
+    """Collector(env, None): a RandomPolicy on a clone of the spec (its mask goes stale, so
+    invalid samples are played as waits and flagged)."""
+    torch.manual_seed(0)
+    collector = Collector(paper_env(), None, frames_per_batch=40, total_frames=80)
+    batches = list(collector)
+    collector.shutdown()
+    assert [b.shape for b in batches] == [torch.Size([4, 10])] * 2
+    for data in batches:
+        taken = data["agents", "action"]
+        mask = data["agents", "action_mask"]
+        valid = mask.gather(-1, taken.unsqueeze(-1))
+        torch.testing.assert_close(data["next", "agents", "invalid_action"], ~valid)
+
+
+def _masked(env):
+    return TransformedEnv(env, ActionMask(("agents", "action"), ("agents", "action_mask")))
+
+
+@pytest.mark.parametrize("batched", [SerialEnv, ParallelEnv])
+def test_batched_envs_of_two_workers(batched):
+    """Plain (stale parent spec: invalid samples wait) and with ActionMask (all valid)."""
+    env = batched(2, paper_env)
+    try:
+        for outer, masked in ((env, False), (_masked(env), True)):
+            check_env_specs(outer, seed=0)
+            data = outer.rollout(10, break_when_any_done=False)
+            assert data.shape == torch.Size([2, 4, 10])
+            if masked:  # the ActionMask transform keeps the parent's spec current
+                assert not data["next", "agents", "invalid_action"].any()
+    finally:
+        env.close()
+
+
+def test_action_mask_transform():
+    env = _masked(paper_env())
+    check_env_specs(env)
+    data = env.rollout(8)
+    assert not data["next", "agents", "invalid_action"].any()

@@ -4,7 +4,9 @@ The neural learners (``subg_dqn``, ``vdn``, ``qmix``, ``iql``) are built from To
 keys of :class:`~mrta_rl.envs.torchrl_env.AuctionTorchRLEnv`: per group ``(group,
 "observation")`` ``[*, n_g, F]`` (:func:`~mrta_rl.envs.observations.local_features`), ``(group,
 "action_mask")`` ``[*, n_g, K + 1]`` and ``(group, "action")`` ``[*, n_g]``, root ``"state"``
-(global features) and root team ``"reward"``. The same modules serve
+(global features), and the rewards ``(group, "reward")`` (team reward, TorchRL's reward key),
+``(group, "robot_reward")`` and ``(group, "group_reward")``, all ``[*, n_g, 1]``. The same
+modules serve
 
 * the TorchRL training loop (``mrta_rl.runners.torchrl``): :attr:`NeuralLearner.explore_policy`
   (Q-network -> ``QValueModule`` -> ``EGreedyModule`` with the action mask) runs inside a
@@ -54,6 +56,31 @@ WEIGHTS_FILE = "weights.pt"  # state_dict of the Q-networks (and mixer), torch.l
 META_FILE = "learner.json"  # group map and sizes, to check a checkpoint fits the run
 TRAINING_FILE = "training.pt"  # optimizer, target networks, epsilon (training checkpoints)
 JOINT = "joint"  # root sub-TensorDict of joint-action keys: (JOINT, group, leaf), batch [*]
+# per-robot reward leaves of AuctionTorchRLEnv, [*, n_g, 1]: team (TorchRL's reward key),
+# individual, and sub-group reward (spec step 8)
+REWARD_KEYS = ("reward", "robot_reward", "group_reward")
+
+
+MIN_TORCHRL = (0, 14)  # Collector(auto_register_policy_transforms=...), torchrl 0.14 names
+
+
+def require_torchrl() -> None:
+    """Fail clearly under an older torchrl (e.g. BenchMARL's venv, which pins ``torchrl<0.12``).
+
+    The env and its TorchRL view run under BenchMARL's torchrl; the project's own learners and
+    runner use torchrl 0.14 parts.
+
+    Raises:
+        RuntimeError: naming the installed and the needed version.
+    """
+    import torchrl
+
+    installed = tuple(int(part) for part in torchrl.__version__.split(".")[:2])
+    if installed < MIN_TORCHRL:
+        raise RuntimeError(
+            f"the neural learners need torchrl>=0.14 (installed: {torchrl.__version__}); "
+            "BenchMARL's venv pins torchrl<0.12: train them from the project's own venv"
+        )
 
 
 # ---------------------------------------------------------------------------------- features
@@ -154,6 +181,7 @@ class NeuralLearner(Learner):
         Raises:
             ValueError: on an out-of-range hyperparameter or an unavailable device.
         """
+        require_torchrl()
         super().__init__(env=env, rng=rng, partition=partition)
         if torch.device(device).type == "cuda" and not torch.cuda.is_available():
             raise ValueError("device=cuda but CUDA is not available")
@@ -205,6 +233,7 @@ class NeuralLearner(Learner):
             for loss in self.losses.values()
         ]
         self.gradient_steps = 0
+        self.frames_collected = 0  # copy-ticks seen by anneal(): the epsilon schedule's clock
 
     # -------------------------------------------------------------- for subclasses
     def _group_map(self) -> GroupMap:
@@ -266,9 +295,19 @@ class NeuralLearner(Learner):
         return float(self.egreedy[0].eps) if self.egreedy else 0.0
 
     def anneal(self, frames: int) -> None:
-        """Advance the epsilon schedules by ``frames`` collected copy-ticks."""
+        """Advance the epsilon schedules by ``frames`` collected copy-ticks.
+
+        The linear decay of ``EGreedyModule.step`` in closed form: ``EGreedyModule.step(n)``
+        loops in Python over the ``n`` frames (one tensor op each), which cost as much as
+        collecting them; ``eps = max(eps_end, eps_start - (eps_start - eps_end) f / F)``
+        after ``f`` frames (``F = eps_decay_frames``) is the same schedule.
+        """
+        self.frames_collected += frames
+        start, end = self.hp["eps_start"], self.hp["eps_end"]
+        progress = min(self.frames_collected / self.hp["eps_decay_frames"], 1.0)
+        eps = start - (start - end) * progress
         for module in self.egreedy:
-            module.step(frames)
+            module.eps.fill_(eps)
 
     def transitions(self, data: TensorDictBase) -> TensorDictBase:
         """Collector batch -> replay transitions (flattened; rewards scaled).
@@ -281,9 +320,8 @@ class NeuralLearner(Learner):
         """
         data = data.reshape(-1)
         scale = self.hp["reward_scale"]
-        data.set(("next", "reward"), data.get(("next", "reward")) * scale)
         for group in self.group_map:
-            for key in ("reward", "group_reward"):
+            for key in REWARD_KEYS:
                 data.set(("next", group, key), data.get(("next", group, key)) * scale)
         return data
 
@@ -501,13 +539,17 @@ class MixedQLearner(NeuralLearner):
             local_value=(group, "chosen_action_value"),
             global_value="chosen_action_value",
             action=(group, "action"),
-            reward="reward",  # team reward (spec step 8)
+            reward="reward",  # team reward (spec step 8), set at the root by transitions()
             done="done",
             terminated="terminated",
         )
         self.losses[group] = loss
 
     def transitions(self, data: TensorDictBase) -> TensorDictBase:
-        """Scaled team reward; Q-values are recomputed by the loss, so they are not stored."""
+        """Scaled team reward, also at the root ``[N, 1]`` where ``QMixerLoss`` reads it.
+
+        As in TorchRL's QMIX example; Q-values are recomputed by the loss, so not stored.
+        """
         data = super().transitions(data)
+        data.set(("next", "reward"), data.get(("next", "agents", "reward"))[:, 0])
         return data.exclude(("agents", "action_value"), ("agents", "chosen_action_value"))

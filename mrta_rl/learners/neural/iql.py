@@ -16,8 +16,8 @@ class IQLLearner(NeuralLearner):
 
     One TorchRL group holds every robot, but with ``share_params=False`` its ``MultiAgentMLP``
     holds one independent network per robot (vectorised), so this is ``m`` independent DQNs:
-    TorchRL's ``DQNLoss`` on the per-robot reward ``(agents, "reward")`` (spec step 8) with the
-    episode flags repeated per robot.
+    TorchRL's ``DQNLoss`` on the per-robot reward ``(agents, "robot_reward")`` (spec step 8)
+    with the episode flags repeated per robot.
     """
 
     def _build(self) -> None:
@@ -35,7 +35,7 @@ class IQLLearner(NeuralLearner):
             action_value=(GROUP, "action_value"),
             value=(GROUP, "chosen_action_value"),
             action=(GROUP, "action"),
-            reward=(GROUP, "reward"),  # individual reward of each robot
+            reward=(GROUP, "robot_reward"),  # individual reward of each robot
             done=(GROUP, "done"),
             terminated=(GROUP, "terminated"),
         )

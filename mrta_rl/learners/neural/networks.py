@@ -111,9 +111,12 @@ def joint_decode(joint: torch.Tensor, n_robots: int, n_actions: int) -> torch.Te
 class PerRobotQ(nn.Module):
     """Per-robot Q-values ``[*, n_g, A]`` from local features, plus the auction prior.
 
-    A TorchRL :class:`MultiAgentMLP` (decentralised inputs); ``share_params=True`` is one network
-    for all robots, told apart by the robot-id one-hot of the local features (VDN/QMIX custom),
-    ``False`` is one independent network per robot (IQL).
+    ``share_params=True`` is one network for all robots, told apart by the robot-id one-hot of
+    the local features (VDN/QMIX custom): a TorchRL :class:`MLP` over the last axis, which is
+    what :class:`MultiAgentMLP` computes for shared decentralised nets (same initialisation, same
+    outputs) without swapping its parameters into a module on every call (``to_module``, the
+    largest cost of a collection tick). ``False`` is one independent network per robot (IQL), a
+    :class:`MultiAgentMLP` (vectorised over the robots).
     """
 
     def __init__(
@@ -141,23 +144,33 @@ class PerRobotQ(nn.Module):
             device: Parameter device.
         """
         super().__init__()
-        self.mlp = MultiAgentMLP(
-            n_features,
-            n_actions,
-            n_robots,
-            centralized=False,
-            share_params=share_params,
-            depth=depth,
-            num_cells=hidden,
-            activation_class=nn.ReLU,
-            device=device,
-        )
+        layers = {
+            "depth": depth,
+            "num_cells": hidden,
+            "activation_class": nn.ReLU,
+            "device": device,
+        }
+        if share_params:
+            self.mlp = MLP(in_features=n_features, out_features=n_actions, **layers)
+            # checkpoints written with the shared MultiAgentMLP keep loading
+            self._register_load_state_dict_pre_hook(_shared_multiagent_keys)
+        else:
+            self.mlp = MultiAgentMLP(
+                n_features, n_actions, n_robots, centralized=False, share_params=False, **layers
+            )
         zero_last_layer(self.mlp)
         self.auction_prior = auction_prior
 
     def forward(self, observation: torch.Tensor, action_mask: torch.Tensor) -> torch.Tensor:
         """Q-values ``[*, n_g, A]`` of ``observation`` ``[*, n_g, F]``."""
         return self.mlp(observation) + self.auction_prior * greedy_bid(action_mask)
+
+
+def _shared_multiagent_keys(state_dict: dict, prefix: str, *args) -> None:
+    """Rename a shared ``MultiAgentMLP``'s keys (``mlp.params.0.weight``) to the MLP's."""
+    old = f"{prefix}mlp.params."
+    for key in [k for k in state_dict if k.startswith(old)]:
+        state_dict[f"{prefix}mlp.{key[len(old) :]}"] = state_dict.pop(key)
 
 
 class JointQ(nn.Module):
