@@ -5,6 +5,7 @@ import pytest
 
 from mrta_rl.envs import AuctionEnv
 from mrta_rl.envs import observations as ob
+from mrta_rl.learners.fixed import TeamReserveLearner
 from mrta_rl.learners.tabular import group_kernels, robot_kernels
 from mrta_rl.learners.tabular.cql import CQLLearner
 from mrta_rl.learners.tabular.dql import DQLLearner
@@ -409,6 +410,58 @@ def test_untrained_learner_plays_the_plain_auction(cls, trio, tiny_params):
         env_result = env.step(learner.act(learner.encode(env), env.action_mask, explore=False))
         plain_result = plain.step(greedy_actions(plain.action_mask))
         np.testing.assert_allclose(env_result.team_reward, plain_result.team_reward)
+
+
+@pytest.mark.parametrize("system_name", ["trio", "system2"])
+def test_untrained_dql_with_the_hold_prior_plays_team_reserve(system_name, trio, tiny_params):
+    """prior=hold: every action of the untrained DQL is the team_reserve rule's, tick by tick."""
+    system = trio if system_name == "trio" else paper_system("system2")
+    rule_hp = {"reserve": 1, "hold_level": 1, "hold_scope": "robot"}
+    env, learner = make(DQLLearner, system, tiny_params, batch=6, seed=3, prior="hold",
+                        prior_rule=rule_hp)  # fmt: skip
+    rule = TeamReserveLearner(env=env, rng=np.random.default_rng(0), **rule_hp)
+    waited = bid = 0
+    while not env.done.any():
+        mask = env.action_mask
+        actions = learner.act(learner.encode(env), mask, explore=False)
+        np.testing.assert_array_equal(actions, rule.act(rule.encode(env), mask, explore=False))
+        plain = greedy_actions(mask)
+        waited += int(((actions == 0) & (plain > 0)).sum())  # the rule differs from the auction
+        bid += int((actions > 0).sum())
+        env.step(actions)
+    assert waited > 0 and bid > 0
+
+
+def test_dql_prior_in_state_adds_the_rules_action_as_a_digit(trio, tiny_params):
+    """Hand-computed: one L task of T1 in slot 1, all idle, no recent H arrival.
+
+    team_reserve (reserve 0, fewest_types) asks R2 (one type) first: R2 bids for slot 1, R1 and
+    R3 wait. With prior_in_state, robot i's state is its local index + action * |S_i|.
+    """
+    env, learner = make(DQLLearner, trio, tiny_params, batch=1, prior="hold", prior_in_state=True)
+    env.inject_tasks(0, [{"type": 0, "high": 0, "due": 0, "id": 0, "duration": 4}])
+    env.last_high_arrival[0, :] = env.t[0] - 50  # recency level 2: L slots are not held
+    view = learner.encode(env)
+    assert view.prior.tolist() == [[0, 1, 0]]
+    local = LocalEncoder(env).index(env)
+    counts = LocalEncoder(env).counts
+    assert view.states.tolist() == [[local[0, 0], local[0, 1] + counts[1], local[0, 2]]]
+    assert learner.state_counts == [4 * c for c in counts]
+    plain = make(DQLLearner, trio, tiny_params, batch=1)[1]
+    assert learner.learning_space()["analytic"] == 4 * plain.learning_space()["analytic"]
+    env.last_high_arrival[0, 0] = env.t[0] - 2  # an H task of T1 2 ticks ago: everyone holds
+    view = learner.encode(env)
+    assert view.prior.tolist() == [[0, 0, 0]]
+    assert view.states.tolist() == LocalEncoder(env).index(env).tolist()  # digit 0: unchanged
+
+
+def test_dql_rejects_bad_priors(trio):
+    with pytest.raises(ValueError, match="prior must be one of"):
+        make(DQLLearner, trio, prior="spread")
+    with pytest.raises(ValueError, match="needs prior=hold"):
+        make(DQLLearner, trio, prior_rule={"reserve": 1})
+    with pytest.raises(ValueError, match="team_reserve: reserve must be >= 0"):
+        make(DQLLearner, trio, prior="hold", prior_rule={"reserve": -1})
 
 
 @pytest.mark.parametrize("cls", LEARNERS)

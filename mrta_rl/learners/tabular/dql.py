@@ -15,9 +15,11 @@ from typing import ClassVar
 import numpy as np
 
 from mrta_rl.envs import AuctionEnv, StepResult
+from mrta_rl.learners.fixed import TeamReserveLearner
 from mrta_rl.learners.tabular import robot_kernels as kernels
 from mrta_rl.learners.tabular.base import TabularLearner
 from mrta_rl.learners.tabular.encoding import LocalEncoder
+from mrta_rl.learners.tabular.priors import greedy_actions
 from mrta_rl.metrics.learning_space import learning_space_dimension
 
 
@@ -28,10 +30,12 @@ class RobotObservation:
     Attributes:
         states: ``[B, m]`` (local views) or ``[B]`` (whole-system state) state indices.
         mask: ``[B, m, K + 1]`` valid actions (a copy).
+        prior: ``[B, m]`` the prior's action of every robot, or None for the plain auction's.
     """
 
     states: np.ndarray
     mask: np.ndarray
+    prior: np.ndarray | None = None
 
 
 class RobotQLearner(TabularLearner):
@@ -52,7 +56,9 @@ class RobotQLearner(TabularLearner):
         raise NotImplementedError
 
     def act(self, view: RobotObservation, mask: np.ndarray, *, explore: bool) -> np.ndarray:
-        """Per robot: epsilon-greedy over its valid actions; ties go to the plain auction's bid.
+        """Per robot: epsilon-greedy over its valid actions; ties go to the prior's action.
+
+        The prior is the plain auction's bid (lowest valid slot) unless the view carries one.
 
         Args:
             view: Output of :meth:`encode`.
@@ -67,7 +73,8 @@ class RobotQLearner(TabularLearner):
         bases = self._bases(view)
         actions = np.zeros(mask.shape[:2], np.int64)
         block = self.uniforms.block(2 * actions.size) if epsilon > 0.0 else np.zeros(0)
-        used = kernels.act_robots(self.q, bases, mask, epsilon, block, actions)
+        prior = greedy_actions(mask) if view.prior is None else view.prior
+        used = kernels.act_robots(self.q, bases, mask, prior, epsilon, block, actions)
         if epsilon > 0.0:
             self.uniforms.used(block, used)
         return actions
@@ -116,25 +123,64 @@ class RobotQLearner(TabularLearner):
         return {"analytic": analytic, "visited": int(np.count_nonzero(self.visits))}
 
 
+DQL_PRIORS = ("greedy", "hold")  # DQL's tie-break action of an untried state
+
+
 class DQLLearner(RobotQLearner):
     """Decentralized Q-learning (paper §6, independent learners after its ref. [32]).
 
     Robot ``i`` learns ``Q_i(s_i, a_i)`` over its local view ``s_i`` and its own action, from its
     individual reward, ignoring its teammates. Tables are dense: ``[m, max_i |S_i|, K + 1]``.
 
+    Ties among the greatest Q go to the prior's action (docs/learners.md, "Exploration and
+    ties"): ``greedy`` the plain auction's bid; ``hold`` the action of the whole-team rule
+    ``team_reserve`` (:class:`~mrta_rl.learners.fixed.TeamReserveLearner` with ``prior_rule``'s
+    settings), computed from the env at each decision: it reads what the local view lacks (the
+    other robots' idleness, which robot the team asks first), so the untrained learner plays the
+    rule exactly. ``prior_in_state`` adds that action as one more digit of the local state
+    (``K + 1`` values: ``|S_i|`` times ``K + 1``), so a trained robot can still tell the
+    situations in which the rule bids from those in which it waits.
+
     Args:
-        env: The env (full task sets).
-        rng: Exploration randomness.
-        partition: Unused.
-        **hyperparameters: See :class:`~mrta_rl.learners.tabular.base.TabularLearner`.
+        prior: ``greedy`` or ``hold`` (:data:`DQL_PRIORS`).
+        prior_rule: Keyword arguments of ``TeamReserveLearner`` for ``prior="hold"`` (e.g.
+            ``reserve``, ``hold_level``, ``hold_scope``); its defaults otherwise.
+        prior_in_state: Add the prior's action as a digit of the local state.
+        **hyperparameters: Env, rng, partition (unused) and those of
+            :class:`~mrta_rl.learners.tabular.base.TabularLearner`.
+
+    Raises:
+        ValueError: on an unknown ``prior``, ``prior_rule`` without ``prior="hold"``, or a bad
+            rule setting (named by ``team_reserve``).
     """
 
     space_name: ClassVar[str] = "dql"
 
-    def __init__(self, **hyperparameters) -> None:
+    def __init__(
+        self,
+        *,
+        prior: str = "greedy",
+        prior_rule: dict | None = None,
+        prior_in_state: bool = False,
+        **hyperparameters,
+    ) -> None:
         super().__init__(**hyperparameters)
+        if prior not in DQL_PRIORS:
+            raise ValueError(f"dql: prior must be one of {DQL_PRIORS}, got {prior!r}")
+        if prior_rule and prior != "hold":
+            raise ValueError(f"dql: prior_rule {dict(prior_rule)} needs prior=hold")
+        self.prior, self.prior_in_state = prior, bool(prior_in_state)
+        self.rule = None  # the hold rule (fixed, deterministic: its generator is never drawn)
+        if prior == "hold":
+            self.rule = TeamReserveLearner(
+                env=self.env, rng=np.random.default_rng(0), **dict(prior_rule or {})
+            )
         self.encoder = LocalEncoder(self.env)
-        self.state_counts = self.encoder.counts  # |S_i|
+        # |S_i|, times K + 1 with the prior's action as a digit (the most significant)
+        self._local_counts = self.encoder.counts
+        self.state_counts = [
+            c * (self.n_actions if self.prior_in_state else 1) for c in self._local_counts
+        ]
         self._stride = max(self.state_counts)
         size = self.n_robots * self._stride * self.n_actions
         self.q = np.zeros(size)  # Q_i(s, a) at (i * stride + s) * (K + 1) + a
@@ -142,8 +188,14 @@ class DQLLearner(RobotQLearner):
         self._robot_base = np.arange(self.n_robots) * self._stride
 
     def encode(self, env: AuctionEnv) -> RobotObservation:
-        """``[B, m]`` local state index of every robot, and the mask."""
-        return RobotObservation(self.encoder.index(env), env.action_mask.copy())
+        """``[B, m]`` local state index of every robot, the mask and the prior's actions."""
+        states, mask = self.encoder.index(env), env.action_mask.copy()
+        if self.rule is None:
+            return RobotObservation(states, mask)
+        prior = self.rule.act(self.rule.encode(env), mask, explore=False)
+        if self.prior_in_state:
+            states = states + prior * np.asarray(self._local_counts, np.int64)
+        return RobotObservation(states, mask, prior)
 
     def _bases(self, view: RobotObservation) -> np.ndarray:
         return (self._robot_base + view.states) * self.n_actions
@@ -159,3 +211,10 @@ class DQLLearner(RobotQLearner):
             )
         self.q[:] = arrays["q"].ravel()
         self.visits[:] = arrays["visits"].ravel()
+
+    def learning_space(self) -> dict[str, int]:
+        """Eq. (11) over the local view, times ``K + 1`` with the prior's action in the state."""
+        space = super().learning_space()
+        if self.prior_in_state:
+            space["analytic"] *= self.n_actions
+        return space

@@ -35,24 +35,23 @@ def _max_valid(q: np.ndarray, base: int, mask: np.ndarray) -> float:
 
 
 @njit(cache=True)
-def act_robots(q, bases, mask, epsilon, uniforms, actions):  # fmt: skip
-    """Per robot: epsilon-greedy over its valid actions; ties go to the plain auction's bid.
+def act_robots(q, bases, mask, prior, epsilon, uniforms, actions):  # fmt: skip
+    """Per robot: epsilon-greedy over its valid actions; ties go to the prior's (valid) action.
 
-    Writes ``actions`` ``[B, m]``; returns the number of uniforms used.
+    ``prior`` ``[B, m]`` is the prior's action of every robot (the plain auction's bid, or the
+    ``hold`` rule's). Writes ``actions`` ``[B, m]``; returns the number of uniforms used.
     """
     batch, n_robots, n_actions = mask.shape
     for b in range(batch):
         for i in range(n_robots):
             base = bases[b, i]
-            plain, best_action, best = 0, 0, -np.inf
+            best_action, best = 0, -np.inf
             for a in range(n_actions):
-                if mask[b, i, a]:
-                    if plain == 0 and a > 0:
-                        plain = a  # the plain auction: lowest valid slot
-                    if q[base + a] > best:
-                        best, best_action = q[base + a], a
-            # Q starts at 0: ties keep the auction's choice
-            actions[b, i] = plain if q[base + plain] >= best else best_action
+                if mask[b, i, a] and q[base + a] > best:
+                    best, best_action = q[base + a], a
+            # Q starts at 0: ties keep the prior's choice
+            tie = prior[b, i]
+            actions[b, i] = tie if q[base + tie] >= best else best_action
     used = 0
     if epsilon > 0.0:
         explore = np.zeros((batch, n_robots), np.bool_)
