@@ -455,6 +455,16 @@ def test_dql_prior_in_state_adds_the_rules_action_as_a_digit(trio, tiny_params):
     assert view.states.tolist() == LocalEncoder(env).index(env).tolist()  # digit 0: unchanged
 
 
+def test_dql_team_reward_learns_from_the_team_reward(trio, tiny_params):
+    """reward=team: every robot's eq. (3) return is the team reward, not its own."""
+    env, learner = make(DQLLearner, trio, tiny_params, batch=2, seed=5, reward="team")
+    result = env.step(greedy_actions(env.action_mask))
+    rewards = learner._rewards(result, (2, 3))
+    assert rewards.tolist() == [[r] * 3 for r in result.team_reward.tolist()]
+    own = make(DQLLearner, trio, tiny_params, batch=2, seed=5)[1]._rewards(result, (2, 3))
+    np.testing.assert_array_equal(own, result.robot_reward)
+
+
 def test_dql_rejects_bad_priors(trio):
     with pytest.raises(ValueError, match="prior must be one of"):
         make(DQLLearner, trio, prior="spread")
@@ -462,6 +472,8 @@ def test_dql_rejects_bad_priors(trio):
         make(DQLLearner, trio, prior_rule={"reserve": 1})
     with pytest.raises(ValueError, match="team_reserve: reserve must be >= 0"):
         make(DQLLearner, trio, prior="hold", prior_rule={"reserve": -1})
+    with pytest.raises(ValueError, match="reward must be one of"):
+        make(DQLLearner, trio, reward="mine")
 
 
 @pytest.mark.parametrize("cls", LEARNERS)

@@ -48,6 +48,7 @@ class RobotQLearner(TabularLearner):
     space_name: ClassVar[str]
     q: np.ndarray
     visits: np.ndarray
+    team_reward: bool = False  # learn from the team reward (spec step 8) instead of the robot's
 
     _pending: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
@@ -106,7 +107,7 @@ class RobotQLearner(TabularLearner):
         closing = np.empty(shape, bool)
         count = kernels.open_transitions(
             self._bases(view), np.asarray(actions, np.int64), view.mask, next_mask,
-            np.asarray(result.robot_reward, np.float64), np.asarray(result.done, bool),
+            self._rewards(result, shape), np.asarray(result.done, bool),
             *self._pending, self.decisions_only, self.gamma, closing,
         )  # fmt: skip
         if count == 0:
@@ -117,6 +118,12 @@ class RobotQLearner(TabularLearner):
         )  # fmt: skip
         return {"learner/td_error": td_sum / count} if count else {}
 
+    def _rewards(self, result: StepResult, shape: tuple[int, ...]) -> np.ndarray:
+        """``[B, m]`` reward of each robot: its own, or the team's with ``team_reward``."""
+        if self.team_reward:
+            return np.ascontiguousarray(np.broadcast_to(result.team_reward[:, None], shape), float)
+        return np.asarray(result.robot_reward, np.float64)
+
     def learning_space(self) -> dict[str, int]:
         """Analytic dimension (eq. 11) and the table entries updated at least once."""
         analytic = learning_space_dimension(self.space_name, self.env, self.partition)
@@ -124,6 +131,7 @@ class RobotQLearner(TabularLearner):
 
 
 DQL_PRIORS = ("greedy", "hold")  # DQL's tie-break action of an untried state
+DQL_REWARDS = ("individual", "team")  # what each robot's eq. (3) learns from
 
 
 class DQLLearner(RobotQLearner):
@@ -146,12 +154,15 @@ class DQLLearner(RobotQLearner):
         prior_rule: Keyword arguments of ``TeamReserveLearner`` for ``prior="hold"`` (e.g.
             ``reserve``, ``hold_level``, ``hold_scope``); its defaults otherwise.
         prior_in_state: Add the prior's action as a digit of the local state.
+        reward: ``individual`` (the paper's: each robot its own reward, spec step 8) or ``team``
+            (every robot learns from the team reward: a robot that holds back for H work is
+            credited when a teammate does it).
         **hyperparameters: Env, rng, partition (unused) and those of
             :class:`~mrta_rl.learners.tabular.base.TabularLearner`.
 
     Raises:
-        ValueError: on an unknown ``prior``, ``prior_rule`` without ``prior="hold"``, or a bad
-            rule setting (named by ``team_reserve``).
+        ValueError: on an unknown ``prior`` or ``reward``, ``prior_rule`` without
+            ``prior="hold"``, or a bad rule setting (named by ``team_reserve``).
     """
 
     space_name: ClassVar[str] = "dql"
@@ -162,9 +173,13 @@ class DQLLearner(RobotQLearner):
         prior: str = "greedy",
         prior_rule: dict | None = None,
         prior_in_state: bool = False,
+        reward: str = "individual",
         **hyperparameters,
     ) -> None:
         super().__init__(**hyperparameters)
+        if reward not in DQL_REWARDS:
+            raise ValueError(f"dql: reward must be one of {DQL_REWARDS}, got {reward!r}")
+        self.team_reward = reward == "team"
         if prior not in DQL_PRIORS:
             raise ValueError(f"dql: prior must be one of {DQL_PRIORS}, got {prior!r}")
         if prior_rule and prior != "hold":
