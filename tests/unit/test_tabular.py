@@ -263,8 +263,9 @@ def test_updates_of_one_entry_are_sequential_eq3():
     next_mask = np.array([[[True, False]], [[True, True]]])
     closing = np.ones((2, 1), bool)
     pending = (np.array([[1], [1]]), np.array([[1.0], [2.0]]), np.array([[0.5], [0.5]]))
+    no_prior = np.zeros((2, 1), np.int64)  # min_visits 0: every valid action competes
     td = robot_kernels.close_transitions(
-        q, visits, next_bases, next_mask, closing, *pending, 0.5, 0.0, 0.0
+        q, visits, next_bases, next_mask, no_prior, 0, closing, *pending, 0.5, 0.0, 0.0
     )
     target = 1.0 + 0.5 * 7.0  # both targets from the table before the tick's updates
     first = 0.5 * target
@@ -275,9 +276,35 @@ def test_updates_of_one_entry_are_sequential_eq3():
     for target in (3.0, 6.0, 9.0):  # alpha = 1 / visits: the sample mean
         pending = (np.array([[0]]), np.array([[target]]), np.array([[0.0]]))
         robot_kernels.close_transitions(
-            q, visits, np.array([[0]]), next_mask[:1], closing[:1], *pending, 1.0, 1.0, 0.0
-        )
+            q, visits, np.array([[0]]), next_mask[:1], no_prior[:1], 0, closing[:1], *pending,
+            1.0, 1.0, 0.0,
+        )  # fmt: skip
     assert q[0] == pytest.approx(6.0)
+
+
+def test_dql_min_visits_keeps_the_prior_until_an_entry_has_enough_updates():
+    """Hand-computed: Q = [0, -1, 5, 2] (wait, slots 1-3), prior = slot 1, visits [0, 1, 2, 3]."""
+    q, visits = np.array([0.0, -1.0, 5.0, 2.0]), np.array([0, 1, 2, 3])
+    mask, prior = np.ones((1, 1, 4), bool), np.array([[1]])
+    bases = np.zeros((1, 1), np.int64)
+    chosen = []
+    for min_visits in (0, 3, 4):  # all compete: slot 2; visits >= 3: slot 3; only the prior
+        actions = np.zeros((1, 1), np.int64)
+        robot_kernels.act_robots(q, visits, bases, mask, prior, min_visits, 0.0, np.zeros(0),
+                                 actions)  # fmt: skip
+        chosen.append(int(actions[0, 0]))
+    assert chosen == [2, 3, 1]
+    # eq. (3)'s max over the same competing actions: R = 0, gamma^tau = 1, alpha = 1
+    targets = []
+    for min_visits in (0, 3, 4):
+        qq, vv = np.concatenate([[0.0], q]), np.concatenate([[0], visits])  # entry 0: (s, a)
+        pending = (np.array([[0]]), np.array([[0.0]]), np.array([[1.0]]))
+        robot_kernels.close_transitions(
+            qq, vv, np.array([[1]]), mask, prior, min_visits, np.ones((1, 1), bool), *pending,
+            1.0, 0.0, 0.0,
+        )  # fmt: skip
+        targets.append(qq[0])
+    assert targets == [5.0, 2.0, -1.0]
 
 
 def test_schedules_and_pending_returns():

@@ -49,6 +49,7 @@ class RobotQLearner(TabularLearner):
     q: np.ndarray
     visits: np.ndarray
     team_reward: bool = False  # learn from the team reward (spec step 8) instead of the robot's
+    min_visits: int = 0  # updates an entry needs before it competes with the prior (0: always)
 
     _pending: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
@@ -74,8 +75,10 @@ class RobotQLearner(TabularLearner):
         bases = self._bases(view)
         actions = np.zeros(mask.shape[:2], np.int64)
         block = self.uniforms.block(2 * actions.size) if epsilon > 0.0 else np.zeros(0)
-        prior = greedy_actions(mask) if view.prior is None else view.prior
-        used = kernels.act_robots(self.q, bases, mask, prior, epsilon, block, actions)
+        used = kernels.act_robots(
+            self.q, self.visits, bases, mask, self._prior(view, mask), self.min_visits, epsilon,
+            block, actions,
+        )  # fmt: skip
         if epsilon > 0.0:
             self.uniforms.used(block, used)
         return actions
@@ -112,11 +115,20 @@ class RobotQLearner(TabularLearner):
         )  # fmt: skip
         if count == 0:
             return {}
+        # the prior only matters to the max when min_visits > 0 (else every action competes)
+        next_prior = (
+            self._prior(next_view, next_mask) if self.min_visits else np.zeros(shape, np.int64)
+        )
         td_sum = kernels.close_transitions(
-            self.q, self.visits, self._bases(next_view), next_mask, closing, *self._pending,
-            self.alpha, self.alpha_power, self.alpha_min,
+            self.q, self.visits, self._bases(next_view), next_mask, next_prior, self.min_visits,
+            closing, *self._pending, self.alpha, self.alpha_power, self.alpha_min,
         )  # fmt: skip
         return {"learner/td_error": td_sum / count} if count else {}
+
+    @staticmethod
+    def _prior(view: RobotObservation, mask: np.ndarray) -> np.ndarray:
+        """``[B, m]`` the prior's action of every robot: the view's, else the plain auction's."""
+        return greedy_actions(mask) if view.prior is None else view.prior
 
     def _rewards(self, result: StepResult, shape: tuple[int, ...]) -> np.ndarray:
         """``[B, m]`` reward of each robot: its own, or the team's with ``team_reward``."""
@@ -157,12 +169,15 @@ class DQLLearner(RobotQLearner):
         reward: ``individual`` (the paper's: each robot its own reward, spec step 8) or ``team``
             (every robot learns from the team reward: a robot that holds back for H work is
             credited when a teammate does it).
+        min_visits: Updates an entry needs before it competes with the prior's action, in the
+            greedy choice and in eq. (3)'s max (0: every valid action competes).
         **hyperparameters: Env, rng, partition (unused) and those of
             :class:`~mrta_rl.learners.tabular.base.TabularLearner`.
 
     Raises:
-        ValueError: on an unknown ``prior`` or ``reward``, ``prior_rule`` without
-            ``prior="hold"``, or a bad rule setting (named by ``team_reserve``).
+        ValueError: on an unknown ``prior`` or ``reward``, a negative ``min_visits``,
+            ``prior_rule`` without ``prior="hold"``, or a bad rule setting (named by
+            ``team_reserve``).
     """
 
     space_name: ClassVar[str] = "dql"
@@ -174,12 +189,16 @@ class DQLLearner(RobotQLearner):
         prior_rule: dict | None = None,
         prior_in_state: bool = False,
         reward: str = "individual",
+        min_visits: int = 0,
         **hyperparameters,
     ) -> None:
         super().__init__(**hyperparameters)
         if reward not in DQL_REWARDS:
             raise ValueError(f"dql: reward must be one of {DQL_REWARDS}, got {reward!r}")
         self.team_reward = reward == "team"
+        if min_visits < 0:
+            raise ValueError(f"dql: min_visits must be >= 0, got {min_visits}")
+        self.min_visits = int(min_visits)
         if prior not in DQL_PRIORS:
             raise ValueError(f"dql: prior must be one of {DQL_PRIORS}, got {prior!r}")
         if prior_rule and prior != "hold":
