@@ -3,6 +3,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from mrta_rl.config import ConfigError
 from mrta_rl.envs import AuctionEnv
 from mrta_rl.envs import observations as ob
 from mrta_rl.learners.fixed import TeamReserveLearner
@@ -443,10 +444,11 @@ def test_untrained_learner_plays_the_plain_auction(cls, trio, tiny_params):
 def test_untrained_dql_with_the_hold_prior_plays_team_reserve(system_name, trio, tiny_params):
     """prior=hold: every action of the untrained DQL is the team_reserve rule's, tick by tick."""
     system = trio if system_name == "trio" else paper_system("system2")
-    rule_hp = {"reserve": 1, "hold_level": 1, "hold_scope": "robot"}
     env, learner = make(DQLLearner, system, tiny_params, batch=6, seed=3, prior="hold",
-                        prior_rule=rule_hp)  # fmt: skip
-    rule = TeamReserveLearner(env=env, rng=np.random.default_rng(0), **rule_hp)
+                        prior_reserve=1, prior_hold_level=1, prior_hold_scope="robot")  # fmt: skip
+    rule = TeamReserveLearner(
+        env=env, rng=np.random.default_rng(0), reserve=1, hold_level=1, hold_scope="robot"
+    )
     waited = bid = 0
     while not env.done.any():
         mask = env.action_mask
@@ -493,14 +495,14 @@ def test_dql_team_reward_learns_from_the_team_reward(trio, tiny_params):
 
 
 def test_dql_rejects_bad_priors(trio):
-    with pytest.raises(ValueError, match="prior must be one of"):
+    with pytest.raises(ConfigError, match="prior: must be one of"):
         make(DQLLearner, trio, prior="spread")
-    with pytest.raises(ValueError, match="needs prior=hold"):
-        make(DQLLearner, trio, prior_rule={"reserve": 1})
-    with pytest.raises(ValueError, match="team_reserve: reserve must be >= 0"):
-        make(DQLLearner, trio, prior="hold", prior_rule={"reserve": -1})
-    with pytest.raises(ValueError, match="reward must be one of"):
+    with pytest.raises(ConfigError, match="prior_reserve"):
+        make(DQLLearner, trio, prior="hold", prior_reserve=-1)
+    with pytest.raises(ConfigError, match="reward: must be one of"):
         make(DQLLearner, trio, reward="mine")
+    with pytest.raises(ConfigError, match="min_visits"):
+        make(DQLLearner, trio, min_visits=-1)
 
 
 @pytest.mark.parametrize("cls", LEARNERS)

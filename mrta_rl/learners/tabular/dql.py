@@ -10,12 +10,13 @@ The per-tick work runs in the compiled loops of :mod:`~mrta_rl.learners.tabular.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import Annotated, ClassVar
 
 import numpy as np
 
+from mrta_rl.config import Choices, Range
 from mrta_rl.envs import AuctionEnv, StepResult
-from mrta_rl.learners.fixed import TeamReserveLearner
+from mrta_rl.learners.fixed import HOLD_SCOPES, HoldLevel, Reserve, TeamReserveLearner
 from mrta_rl.learners.tabular import robot_kernels as kernels
 from mrta_rl.learners.tabular.base import TabularLearner
 from mrta_rl.learners.tabular.encoding import LocalEncoder
@@ -154,17 +155,19 @@ class DQLLearner(RobotQLearner):
 
     Ties among the greatest Q go to the prior's action (docs/learners.md, "Exploration and
     ties"): ``greedy`` the plain auction's bid; ``hold`` the action of the whole-team rule
-    ``team_reserve`` (:class:`~mrta_rl.learners.fixed.TeamReserveLearner` with ``prior_rule``'s
-    settings), computed from the env at each decision: it reads what the local view lacks (the
-    other robots' idleness, which robot the team asks first), so the untrained learner plays the
-    rule exactly. ``prior_in_state`` adds that action as one more digit of the local state
-    (``K + 1`` values: ``|S_i|`` times ``K + 1``), so a trained robot can still tell the
-    situations in which the rule bids from those in which it waits.
+    ``team_reserve`` (:class:`~mrta_rl.learners.fixed.TeamReserveLearner`, whole team,
+    ``fewest_types`` order, the ``prior_*`` settings), computed from the env at each decision:
+    it reads what the local view lacks (the other robots' idleness, which robot the team asks
+    first), so the untrained learner plays the rule exactly. ``prior_in_state`` adds that action
+    as one more digit of the local state (``K + 1`` values: ``|S_i|`` times ``K + 1``), so a
+    trained robot can still tell the situations in which the rule bids from those in which it
+    waits.
 
     Args:
         prior: ``greedy`` or ``hold`` (:data:`DQL_PRIORS`).
-        prior_rule: Keyword arguments of ``TeamReserveLearner`` for ``prior="hold"`` (e.g.
-            ``reserve``, ``hold_level``, ``hold_scope``); its defaults otherwise.
+        prior_reserve: ``prior="hold"``: the rule's ``reserve``.
+        prior_hold_level: ``prior="hold"``: the rule's ``hold_level``.
+        prior_hold_scope: ``prior="hold"``: the rule's ``hold_scope``.
         prior_in_state: Add the prior's action as a digit of the local state.
         reward: ``individual`` (the paper's: each robot its own reward, spec step 8) or ``team``
             (every robot learns from the team reward: a robot that holds back for H work is
@@ -175,9 +178,7 @@ class DQLLearner(RobotQLearner):
             :class:`~mrta_rl.learners.tabular.base.TabularLearner`.
 
     Raises:
-        ValueError: on an unknown ``prior`` or ``reward``, a negative ``min_visits``,
-            ``prior_rule`` without ``prior="hold"``, or a bad rule setting (named by
-            ``team_reserve``).
+        ConfigError: on a setting outside its declaration (the annotations, ``mrta_rl.config``).
     """
 
     space_name: ClassVar[str] = "dql"
@@ -185,30 +186,24 @@ class DQLLearner(RobotQLearner):
     def __init__(
         self,
         *,
-        prior: str = "greedy",
-        prior_rule: dict | None = None,
+        prior: Annotated[str, Choices(*DQL_PRIORS)] = "greedy",
+        prior_reserve: Reserve = 0,
+        prior_hold_level: HoldLevel = 1,
+        prior_hold_scope: Annotated[str, Choices(*HOLD_SCOPES)] = "robot",
         prior_in_state: bool = False,
-        reward: str = "individual",
-        min_visits: int = 0,
+        reward: Annotated[str, Choices(*DQL_REWARDS)] = "individual",
+        min_visits: Annotated[int, Range(0)] = 0,
         **hyperparameters,
     ) -> None:
-        super().__init__(**hyperparameters)
-        if reward not in DQL_REWARDS:
-            raise ValueError(f"dql: reward must be one of {DQL_REWARDS}, got {reward!r}")
-        self.team_reward = reward == "team"
-        if min_visits < 0:
-            raise ValueError(f"dql: min_visits must be >= 0, got {min_visits}")
-        self.min_visits = int(min_visits)
-        if prior not in DQL_PRIORS:
-            raise ValueError(f"dql: prior must be one of {DQL_PRIORS}, got {prior!r}")
-        if prior_rule and prior != "hold":
-            raise ValueError(f"dql: prior_rule {dict(prior_rule)} needs prior=hold")
-        self.prior, self.prior_in_state = prior, bool(prior_in_state)
+        super().__init__(**hyperparameters)  # types, ranges and choices: the annotations
+        self.prior, self.prior_in_state = prior, prior_in_state
+        self.team_reward, self.min_visits = reward == "team", min_visits
         self.rule = None  # the hold rule (fixed, deterministic: its generator is never drawn)
         if prior == "hold":
             self.rule = TeamReserveLearner(
-                env=self.env, rng=np.random.default_rng(0), **dict(prior_rule or {})
-            )
+                env=self.env, rng=np.random.default_rng(0), reserve=prior_reserve,
+                hold_level=prior_hold_level, hold_scope=prior_hold_scope,
+            )  # fmt: skip
         self.encoder = LocalEncoder(self.env)
         # |S_i|, times K + 1 with the prior's action as a digit (the most significant)
         self._local_counts = self.encoder.counts
