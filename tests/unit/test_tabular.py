@@ -3,8 +3,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from mrta_rl.config import ConfigError
 from mrta_rl.envs import AuctionEnv
 from mrta_rl.envs import observations as ob
+from mrta_rl.learners.fixed import TeamReserveLearner
 from mrta_rl.learners.tabular import group_kernels, robot_kernels
 from mrta_rl.learners.tabular.cql import CQLLearner
 from mrta_rl.learners.tabular.dql import DQLLearner
@@ -262,8 +264,9 @@ def test_updates_of_one_entry_are_sequential_eq3():
     next_mask = np.array([[[True, False]], [[True, True]]])
     closing = np.ones((2, 1), bool)
     pending = (np.array([[1], [1]]), np.array([[1.0], [2.0]]), np.array([[0.5], [0.5]]))
+    no_prior = np.zeros((2, 1), np.int64)  # min_visits 0: every valid action competes
     td = robot_kernels.close_transitions(
-        q, visits, next_bases, next_mask, closing, *pending, 0.5, 0.0, 0.0
+        q, visits, next_bases, next_mask, no_prior, 0, closing, *pending, 0.5, 0.0, 0.0
     )
     target = 1.0 + 0.5 * 7.0  # both targets from the table before the tick's updates
     first = 0.5 * target
@@ -274,9 +277,35 @@ def test_updates_of_one_entry_are_sequential_eq3():
     for target in (3.0, 6.0, 9.0):  # alpha = 1 / visits: the sample mean
         pending = (np.array([[0]]), np.array([[target]]), np.array([[0.0]]))
         robot_kernels.close_transitions(
-            q, visits, np.array([[0]]), next_mask[:1], closing[:1], *pending, 1.0, 1.0, 0.0
-        )
+            q, visits, np.array([[0]]), next_mask[:1], no_prior[:1], 0, closing[:1], *pending,
+            1.0, 1.0, 0.0,
+        )  # fmt: skip
     assert q[0] == pytest.approx(6.0)
+
+
+def test_dql_min_visits_keeps_the_prior_until_an_entry_has_enough_updates():
+    """Hand-computed: Q = [0, -1, 5, 2] (wait, slots 1-3), prior = slot 1, visits [0, 1, 2, 3]."""
+    q, visits = np.array([0.0, -1.0, 5.0, 2.0]), np.array([0, 1, 2, 3])
+    mask, prior = np.ones((1, 1, 4), bool), np.array([[1]])
+    bases = np.zeros((1, 1), np.int64)
+    chosen = []
+    for min_visits in (0, 3, 4):  # all compete: slot 2; visits >= 3: slot 3; only the prior
+        actions = np.zeros((1, 1), np.int64)
+        robot_kernels.act_robots(q, visits, bases, mask, prior, min_visits, 0.0, np.zeros(0),
+                                 actions)  # fmt: skip
+        chosen.append(int(actions[0, 0]))
+    assert chosen == [2, 3, 1]
+    # eq. (3)'s max over the same competing actions: R = 0, gamma^tau = 1, alpha = 1
+    targets = []
+    for min_visits in (0, 3, 4):
+        qq, vv = np.concatenate([[0.0], q]), np.concatenate([[0], visits])  # entry 0: (s, a)
+        pending = (np.array([[0]]), np.array([[0.0]]), np.array([[1.0]]))
+        robot_kernels.close_transitions(
+            qq, vv, np.array([[1]]), mask, prior, min_visits, np.ones((1, 1), bool), *pending,
+            1.0, 0.0, 0.0,
+        )  # fmt: skip
+        targets.append(qq[0])
+    assert targets == [5.0, 2.0, -1.0]
 
 
 def test_schedules_and_pending_returns():
@@ -409,6 +438,71 @@ def test_untrained_learner_plays_the_plain_auction(cls, trio, tiny_params):
         env_result = env.step(learner.act(learner.encode(env), env.action_mask, explore=False))
         plain_result = plain.step(greedy_actions(plain.action_mask))
         np.testing.assert_allclose(env_result.team_reward, plain_result.team_reward)
+
+
+@pytest.mark.parametrize("system_name", ["trio", "system2"])
+def test_untrained_dql_with_the_hold_prior_plays_team_reserve(system_name, trio, tiny_params):
+    """prior=hold: every action of the untrained DQL is the team_reserve rule's, tick by tick."""
+    system = trio if system_name == "trio" else paper_system("system2")
+    env, learner = make(DQLLearner, system, tiny_params, batch=6, seed=3, prior="hold",
+                        prior_reserve=1, prior_hold_level=1, prior_hold_scope="robot")  # fmt: skip
+    rule = TeamReserveLearner(
+        env=env, rng=np.random.default_rng(0), reserve=1, hold_level=1, hold_scope="robot"
+    )
+    waited = bid = 0
+    while not env.done.any():
+        mask = env.action_mask
+        actions = learner.act(learner.encode(env), mask, explore=False)
+        np.testing.assert_array_equal(actions, rule.act(rule.encode(env), mask, explore=False))
+        plain = greedy_actions(mask)
+        waited += int(((actions == 0) & (plain > 0)).sum())  # the rule differs from the auction
+        bid += int((actions > 0).sum())
+        env.step(actions)
+    assert waited > 0 and bid > 0
+
+
+def test_dql_prior_in_state_adds_the_rules_action_as_a_digit(trio, tiny_params):
+    """Hand-computed: one L task of T1 in slot 1, all idle, no recent H arrival.
+
+    team_reserve (reserve 0, fewest_types) asks R2 (one type) first: R2 bids for slot 1, R1 and
+    R3 wait. With prior_in_state, robot i's state is its local index + action * |S_i|.
+    """
+    env, learner = make(DQLLearner, trio, tiny_params, batch=1, prior="hold", prior_in_state=True)
+    env.inject_tasks(0, [{"type": 0, "high": 0, "due": 0, "id": 0, "duration": 4}])
+    env.last_high_arrival[0, :] = env.t[0] - 50  # recency level 2: L slots are not held
+    view = learner.encode(env)
+    assert view.prior.tolist() == [[0, 1, 0]]
+    local = LocalEncoder(env).index(env)
+    counts = LocalEncoder(env).counts
+    assert view.states.tolist() == [[local[0, 0], local[0, 1] + counts[1], local[0, 2]]]
+    assert learner.state_counts == [4 * c for c in counts]
+    plain = make(DQLLearner, trio, tiny_params, batch=1)[1]
+    assert learner.learning_space()["analytic"] == 4 * plain.learning_space()["analytic"]
+    env.last_high_arrival[0, 0] = env.t[0] - 2  # an H task of T1 2 ticks ago: everyone holds
+    view = learner.encode(env)
+    assert view.prior.tolist() == [[0, 0, 0]]
+    assert view.states.tolist() == LocalEncoder(env).index(env).tolist()  # digit 0: unchanged
+
+
+def test_dql_team_reward_learns_from_the_team_reward(trio, tiny_params):
+    """reward=team: every robot's eq. (3) return is the team reward, not its own."""
+    env, learner = make(DQLLearner, trio, tiny_params, batch=2, seed=5, reward="team")
+    result = env.step(greedy_actions(env.action_mask))
+    rewards = learner._rewards(result, (2, 3))
+    assert rewards.tolist() == [[r] * 3 for r in result.team_reward.tolist()]
+    own = make(DQLLearner, trio, tiny_params, batch=2, seed=5)[1]._rewards(result, (2, 3))
+    np.testing.assert_array_equal(own, result.robot_reward)
+
+
+def test_dql_rejects_bad_priors(trio):
+    with pytest.raises(ConfigError, match="prior: must be one of"):
+        make(DQLLearner, trio, prior="spread")
+    with pytest.raises(ConfigError, match="prior_reserve"):
+        make(DQLLearner, trio, prior="hold", prior_reserve=-1)
+    with pytest.raises(ConfigError, match="reward: must be one of"):
+        make(DQLLearner, trio, reward="mine")
+    with pytest.raises(ConfigError, match="min_visits"):
+        make(DQLLearner, trio, min_visits=-1)
 
 
 @pytest.mark.parametrize("cls", LEARNERS)

@@ -10,14 +10,17 @@ The per-tick work runs in the compiled loops of :mod:`~mrta_rl.learners.tabular.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import Annotated, ClassVar
 
 import numpy as np
 
+from mrta_rl.config import Choices, Range
 from mrta_rl.envs import AuctionEnv, StepResult
+from mrta_rl.learners.fixed import HOLD_SCOPES, HoldLevel, Reserve, TeamReserveLearner
 from mrta_rl.learners.tabular import robot_kernels as kernels
 from mrta_rl.learners.tabular.base import TabularLearner
 from mrta_rl.learners.tabular.encoding import LocalEncoder
+from mrta_rl.learners.tabular.priors import greedy_actions
 from mrta_rl.metrics.learning_space import learning_space_dimension
 
 
@@ -28,10 +31,12 @@ class RobotObservation:
     Attributes:
         states: ``[B, m]`` (local views) or ``[B]`` (whole-system state) state indices.
         mask: ``[B, m, K + 1]`` valid actions (a copy).
+        prior: ``[B, m]`` the prior's action of every robot, or None for the plain auction's.
     """
 
     states: np.ndarray
     mask: np.ndarray
+    prior: np.ndarray | None = None
 
 
 class RobotQLearner(TabularLearner):
@@ -44,6 +49,8 @@ class RobotQLearner(TabularLearner):
     space_name: ClassVar[str]
     q: np.ndarray
     visits: np.ndarray
+    team_reward: bool = False  # learn from the team reward (spec step 8) instead of the robot's
+    min_visits: int = 0  # updates an entry needs before it competes with the prior (0: always)
 
     _pending: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
@@ -52,7 +59,9 @@ class RobotQLearner(TabularLearner):
         raise NotImplementedError
 
     def act(self, view: RobotObservation, mask: np.ndarray, *, explore: bool) -> np.ndarray:
-        """Per robot: epsilon-greedy over its valid actions; ties go to the plain auction's bid.
+        """Per robot: epsilon-greedy over its valid actions; ties go to the prior's action.
+
+        The prior is the plain auction's bid (lowest valid slot) unless the view carries one.
 
         Args:
             view: Output of :meth:`encode`.
@@ -67,7 +76,10 @@ class RobotQLearner(TabularLearner):
         bases = self._bases(view)
         actions = np.zeros(mask.shape[:2], np.int64)
         block = self.uniforms.block(2 * actions.size) if epsilon > 0.0 else np.zeros(0)
-        used = kernels.act_robots(self.q, bases, mask, epsilon, block, actions)
+        used = kernels.act_robots(
+            self.q, self.visits, bases, mask, self._prior(view, mask), self.min_visits, epsilon,
+            block, actions,
+        )  # fmt: skip
         if epsilon > 0.0:
             self.uniforms.used(block, used)
         return actions
@@ -99,21 +111,40 @@ class RobotQLearner(TabularLearner):
         closing = np.empty(shape, bool)
         count = kernels.open_transitions(
             self._bases(view), np.asarray(actions, np.int64), view.mask, next_mask,
-            np.asarray(result.robot_reward, np.float64), np.asarray(result.done, bool),
+            self._rewards(result, shape), np.asarray(result.done, bool),
             *self._pending, self.decisions_only, self.gamma, closing,
         )  # fmt: skip
         if count == 0:
             return {}
+        # the prior only matters to the max when min_visits > 0 (else every action competes)
+        next_prior = (
+            self._prior(next_view, next_mask) if self.min_visits else np.zeros(shape, np.int64)
+        )
         td_sum = kernels.close_transitions(
-            self.q, self.visits, self._bases(next_view), next_mask, closing, *self._pending,
-            self.alpha, self.alpha_power, self.alpha_min,
+            self.q, self.visits, self._bases(next_view), next_mask, next_prior, self.min_visits,
+            closing, *self._pending, self.alpha, self.alpha_power, self.alpha_min,
         )  # fmt: skip
         return {"learner/td_error": td_sum / count} if count else {}
+
+    @staticmethod
+    def _prior(view: RobotObservation, mask: np.ndarray) -> np.ndarray:
+        """``[B, m]`` the prior's action of every robot: the view's, else the plain auction's."""
+        return greedy_actions(mask) if view.prior is None else view.prior
+
+    def _rewards(self, result: StepResult, shape: tuple[int, ...]) -> np.ndarray:
+        """``[B, m]`` reward of each robot: its own, or the team's with ``team_reward``."""
+        if self.team_reward:
+            return np.ascontiguousarray(np.broadcast_to(result.team_reward[:, None], shape), float)
+        return np.asarray(result.robot_reward, np.float64)
 
     def learning_space(self) -> dict[str, int]:
         """Analytic dimension (eq. 11) and the table entries updated at least once."""
         analytic = learning_space_dimension(self.space_name, self.env, self.partition)
         return {"analytic": analytic, "visited": int(np.count_nonzero(self.visits))}
+
+
+DQL_PRIORS = ("greedy", "hold")  # DQL's tie-break action of an untried state
+DQL_REWARDS = ("individual", "team")  # what each robot's eq. (3) learns from
 
 
 class DQLLearner(RobotQLearner):
@@ -122,19 +153,63 @@ class DQLLearner(RobotQLearner):
     Robot ``i`` learns ``Q_i(s_i, a_i)`` over its local view ``s_i`` and its own action, from its
     individual reward, ignoring its teammates. Tables are dense: ``[m, max_i |S_i|, K + 1]``.
 
+    Ties among the greatest Q go to the prior's action (docs/learners.md, "Exploration and
+    ties"): ``greedy`` the plain auction's bid; ``hold`` the action of the whole-team rule
+    ``team_reserve`` (:class:`~mrta_rl.learners.fixed.TeamReserveLearner`, whole team,
+    ``fewest_types`` order, the ``prior_*`` settings), computed from the env at each decision:
+    it reads what the local view lacks (the other robots' idleness, which robot the team asks
+    first), so the untrained learner plays the rule exactly. ``prior_in_state`` adds that action
+    as one more digit of the local state (``K + 1`` values: ``|S_i|`` times ``K + 1``), so a
+    trained robot can still tell the situations in which the rule bids from those in which it
+    waits.
+
     Args:
-        env: The env (full task sets).
-        rng: Exploration randomness.
-        partition: Unused.
-        **hyperparameters: See :class:`~mrta_rl.learners.tabular.base.TabularLearner`.
+        prior: ``greedy`` or ``hold`` (:data:`DQL_PRIORS`).
+        prior_reserve: ``prior="hold"``: the rule's ``reserve``.
+        prior_hold_level: ``prior="hold"``: the rule's ``hold_level``.
+        prior_hold_scope: ``prior="hold"``: the rule's ``hold_scope``.
+        prior_in_state: Add the prior's action as a digit of the local state.
+        reward: ``individual`` (the paper's: each robot its own reward, spec step 8) or ``team``
+            (every robot learns from the team reward: a robot that holds back for H work is
+            credited when a teammate does it).
+        min_visits: Updates an entry needs before it competes with the prior's action, in the
+            greedy choice and in eq. (3)'s max (0: every valid action competes).
+        **hyperparameters: Env, rng, partition (unused) and those of
+            :class:`~mrta_rl.learners.tabular.base.TabularLearner`.
+
+    Raises:
+        ConfigError: on a setting outside its declaration (the annotations, ``mrta_rl.config``).
     """
 
     space_name: ClassVar[str] = "dql"
 
-    def __init__(self, **hyperparameters) -> None:
-        super().__init__(**hyperparameters)
+    def __init__(
+        self,
+        *,
+        prior: Annotated[str, Choices(*DQL_PRIORS)] = "greedy",
+        prior_reserve: Reserve = 0,
+        prior_hold_level: HoldLevel = 1,
+        prior_hold_scope: Annotated[str, Choices(*HOLD_SCOPES)] = "robot",
+        prior_in_state: bool = False,
+        reward: Annotated[str, Choices(*DQL_REWARDS)] = "individual",
+        min_visits: Annotated[int, Range(0)] = 0,
+        **hyperparameters,
+    ) -> None:
+        super().__init__(**hyperparameters)  # types, ranges and choices: the annotations
+        self.prior, self.prior_in_state = prior, prior_in_state
+        self.team_reward, self.min_visits = reward == "team", min_visits
+        self.rule = None  # the hold rule (fixed, deterministic: its generator is never drawn)
+        if prior == "hold":
+            self.rule = TeamReserveLearner(
+                env=self.env, rng=np.random.default_rng(0), reserve=prior_reserve,
+                hold_level=prior_hold_level, hold_scope=prior_hold_scope,
+            )  # fmt: skip
         self.encoder = LocalEncoder(self.env)
-        self.state_counts = self.encoder.counts  # |S_i|
+        # |S_i|, times K + 1 with the prior's action as a digit (the most significant)
+        self._local_counts = self.encoder.counts
+        self.state_counts = [
+            c * (self.n_actions if self.prior_in_state else 1) for c in self._local_counts
+        ]
         self._stride = max(self.state_counts)
         size = self.n_robots * self._stride * self.n_actions
         self.q = np.zeros(size)  # Q_i(s, a) at (i * stride + s) * (K + 1) + a
@@ -142,8 +217,14 @@ class DQLLearner(RobotQLearner):
         self._robot_base = np.arange(self.n_robots) * self._stride
 
     def encode(self, env: AuctionEnv) -> RobotObservation:
-        """``[B, m]`` local state index of every robot, and the mask."""
-        return RobotObservation(self.encoder.index(env), env.action_mask.copy())
+        """``[B, m]`` local state index of every robot, the mask and the prior's actions."""
+        states, mask = self.encoder.index(env), env.action_mask.copy()
+        if self.rule is None:
+            return RobotObservation(states, mask)
+        prior = self.rule.act(self.rule.encode(env), mask, explore=False)
+        if self.prior_in_state:
+            states = states + prior * np.asarray(self._local_counts, np.int64)
+        return RobotObservation(states, mask, prior)
 
     def _bases(self, view: RobotObservation) -> np.ndarray:
         return (self._robot_base + view.states) * self.n_actions
@@ -159,3 +240,10 @@ class DQLLearner(RobotQLearner):
             )
         self.q[:] = arrays["q"].ravel()
         self.visits[:] = arrays["visits"].ravel()
+
+    def learning_space(self) -> dict[str, int]:
+        """Eq. (11) over the local view, times ``K + 1`` with the prior's action in the state."""
+        space = super().learning_space()
+        if self.prior_in_state:
+            space["analytic"] *= self.n_actions
+        return space

@@ -26,33 +26,35 @@ def _can_bid(mask: np.ndarray) -> bool:
 
 
 @njit(cache=True)
-def _max_valid(q: np.ndarray, base: int, mask: np.ndarray) -> float:
+def _max_valid(q, visits, base, mask, tie, min_visits):  # fmt: skip
+    """Max of Q over the valid actions that compete: the prior's and those visited enough."""
     best = -np.inf
     for a in range(mask.size):
-        if mask[a]:
+        if mask[a] and (a == tie or visits[base + a] >= min_visits):
             best = max(best, q[base + a])
     return best
 
 
 @njit(cache=True)
-def act_robots(q, bases, mask, epsilon, uniforms, actions):  # fmt: skip
-    """Per robot: epsilon-greedy over its valid actions; ties go to the plain auction's bid.
+def act_robots(q, visits, bases, mask, prior, min_visits, epsilon, uniforms, actions):  # fmt: skip
+    """Per robot: epsilon-greedy over its valid actions; ties go to the prior's (valid) action.
 
-    Writes ``actions`` ``[B, m]``; returns the number of uniforms used.
+    ``prior`` ``[B, m]`` is the prior's action of every robot (the plain auction's bid, or the
+    ``hold`` rule's). Only the prior's action and the actions updated at least ``min_visits``
+    times compete (0: all). Writes ``actions`` ``[B, m]``; returns the number of uniforms used.
     """
     batch, n_robots, n_actions = mask.shape
     for b in range(batch):
         for i in range(n_robots):
             base = bases[b, i]
-            plain, best_action, best = 0, 0, -np.inf
+            tie = prior[b, i]
+            best_action, best = 0, -np.inf
             for a in range(n_actions):
-                if mask[b, i, a]:
-                    if plain == 0 and a > 0:
-                        plain = a  # the plain auction: lowest valid slot
+                if mask[b, i, a] and (a == tie or visits[base + a] >= min_visits):
                     if q[base + a] > best:
                         best, best_action = q[base + a], a
-            # Q starts at 0: ties keep the auction's choice
-            actions[b, i] = plain if q[base + plain] >= best else best_action
+            # Q starts at 0: ties keep the prior's choice
+            actions[b, i] = tie if q[base + tie] >= best else best_action
     used = 0
     if epsilon > 0.0:
         explore = np.zeros((batch, n_robots), np.bool_)
@@ -99,13 +101,15 @@ def open_transitions(
 
 @njit(cache=True)
 def close_transitions(
-    q, visits, next_bases, next_mask, closing, pending_entry, pending_return, pending_discount,
-    alpha, alpha_power, alpha_min,
+    q, visits, next_bases, next_mask, next_prior, min_visits, closing, pending_entry,
+    pending_return, pending_discount, alpha, alpha_power, alpha_min,
 ):  # fmt: skip
     """Second half: ``Q_i(s,a) += alpha_n [R + gamma^tau max_a' Q_i(s',a') - Q_i(s,a)]``.
 
-    Every target is taken from the table before the tick's updates, then the updates are
-    applied in (copy, robot) order. Returns the summed absolute TD error.
+    The max runs over the next actions that compete (``act_robots``: the prior's, ``next_prior``
+    ``[B, m]``, and those updated at least ``min_visits`` times). Every target is taken from the
+    table before the tick's updates, then the updates are applied in (copy, robot) order. Returns
+    the summed absolute TD error.
     """
     batch, n_robots = closing.shape
     targets = np.zeros((batch, n_robots))
@@ -113,7 +117,9 @@ def close_transitions(
         for i in range(n_robots):
             if closing[b, i]:
                 # eq. (3): r + gamma max_a' Q_i(s', a') over the valid next actions
-                best = _max_valid(q, next_bases[b, i], next_mask[b, i])
+                best = _max_valid(
+                    q, visits, next_bases[b, i], next_mask[b, i], next_prior[b, i], min_visits
+                )
                 targets[b, i] = pending_return[b, i] + pending_discount[b, i] * best
     td_sum = 0.0
     for b in range(batch):
