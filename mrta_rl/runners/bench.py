@@ -80,14 +80,16 @@ def measure(learners: list[str], system: str, episodes: int, seconds: float) -> 
     Returns:
         ``{"plain": ticks/s, "env": {batch: ticks/s}, "learners": {name: {...}}}``.
     """
-    from mrta_rl.envs.benchmark import bench_env, bench_plain_loop
+    from mrta_rl.envs import benchmark
     from mrta_rl.systems import build_system
 
     cfg = _compose([f"system={system}"])
     from omegaconf import OmegaConf
 
     built = build_system(OmegaConf.to_container(cfg.system, resolve=True))
-    plain = bench_plain_loop(built, min_seconds=seconds).ticks_per_s
+    # a checkout older than bench_plain_loop (a --baseline) borrows this code's plain loop
+    plain_loop = getattr(benchmark, "bench_plain_loop", None)
+    plain = plain_loop(built, min_seconds=seconds).ticks_per_s if plain_loop else None
     out: dict[str, Any] = {"plain": plain, "env": {}}
     out["learners"] = {}
     for name in learners:
@@ -96,7 +98,8 @@ def measure(learners: list[str], system: str, episodes: int, seconds: float) -> 
         warmup = time.perf_counter() - warm_start
         ticks, wall, batch = _train_once(name, system, [f"train.episodes={episodes}"])
         if str(batch) not in out["env"]:  # JSON keys are strings
-            out["env"][str(batch)] = bench_env(built, batch, min_seconds=seconds).ticks_per_s
+            bare = benchmark.bench_env(built, batch, min_seconds=seconds)
+            out["env"][str(batch)] = bare.ticks_per_s
         out["learners"][name] = {
             "ticks": ticks,
             "wall_s": wall,
@@ -151,12 +154,20 @@ def summarize(runs: dict[str, list[dict[str, Any]]]) -> list[dict[str, Any]]:
         One dict per code and learner (JSON-ready).
     """
     rows = []
+    # the plain loop of each repeat, from the first code that measured it
+    plains = [
+        next(reps[i]["plain"] for reps in runs.values() if reps[i]["plain"])
+        for i in range(min(len(reps) for reps in runs.values()))
+    ]
     for code, repeats in runs.items():
         for name in repeats[0]["learners"]:
             speed = [r["learners"][name]["ticks_per_s"] for r in repeats]
             batch = repeats[0]["learners"][name]["batch_size"]
             vs_env = [r["learners"][name]["ticks_per_s"] / r["env"][str(batch)] for r in repeats]
-            vs_plain = [r["learners"][name]["ticks_per_s"] / r["plain"] for r in repeats]
+            vs_plain = [
+                r["learners"][name]["ticks_per_s"] / plain
+                for r, plain in zip(repeats, plains, strict=False)
+            ]
             # the learner's own time per tick: the run's, less the bare env's at the same B
             own_us = [
                 batch * 1e6 * (1 / r["learners"][name]["ticks_per_s"] - 1 / r["env"][str(batch)])
@@ -174,7 +185,7 @@ def summarize(runs: dict[str, list[dict[str, Any]]]) -> list[dict[str, Any]]:
                     "vs_plain_min": min(vs_plain),
                     "vs_plain_median": statistics.median(vs_plain),
                     "learner_us_per_tick_median": statistics.median(own_us),
-                    "plain_ticks_per_s_median": statistics.median(r["plain"] for r in repeats),
+                    "plain_ticks_per_s_median": statistics.median(plains),
                 }
             )
     return rows
