@@ -267,9 +267,10 @@ def _neural(
             E = int(hp["mixing_embed_dim"])
             # TorchRL QMixer: hypernetworks W1 (S -> E m), W_final and b1 (S -> E), V (S -> E -> 1)
             weights += (S * E * m + E * m) + 3 * (S * E + E) + (E + 1)
-    # one transition: observation, mask (and their next), state and next state, action and
-    # rewards per robot, flags (measured on the buffer, tests/unit/test_resources.py)
-    transition = 2 * (m * F * 4 + S * 4 + m * A) + m * (8 + 4 + 4) + 32
+    # one transition: observation, mask (and their next), state and next state; per robot the
+    # action (int64), robot and group rewards (and their next), the invalid-action flags, the
+    # next team reward; flags (measured on the buffer, tests/unit/test_resources.py)
+    transition = 2 * (m * F * 4 + S * 4 + m * A) + m * (8 + 16 + 2 + 4) + 32
     parts = {
         "networks": weights * BYTES_PER_WEIGHT,
         "replay buffer": int(hp["buffer_size"]) * transition,
