@@ -36,6 +36,7 @@ logger = logging.getLogger(__name__)
 TABULAR = ("subg_cql", "cql", "semi_cql", "dql")
 NEURAL = ("subg_dqn", "qmix", "vdn", "iql")
 LEARNERS = TABULAR + NEURAL
+NEURAL_RATES = ("fps_collection", "fps_training", "gradient_steps")  # runners/torchrl.py info
 WARMUP_OVERRIDES = ("env.horizon=20", "train.episodes=1")  # loads compiled code, fills caches
 
 
@@ -55,8 +56,15 @@ def _compose(overrides: list[str]) -> Any:
         return compose(config_name="config", overrides=overrides)
 
 
-def _train_once(name: str, system: str, overrides: list[str]) -> tuple[int, float, int]:
-    """Build the run of ``learner=name`` and time its training loop: (copy-ticks, s, batch)."""
+def _train_once(
+    name: str, system: str, overrides: list[str]
+) -> tuple[int, float, int, dict[str, Any]]:
+    """Build the run of ``learner=name`` and time its training loop.
+
+    Returns:
+        (copy-ticks, s, batch, the loop's info: neural runs add ``fps_collection`` and
+        ``fps_training``).
+    """
     from mrta_rl.runners.train import build_run, training_loop
 
     cfg = _compose([f"learner={name}", f"system={system}", "train.progress_bar=false", *overrides])
@@ -65,10 +73,12 @@ def _train_once(name: str, system: str, overrides: list[str]) -> tuple[int, floa
         start = time.perf_counter()
         info = training_loop(run.learner.kind)(run, cfg, Path(run_dir))
         wall = time.perf_counter() - start
-    return int(info["env_ticks"]), wall, int(run.env.batch_size)
+    return int(info["env_ticks"]), wall, int(run.env.batch_size), info
 
 
-def measure(learners: list[str], system: str, episodes: int, seconds: float) -> dict[str, Any]:
+def measure(
+    learners: list[str], system: str, episodes: int, seconds: float, horizon: int = 0
+) -> dict[str, Any]:
     """One worker's measurements: the two yardsticks and every learner's training speed.
 
     Args:
@@ -76,6 +86,7 @@ def measure(learners: list[str], system: str, episodes: int, seconds: float) -> 
         system: ``conf/system`` name.
         episodes: Training episodes per learner (the fixed short budget).
         seconds: Least wall time of each yardstick.
+        horizon: Ticks per training episode (0: the config's, ``env.horizon``).
 
     Returns:
         ``{"plain": ticks/s, "env": {batch: ticks/s}, "learners": {name: {...}}}``.
@@ -96,7 +107,8 @@ def measure(learners: list[str], system: str, episodes: int, seconds: float) -> 
         warm_start = time.perf_counter()
         _train_once(name, system, list(WARMUP_OVERRIDES))
         warmup = time.perf_counter() - warm_start
-        ticks, wall, batch = _train_once(name, system, [f"train.episodes={episodes}"])
+        budget = [f"train.episodes={episodes}"] + ([f"env.horizon={horizon}"] if horizon else [])
+        ticks, wall, batch, info = _train_once(name, system, budget)
         if str(batch) not in out["env"]:  # JSON keys are strings
             bare = benchmark.bench_env(built, batch, min_seconds=seconds)
             out["env"][str(batch)] = bare.ticks_per_s
@@ -106,13 +118,20 @@ def measure(learners: list[str], system: str, episodes: int, seconds: float) -> 
             "ticks_per_s": ticks / wall,
             "batch_size": batch,
             "warmup_s": warmup,
+            # neural learners: collection frames/s and training replayed transitions/s apart
+            **{key: info[key] for key in NEURAL_RATES if key in info},
         }
         logger.info("%s: %.0f copy-ticks/s", name, ticks / wall)
     return out
 
 
 def run_worker(
-    code_root: Path | None, learners: list[str], system: str, episodes: int, seconds: float
+    code_root: Path | None,
+    learners: list[str],
+    system: str,
+    episodes: int,
+    seconds: float,
+    horizon: int = 0,
 ) -> dict[str, Any]:
     """Run :func:`measure` in a fresh process importing ``mrta_rl`` from ``code_root``.
 
@@ -122,6 +141,7 @@ def run_worker(
         system: ``conf/system`` name.
         episodes: Training episodes per learner.
         seconds: Least wall time of each yardstick.
+        horizon: Ticks per training episode (0: the config's).
 
     Returns:
         The worker's :func:`measure` output.
@@ -134,7 +154,7 @@ def run_worker(
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "bench.json"
         # -c keeps this module's folder off sys.path (it holds a torchrl.py)
-        argv = [str(out), system, str(episodes), str(seconds), *learners]
+        argv = [str(out), system, str(episodes), str(seconds), str(horizon), *learners]
         code = f"import runpy, sys; sys.argv = ['bench', *{argv!r}]; "
         code += f"runpy.run_path({str(Path(__file__).resolve())!r}, run_name='__main__')"
         args = [sys.executable, "-c", code]
@@ -186,9 +206,53 @@ def summarize(runs: dict[str, list[dict[str, Any]]]) -> list[dict[str, Any]]:
                     "vs_plain_median": statistics.median(vs_plain),
                     "learner_us_per_tick_median": statistics.median(own_us),
                     "plain_ticks_per_s_median": statistics.median(plains),
+                    **_rates(r["learners"][name] for r in repeats),
                 }
             )
     return rows
+
+
+def _rates(repeats: Any) -> dict[str, float]:
+    """Min and median of the neural runs' collection and training rates (empty if tabular)."""
+    runs = list(repeats)
+    out: dict[str, float] = {}
+    for key in NEURAL_RATES[:2]:
+        values = [run[key] for run in runs if key in run]
+        if values:
+            out[f"{key}_min"], out[f"{key}_median"] = min(values), statistics.median(values)
+    return out
+
+
+def format_neural_table(rows: list[dict[str, Any]]) -> str:
+    """Markdown table of the neural rows: collection frames/s and training transitions/s apart.
+
+    Collection counts copy-ticks per second spent in the Collector; training counts replayed
+    transitions per second spent in gradient steps (``runners/torchrl.py``). Speed-ups are
+    medians over the first code label's.
+    """
+    rows = [r for r in rows if "fps_collection_median" in r]
+    if not rows:
+        return ""
+    codes = list(dict.fromkeys(r["code"] for r in rows))
+    base = {r["learner"]: r for r in rows if r["code"] == codes[0]}
+    lines = [
+        "| learner | code | B | collection frames/s min | median | speed-up | "
+        "training transitions/s min | median | speed-up |",
+        "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
+    ]
+    for r in sorted(rows, key=lambda r: (r["learner"], codes.index(r["code"]))):
+        ref = base.get(r["learner"], {})
+        ups = [
+            r[f"{key}_median"] / ref[f"{key}_median"] if ref.get(f"{key}_median") else np.nan
+            for key in NEURAL_RATES[:2]
+        ]
+        lines.append(
+            f"| {r['learner']} | {r['code']} | {r['batch_size']} | "
+            f"{r['fps_collection_min']:,.0f} | {r['fps_collection_median']:,.0f} | "
+            f"{ups[0]:.1f}x | {r['fps_training_min']:,.0f} | {r['fps_training_median']:,.0f} | "
+            f"{ups[1]:.1f}x |"
+        )
+    return "\n".join(lines)
 
 
 def format_table(rows: list[dict[str, Any]]) -> str:
@@ -211,8 +275,8 @@ def format_table(rows: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
-if __name__ == "__main__":  # worker entry of run_worker: out system episodes seconds learners...
-    out_path, system_name, n_episodes, min_s, *names = sys.argv[1:]
+if __name__ == "__main__":  # worker entry: out system episodes seconds horizon learners...
+    out_path, system_name, n_episodes, min_s, n_ticks, *names = sys.argv[1:]
     logging.basicConfig(level=logging.WARNING)
-    result = measure(names, system_name, int(n_episodes), float(min_s))
+    result = measure(names, system_name, int(n_episodes), float(min_s), int(n_ticks))
     Path(out_path).write_text(json.dumps(result, indent=2))

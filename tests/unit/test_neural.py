@@ -292,3 +292,28 @@ def test_shared_q_network_loads_multiagent_mlp_checkpoints():
     net.load_state_dict({f"mlp.{k}": v for k, v in old.state_dict().items()})
     x, mask = torch.rand(3, 5, 7), torch.ones(3, 5, 4, dtype=torch.bool)
     torch.testing.assert_close(net(x, mask), old(x))
+
+
+@pytest.mark.parametrize("name", ["qmix", "vdn", "iql", "subg_dqn"])
+def test_neural_budget_is_more_copies_for_the_same_frames(name):
+    """conf/learner/budget/neural.yaml: 80 copies x 6 episodes = 30 x 16 copy-episodes.
+
+    The four TorchRL learners take it; the command line and debug=smoke still override it, and
+    the tabular learners keep conf/config.yaml's budget.
+    """
+    from pathlib import Path
+
+    from hydra import compose, initialize_config_dir
+
+    conf = str(Path(__file__).resolve().parents[2] / "conf")
+
+    def train_of(*overrides: str) -> tuple[int, int]:
+        with initialize_config_dir(config_dir=conf, version_base=None):
+            cfg = compose(config_name="config", overrides=list(overrides))
+        return int(cfg.train.batch_size), int(cfg.train.episodes)
+
+    assert train_of(f"learner={name}") == (80, 6)
+    assert train_of("learner=subg_cql") == (16, 30)  # the shared default budget
+    assert 80 * 6 == 16 * 30  # same copy-episodes, so the same frames at any horizon
+    assert train_of(f"learner={name}", "train.batch_size=16") == (16, 6)
+    assert train_of(f"learner={name}", "debug=smoke") == (4, 2)
