@@ -1,7 +1,8 @@
 """Training copy-ticks/s of every learner, next to the bare env and a plain per-copy Python loop.
 
 Usage: python scripts/bench_learners.py [--learners subg_cql dql ...] [--episodes 2] [--repeats 3]
-       [--horizon 200] [--baseline /path/to/other/checkout] [--out bench_learners.json]
+       [--horizon 200] [--baseline /path/to/other/checkout] [--experiment neural_fast]
+       [--out bench_learners.json]
 
 With ``--baseline`` the same measurements run, in turns, on another checkout of mrta_rl (e.g.
 today's main) and the table shows the speed-up over it.
@@ -32,6 +33,9 @@ if __name__ == "__main__":
     parser.add_argument("--repeats", type=int, default=3, help="repeats (min and median)")
     parser.add_argument("--seconds", type=float, default=2.0, help="least wall time per yardstick")
     parser.add_argument("--baseline", type=Path, help="another checkout to measure in turns")
+    parser.add_argument(
+        "--experiment", default="", help="conf/experiment for this checkout's runs (neural_fast)"
+    )
     parser.add_argument("--out", default="bench_learners.json")
     args = parser.parse_args()
     codes = {"baseline": args.baseline, "this": None} if args.baseline else {"this": None}
@@ -40,7 +44,13 @@ if __name__ == "__main__":
         for code, root in codes.items():
             runs[code].append(
                 run_worker(
-                    root, args.learners, args.system, args.episodes, args.seconds, args.horizon
+                    root,
+                    args.learners,
+                    args.system,
+                    args.episodes,
+                    args.seconds,
+                    args.horizon,
+                    args.experiment if root is None else "",  # the baseline keeps its defaults
                 )
             )
     rows = summarize(runs)

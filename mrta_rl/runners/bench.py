@@ -77,7 +77,12 @@ def _train_once(
 
 
 def measure(
-    learners: list[str], system: str, episodes: int, seconds: float, horizon: int = 0
+    learners: list[str],
+    system: str,
+    episodes: int,
+    seconds: float,
+    horizon: int = 0,
+    experiment: str = "",
 ) -> dict[str, Any]:
     """One worker's measurements: the two yardsticks and every learner's training speed.
 
@@ -87,6 +92,7 @@ def measure(
         episodes: Training episodes per learner (the fixed short budget).
         seconds: Least wall time of each yardstick.
         horizon: Ticks per training episode (0: the config's, ``env.horizon``).
+        experiment: ``conf/experiment`` file applied to every learner run ("" for none).
 
     Returns:
         ``{"plain": ticks/s, "env": {batch: ticks/s}, "learners": {name: {...}}}``.
@@ -105,9 +111,11 @@ def measure(
     out["learners"] = {}
     for name in learners:
         warm_start = time.perf_counter()
-        _train_once(name, system, list(WARMUP_OVERRIDES))
+        pinned = [f"experiment={experiment}"] if experiment else []
+        _train_once(name, system, [*pinned, *WARMUP_OVERRIDES])
         warmup = time.perf_counter() - warm_start
-        budget = [f"train.episodes={episodes}"] + ([f"env.horizon={horizon}"] if horizon else [])
+        budget = [*pinned, f"train.episodes={episodes}"]
+        budget += [f"env.horizon={horizon}"] if horizon else []
         ticks, wall, batch, info = _train_once(name, system, budget)
         if str(batch) not in out["env"]:  # JSON keys are strings
             bare = benchmark.bench_env(built, batch, min_seconds=seconds)
@@ -132,6 +140,7 @@ def run_worker(
     episodes: int,
     seconds: float,
     horizon: int = 0,
+    experiment: str = "",
 ) -> dict[str, Any]:
     """Run :func:`measure` in a fresh process importing ``mrta_rl`` from ``code_root``.
 
@@ -142,6 +151,7 @@ def run_worker(
         episodes: Training episodes per learner.
         seconds: Least wall time of each yardstick.
         horizon: Ticks per training episode (0: the config's).
+        experiment: ``conf/experiment`` file applied to every learner run ("" for none).
 
     Returns:
         The worker's :func:`measure` output.
@@ -154,7 +164,8 @@ def run_worker(
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "bench.json"
         # -c keeps this module's folder off sys.path (it holds a torchrl.py)
-        argv = [str(out), system, str(episodes), str(seconds), str(horizon), *learners]
+        argv = [str(out), system, str(episodes), str(seconds), str(horizon), experiment or "-"]
+        argv += learners
         code = f"import runpy, sys; sys.argv = ['bench', *{argv!r}]; "
         code += f"runpy.run_path({str(Path(__file__).resolve())!r}, run_name='__main__')"
         args = [sys.executable, "-c", code]
@@ -275,8 +286,11 @@ def format_table(rows: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
-if __name__ == "__main__":  # worker entry: out system episodes seconds horizon learners...
-    out_path, system_name, n_episodes, min_s, n_ticks, *names = sys.argv[1:]
+if __name__ == "__main__":  # worker entry: out system episodes seconds horizon experiment learners
+    out_path, system_name, n_episodes, min_s, n_ticks, pinned, *names = sys.argv[1:]
     logging.basicConfig(level=logging.WARNING)
-    result = measure(names, system_name, int(n_episodes), float(min_s), int(n_ticks))
+    experiment_name = "" if pinned == "-" else pinned
+    result = measure(
+        names, system_name, int(n_episodes), float(min_s), int(n_ticks), experiment_name
+    )
     Path(out_path).write_text(json.dumps(result, indent=2))

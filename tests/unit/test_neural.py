@@ -295,11 +295,11 @@ def test_shared_q_network_loads_multiagent_mlp_checkpoints():
 
 
 @pytest.mark.parametrize("name", ["qmix", "vdn", "iql", "subg_dqn"])
-def test_neural_budget_is_more_copies_for_the_same_frames(name):
-    """conf/learner/budget/neural.yaml: 80 copies x 6 episodes = 30 x 16 copy-episodes.
+def test_neural_fast_is_more_copies_for_the_same_frames_and_batches(name):
+    """conf/experiment/neural_fast.yaml: 80 copies x 6 episodes = 30 x 16 copy-episodes.
 
-    The four TorchRL learners take it; the command line and debug=smoke still override it, and
-    the tabular learners keep conf/config.yaml's budget.
+    Opt-in: the defaults keep the 16-copy budget of the docs' results; with the experiment the
+    frames, the frames per Collector batch and so the gradient steps per frame are the same.
     """
     from pathlib import Path
 
@@ -307,13 +307,16 @@ def test_neural_budget_is_more_copies_for_the_same_frames(name):
 
     conf = str(Path(__file__).resolve().parents[2] / "conf")
 
-    def train_of(*overrides: str) -> tuple[int, int]:
+    def budget(*overrides: str) -> tuple[int, int, int]:
         with initialize_config_dir(config_dir=conf, version_base=None):
             cfg = compose(config_name="config", overrides=list(overrides))
-        return int(cfg.train.batch_size), int(cfg.train.episodes)
+        train = cfg.train
+        return int(train.batch_size), int(train.episodes), int(cfg.learner.collect_ticks)
 
-    assert train_of(f"learner={name}") == (80, 6)
-    assert train_of("learner=subg_cql") == (16, 30)  # the shared default budget
-    assert 80 * 6 == 16 * 30  # same copy-episodes, so the same frames at any horizon
-    assert train_of(f"learner={name}", "train.batch_size=16") == (16, 6)
-    assert train_of(f"learner={name}", "debug=smoke") == (4, 2)
+    default = budget(f"learner={name}")
+    fast = budget(f"learner={name}", "experiment=neural_fast")
+    assert default == (16, 30, 50)
+    assert fast == (80, 6, 10)
+    assert fast[0] * fast[1] == default[0] * default[1]  # frames at any horizon
+    assert fast[0] * fast[2] == default[0] * default[2]  # frames per Collector batch
+    assert budget(f"learner={name}", "experiment=neural_fast", "train.batch_size=16")[0] == 16
