@@ -1,7 +1,8 @@
 """Training loop of numpy learners (kind "tabular"), and the no-training path of fixed policies.
 
 The loop is the one of ``mrta_rl.learners.base`` (shared interface 2): encode, act with
-exploration, step all ``B`` copies, encode again, update; when the copies are done (they share
+exploration, step all ``B`` copies, encode again, update, the learner's calls fused into one
+``train_tick`` per tick (``learners/tabular/base.py``); when the copies are done (they share
 the horizon, so they finish together) read the stats, reset and call ``end_episode``. One
 training episode is one horizon of all copies; curve.csv gets one row per episode.
 """
@@ -84,13 +85,10 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
             curve.log(row)
             recent.append(row["team_return_mean"])
         for episode in range(state["episode"] + 1, cfg.train.episodes + 1):
-            view = learner.encode(env)
-            while not env.done.any():  # copies share the horizon: all finish at the same tick
-                actions = learner.act(view, env.action_mask, explore=True)
-                result = env.step(actions)
-                next_view = learner.encode(env)
-                learner.update(view, actions, result, next_view, env.action_mask)
-                view = next_view
+            # encode, eq. (3) and act as one compiled call per tick (TabularLearner.train_tick)
+            actions = learner.train_tick(env, None)
+            while actions is not None:  # copies share the horizon: all finish at the same tick
+                actions = learner.train_tick(env, env.step(actions))
                 bar.update(1)
             env_ticks += horizon * batch  # ticks x copies: transitions per robot
             team_return = float(env.stats.team_return.mean())
