@@ -54,6 +54,7 @@ class RobotQLearner(TabularLearner):
 
     _pending: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
     _last: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # train_tick's last decision
+    _scratch: tuple[np.ndarray, ...] = ()  # arrays train_tick's kernel writes and nobody keeps
 
     def _bases(self, view: RobotObservation) -> np.ndarray:
         """``[B, m]`` flat offset of ``Q_i(s_i, 0)`` for every copy and robot."""
@@ -63,6 +64,11 @@ class RobotQLearner(TabularLearner):
         """The open transitions ``[B, m]`` (entry, return, discount), new ones if ``B`` changed."""
         if self._pending is None or self._pending[0].shape != shape:
             self._pending = (np.full(shape, -1, np.int64), np.zeros(shape), np.ones(shape))
+            # train_tick's scratch: int and float zeros (no last decision), prior, closing, states
+            self._scratch = (
+                np.zeros(shape, np.int64), np.zeros(shape), np.empty(shape, np.int64),
+                np.empty(shape, bool), np.empty(shape, np.int64),
+            )  # fmt: skip
         return self._pending
 
     def _next_prior(self, env: AuctionEnv, mask: np.ndarray) -> np.ndarray | None:
@@ -74,8 +80,9 @@ class RobotQLearner(TabularLearner):
     ) -> int:
         """Call the learner's tick kernel (``robot_kernels.tick_*``): uniforms used, or -1.
 
-        ``middle`` and ``tail`` are the arguments the kernels share (from ``q`` to the uniforms,
-        from ``next_bases`` to ``next_actions``); ``prior`` is :meth:`_next_prior`'s.
+        ``middle`` and ``tail`` are the arguments the kernels share (from ``q`` to the uniforms;
+        the states, then from ``next_bases`` to ``next_actions``); ``prior`` is
+        :meth:`_next_prior`'s.
         """
         raise NotImplementedError
 
@@ -83,13 +90,14 @@ class RobotQLearner(TabularLearner):
         """:meth:`TabularLearner.train_tick` in one compiled call (``robot_kernels.tick_*``)."""
         shape = (env.batch_size, self.n_robots)
         pending = self._pending_of(shape)
+        no_actions, no_rewards, greedy, closing, states = self._scratch
         mask = env.action_mask  # a new array every tick (AuctionEnv): kept as the last mask
         if result is not None:
             bases, actions, last_mask = self._last
             rewards, done = self._rewards(result, shape), result.done
         else:  # nothing to learn from at the start of an episode
-            bases = actions = np.zeros(shape, np.int64)
-            last_mask, rewards, done = mask, np.zeros(shape), env.done
+            bases = actions = no_actions
+            last_mask, rewards, done = mask, no_rewards, env.done
         prior = self._next_prior(env, mask)
         epsilon = self.epsilon
         block = self.uniforms.block(2 * bases.size) if epsilon > 0.0 else NO_UNIFORMS
@@ -97,10 +105,10 @@ class RobotQLearner(TabularLearner):
         used = self._tick_kernel(
             env, prior, (
                 self.q, self.visits, bases, actions, last_mask, mask,
-                np.empty(shape, np.int64) if prior is None else prior, rewards, done, *pending,
-                result is not None, self.decisions_only, self.gamma, self.min_visits, self.alpha,
-                self.alpha_power, self.alpha_min, epsilon, block,
-            ), (next_bases, np.empty(shape, bool), next_actions),
+                greedy if prior is None else prior, rewards, done, *pending, result is not None,
+                self.decisions_only, self.gamma, self.min_visits, self.alpha, self.alpha_power,
+                self.alpha_min, epsilon, block,
+            ), (states, next_bases, closing, next_actions),
         )  # fmt: skip
         if used < 0:  # the episode has ended
             self.uniforms.settle()
@@ -292,11 +300,10 @@ class DQLLearner(RobotQLearner):
     def _tick_kernel(
         self, env: AuctionEnv, prior: np.ndarray | None, middle: tuple, tail: tuple
     ) -> int:
-        states = np.empty(tail[0].shape, np.int64)
         return kernels.tick_local(
             *env_arrays(env), *self.encoder.tables, prior is None,
             self.prior_in_state and prior is not None, self._digit_place, self._robot_base,
-            *middle, states, *tail,
+            *middle, *tail,
         )  # fmt: skip
 
     def _table_arrays(self) -> dict[str, np.ndarray]:

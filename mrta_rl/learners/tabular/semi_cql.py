@@ -82,12 +82,13 @@ class SemiCQLLearner(RobotQLearner):
     def _tick_kernel(
         self, env: AuctionEnv, prior: np.ndarray | None, middle: tuple, tail: tuple
     ) -> int:
-        batch = env.batch_size
-        index = self._index
+        index, batch = self._index, env.batch_size
+        # the whole-system state and level (one group, [1, B]) and their rows [B], not the
+        # local states [B, m] of tail[0]
         return kernels.tick_system(
             *env_arrays(env), *self.encoder.tables, index.hash, index.rows, index.sizes,
             self._row_size, *middle, np.empty((1, batch), np.int64), np.empty((1, batch), np.int64),
-            np.empty(batch, np.int64), *tail,
+            np.empty(batch, np.int64), *tail[1:],
         )  # fmt: skip
 
     def _table_arrays(self) -> dict[str, np.ndarray]:
