@@ -200,6 +200,20 @@ def _greedy_prior(mask, out):  # fmt: skip
 
 
 @njit(cache=True)
+def _open_if(
+    learn, bases, actions, mask, next_mask, rewards, done, pending_entry, pending_return,
+    pending_discount, decisions_only, gamma, closing,
+):  # fmt: skip
+    """:func:`open_transitions` if ``learn`` (its count of closing transitions), else 0."""
+    if not learn:
+        return 0
+    return open_transitions(
+        bases, actions, mask, next_mask, rewards, done, pending_entry, pending_return,
+        pending_discount, decisions_only, gamma, closing,
+    )  # fmt: skip
+
+
+@njit(cache=True)
 def _close_and_act(
     q, visits, next_bases, next_mask, next_prior, count, closing, pending_entry, pending_return,
     pending_discount, alpha, alpha_power, alpha_min, act, min_visits, epsilon, uniforms,
@@ -234,6 +248,7 @@ def tick_local(
     Writes ``states``, ``next_bases``, ``next_actions``; returns the number of uniforms used,
     or -1 without acting where a copy is ``done`` (the episode has ended).
     """
+    act = not done.any()
     if greedy_prior:
         _greedy_prior(next_mask, next_prior)
     encode_local(
@@ -243,12 +258,10 @@ def tick_local(
     if prior_digit:
         add_prior_digit(states, next_prior, counts)
     local_bases(states, robot_base, next_mask.shape[2], next_bases)
-    act, count = not done.any(), 0
-    if learn:
-        count = open_transitions(
-            bases, actions, mask, next_mask, rewards, done, pending_entry, pending_return,
-            pending_discount, decisions_only, gamma, closing,
-        )  # fmt: skip
+    count = _open_if(
+        learn, bases, actions, mask, next_mask, rewards, done, pending_entry, pending_return,
+        pending_discount, decisions_only, gamma, closing,
+    )  # fmt: skip
     return _close_and_act(
         q, visits, next_bases, next_mask, next_prior, count, closing, pending_entry,
         pending_return, pending_discount, alpha, alpha_power, alpha_min, act, min_visits,
@@ -276,12 +289,11 @@ def tick_system(
         slot_type, slot_high, idle, battery, t, last_high, margin, threshold, codes, slot_places,
         robots, size, robot_places, recency_place, types, thresholds, states, level,
     )  # fmt: skip
-    act, count = not done.any(), 0
-    if learn:
-        count = open_transitions(
-            bases, actions, mask, next_mask, rewards, done, pending_entry, pending_return,
-            pending_discount, decisions_only, gamma, closing,
-        )  # fmt: skip
+    count = _open_if(
+        learn, bases, actions, mask, next_mask, rewards, done, pending_entry, pending_return,
+        pending_discount, decisions_only, gamma, closing,
+    )  # fmt: skip
+    act = not done.any()
     if act or count:
         rows_of_states(table, rows, sizes, states[0], next_rows)
         row_bases(next_rows, row_size, next_mask.shape[2], next_bases)
