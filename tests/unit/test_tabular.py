@@ -375,6 +375,17 @@ def test_train_tick_is_encode_update_act(case):
     assert plain.rng.random() == fused.rng.random()
 
 
+@pytest.mark.parametrize("cls", LEARNERS)
+def test_train_tick_needs_the_start_of_the_episode(cls, trio, tiny_params):
+    env, learner = make(cls, trio, tiny_params, batch=2)
+    result = env.step(np.zeros((2, env.n_robots), np.int64))
+    with pytest.raises(ValueError, match=r"train_tick\(env, None\)"):
+        learner.train_tick(env, result)
+    env.reset()
+    actions = learner.train_tick(env, None)
+    assert learner.train_tick(env, env.step(actions)).shape == (2, env.n_robots)
+
+
 def test_uniforms_drawn_ahead_are_the_plain_stream():
     """Blocks drawn ahead, read in pieces and given back: the draws of ``rng.random()`` calls."""
     rng, plain = np.random.default_rng(3), np.random.default_rng(3)

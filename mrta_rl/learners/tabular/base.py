@@ -37,9 +37,8 @@ class Uniforms:
     of :meth:`block`); a loop reads the next ones from :meth:`block` and reports how many it
     consumed with :meth:`used`. :meth:`settle` moves the generator back over those drawn and not
     consumed (``bit_generator.advance(-unused)``), so that the generator is exactly where
-    ``k`` successive ``rng.random()`` calls would have left it: the learner settles after every
-    call of ``act`` and at the end of every training episode, before anything else reads the
-    generator (checkpoints).
+    ``k`` successive ``rng.random()`` calls would have left it: the learner settles at the end
+    of every training episode and before a checkpoint reads the generator.
 
     Args:
         rng: The learner's generator.
@@ -158,8 +157,20 @@ class TabularLearner(Learner):
 
         Returns:
             ``[B, m]`` the actions to play, or None when the episode has ended.
+
+        Raises:
+            ValueError: if ``result`` is given and no actions were returned since the episode
+                started (start every episode with ``train_tick(env, None)``).
         """
         raise NotImplementedError
+
+    @staticmethod
+    def _no_last_decision() -> ValueError:
+        """The error of a ``train_tick`` with a step result and no actions to learn about."""
+        return ValueError(
+            "train_tick(env, result): no actions of this episode to learn about; start every "
+            "episode with train_tick(env, None) and step the actions it returns"
+        )
 
     # -- persistence
     def _table_arrays(self) -> dict[str, np.ndarray]:

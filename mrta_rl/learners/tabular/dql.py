@@ -93,6 +93,8 @@ class RobotQLearner(TabularLearner):
         no_actions, no_rewards, greedy, closing, states = self._scratch
         mask = env.action_mask  # a new array every tick (AuctionEnv): kept as the last mask
         if result is not None:
+            if self._last is None:
+                raise self._no_last_decision()
             bases, actions, last_mask = self._last
             rewards, done = self._rewards(result, shape), result.done
         else:  # nothing to learn from at the start of an episode
@@ -112,6 +114,7 @@ class RobotQLearner(TabularLearner):
         )  # fmt: skip
         if used < 0:  # the episode has ended
             self.uniforms.settle()
+            self._last = None
             return None
         self.uniforms.used(used)
         self._last = (next_bases, next_actions, mask)

@@ -182,6 +182,8 @@ class GroupQLearner(TabularLearner):
     def train_tick(self, env: AuctionEnv, result: StepResult | None) -> np.ndarray | None:
         """:meth:`TabularLearner.train_tick` in one call of ``group_kernels.tick_groups``."""
         n_groups, batch = len(self.groups), env.batch_size
+        if result is not None and (self._tick is None or self._tick[0].shape[1] != batch):
+            raise self._no_last_decision()
         pending = self._pending_of(batch)
         if self._tick is None or self._tick[0].shape[1] != batch:
             # states, level, hold, rows, entries (in: the last decision's, out: this tick's)
