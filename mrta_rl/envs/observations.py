@@ -98,6 +98,7 @@ __all__ = [
     "N_RECENCY_LEVELS",
     "RECENCY_THRESHOLDS",
     "battery_level",
+    "battery_margin",
     "check_features",
     "free_level",
     "queue_counts",
@@ -127,7 +128,22 @@ def _longest_durations(env: AuctionEnv) -> np.ndarray:
     return np.where(env.active_tasks, longest[None, :], 0).max(axis=1)
 
 
-_LONGEST: weakref.WeakKeyDictionary[AuctionEnv, np.ndarray] = weakref.WeakKeyDictionary()
+_MARGIN: weakref.WeakKeyDictionary[AuctionEnv, np.ndarray] = weakref.WeakKeyDictionary()
+
+
+def battery_margin(env: AuctionEnv) -> np.ndarray:
+    """``[m]`` ``drain_per_tick * longest_i``: robot ``i``'s battery is low below threshold + this.
+
+    Args:
+        env: The auction environment.
+
+    Returns:
+        ``[m]`` float64; :func:`battery_level` is ``battery - margin < battery_threshold``.
+    """
+    margin = _MARGIN.get(env)
+    if margin is None:
+        margin = _MARGIN[env] = env.params.drain_per_tick * _longest_durations(env)
+    return margin
 
 
 def battery_level(env: AuctionEnv) -> np.ndarray:
@@ -139,11 +155,8 @@ def battery_level(env: AuctionEnv) -> np.ndarray:
     Returns:
         ``[B, m]`` int64 in {0, 1}; 1 = low, the next task may send the robot to charge.
     """
-    longest = _LONGEST.get(env)
-    if longest is None:
-        longest = _LONGEST[env] = _longest_durations(env)
-    p = env.params
-    return (env.battery - p.drain_per_tick * longest < p.battery_threshold).astype(np.int64)
+    low = env.battery - battery_margin(env) < env.params.battery_threshold
+    return low.astype(np.int64)
 
 
 def recency_level(env: AuctionEnv, types_mask: np.ndarray) -> np.ndarray:

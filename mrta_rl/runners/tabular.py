@@ -1,9 +1,11 @@
 """Training loop of numpy learners (kind "tabular"), and the no-training path of fixed policies.
 
 The loop is the one of ``mrta_rl.learners.base`` (shared interface 2): encode, act with
-exploration, step all ``B`` copies, encode again, update; when the copies are done (they share
-the horizon, so they finish together) read the stats, reset and call ``end_episode``. One
-training episode is one horizon of all copies; curve.csv gets one row per episode.
+exploration, step all ``B`` copies, encode again, update, the learner's calls fused into one
+``train_tick`` per tick (``learners/tabular/base.py``; :func:`interface_tick` for a learner
+without it); when the copies are done (they share the horizon, so they finish together) read
+the stats, reset and call ``end_episode``. One training episode is one horizon of all copies;
+curve.csv gets one row per episode.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ import math
 import numbers
 import time
 from collections import deque
+from collections.abc import Callable
 from contextlib import nullcontext
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -23,6 +26,8 @@ from omegaconf import DictConfig
 from mrta_rl.runners.progress import progress_bar
 
 if TYPE_CHECKING:
+    from mrta_rl.envs import AuctionEnv, StepResult
+    from mrta_rl.learners.base import Learner
     from mrta_rl.runners.train import RunSetup
 
 logger = logging.getLogger(__name__)
@@ -45,6 +50,32 @@ def skip_training(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, An
     return {"env_ticks": 0, "wall_s": 0.0, "episodes": 0}
 
 
+def interface_tick(learner: Learner) -> Callable[[AuctionEnv, StepResult | None], Any]:
+    """``TabularLearner.train_tick`` made of the shared interface's calls, one by one.
+
+    For a learner of kind "tabular" with only ``encode`` / ``act`` / ``update``.
+
+    Args:
+        learner: Any learner.
+
+    Returns:
+        ``tick(env, result)``: encode, update unless ``result`` is None, act unless the episode
+        has ended (then None).
+    """
+    last: list[Any] = []  # the view and actions of the last decision
+
+    def tick(env: AuctionEnv, result: StepResult | None) -> Any:
+        view = learner.encode(env)
+        if result is not None:
+            learner.update(*last, result, view, env.action_mask)
+        if env.done.any():
+            return None
+        last[:] = view, learner.act(view, env.action_mask, explore=True)
+        return last[1]
+
+    return tick
+
+
 def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     """Train ``run.learner`` on ``run.env`` for ``cfg.train.episodes`` episodes.
 
@@ -58,6 +89,7 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     """
     env, learner = run.env, run.learner
     horizon, batch = run.params.horizon, env.batch_size
+    train_tick = getattr(learner, "train_tick", None) or interface_tick(learner)
     recent: deque[float] = deque(maxlen=RECENT_EPISODES)
     # resuming: the checkpoint's counters and curve; the env replays its resets, because every
     # copy starts an episode at each reset and the episode's streams depend only on the seed and
@@ -84,13 +116,10 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
             curve.log(row)
             recent.append(row["team_return_mean"])
         for episode in range(state["episode"] + 1, cfg.train.episodes + 1):
-            view = learner.encode(env)
-            while not env.done.any():  # copies share the horizon: all finish at the same tick
-                actions = learner.act(view, env.action_mask, explore=True)
-                result = env.step(actions)
-                next_view = learner.encode(env)
-                learner.update(view, actions, result, next_view, env.action_mask)
-                view = next_view
+            # encode, eq. (3) and act: one compiled call per tick (TabularLearner.train_tick)
+            actions = train_tick(env, None)
+            while actions is not None:  # copies share the horizon: all finish at the same tick
+                actions = train_tick(env, env.step(actions))
                 bar.update(1)
             env_ticks += horizon * batch  # ticks x copies: transitions per robot
             team_return = float(env.stats.team_return.mean())

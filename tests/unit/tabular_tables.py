@@ -57,8 +57,24 @@ def play(env, learner, ticks: int, explore: bool = True, learn: bool = True) -> 
             view = learner.encode(env)
 
 
-def play_tables(name: str, hyperparameters: dict) -> dict[str, np.ndarray]:
-    """Train one learner for :data:`TICKS` ticks of System-II and return its tables."""
+def play_fused(env, learner, ticks: int) -> None:
+    """:func:`play` through ``train_tick`` (one compiled call per tick), ``ticks`` ticks.
+
+    ``train_tick`` acts as soon as it has learned, so the tables match :func:`play`'s when the
+    ticks end an episode (the last call does not act).
+    """
+    actions = None
+    for _ in range(ticks):
+        if actions is None:  # an episode starts
+            actions = learner.train_tick(env, None)
+        actions = learner.train_tick(env, env.step(actions))  # env.step checks every action
+        if actions is None:
+            env.reset()
+            learner.end_episode()
+
+
+def train(name: str, hyperparameters: dict, ticks: int = TICKS, fused: bool = False):
+    """One learner trained for ``ticks`` ticks of System-II (:func:`play` or :func:`play_fused`)."""
     module, cls_name = CLASSES[name].split(":")
     cls = getattr(importlib.import_module(module), cls_name)
     system = build_system(yaml.safe_load((ROOT / "conf" / "system" / "system2.yaml").read_text()))
@@ -68,8 +84,13 @@ def play_tables(name: str, hyperparameters: dict) -> dict[str, np.ndarray]:
     env = AuctionEnv(system, params, batch_size=BATCH, seed=SEED, active_tasks=active)
     rng = np.random.default_rng(SEED)
     learner = cls(env=env, rng=rng, partition=partition, **hyperparameters)
-    play(env, learner, TICKS)
-    return learner._table_arrays()
+    (play_fused if fused else play)(env, learner, ticks)
+    return learner
+
+
+def play_tables(name: str, hyperparameters: dict) -> dict[str, np.ndarray]:
+    """The tables of one learner trained for :data:`TICKS` ticks of System-II."""
+    return train(name, hyperparameters)._table_arrays()
 
 
 if __name__ == "__main__":

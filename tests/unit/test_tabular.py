@@ -8,6 +8,7 @@ from mrta_rl.envs import AuctionEnv
 from mrta_rl.envs import observations as ob
 from mrta_rl.learners.fixed import TeamReserveLearner
 from mrta_rl.learners.tabular import group_kernels, robot_kernels
+from mrta_rl.learners.tabular.base import Uniforms
 from mrta_rl.learners.tabular.cql import CQLLearner
 from mrta_rl.learners.tabular.dql import DQLLearner
 from mrta_rl.learners.tabular.encoding import GroupEncoder, LocalEncoder
@@ -32,7 +33,7 @@ from mrta_rl.learners.tabular.subg_cql import SubGCQLLearner
 from mrta_rl.partition import subg_partition
 from mrta_rl.systems import build_system
 from tests.conftest import paper_system
-from tests.unit.tabular_tables import CASES, FIXTURE, play, play_tables
+from tests.unit.tabular_tables import CASES, EXPLORE, FIXTURE, HORIZON, play, play_tables, train
 
 LEARNERS = [SubGCQLLearner, CQLLearner, SemiCQLLearner, DQLLearner]
 
@@ -348,6 +349,56 @@ def test_same_tables_as_the_vectorised_learners():
         for key, value in tables.items():
             np.testing.assert_array_equal(value, expected[f"{case}/{key}"], err_msg=f"{case}/{key}")
         assert any(np.abs(v).max() > 0 for k, v in tables.items() if k.endswith("q")), case
+
+
+# the fixture's cases, and the priors and options with code of their own in the tick kernels
+FUSED_CASES = {
+    **CASES,
+    "dql/hold": ("dql", {"prior": "hold", "prior_in_state": True, "min_visits": 2, **EXPLORE}),
+    "dql/team": ("dql", {"reward": "team", "decisions_only": False, **EXPLORE}),
+    "subg_cql/greedy": ("subg_cql", {"prior": "greedy", "prune_conflicts": False, **EXPLORE}),
+    "cql/min_visits": ("cql", {"min_visits": 2, "decisions_only": False, **EXPLORE}),
+}
+
+
+@pytest.mark.parametrize("case", FUSED_CASES)
+def test_train_tick_is_encode_update_act(case):
+    """One compiled call per tick builds the tables of encode / update / act, same draws."""
+    name, hyperparameters = FUSED_CASES[case]
+    ticks = 4 * HORIZON  # whole episodes: the last train_tick of an episode does not act
+    plain, fused = (train(name, hyperparameters, ticks, fused=f) for f in (False, True))
+    tables, fused_tables = plain._table_arrays(), fused._table_arrays()
+    assert sorted(tables) == sorted(fused_tables)
+    for key, value in tables.items():
+        np.testing.assert_array_equal(fused_tables[key], value, err_msg=f"{case}/{key}")
+    assert plain.rng.bit_generator.state == fused.rng.bit_generator.state
+    assert plain.rng.random() == fused.rng.random()
+
+
+@pytest.mark.parametrize("cls", LEARNERS)
+def test_train_tick_needs_the_start_of_the_episode(cls, trio, tiny_params):
+    env, learner = make(cls, trio, tiny_params, batch=2)
+    result = env.step(np.zeros((2, env.n_robots), np.int64))
+    with pytest.raises(ValueError, match=r"train_tick\(env, None\)"):
+        learner.train_tick(env, result)
+    env.reset()
+    actions = learner.train_tick(env, None)
+    assert learner.train_tick(env, env.step(actions)).shape == (2, env.n_robots)
+
+
+def test_uniforms_drawn_ahead_are_the_plain_stream():
+    """Blocks drawn ahead, read in pieces and given back: the draws of ``rng.random()`` calls."""
+    rng, plain = np.random.default_rng(3), np.random.default_rng(3)
+    uniforms = Uniforms(rng)
+    got = []
+    for size, count in [(5, 3), (5, 0), (400, 250), (2, 2)]:
+        block = uniforms.block(size)
+        assert len(block) >= size
+        got += block[:count].tolist()
+        uniforms.used(count)
+    uniforms.settle()
+    assert got == plain.random(255).tolist()
+    assert rng.random() == plain.random()
 
 
 def test_compiled_encodings_are_the_observation_codes():

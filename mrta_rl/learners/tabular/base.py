@@ -12,28 +12,33 @@ from __future__ import annotations
 import json
 import logging
 from pathlib import Path
-from typing import Annotated, ClassVar
+from typing import Annotated, Any, ClassVar
 
 import numpy as np
 
 from mrta_rl.config import Range
-from mrta_rl.envs import AuctionEnv
+from mrta_rl.envs import AuctionEnv, StepResult
 from mrta_rl.learners.base import Learner
 from mrta_rl.learners.tabular.schedules import LinearSchedule
 from mrta_rl.partition import Partition
 
 logger = logging.getLogger(__name__)
 
+NO_UNIFORMS = np.zeros(0)  # the block of a call that draws nothing (greedy, epsilon 0)
+
 Q_FILE = "q_tables.npz"  # arrays of every table, np.savez without object arrays
 META_FILE = "learner.json"  # hyperparameters and schedule position
 
 
 class Uniforms:
-    """Uniforms in [0, 1) for the compiled loops, the same stream as ``rng.random(n)`` calls.
+    """Uniforms in [0, 1) for the compiled loops, the same stream as ``rng.random()`` calls.
 
-    A loop gets a block of uniforms big enough for any tick, uses the first ``k`` and the
-    generator is moved back over the rest (``bit_generator.advance(-unused)``), so the draws are
-    exactly those of ``k`` successive ``rng.random()`` calls, whatever the block size.
+    The generator draws blocks of many uniforms ahead (one numpy call per :data:`AHEAD` calls
+    of :meth:`block`); a loop reads the next ones from :meth:`block` and reports how many it
+    consumed with :meth:`used`. :meth:`settle` moves the generator back over those drawn and not
+    consumed (``bit_generator.advance(-unused)``), so that the generator is exactly where
+    ``k`` successive ``rng.random()`` calls would have left it: the learner settles at the end
+    of every training episode and before a checkpoint reads the generator.
 
     Args:
         rng: The learner's generator.
@@ -42,6 +47,8 @@ class Uniforms:
         ValueError: if its bit generator cannot move back (default_rng's PCG64 can).
     """
 
+    AHEAD = 64  # calls of block() served by one draw
+
     def __init__(self, rng: np.random.Generator) -> None:
         if not hasattr(rng.bit_generator, "advance"):
             raise ValueError(
@@ -49,22 +56,33 @@ class Uniforms:
                 f"(np.random.default_rng's PCG64), got {type(rng.bit_generator).__name__}"
             )
         self.rng = rng
+        self._drawn = NO_UNIFORMS  # uniforms drawn ahead
+        self._next = 0  # the first not consumed
 
     def block(self, size: int) -> np.ndarray:
-        """``size`` uniforms; call :meth:`used` with how many were consumed."""
-        return self.rng.random(size)
+        """At least ``size`` next uniforms; call :meth:`used` with how many were read."""
+        if self._next + size > len(self._drawn):
+            self.settle()
+            self._drawn = self.rng.random(size * self.AHEAD)
+        return self._drawn[self._next :]
 
-    def used(self, block: np.ndarray, count: int) -> None:
-        """Give back the ``len(block) - count`` uniforms not consumed."""
-        if count < len(block):
-            self.rng.bit_generator.advance(count - len(block))
+    def used(self, count: int) -> None:
+        """Consume the first ``count`` uniforms of the last :meth:`block`."""
+        self._next += count
+
+    def settle(self) -> None:
+        """Give back the uniforms drawn ahead and not consumed."""
+        unused = len(self._drawn) - self._next
+        if unused:
+            self.rng.bit_generator.advance(-unused)
+        self._drawn, self._next = NO_UNIFORMS, 0
 
 
 class TabularLearner(Learner):
     """Q-learning (paper eq. 3) with epsilon-greedy over valid actions; shared plumbing.
 
-    Subclasses implement :meth:`encode`, :meth:`act`, :meth:`update`, the table arrays for
-    save / load and :meth:`learning_space`.
+    Subclasses implement :meth:`encode`, :meth:`act`, :meth:`update`, their fusion
+    :meth:`train_tick`, the table arrays for save / load and :meth:`learning_space`.
 
     Args:
         env: The env (sizes, active tasks).
@@ -117,7 +135,42 @@ class TabularLearner(Learner):
 
     def end_episode(self) -> None:
         """Advance the epsilon schedule by one episode."""
+        self.uniforms.settle()
         self.episodes_done += 1
+
+    def checkpoint_state(self, directory: Path) -> dict[str, Any]:
+        """The generator's state (``Learner.checkpoint_state``), uniforms drawn ahead given back."""
+        self.uniforms.settle()
+        return super().checkpoint_state(directory)
+
+    def train_tick(self, env: AuctionEnv, result: StepResult | None) -> np.ndarray | None:
+        """One training tick in one compiled call (``runners/tabular.py``'s loop).
+
+        Exactly ``view = encode(env)``; ``update(last view, last actions, result, view,
+        env.action_mask)`` unless ``result`` is None (the start of an episode); then
+        ``act(view, env.action_mask, explore=True)`` unless the episode has ended: the same
+        tables and the same draws as those calls, without their Python overhead per tick.
+
+        Args:
+            env: The env after its reset or ``step``.
+            result: What that ``step`` returned (None after a reset).
+
+        Returns:
+            ``[B, m]`` the actions to play, or None when the episode has ended.
+
+        Raises:
+            ValueError: if ``result`` is given and no actions were returned since the episode
+                started (start every episode with ``train_tick(env, None)``).
+        """
+        raise NotImplementedError
+
+    @staticmethod
+    def _no_last_decision() -> ValueError:
+        """The error of a ``train_tick`` with a step result and no actions to learn about."""
+        return ValueError(
+            "train_tick(env, result): no actions of this episode to learn about; start every "
+            "episode with train_tick(env, None) and step the actions it returns"
+        )
 
     # -- persistence
     def _table_arrays(self) -> dict[str, np.ndarray]:

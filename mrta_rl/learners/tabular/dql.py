@@ -18,8 +18,8 @@ from mrta_rl.config import Choices, Range
 from mrta_rl.envs import AuctionEnv, StepResult
 from mrta_rl.learners.fixed import HOLD_SCOPES, HoldLevel, Reserve, TeamReserveLearner
 from mrta_rl.learners.tabular import robot_kernels as kernels
-from mrta_rl.learners.tabular.base import TabularLearner
-from mrta_rl.learners.tabular.encoding import LocalEncoder
+from mrta_rl.learners.tabular.base import NO_UNIFORMS, TabularLearner
+from mrta_rl.learners.tabular.encoding import LocalEncoder, env_arrays
 from mrta_rl.learners.tabular.priors import greedy_actions
 from mrta_rl.metrics.learning_space import learning_space_dimension
 
@@ -53,10 +53,72 @@ class RobotQLearner(TabularLearner):
     min_visits: int = 0  # updates an entry needs before it competes with the prior (0: always)
 
     _pending: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+    _last: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # train_tick's last decision
+    _scratch: tuple[np.ndarray, ...] = ()  # arrays train_tick's kernel writes and nobody keeps
 
     def _bases(self, view: RobotObservation) -> np.ndarray:
         """``[B, m]`` flat offset of ``Q_i(s_i, 0)`` for every copy and robot."""
         raise NotImplementedError
+
+    def _pending_of(self, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The open transitions ``[B, m]`` (entry, return, discount), new ones if ``B`` changed."""
+        if self._pending is None or self._pending[0].shape != shape:
+            self._pending = (np.full(shape, -1, np.int64), np.zeros(shape), np.ones(shape))
+            # train_tick's scratch: int and float zeros (no last decision), prior, closing, states
+            self._scratch = (
+                np.zeros(shape, np.int64), np.zeros(shape), np.empty(shape, np.int64),
+                np.empty(shape, bool), np.empty(shape, np.int64),
+            )  # fmt: skip
+        return self._pending
+
+    def _next_prior(self, env: AuctionEnv, mask: np.ndarray) -> np.ndarray | None:
+        """``[B, m]`` the prior's actions in the env's state; None: the plain auction's."""
+        return None
+
+    def _tick_kernel(
+        self, env: AuctionEnv, prior: np.ndarray | None, middle: tuple, tail: tuple
+    ) -> int:
+        """Call the learner's tick kernel (``robot_kernels.tick_*``): uniforms used, or -1.
+
+        ``middle`` and ``tail`` are the arguments the kernels share (from ``q`` to the uniforms;
+        the states, then from ``next_bases`` to ``next_actions``); ``prior`` is
+        :meth:`_next_prior`'s.
+        """
+        raise NotImplementedError
+
+    def train_tick(self, env: AuctionEnv, result: StepResult | None) -> np.ndarray | None:
+        """:meth:`TabularLearner.train_tick` in one compiled call (``robot_kernels.tick_*``)."""
+        shape = (env.batch_size, self.n_robots)
+        pending = self._pending_of(shape)
+        no_actions, no_rewards, greedy, closing, states = self._scratch
+        mask = env.action_mask  # a new array every tick (AuctionEnv): kept as the last mask
+        if result is not None:
+            if self._last is None:
+                raise self._no_last_decision()
+            bases, actions, last_mask = self._last
+            rewards, done = self._rewards(result, shape), result.done
+        else:  # nothing to learn from at the start of an episode
+            bases = actions = no_actions
+            last_mask, rewards, done = mask, no_rewards, env.done
+        prior = self._next_prior(env, mask)
+        epsilon = self.epsilon
+        block = self.uniforms.block(2 * bases.size) if epsilon > 0.0 else NO_UNIFORMS
+        next_bases, next_actions = np.empty(shape, np.int64), np.zeros(shape, np.int64)
+        used = self._tick_kernel(
+            env, prior, (
+                self.q, self.visits, bases, actions, last_mask, mask,
+                greedy if prior is None else prior, rewards, done, *pending, result is not None,
+                self.decisions_only, self.gamma, self.min_visits, self.alpha, self.alpha_power,
+                self.alpha_min, epsilon, block,
+            ), (states, next_bases, closing, next_actions),
+        )  # fmt: skip
+        if used < 0:  # the episode has ended
+            self.uniforms.settle()
+            self._last = None
+            return None
+        self.uniforms.used(used)
+        self._last = (next_bases, next_actions, mask)
+        return next_actions
 
     def act(self, view: RobotObservation, mask: np.ndarray, *, explore: bool) -> np.ndarray:
         """Per robot: epsilon-greedy over its valid actions; ties go to the prior's action.
@@ -75,13 +137,13 @@ class RobotQLearner(TabularLearner):
         epsilon = self.epsilon if explore else 0.0
         bases = self._bases(view)
         actions = np.zeros(mask.shape[:2], np.int64)
-        block = self.uniforms.block(2 * actions.size) if epsilon > 0.0 else np.zeros(0)
+        block = self.uniforms.block(2 * actions.size) if epsilon > 0.0 else NO_UNIFORMS
         used = kernels.act_robots(
             self.q, self.visits, bases, mask, self._prior(view, mask), self.min_visits, epsilon,
             block, actions,
         )  # fmt: skip
         if epsilon > 0.0:
-            self.uniforms.used(block, used)
+            self.uniforms.used(used)
         return actions
 
     def update(
@@ -105,8 +167,7 @@ class RobotQLearner(TabularLearner):
             ``learner/td_error``: mean absolute TD error of the updates of this tick.
         """
         shape = actions.shape
-        if self._pending is None or self._pending[0].shape != shape:
-            self._pending = (np.full(shape, -1, np.int64), np.zeros(shape), np.ones(shape))
+        self._pending_of(shape)
         next_mask = np.ascontiguousarray(next_mask, bool)
         closing = np.empty(shape, bool)
         count = kernels.open_transitions(
@@ -215,19 +276,38 @@ class DQLLearner(RobotQLearner):
         self.q = np.zeros(size)  # Q_i(s, a) at (i * stride + s) * (K + 1) + a
         self.visits = np.zeros(size, np.int64)
         self._robot_base = np.arange(self.n_robots) * self._stride
+        self._digit_place = np.asarray(self._local_counts, np.int64)  # the prior digit's place
 
     def encode(self, env: AuctionEnv) -> RobotObservation:
         """``[B, m]`` local state index of every robot, the mask and the prior's actions."""
         states, mask = self.encoder.index(env), env.action_mask.copy()
         if self.rule is None:
             return RobotObservation(states, mask)
-        prior = self.rule.act(self.rule.encode(env), mask, explore=False)
+        prior = self._rule_actions(env, mask)
         if self.prior_in_state:
-            states = states + prior * np.asarray(self._local_counts, np.int64)
+            kernels.add_prior_digit(states, prior, self._digit_place)
         return RobotObservation(states, mask, prior)
 
+    def _rule_actions(self, env: AuctionEnv, mask: np.ndarray) -> np.ndarray:
+        """``[B, m]`` the hold rule's actions in the env's state."""
+        return self.rule.act(self.rule.encode(env), mask, explore=False)
+
     def _bases(self, view: RobotObservation) -> np.ndarray:
-        return (self._robot_base + view.states) * self.n_actions
+        bases = np.empty(view.states.shape, np.int64)
+        kernels.local_bases(view.states, self._robot_base, self.n_actions, bases)
+        return bases
+
+    def _next_prior(self, env: AuctionEnv, mask: np.ndarray) -> np.ndarray | None:
+        return None if self.rule is None else self._rule_actions(env, mask)
+
+    def _tick_kernel(
+        self, env: AuctionEnv, prior: np.ndarray | None, middle: tuple, tail: tuple
+    ) -> int:
+        return kernels.tick_local(
+            *env_arrays(env), *self.encoder.tables, prior is None,
+            self.prior_in_state and prior is not None, self._digit_place, self._robot_base,
+            *middle, *tail,
+        )  # fmt: skip
 
     def _table_arrays(self) -> dict[str, np.ndarray]:
         shape = (self.n_robots, self._stride, self.n_actions)

@@ -4,8 +4,8 @@
 :class:`LocalEncoder` ``observations.local_state_index``, in per-copy loops, from the same env
 arrays (slots, idle flags, battery levels, H arrivals) and with the tables (slot codes, place
 values) of ``observations.GroupView`` / ``observations.LocalView``, so the codes are the same
-(tested). The battery rule stays in ``observations.battery_level`` (one numpy call per tick); the
-recency rule (:func:`recency`) reads ``observations.RECENCY_THRESHOLDS``.
+(tested). The battery rule (:func:`battery_low`) reads ``observations.battery_margin``, the
+recency rule (:func:`recency`) ``observations.RECENCY_THRESHOLDS``.
 
 A new digit of an encoding plugs in as one more place value: ``observations`` adds it to the
 view's radices (and its count), computes the digit for all copies, and the encoder adds
@@ -20,7 +20,7 @@ import numpy as np
 from numba import njit
 
 from mrta_rl.envs import AuctionEnv
-from mrta_rl.envs.observations import RECENCY_THRESHOLDS, GroupView, LocalView, battery_level
+from mrta_rl.envs.observations import RECENCY_THRESHOLDS, GroupView, LocalView, battery_margin
 
 _THRESHOLDS = np.array(RECENCY_THRESHOLDS, np.int64)
 
@@ -39,16 +39,27 @@ def recency(last_high: np.ndarray, t: int, types: np.ndarray, thresholds: np.nda
 
 
 @njit(cache=True)
+def battery_low(battery: float, margin: float, threshold: float) -> int:
+    """Battery level (``observations.battery_level``) of one robot: 1 low, 0 ok."""
+    return int(battery - margin < threshold)
+
+
+@njit(cache=True)
 def _slot_code(codes: np.ndarray, ttype: int, high: int) -> int:
     """Code of a slot; an empty slot (type -1) reads the table's last row."""
     return codes[ttype if ttype >= 0 else codes.shape[0] - 1, max(high, 0)]
 
 
 @njit(cache=True)
-def _encode_groups(
-    slot_type, slot_high, idle, battery_low, t, last_high, codes, slot_places, robots, size,
-    robot_places, recency_place, types, thresholds, states, level,
+def encode_groups(
+    slot_type, slot_high, idle, battery, t, last_high, margin, threshold, codes, slot_places,
+    robots, size, robot_places, recency_place, types, thresholds, states, level,
 ):  # fmt: skip
+    """``GroupView`` state indices ``states`` and recency levels ``level`` ``[G, B]`` (written).
+
+    The leading six arguments are :func:`env_arrays`, the next ten a ``GroupEncoder``'s
+    :attr:`~GroupEncoder.tables`.
+    """
     for g in range(states.shape[0]):
         for b in range(states.shape[1]):
             index = 0
@@ -57,16 +68,22 @@ def _encode_groups(
             for r in range(size[g]):
                 i = robots[g, r]
                 # robot digit: 0 busy, 1 idle with ok battery, 2 idle with low battery
-                index += idle[b, i] * (1 + battery_low[b, i]) * robot_places[g, r]
+                low = battery_low(battery[b, i], margin[i], threshold)
+                index += idle[b, i] * (1 + low) * robot_places[g, r]
             level[g, b] = recency(last_high[b], t[b], types[g], thresholds)
             states[g, b] = index + level[g, b] * recency_place[g]
 
 
 @njit(cache=True)
-def _encode_local(
-    slot_type, slot_high, idle, battery_low, t, last_high, codes, slot_places, places, active,
-    thresholds, out,
+def encode_local(
+    slot_type, slot_high, idle, battery, t, last_high, margin, threshold, codes, slot_places,
+    places, active, thresholds, out,
 ):  # fmt: skip
+    """``LocalView`` state indices ``out`` ``[B, m]`` (written).
+
+    The leading six arguments are :func:`env_arrays`, the next seven a ``LocalEncoder``'s
+    :attr:`~LocalEncoder.tables`.
+    """
     n_places = places.shape[1]
     for b in range(out.shape[0]):
         for i in range(out.shape[1]):
@@ -74,9 +91,19 @@ def _encode_local(
             for k in range(slot_type.shape[1]):
                 ttype = slot_type[b, k] if slot_type[b, k] >= 0 else codes.shape[0] - 1
                 index += codes[ttype, max(slot_high[b, k], 0), i] * slot_places[k, i]
-            index += battery_low[b, i] * places[i, n_places - 2]
+            index += battery_low(battery[b, i], margin[i], threshold) * places[i, n_places - 2]
             index += recency(last_high[b], t[b], active[i], thresholds) * places[i, n_places - 1]
             out[b, i] = index
+
+
+def _battery_rule(env: AuctionEnv) -> tuple[np.ndarray, float]:
+    """The arguments of :func:`battery_low` fixed by the env: margins per robot, threshold."""
+    return battery_margin(env), float(env.params.battery_threshold)
+
+
+def env_arrays(env: AuctionEnv) -> tuple[np.ndarray, ...]:
+    """The env arrays the encodings read: slots, idle flags, batteries, ticks, H arrivals."""
+    return env.slot_type, env.slot_high, env.idle, env.battery, env.t, env.last_high_arrival
 
 
 class GroupEncoder:
@@ -109,17 +136,18 @@ class GroupEncoder:
         self._slot_places = np.stack([v._slot_places for v in views])  # [G, K]
         self._recency_place = np.array([v._recency_place for v in views], np.int64)
         self.types = np.stack([v.types_mask for v in views])  # T_g, [G, n]
+        # the arguments of encode_groups after the env's
+        self.tables = (
+            *_battery_rule(env), self._codes, self._slot_places, self.robots, self.size,
+            self._robot_places, self._recency_place, self.types, _THRESHOLDS,
+        )  # fmt: skip
 
     def index(self, env: AuctionEnv) -> tuple[np.ndarray, np.ndarray]:
         """``([G, B] state indices, [G, B] recency levels over T_g)``."""
         n_groups, batch = len(self.size), env.batch_size
         states = np.empty((n_groups, batch), np.int64)
         level = np.empty((n_groups, batch), np.int64)
-        _encode_groups(
-            env.slot_type, env.slot_high, env.idle, battery_level(env), env.t,
-            env.last_high_arrival, self._codes, self._slot_places, self.robots, self.size,
-            self._robot_places, self._recency_place, self.types, _THRESHOLDS, states, level,
-        )  # fmt: skip
+        encode_groups(*env_arrays(env), *self.tables, states, level)
         return states, level
 
 
@@ -137,13 +165,14 @@ class LocalEncoder:
         self._slot_places = view._slot_places  # [K, m]
         self._places = view._places  # [m, K + 3]
         self._active = view._active  # Lambda_i, [m, n]
+        # the arguments of encode_local after the env's
+        self.tables = (
+            *_battery_rule(env), self._codes, self._slot_places, self._places, self._active,
+            _THRESHOLDS,
+        )  # fmt: skip
 
     def index(self, env: AuctionEnv) -> np.ndarray:
         """``[B, m]`` int64 local state indices."""
         out = np.empty((env.batch_size, env.n_robots), np.int64)
-        _encode_local(
-            env.slot_type, env.slot_high, env.idle, battery_level(env), env.t,
-            env.last_high_arrival, self._codes, self._slot_places, self._places, self._active,
-            _THRESHOLDS, out,
-        )  # fmt: skip
+        encode_local(*env_arrays(env), *self.tables, out)
         return out

@@ -17,6 +17,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from mrta_rl.learners.tabular.encoding import encode_groups
 from mrta_rl.learners.tabular.joint_actions import enumerate_row
 from mrta_rl.learners.tabular.priors import (
     PRIOR_CODES,
@@ -311,3 +312,45 @@ def update_groups(
                 td_sum[g] += abs(td)
                 td_count[g] += 1
                 pending_entry[g, b] = -1
+
+
+# ---------------------------------------------------------------------------------- one tick
+@njit(cache=True)
+def tick_groups(
+    table, rows, entries, q, sizes, order, weight_by_type, slot_type, slot_high, idle, battery,
+    t, last_high, margin, threshold, codes, slot_places, robots, size, robot_places,
+    recency_place, types, thresholds, mask, learn, rewards, reward_columns, done, pending_entry,
+    pending_return, pending_discount, epsilon, uniforms, decisions_only, prior, prune,
+    min_visits, gamma, alpha, alpha_power, alpha_min, states, level, hold, row_out, entry_out,
+    actions, td_sum, td_count,
+):  # fmt: skip
+    """One training tick in one call: encode the new state, eq. (3), act in it.
+
+    Exactly :func:`~mrta_rl.learners.tabular.encoding.encode_groups` (``states``, ``level``,
+    and ``hold = level == 0``), then, if ``learn``, :func:`update_groups` with the entries
+    ``entry_out`` chosen at the previous tick and this tick's rewards, then, unless a copy is
+    ``done`` (the episode has ended), :func:`act_groups` (``row_out``, ``entry_out``,
+    ``actions``): the calls of ``encode`` / ``update`` / ``act`` of the training loop, in the
+    same order, with the same draws. Returns the number of uniforms used, or -1 without acting.
+    """
+    encode_groups(
+        slot_type, slot_high, idle, battery, t, last_high, margin, threshold, codes, slot_places,
+        robots, size, robot_places, recency_place, types, thresholds, states, level,
+    )  # fmt: skip
+    for g in range(states.shape[0]):
+        for b in range(states.shape[1]):
+            hold[g, b] = level[g, b] == 0
+    if learn:
+        update_groups(
+            table, rows, entries, q, sizes, robots, size, order, weight_by_type, entry_out,
+            states, hold, mask, slot_type, slot_high, rewards, reward_columns, done,
+            pending_entry, pending_return, pending_discount, decisions_only, prior, prune,
+            min_visits, gamma, alpha, alpha_power, alpha_min, td_sum, td_count,
+        )  # fmt: skip
+    if done.any():
+        return -1
+    return act_groups(
+        table, rows, entries, q, sizes, robots, size, order, weight_by_type, states, hold, mask,
+        slot_type, slot_high, decisions_only, prior, prune, min_visits, epsilon, uniforms,
+        row_out, entry_out, actions,
+    )  # fmt: skip

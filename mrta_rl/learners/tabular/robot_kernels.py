@@ -1,4 +1,4 @@
-"""Compiled per-copy loops of the per-robot learners (DQL, semi-CQL): act and eq. (3).
+"""Compiled per-copy loops of the per-robot learners (DQL, semi-CQL): act, eq. (3), one tick.
 
 Robot ``i`` of copy ``b`` reads ``Q_i(s, a) = q[base[b, i] + a]``; the learner computes the
 offsets ``base`` from its state encoding. Loops run over copies then robots (C order), so a
@@ -12,7 +12,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from mrta_rl.learners.tabular.priors import random_valid_row
+from mrta_rl.learners.tabular.encoding import encode_groups, encode_local
+from mrta_rl.learners.tabular.priors import lowest_bid_row, random_valid_row
 from mrta_rl.learners.tabular.qtable import ROW_STATE, find_row, insert_row
 from mrta_rl.learners.tabular.schedules import alpha_of_visits
 
@@ -163,3 +164,141 @@ def rows_of_states(table, rows, sizes, states, out):  # fmt: skip
     for b in range(batch):
         if out[b] < 0:
             out[b] = find_row(table, states[b], 0)
+
+
+# ---------------------------------------------------------------------------------- offsets
+@njit(cache=True)
+def local_bases(states, robot_base, n_actions, out):  # fmt: skip
+    """DQL's offsets: ``out[b, i] = (robot_base[i] + states[b, i]) * (K + 1)`` (dense tables)."""
+    for b in range(states.shape[0]):
+        for i in range(states.shape[1]):
+            out[b, i] = (robot_base[i] + states[b, i]) * n_actions
+
+
+@njit(cache=True)
+def row_bases(rows, row_size, n_actions, out):  # fmt: skip
+    """semi-CQL's offsets: ``out[b, i] = rows[b] * m (K + 1) + i (K + 1)``."""
+    for b in range(out.shape[0]):
+        for i in range(out.shape[1]):
+            out[b, i] = rows[b] * row_size + i * n_actions
+
+
+@njit(cache=True)
+def add_prior_digit(states, prior, counts):  # fmt: skip
+    """The prior's action as the most significant digit of each local state (in place)."""
+    for b in range(states.shape[0]):
+        for i in range(states.shape[1]):
+            states[b, i] += prior[b, i] * counts[i]
+
+
+# ---------------------------------------------------------------------------------- one tick
+@njit(cache=True)
+def _greedy_prior(mask, out):  # fmt: skip
+    """The plain auction's bid of every robot (``priors.greedy_actions``), into ``out``."""
+    for b in range(mask.shape[0]):
+        lowest_bid_row(mask[b], out[b])
+
+
+@njit(cache=True)
+def _open_if(
+    learn, bases, actions, mask, next_mask, rewards, done, pending_entry, pending_return,
+    pending_discount, decisions_only, gamma, closing,
+):  # fmt: skip
+    """:func:`open_transitions` if ``learn`` (its count of closing transitions), else 0."""
+    if not learn:
+        return 0
+    return open_transitions(
+        bases, actions, mask, next_mask, rewards, done, pending_entry, pending_return,
+        pending_discount, decisions_only, gamma, closing,
+    )  # fmt: skip
+
+
+@njit(cache=True)
+def _close_and_act(
+    q, visits, next_bases, next_mask, next_prior, count, closing, pending_entry, pending_return,
+    pending_discount, alpha, alpha_power, alpha_min, act, min_visits, epsilon, uniforms,
+    next_actions,
+):  # fmt: skip
+    """The end of ``update`` (``count`` transitions closing) and ``act`` (-1 if not ``act``)."""
+    if count:
+        close_transitions(
+            q, visits, next_bases, next_mask, next_prior, min_visits, closing, pending_entry,
+            pending_return, pending_discount, alpha, alpha_power, alpha_min,
+        )  # fmt: skip
+    if not act:
+        return -1
+    return act_robots(
+        q, visits, next_bases, next_mask, next_prior, min_visits, epsilon, uniforms, next_actions
+    )
+
+
+@njit(cache=True)
+def tick_local(
+    slot_type, slot_high, idle, battery, t, last_high, margin, threshold, codes, slot_places,
+    places, active, thresholds, greedy_prior, prior_digit, counts, robot_base, q, visits,
+    bases, actions, mask, next_mask, next_prior, rewards, done, pending_entry, pending_return,
+    pending_discount, learn, decisions_only, gamma, min_visits, alpha, alpha_power, alpha_min,
+    epsilon, uniforms, states, next_bases, closing, next_actions,
+):  # fmt: skip
+    """One DQL training tick: ``encode``, ``update`` (if ``learn``), ``act``.
+
+    ``bases``, ``actions`` and ``mask`` are the previous decision's; ``next_prior`` is the
+    prior's action in the new state (computed here, the plain auction's bid, if
+    ``greedy_prior``; else given, the hold rule's), a digit of the state if ``prior_digit``.
+    Writes ``states``, ``next_bases``, ``next_actions``; returns the number of uniforms used,
+    or -1 without acting where a copy is ``done`` (the episode has ended).
+    """
+    act = not done.any()
+    if greedy_prior:
+        _greedy_prior(next_mask, next_prior)
+    encode_local(
+        slot_type, slot_high, idle, battery, t, last_high, margin, threshold, codes, slot_places,
+        places, active, thresholds, states,
+    )  # fmt: skip
+    if prior_digit:
+        add_prior_digit(states, next_prior, counts)
+    local_bases(states, robot_base, next_mask.shape[2], next_bases)
+    count = _open_if(
+        learn, bases, actions, mask, next_mask, rewards, done, pending_entry, pending_return,
+        pending_discount, decisions_only, gamma, closing,
+    )  # fmt: skip
+    return _close_and_act(
+        q, visits, next_bases, next_mask, next_prior, count, closing, pending_entry,
+        pending_return, pending_discount, alpha, alpha_power, alpha_min, act, min_visits,
+        epsilon, uniforms, next_actions,
+    )  # fmt: skip
+
+
+@njit(cache=True)
+def tick_system(
+    slot_type, slot_high, idle, battery, t, last_high, margin, threshold, codes, slot_places,
+    robots, size, robot_places, recency_place, types, thresholds, table, rows, sizes, row_size,
+    q, visits, bases, actions, mask, next_mask, next_prior, rewards, done, pending_entry,
+    pending_return, pending_discount, learn, decisions_only, gamma, min_visits, alpha,
+    alpha_power, alpha_min, epsilon, uniforms, states, level, next_rows, next_bases, closing,
+    next_actions,
+):  # fmt: skip
+    """One semi-CQL training tick, as :func:`tick_local` with the plain auction's prior.
+
+    The state is the whole system's (``encode_groups``, one group); its row is looked up, and
+    created on a first visit, only when ``update`` or ``act`` reads it (as the learner's calls
+    do), so the rows are numbered as theirs.
+    """
+    _greedy_prior(next_mask, next_prior)
+    encode_groups(
+        slot_type, slot_high, idle, battery, t, last_high, margin, threshold, codes, slot_places,
+        robots, size, robot_places, recency_place, types, thresholds, states, level,
+    )  # fmt: skip
+    count = _open_if(
+        learn, bases, actions, mask, next_mask, rewards, done, pending_entry, pending_return,
+        pending_discount, decisions_only, gamma, closing,
+    )  # fmt: skip
+    act = not done.any()
+    if act or count:
+        rows_of_states(table, rows, sizes, states[0], next_rows)
+        row_bases(next_rows, row_size, next_mask.shape[2], next_bases)
+    return _close_and_act(
+        q, visits, next_bases, next_mask, next_prior, count, closing, pending_entry,
+        pending_return, pending_discount, alpha, alpha_power, alpha_min, act, min_visits,
+        epsilon, uniforms, next_actions,
+    )  # fmt: skip

@@ -12,11 +12,11 @@ from typing import ClassVar
 
 import numpy as np
 
-from mrta_rl.envs import AuctionEnv
+from mrta_rl.envs import AuctionEnv, StepResult
+from mrta_rl.learners.tabular import robot_kernels as kernels
 from mrta_rl.learners.tabular.dql import RobotObservation, RobotQLearner
-from mrta_rl.learners.tabular.encoding import GroupEncoder
+from mrta_rl.learners.tabular.encoding import GroupEncoder, env_arrays
 from mrta_rl.learners.tabular.qtable import ROW_STATE, JointQStorage
-from mrta_rl.learners.tabular.robot_kernels import rows_of_states
 
 
 class SemiCQLLearner(RobotQLearner):
@@ -55,12 +55,12 @@ class SemiCQLLearner(RobotQLearner):
     def _rows(self, states: np.ndarray) -> np.ndarray:
         self._reserve(len(states))
         rows = np.empty(len(states), np.int64)
-        rows_of_states(self._index.hash, self._index.rows, self._index.sizes, states, rows)
+        kernels.rows_of_states(self._index.hash, self._index.rows, self._index.sizes, states, rows)
         return rows
 
     def _reserve(self, extra: int) -> None:
         self._index.reserve(extra, 0)  # rows and hash table
-        need = (self._n_rows + extra) * self._row_size
+        need = (int(self._index.sizes[0]) + extra) * self._row_size
         if need <= len(self.q):
             return
         capacity = max(need, 2 * len(self.q))
@@ -70,8 +70,26 @@ class SemiCQLLearner(RobotQLearner):
         self.q, self.visits = q, visits
 
     def _bases(self, view: RobotObservation) -> np.ndarray:
-        rows = self._rows(view.states)  # [B]
-        return rows[:, None] * self._row_size + np.arange(self.n_robots) * self.n_actions  # [B, m]
+        bases = np.empty((len(view.states), self.n_robots), np.int64)
+        kernels.row_bases(self._rows(view.states), self._row_size, self.n_actions, bases)
+        return bases
+
+    def train_tick(self, env: AuctionEnv, result: StepResult | None) -> np.ndarray | None:
+        """:meth:`RobotQLearner.train_tick`, with room first for the rows of the new states."""
+        self._reserve(env.batch_size)
+        return super().train_tick(env, result)
+
+    def _tick_kernel(
+        self, env: AuctionEnv, prior: np.ndarray | None, middle: tuple, tail: tuple
+    ) -> int:
+        index, batch = self._index, env.batch_size
+        # the whole-system state and level (one group, [1, B]) and their rows [B], not the
+        # local states [B, m] of tail[0]
+        return kernels.tick_system(
+            *env_arrays(env), *self.encoder.tables, index.hash, index.rows, index.sizes,
+            self._row_size, *middle, np.empty((1, batch), np.int64), np.empty((1, batch), np.int64),
+            np.empty(batch, np.int64), *tail[1:],
+        )  # fmt: skip
 
     def _table_arrays(self) -> dict[str, np.ndarray]:
         used = self._n_rows * self._row_size

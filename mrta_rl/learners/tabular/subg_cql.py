@@ -19,8 +19,8 @@ import numpy as np
 from mrta_rl.config import Choices, Range
 from mrta_rl.envs import AuctionEnv, StepResult
 from mrta_rl.learners.tabular import group_kernels as kernels
-from mrta_rl.learners.tabular.base import TabularLearner
-from mrta_rl.learners.tabular.encoding import GroupEncoder
+from mrta_rl.learners.tabular.base import NO_UNIFORMS, TabularLearner
+from mrta_rl.learners.tabular.encoding import GroupEncoder, env_arrays
 from mrta_rl.learners.tabular.joint_actions import JointActions, max_valid_joint_actions
 from mrta_rl.learners.tabular.priors import PRIOR_CODES, PRIOR_ORDERS, PRIORS, spread_order
 from mrta_rl.learners.tabular.qtable import TABLE_KEYS, JointQStorage
@@ -106,18 +106,24 @@ class GroupQLearner(TabularLearner):
         )
         self.storage = JointQStorage(len(groups))
         self._pending: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._tick: tuple[np.ndarray, ...] | None = None  # train_tick's arrays, [G, B] each
+        self._td_sum, self._td_count = np.zeros(len(groups)), np.zeros(len(groups), np.int64)
 
     def _group_rewards(self, result: StepResult) -> tuple[np.ndarray, np.ndarray]:
         """``([B, R] rewards, [G, M] columns)``: a group's reward is the sum of its columns."""
         raise NotImplementedError
 
-    def _reserve(self, view: GroupObservation) -> None:
-        """Room for the rows one kernel call may create (at most one per group and copy)."""
-        new_rows = view.states.size
+    def _reserve(self, mask: np.ndarray) -> None:
+        """Room for the rows one kernel call may create (at most one per group and copy).
+
+        Args:
+            mask: ``[B, m, K + 1]`` valid actions of the state the call meets.
+        """
+        new_rows = len(self.groups) * len(mask)
         if self.prune_conflicts or self._row_entries <= 4096:
             entries = new_rows * self._row_entries
         else:  # without pruning, bound each copy by the product of its valid action counts
-            counts = view.mask.sum(axis=2)  # [B, m]
+            counts = mask.sum(axis=2)  # [B, m]
             entries = sum(int(counts[:, g].prod(axis=1).sum()) for g in self.groups)
         self.storage.reserve(new_rows, entries)
 
@@ -145,11 +151,11 @@ class GroupQLearner(TabularLearner):
         """
         batch = len(mask)
         epsilon = self.epsilon if explore else 0.0
-        self._reserve(view)
+        self._reserve(view.mask)
         view.rows = np.empty((len(self.groups), batch), np.int64)
         view.entries = np.empty((len(self.groups), batch), np.int64)
         actions = np.zeros((batch, self.n_robots), np.int64)
-        block = self.uniforms.block(2 * view.states.size) if epsilon > 0.0 else np.zeros(0)
+        block = self.uniforms.block(2 * view.states.size) if epsilon > 0.0 else NO_UNIFORMS
         mask = np.ascontiguousarray(mask, bool)
         used = kernels.act_groups(
             *self._kernel_tables(), self.robots, self.size, self.order, self._weight_by_type,
@@ -158,8 +164,56 @@ class GroupQLearner(TabularLearner):
             epsilon, block, view.rows, view.entries, actions,
         )  # fmt: skip
         if epsilon > 0.0:
-            self.uniforms.used(block, used)
+            self.uniforms.used(used)
         view.actions = actions.copy()
+        return actions
+
+    def _pending_of(self, batch: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The open transitions of ``batch`` copies, ``[G, B]`` each (new ones if ``B`` changed)."""
+        n_groups = len(self.groups)
+        if self._pending is None or self._pending[0].shape[1] != batch:
+            self._pending = (
+                np.full((n_groups, batch), -1, np.int64),  # open entry, -1: none
+                np.zeros((n_groups, batch)),  # R = sum_k gamma^k r_k since the decision
+                np.ones((n_groups, batch)),  # gamma^tau
+            )
+        return self._pending
+
+    def train_tick(self, env: AuctionEnv, result: StepResult | None) -> np.ndarray | None:
+        """:meth:`TabularLearner.train_tick` in one call of ``group_kernels.tick_groups``."""
+        n_groups, batch = len(self.groups), env.batch_size
+        if result is not None and (self._tick is None or self._tick[0].shape[1] != batch):
+            raise self._no_last_decision()
+        pending = self._pending_of(batch)
+        if self._tick is None or self._tick[0].shape[1] != batch:
+            # states, level, hold, rows, entries (in: the last decision's, out: this tick's)
+            shape = (n_groups, batch)
+            self._tick = (
+                *(np.empty(shape, np.int64) for _ in range(2)), np.empty(shape, bool),
+                np.empty(shape, np.int64), np.full(shape, -1, np.int64),
+            )  # fmt: skip
+        mask = env.action_mask
+        self._reserve(mask)
+        if result is not None:
+            rewards, columns = self._group_rewards(result)
+            done = result.done
+        else:  # nothing to learn from at the start of an episode
+            rewards, columns = np.zeros((batch, 1)), np.zeros((n_groups, 1), np.int64)
+            done = env.done
+        epsilon = self.epsilon
+        actions = np.zeros((batch, self.n_robots), np.int64)
+        block = self.uniforms.block(2 * n_groups * batch) if epsilon > 0.0 else NO_UNIFORMS
+        used = kernels.tick_groups(
+            *self._kernel_tables(), self.order, self._weight_by_type, *env_arrays(env),
+            *self.encoder.tables, mask, result is not None, rewards, columns, done, *pending,
+            epsilon, block, self.decisions_only, self._prior_code, self.prune_conflicts,
+            self.min_visits, self.gamma, self.alpha, self.alpha_power, self.alpha_min,
+            *self._tick, actions, self._td_sum, self._td_count,
+        )  # fmt: skip
+        if used < 0:  # the episode has ended
+            self.uniforms.settle()
+            return None
+        self.uniforms.used(used)
         return actions
 
     def _chosen_entries(self, view: GroupObservation, actions: np.ndarray) -> np.ndarray:
@@ -170,7 +224,7 @@ class GroupQLearner(TabularLearner):
         """
         if view.actions is not None and np.array_equal(view.actions, actions):
             return view.entries
-        self._reserve(view)
+        self._reserve(view.mask)
         rows = np.empty_like(view.states)
         entries = np.empty_like(view.states)
         missing = kernels.entries_for_actions(
@@ -206,15 +260,10 @@ class GroupQLearner(TabularLearner):
         Returns:
             ``learner/<group>/td_error``: mean absolute TD error of the updates of this tick.
         """
-        n_groups, batch = len(self.groups), len(actions)
-        if self._pending is None or self._pending[0].shape[1] != batch:
-            self._pending = (
-                np.full((n_groups, batch), -1, np.int64),  # open entry, -1: none
-                np.zeros((n_groups, batch)),  # R = sum_k gamma^k r_k since the decision
-                np.ones((n_groups, batch)),  # gamma^tau
-            )
+        n_groups = len(self.groups)
+        self._pending_of(len(actions))
         chosen = self._chosen_entries(view, actions)
-        self._reserve(next_view)
+        self._reserve(next_view.mask)
         td_sum, td_count = np.zeros(n_groups), np.zeros(n_groups, np.int64)
         kernels.update_groups(
             *self._kernel_tables(), self.robots, self.size, self.order, self._weight_by_type,
