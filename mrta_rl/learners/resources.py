@@ -226,7 +226,8 @@ def _tabular(
             row = per_row * JOINT_ENTRY_BYTES + JOINT_ROW_BYTES
             parts[f"{group} table"] = GROWTH * rows * row
             full_rows += row
-        return ResourceEstimate(name, full_rows, max(full_rows, sum(parts.values())), parts)
+        worst = max(full_rows, sum(parts.values()))
+        return ResourceEstimate(name, full_rows, worst, parts, advice=GROUP_ADVICE)
     if space == "semi_cql":
         states = group_state_count(env, list(range(env.n_robots)))
         if states >= INT64_CODES:

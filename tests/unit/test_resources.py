@@ -130,5 +130,6 @@ def test_a_joint_row_that_cannot_fit_is_refused_up_front():
     assert largest == 11
     assert estimate.up_front >= conflict_free_joint_actions(11, 15) * 24  # 24 bytes an entry
     assert re.match(r"needs about \d+ TB up front", estimate.refusal(8 * 2**30))
+    assert estimate.advice.startswith("use fewer robots per group")
     bounded = estimate_resources(SubGCQLLearner, system, params, subg_partition(system, 4))
     assert bounded.reason is None and bounded.refusal(8 * 2**30) is None  # 4 robots: 1.1 MB rows
