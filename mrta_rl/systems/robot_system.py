@@ -248,6 +248,7 @@ def random_system(
     n_task_types: Annotated[int, Range(1)] = 8,
     density: Annotated[float, Range(0, 1)] = 0.3,
     seed: Annotated[int, Range(0)] = 0,
+    scale_auction: bool = False,
     name: str = "random",
     env: Mapping[str, Any] | None = None,
 ) -> RobotSystem:
@@ -257,11 +258,19 @@ def random_system(
     task type gets one at random, and every task type nobody can do gets one random robot, so the
     result is always a valid system.
 
+    With ``scale_auction``, the auction grows with the team as in System-I and II (10 robots,
+    ``slots`` 3, ``queue_capacity`` 32): ``slots = ceil(3 m / 10)`` and ``queue_capacity =
+    ceil(32 m / 10)`` go into the system's env parameters. The spec's arrival rate is already
+    ``m / 6``, so arrivals, auction slots and queue per robot stay those of the paper's systems
+    at every team size; with the spec's fixed 3 slots, more high-priority tasks arrive than can
+    be auctioned from about 55 robots on (docs/results.md, "Scaling"). Values in ``env`` win.
+
     Args:
         n_robots: Number of robots ``m`` (>= 1).
         n_task_types: Number of task types ``n`` (>= 1).
         density: Probability of each robot-task pair, in [0, 1].
         seed: Seed of the generator; the same arguments give the same system.
+        scale_auction: Scale ``slots`` and ``queue_capacity`` with the team (see above).
         name: System name.
         env: Optional per-system environment parameters.
 
@@ -271,7 +280,13 @@ def random_system(
     Raises:
         SystemConfigError: on arguments out of range (the annotations are the declarations).
     """
-    given = {"n_robots": n_robots, "n_task_types": n_task_types, "density": density, "seed": seed}
+    given = {
+        "n_robots": n_robots,
+        "n_task_types": n_task_types,
+        "density": density,
+        "seed": seed,
+        "scale_auction": scale_auction,
+    }
     try:
         check_keywords(random_system, given, "system")
     except ConfigError as err:
@@ -284,11 +299,31 @@ def random_system(
         rtm[rng.integers(n_robots), j] = True
     robots = tuple(f"R{i + 1}" for i in range(n_robots))
     tasks = tuple(f"T{j + 1}" for j in range(n_task_types))
-    return RobotSystem(name, robots, tasks, rtm.astype(np.float64), {}, dict(env or {}))
+    scaled = auction_for_team(n_robots) if scale_auction else {}
+    return RobotSystem(name, robots, tasks, rtm.astype(np.float64), {}, scaled | dict(env or {}))
+
+
+# System-I and II (paper Tables 1-2): 10 robots, spec defaults slots = 3, queue_capacity = 32
+PAPER_TEAM, PAPER_SLOTS, PAPER_QUEUE = 10, 3, 32
+
+
+def auction_for_team(n_robots: int) -> dict[str, int]:
+    """``slots`` and ``queue_capacity`` per robot as in the paper's 10-robot systems.
+
+    Args:
+        n_robots: Team size ``m``.
+
+    Returns:
+        ``{"slots": ceil(3 m / 10), "queue_capacity": ceil(32 m / 10)}``.
+    """
+    return {
+        "slots": -(-PAPER_SLOTS * n_robots // PAPER_TEAM),
+        "queue_capacity": -(-PAPER_QUEUE * n_robots // PAPER_TEAM),
+    }
 
 
 _TABLE_KEYS = {"name", "robots", "task_types", "env"}
-_RANDOM_KEYS = {"name", "n_robots", "n_task_types", "density", "seed", "env"}
+_RANDOM_KEYS = {"name", "n_robots", "n_task_types", "density", "seed", "scale_auction", "env"}
 
 
 def build_system(cfg: Mapping[str, Any]) -> RobotSystem:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
@@ -115,3 +117,19 @@ def test_network_and_transition_sizes_match_built_learners(learner, compose_cfg)
 
 def test_format_bytes():
     assert format_bytes(25.7e9) == "25.7 GB" and format_bytes(512) == "512 B"
+
+
+def test_a_joint_row_that_cannot_fit_is_refused_up_front():
+    """A 50-robot team with the auction scaled (15 slots) has an 11-robot sub-group: one row of
+    its table (all robots idle) holds sum_j C(11, j) 15!/(15-j)! = 3.3e11 joint actions (7.9 TB);
+    on main the run started and died asking numpy for 537 TiB."""
+    system = random_system(50, 12, 0.25, seed=0, scale_auction=True)
+    params = AuctionParams(**system.env_overrides)
+    estimate = estimate_resources(SubGCQLLearner, system, params, subg_partition(system))
+    largest = max(len(robots) for robots in subg_partition(system).groups.values())
+    assert largest == 11
+    assert estimate.up_front >= conflict_free_joint_actions(11, 15) * 24  # 24 bytes an entry
+    assert re.match(r"needs about \d+ TB up front", estimate.refusal(8 * 2**30))
+    assert estimate.advice.startswith("use fewer robots per group")
+    bounded = estimate_resources(SubGCQLLearner, system, params, subg_partition(system, 4))
+    assert bounded.reason is None and bounded.refusal(8 * 2**30) is None  # 4 robots: 1.1 MB rows

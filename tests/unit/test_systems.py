@@ -163,3 +163,22 @@ def test_random_system_config_and_scaling_size():
     assert s.n_robots == 300 and s.n_task_types == 30
     with pytest.raises(SystemConfigError, match=r"system.density: must be a number in \[0, 1\]"):
         random_system(3, 3, 1.5, 0)
+
+
+def test_random_system_scales_the_auction_with_the_team():
+    # System-I/II per robot: 3 slots and a queue of 32 per 10 robots, rounded up
+    assert random_system(10, 4, 0.5, 0).env_overrides == {}
+    assert random_system(10, 4, 0.5, 0, scale_auction=True).env_overrides == {
+        "slots": 3,
+        "queue_capacity": 32,
+    }
+    assert random_system(55, 4, 0.5, 0, scale_auction=True).env_overrides == {
+        "slots": 17,  # ceil(16.5)
+        "queue_capacity": 176,
+    }
+    s = build_system(
+        {"name": "random", "n_robots": 200, "scale_auction": True, "env": {"slots": 5}}
+    )
+    assert s.env_overrides == {"slots": 5, "queue_capacity": 640}  # the file's env wins
+    with pytest.raises(SystemConfigError, match=r"system.scale_auction"):
+        random_system(3, 3, 0.5, 0, scale_auction="yes")
