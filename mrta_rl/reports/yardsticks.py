@@ -20,6 +20,7 @@ are left out of the paired columns.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections import defaultdict
 from collections.abc import Sequence
@@ -30,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from mrta_rl.reports.aggregate import learner_label, system_label
-from mrta_rl.reports.collect import RunRecord
+from mrta_rl.reports.collect import RunRecord, configuration_variants
 from mrta_rl.reports.stats import MeanCI, mean_ci
 from mrta_rl.reports.tables import markdown_table, write_csv
 
@@ -98,6 +99,11 @@ def _kind(run: RunRecord) -> str:
     return "trained" if (run.metrics.get("train") or {}).get("episodes", 0) > 0 else "untrained"
 
 
+def _base(run: RunRecord) -> str:
+    """The learner's yaml stem (``run.learner`` also names what sets its configuration apart)."""
+    return str(run.metrics.get("learner", run.learner))
+
+
 def _features(run: RunRecord) -> str:
     return str((run.config.get("learner") or {}).get("features", "paper"))
 
@@ -119,20 +125,35 @@ def collect_policies(runs: Sequence[RunRecord]) -> dict[str, list[Policy]]:
     Returns:
         ``{system: [greedy, best team_reserve, rollout, learners...]}``.
     """
-    if not any(r.learner in RULES or _kind(r) == "untrained" for r in runs):
+    if not any(_base(r) in RULES or _kind(r) == "untrained" for r in runs):
         return {}
+    # trained configurations are told apart among the trained runs only: the settings in which
+    # an untrained run differs (train.episodes, learning rates...) do not change its policy
+    trained = [r for r in runs if _kind(r) == "trained"]
+    trained_variant = dict(
+        zip(
+            (id(r) for r in trained),
+            configuration_variants([dataclasses.replace(r, learner=_base(r)) for r in trained]),
+            strict=True,
+        )
+    )
     groups: dict[tuple[str, str, str, str], list[RunRecord]] = defaultdict(list)
     greedy: dict[str, RunRecord] = {}
     for run in runs:
         greedy.setdefault(run.system, run)
-        if run.learner == GREEDY:
+        learner = _base(run)
+        if learner == GREEDY:
             continue
         kind = _kind(run)
         if kind == "rule":
-            variant = _reserve_setting(run) if run.learner == "team_reserve" else ""
+            variant = _reserve_setting(run) if learner == "team_reserve" else ""
+        elif kind == "trained":  # the encoding first, then any other setting that differs
+            rest = [t for t in trained_variant[id(run)].split() if not t.startswith("features=")]
+            features = _features(run)
+            variant = " ".join([features] * (features != "paper") + rest) or "paper"
         else:
             variant = _features(run)
-        groups[(run.system, run.learner, kind, variant)].append(run)
+        groups[(run.system, learner, kind, variant)].append(run)
     out: dict[str, list[Policy]] = {}
     for system, base in greedy.items():
         block = base.metrics["baseline_greedy"]
@@ -160,7 +181,8 @@ def collect_policies(runs: Sequence[RunRecord]) -> dict[str, list[Policy]]:
             if kind != "rule":
                 name += " untrained" if kind == "untrained" else ""
                 name += f" [{variant}]" if variant != "paper" else ""
-            policies.append(_policy(name, learner, kind, members, features=variant or "paper"))
+            features = _features(members[0]) if kind != "rule" else "paper"
+            policies.append(_policy(name, learner, kind, members, features=features))
         out[system] = policies
     return out
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -10,7 +11,7 @@ import pytest
 
 from mrta_rl.reports.collect import RunRecord
 from mrta_rl.reports.stats import t_quantile
-from mrta_rl.reports.yardsticks import BEST_RESERVE, collect_policies, write_section
+from mrta_rl.reports.yardsticks import BEST_RESERVE, collect_policies, section_rows, write_section
 
 GREEDY = [10.0, 20.0, 30.0]  # per evaluation episode, shared by every run
 
@@ -79,3 +80,19 @@ def test_policies_and_paired_differences_by_hand(tmp_path):
 def test_no_section_without_rules_or_untrained_runs(tmp_path):
     md, files = write_section([RUNS[3], RUNS[4]], tmp_path)
     assert md == "" and files == {}
+
+
+def test_untrained_run_is_found_when_the_collection_names_configurations():
+    """collect names a learner's runs by what differs (``cql train.episodes=0``): still paired."""
+    runs = [
+        record("cql", 0, [10.0, 20.0, 30.0], space={"analytic": 5}, learner_cfg={"alpha": 0.1}),
+        record("cql", 0, [12.0, 23.0, 31.0], episodes=30, space={"analytic": 5}),
+        record("cql", 1, [14.0, 21.0, 35.0], episodes=30, space={"analytic": 5}),
+    ]
+    labels = ["cql train.episodes=0 alpha=0.1", "cql train.episodes=30", "cql train.episodes=30"]
+    runs = [dataclasses.replace(r, learner=label) for r, label in zip(runs, labels, strict=True)]
+    policies = collect_policies(runs)["system2"]
+    assert [p.name for p in policies] == ["greedy", "CQL untrained", "CQL"]
+    rows = [r for r in section_rows({"system2": policies}) if r[1] == "CQL"]
+    assert rows[0][5] == "CQL untrained"
+    assert rows[0][6] == pytest.approx(8 / 3, abs=1e-3)  # (13, 22, 33) - (10, 20, 30), rounded
