@@ -25,7 +25,6 @@ import numpy as np
 from mrta_rl.envs.auction import AuctionEnv
 from mrta_rl.envs.params import AuctionParams
 from mrta_rl.envs.threaded import ThreadedAuctionEnv
-from mrta_rl.learners.fixed import lowest_valid_bid
 from mrta_rl.systems import RobotSystem
 
 REFERENCE = Path(__file__).resolve().parents[2] / "tests" / "unit" / "reference_auction.py"
@@ -124,10 +123,10 @@ def bench_env(
         else:
             env = ThreadedAuctionEnv(system, params, batch_size=batch_size, seed=0, threads=threads)
         for _ in range(5):  # warm-up: first allocations, caches
-            env.step(lowest_valid_bid(env.action_mask[:, :, 1:]))
+            env.step(env.fixed_actions("greedy"))
 
         def run_chunk() -> int:
-            env.step(lowest_valid_bid(env.action_mask[:, :, 1:]))
+            env.step(env.fixed_actions("greedy"))
             if env.done.any():
                 env.reset()
             return 1

@@ -13,6 +13,11 @@ tick, returned by the following step.
 
 Arguments keep one order everywhere (the env builds them once, see ``AuctionEnv``):
 
+- ``fields`` (:data:`FIELDS`): the tables, then the state. The entry points (:func:`step`,
+  :func:`refresh`, :func:`fixed_actions`, :func:`play`) take them as one flat buffer per dtype
+  (:data:`BUFFER_DTYPES`) and a ``layout`` (:func:`unpack`): numba unboxes every array argument
+  of a call from Python, the larger part of a call's cost at small batch sizes, so 4 buffers
+  cost less than 27 arrays. The per-copy functions take the fields as separate arrays.
 - ``tables``: ``iparams`` (int64, indices ``I_*``), ``fparams`` (float64, indices ``F_*``),
   ``cdf`` (Poisson CDF of the arrival count), ``dur_lo`` / ``dur_span`` (``[2n]`` by
   ``2 * type + high``), ``willingness`` (``[n, m]`` ``d_iz`` by type), ``can_do`` (``[n, m]``
@@ -75,6 +80,10 @@ STATE_FIELDS = (
     "slot_pos",  # [B, K] queue place of each slot's task, -1: empty slot
     "slot_keys",  # [B, K] packed task of each slot, EMPTY: empty slot
 )
+TABLE_FIELDS = ("iparams", "fparams", "cdf", "dur_lo", "dur_span", "willingness", "can_do")
+FIELDS = TABLE_FIELDS + STATE_FIELDS  # the order of unpack() and of every per-copy function
+BUFFER_DTYPES = (np.uint64, np.int64, np.float64, np.bool_)  # a field lives in its dtype's buffer
+_EPISODE_KEY, _T, _DONE = (FIELDS.index(f) for f in ("episode_key", "t", "done"))
 POLICIES = {"greedy": 0, "random": 1, "high_only": 2}  # the spec's fixed policies
 _POLICY_SALT = np.uint64(0x5851F42D4C957F2D)  # keys the random policy's draws apart from arrivals
 
@@ -310,53 +319,124 @@ def first_invalid(actions, done, mask):
 
 
 @njit(cache=True, nogil=True)
-def step(
-    actions, iparams, fparams, cdf, dur_lo, dur_span, willingness, can_do,
-    seed_key, episode, state_episode_key, t, queue, queue_len, next_id, busy_until, battery,
-    last_type, last_high_arrival, done, pending_penalty, assigned, dropped, busy_ticks,
-    team_return, ticks, slot_pos, slot_keys,
-    idle_before, slot_type, slot_high, idle, mask,
-    team_reward, assign_reward, type_penalty,
-):  # fmt: skip
-    """One tick of every copy (:func:`step_copy`); ``actions`` are valid (:func:`first_invalid`)."""
-    for b in range(actions.shape[0]):
-        step_copy(
-            b, actions, iparams, fparams, cdf, dur_lo, dur_span, willingness, can_do,
-            seed_key, episode, state_episode_key, t, queue, queue_len, next_id, busy_until,
-            battery, last_type, last_high_arrival, done, pending_penalty, assigned, dropped,
-            busy_ticks, team_return, ticks, slot_pos, slot_keys,
-            idle_before, slot_type, slot_high, idle, mask,
-            team_reward, assign_reward, type_penalty,
-        )  # fmt: skip
+def _field1(buf, layout, f):
+    o = layout[f, 0]
+    return buf[o : o + layout[f, 1]]
 
 
 @njit(cache=True, nogil=True)
-def refresh(
-    rows, begin, iparams, fparams, cdf, dur_lo, dur_span, willingness, can_do,
+def _field2(buf, layout, f):
+    o, d0, d1 = layout[f, 0], layout[f, 1], layout[f, 2]
+    return buf[o : o + d0 * d1].reshape((d0, d1))
+
+
+@njit(cache=True, nogil=True)
+def _field3(buf, layout, f):
+    o, d0, d1, d2 = layout[f, 0], layout[f, 1], layout[f, 2], layout[f, 3]
+    return buf[o : o + d0 * d1 * d2].reshape((d0, d1, d2))
+
+
+@njit(cache=True, nogil=True)
+def unpack(layout, ubuf, ibuf, fbuf, bbuf):
+    """The :data:`FIELDS` as views of the uint64, int64, float64 and bool buffers.
+
+    Row ``f`` of ``layout`` (int64 ``[len(FIELDS), 4]``) holds field ``f``'s offset in its
+    buffer and its shape (unused trailing dimensions 1); ``AuctionEnv`` writes it.
+    """
+    return (
+        _field1(ibuf, layout, 0),  # iparams
+        _field1(fbuf, layout, 1),  # fparams
+        _field1(fbuf, layout, 2),  # cdf
+        _field1(ibuf, layout, 3),  # dur_lo
+        _field1(ibuf, layout, 4),  # dur_span
+        _field2(fbuf, layout, 5),  # willingness
+        _field2(bbuf, layout, 6),  # can_do
+        _field1(ubuf, layout, 7),  # seed_key
+        _field1(ubuf, layout, 8),  # episode
+        _field1(ubuf, layout, 9),  # episode_key
+        _field1(ibuf, layout, 10),  # t
+        _field2(ibuf, layout, 11),  # queue
+        _field1(ibuf, layout, 12),  # queue_len
+        _field1(ibuf, layout, 13),  # next_id
+        _field2(ibuf, layout, 14),  # busy_until
+        _field2(fbuf, layout, 15),  # battery
+        _field2(ibuf, layout, 16),  # last_type
+        _field2(ibuf, layout, 17),  # last_high_arrival
+        _field1(bbuf, layout, 18),  # done
+        _field2(fbuf, layout, 19),  # pending_penalty
+        _field3(ibuf, layout, 20),  # assigned
+        _field3(ibuf, layout, 21),  # dropped
+        _field2(ibuf, layout, 22),  # busy_ticks
+        _field1(fbuf, layout, 23),  # team_return
+        _field1(ibuf, layout, 24),  # ticks
+        _field2(ibuf, layout, 25),  # slot_pos
+        _field2(ibuf, layout, 26),  # slot_keys
+    )
+
+
+@njit(cache=True, nogil=True)
+def step(
+    check, actions, layout, ubuf, ibuf, fbuf, bbuf,
+    idle_before, mask_before, slot_type, slot_high, idle, mask,
+    team_reward, assign_reward, type_penalty,
+):  # fmt: skip
+    """One tick of every copy (:func:`step_copy`), unless ``actions`` are invalid.
+
+    With ``check``, the actions are first checked (:func:`first_invalid`, one call instead of
+    two) and a problem is returned before anything is written; without, the caller vouches
+    for them. Returns :func:`first_invalid`'s ``(problem, where)``, ``(0, 0)`` once stepped.
+    """
+    fields = unpack(layout, ubuf, ibuf, fbuf, bbuf)
+    if check:
+        problem, where = first_invalid(actions, fields[_DONE], mask_before)
+        if problem:
+            return problem, where
+    for b in range(actions.shape[0]):
+        step_copy(
+            b, actions, *fields, idle_before, slot_type, slot_high, idle, mask,
+            team_reward, assign_reward, type_penalty,
+        )  # fmt: skip
+    return 0, 0
+
+
+@njit(cache=True, nogil=True)
+def refresh_copy(
+    b, begin, iparams, fparams, cdf, dur_lo, dur_span, willingness, can_do,
     seed_key, episode, state_episode_key, t, queue, queue_len, next_id, busy_until, battery,
     last_type, last_high_arrival, done, pending_penalty, assigned, dropped, busy_ticks,
     team_return, ticks, slot_pos, slot_keys,
     slot_type, slot_high, idle, mask,
 ):  # fmt: skip
+    """Reset (``begin=2``), begin the tick (``begin=1``) or not (0) copy ``b``, then select."""
+    if begin == 2:
+        reset_copy(
+            b, iparams, fparams, cdf, dur_lo, dur_span, seed_key, episode, state_episode_key,
+            t, queue, queue_len, next_id, busy_until, battery, last_type, last_high_arrival,
+            done, pending_penalty, assigned, dropped, busy_ticks, team_return, ticks,
+        )  # fmt: skip
+    elif begin == 1:
+        begin_copy(
+            b, iparams, fparams, cdf, dur_lo, dur_span, state_episode_key, t, queue,
+            queue_len, next_id, last_high_arrival, pending_penalty, dropped,
+        )  # fmt: skip
+    select_copy(
+        b, t, queue, queue_len, busy_until, done, slot_pos, slot_keys, can_do, slot_type,
+        slot_high, idle, mask,
+    )  # fmt: skip
+
+
+@njit(cache=True, nogil=True)
+def refresh(
+    rows, begin, layout, ubuf, ibuf, fbuf, bbuf, slot_type, slot_high, idle, mask
+):  # fmt: skip
     """Reset (``begin=2``), begin the tick (``begin=1``) or only re-select (0) the ``rows``.
 
     Every copy's slots and mask are (re)written, as the views are fresh arrays.
     """
-    for b in range(t.shape[0]):
-        if rows[b] and begin == 2:
-            reset_copy(
-                b, iparams, fparams, cdf, dur_lo, dur_span, seed_key, episode, state_episode_key,
-                t, queue, queue_len, next_id, busy_until, battery, last_type, last_high_arrival,
-                done, pending_penalty, assigned, dropped, busy_ticks, team_return, ticks,
-            )  # fmt: skip
-        elif rows[b] and begin == 1:
-            begin_copy(
-                b, iparams, fparams, cdf, dur_lo, dur_span, state_episode_key, t, queue,
-                queue_len, next_id, last_high_arrival, pending_penalty, dropped,
-            )  # fmt: skip
-        select_copy(
-            b, t, queue, queue_len, busy_until, done, slot_pos, slot_keys, can_do, slot_type,
-            slot_high, idle, mask,
+    fields = unpack(layout, ubuf, ibuf, fbuf, bbuf)
+    for b in range(rows.shape[0]):
+        refresh_copy(
+            b, begin if rows[b] else 0, *fields, slot_type, slot_high, idle, mask
         )  # fmt: skip
 
 
@@ -388,6 +468,15 @@ def fixed_policy_copy(b, policy, actions, slot_high, mask, state_episode_key, t)
                     choice = a
                     break
         actions[b, i] = choice
+
+
+@njit(cache=True, nogil=True)
+def fixed_actions(policy, layout, ubuf, ibuf, fbuf, bbuf, slot_high, mask, actions):
+    """:func:`fixed_policy_copy` of every copy, into ``actions`` ``[B, m]``."""
+    fields = unpack(layout, ubuf, ibuf, fbuf, bbuf)
+    state_episode_key, t = fields[_EPISODE_KEY], fields[_T]
+    for b in range(t.shape[0]):
+        fixed_policy_copy(b, policy, actions, slot_high, mask, state_episode_key, t)
 
 
 @njit(cache=True, nogil=True)
@@ -446,10 +535,7 @@ def play_copy(
 
 @njit(cache=True, nogil=True)
 def play(
-    lo, hi, policy, max_ticks, rounds, iparams, fparams, cdf, dur_lo, dur_span, willingness,
-    can_do, seed_key, episode, state_episode_key, t, queue, queue_len, next_id, busy_until,
-    battery, last_type, last_high_arrival, done, pending_penalty, assigned, dropped, busy_ticks,
-    team_return, ticks, slot_pos, slot_keys,
+    lo, hi, policy, max_ticks, rounds, layout, ubuf, ibuf, fbuf, bbuf,
     slot_type, slot_high, idle, mask,
     out_assigned, out_dropped, out_busy_ticks, out_team_return, out_ticks,
 ):  # fmt: skip
@@ -457,18 +543,15 @@ def play(
 
     Calls on disjoint copy ranges may run in concurrent threads (the GIL is released).
     """
-    B, m = busy_until.shape
-    n = last_high_arrival.shape[1]
+    B, m = idle.shape
+    n = out_assigned.shape[1]
     actions = np.zeros((B, m), np.int64)  # scratch rows of play_copy
     team_reward, assign_reward, type_penalty = np.zeros(B), np.zeros((B, m)), np.zeros((B, n))
+    fields = unpack(layout, ubuf, ibuf, fbuf, bbuf)
     played = 0
     for b in range(lo, hi):
         played += play_copy(
-            b, policy, max_ticks, rounds, iparams, fparams, cdf, dur_lo, dur_span, willingness,
-            can_do, seed_key, episode, state_episode_key, t, queue, queue_len, next_id,
-            busy_until, battery, last_type, last_high_arrival, done, pending_penalty, assigned,
-            dropped, busy_ticks, team_return, ticks, slot_pos, slot_keys,
-            slot_type, slot_high, idle, mask,
+            b, policy, max_ticks, rounds, *fields, slot_type, slot_high, idle, mask,
             actions, team_reward, assign_reward, type_penalty,
             out_assigned, out_dropped, out_busy_ticks, out_team_return, out_ticks,
         )  # fmt: skip
