@@ -319,59 +319,42 @@ def first_invalid(actions, done, mask):
 
 
 @njit(cache=True, nogil=True)
-def _field1(buf, layout, f):
-    o = layout[f, 0]
-    return buf[o : o + layout[f, 1]]
-
-
-@njit(cache=True, nogil=True)
-def _field2(buf, layout, f):
-    o, d0, d1 = layout[f, 0], layout[f, 1], layout[f, 2]
-    return buf[o : o + d0 * d1].reshape((d0, d1))
-
-
-@njit(cache=True, nogil=True)
-def _field3(buf, layout, f):
-    o, d0, d1, d2 = layout[f, 0], layout[f, 1], layout[f, 2], layout[f, 3]
-    return buf[o : o + d0 * d1 * d2].reshape((d0, d1, d2))
-
-
-@njit(cache=True, nogil=True)
 def unpack(layout, ubuf, ibuf, fbuf, bbuf):
     """The :data:`FIELDS` as views of the uint64, int64, float64 and bool buffers.
 
     Row ``f`` of ``layout`` (int64 ``[len(FIELDS), 4]``) holds field ``f``'s offset in its
     buffer and its shape (unused trailing dimensions 1); ``AuctionEnv`` writes it.
     """
+    o, d = layout[:, 0], layout[:, 1:]
     return (
-        _field1(ibuf, layout, 0),  # iparams
-        _field1(fbuf, layout, 1),  # fparams
-        _field1(fbuf, layout, 2),  # cdf
-        _field1(ibuf, layout, 3),  # dur_lo
-        _field1(ibuf, layout, 4),  # dur_span
-        _field2(fbuf, layout, 5),  # willingness
-        _field2(bbuf, layout, 6),  # can_do
-        _field1(ubuf, layout, 7),  # seed_key
-        _field1(ubuf, layout, 8),  # episode
-        _field1(ubuf, layout, 9),  # episode_key
-        _field1(ibuf, layout, 10),  # t
-        _field2(ibuf, layout, 11),  # queue
-        _field1(ibuf, layout, 12),  # queue_len
-        _field1(ibuf, layout, 13),  # next_id
-        _field2(ibuf, layout, 14),  # busy_until
-        _field2(fbuf, layout, 15),  # battery
-        _field2(ibuf, layout, 16),  # last_type
-        _field2(ibuf, layout, 17),  # last_high_arrival
-        _field1(bbuf, layout, 18),  # done
-        _field2(fbuf, layout, 19),  # pending_penalty
-        _field3(ibuf, layout, 20),  # assigned
-        _field3(ibuf, layout, 21),  # dropped
-        _field2(ibuf, layout, 22),  # busy_ticks
-        _field1(fbuf, layout, 23),  # team_return
-        _field1(ibuf, layout, 24),  # ticks
-        _field2(ibuf, layout, 25),  # slot_pos
-        _field2(ibuf, layout, 26),  # slot_keys
-    )
+        ibuf[o[0] : o[0] + d[0].prod()],  # iparams
+        fbuf[o[1] : o[1] + d[1].prod()],  # fparams
+        fbuf[o[2] : o[2] + d[2].prod()],  # cdf
+        ibuf[o[3] : o[3] + d[3].prod()],  # dur_lo
+        ibuf[o[4] : o[4] + d[4].prod()],  # dur_span
+        fbuf[o[5] : o[5] + d[5].prod()].reshape((d[5, 0], d[5, 1])),  # willingness
+        bbuf[o[6] : o[6] + d[6].prod()].reshape((d[6, 0], d[6, 1])),  # can_do
+        ubuf[o[7] : o[7] + d[7].prod()],  # seed_key
+        ubuf[o[8] : o[8] + d[8].prod()],  # episode
+        ubuf[o[9] : o[9] + d[9].prod()],  # episode_key
+        ibuf[o[10] : o[10] + d[10].prod()],  # t
+        ibuf[o[11] : o[11] + d[11].prod()].reshape((d[11, 0], d[11, 1])),  # queue
+        ibuf[o[12] : o[12] + d[12].prod()],  # queue_len
+        ibuf[o[13] : o[13] + d[13].prod()],  # next_id
+        ibuf[o[14] : o[14] + d[14].prod()].reshape((d[14, 0], d[14, 1])),  # busy_until
+        fbuf[o[15] : o[15] + d[15].prod()].reshape((d[15, 0], d[15, 1])),  # battery
+        ibuf[o[16] : o[16] + d[16].prod()].reshape((d[16, 0], d[16, 1])),  # last_type
+        ibuf[o[17] : o[17] + d[17].prod()].reshape((d[17, 0], d[17, 1])),  # last_high_arrival
+        bbuf[o[18] : o[18] + d[18].prod()],  # done
+        fbuf[o[19] : o[19] + d[19].prod()].reshape((d[19, 0], d[19, 1])),  # pending_penalty
+        ibuf[o[20] : o[20] + d[20].prod()].reshape((d[20, 0], d[20, 1], d[20, 2])),  # assigned
+        ibuf[o[21] : o[21] + d[21].prod()].reshape((d[21, 0], d[21, 1], d[21, 2])),  # dropped
+        ibuf[o[22] : o[22] + d[22].prod()].reshape((d[22, 0], d[22, 1])),  # busy_ticks
+        fbuf[o[23] : o[23] + d[23].prod()],  # team_return
+        ibuf[o[24] : o[24] + d[24].prod()],  # ticks
+        ibuf[o[25] : o[25] + d[25].prod()].reshape((d[25, 0], d[25, 1])),  # slot_pos
+        ibuf[o[26] : o[26] + d[26].prod()].reshape((d[26, 0], d[26, 1])),  # slot_keys
+    )  # fmt: skip
 
 
 @njit(cache=True, nogil=True)
