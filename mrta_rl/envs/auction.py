@@ -179,6 +179,7 @@ class AuctionEnv:
         self.n_robots, self.n_task_types = system.n_robots, system.n_task_types
         self.n_slots = p.slots  # K
         self.n_actions = p.slots + 1  # wait + one bid per slot
+        self._action_shape = (batch_size, system.n_robots)  # [B, m]
         capable = system.willingness > 0
         active = capable if active_tasks is None else np.asarray(active_tasks, dtype=bool)
         if active.shape != capable.shape:
@@ -398,7 +399,7 @@ class AuctionEnv:
         if (
             type(actions) is not np.ndarray
             or actions.dtype != np.int64
-            or actions.shape != (self.batch_size, self.n_robots)
+            or actions.shape != self._action_shape
             or not actions.flags.c_contiguous
         ):
             actions = self._as_actions(actions)

@@ -3,8 +3,10 @@
 Throughput is ``copies x ticks / wall seconds`` under the greedy policy, the policy's own cost
 included, in one process:
 
-- ``step``: :meth:`AuctionEnv.step` under :class:`~mrta_rl.learners.fixed.GreedyLearner`'s numpy
-  policy, as a learner drives it (one thread, or the copies split over threads by
+- ``step``: :meth:`AuctionEnv.step` under actions from :meth:`AuctionEnv.fixed_actions`
+  (``greedy``, compiled; the same actions as
+  :class:`~mrta_rl.learners.fixed.GreedyLearner`'s numpy policy), one call per tick as a learner
+  drives it (one thread, or the copies split over threads by
   :class:`~mrta_rl.envs.threaded.ThreadedAuctionEnv`);
 - ``play``: :meth:`AuctionEnv.play`, many ticks in one compiled call with the policy compiled in
   (one thread, or the copies split over threads);

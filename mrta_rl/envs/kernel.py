@@ -432,7 +432,9 @@ def fixed_policy_copy(b, policy, actions, slot_high, mask, state_episode_key, t)
     from counter-based hashes of the copy's episode key, tick and robot.
     """
     m, n_actions = mask.shape[1], mask.shape[2]
-    key = mix64(tick_key(state_episode_key[b], np.uint64(t[b])) ^ _POLICY_SALT)
+    key = np.uint64(0)
+    if policy == 1:  # only random draws (a hash per copy is a third of greedy's cost)
+        key = mix64(tick_key(state_episode_key[b], np.uint64(t[b])) ^ _POLICY_SALT)
     for i in range(m):
         choice = 0
         if policy == 1:  # random
