@@ -179,6 +179,8 @@ def format_table(results: list[BenchResult]) -> str:
     """
     sizes = sorted({r.batch_size for r in results if r.path != "plain"})
     rows = list(dict.fromkeys((r.system, r.n_robots, r.path, r.threads) for r in results))
+    systems = list(dict.fromkeys(r.system for r in results))
+    rows.sort(key=lambda row: (systems.index(row[0]), row[2] != "plain"))  # its yardstick first
     cells: dict[tuple, list[float]] = {}
     for r in results:
         cells.setdefault((r.system, r.path, r.threads, r.batch_size), []).append(r.ticks_per_s)

@@ -259,14 +259,12 @@ def step_copy(
     ticks[b] += 1
     t[b] = now + 1
     done[b] = t[b] >= iparams[I_HORIZON]
-    if not done[b]:
-        begin_copy(
-            b, iparams, fparams, cdf, dur_lo, dur_span, state_episode_key, t, queue, queue_len,
-            next_id, last_high_arrival, pending_penalty, dropped,
-        )  # fmt: skip
-    select_copy(
-        b, t, queue, queue_len, busy_until, done, slot_pos, slot_keys, can_do, slot_type,
-        slot_high, idle, mask,
+    begin = 0 if done[b] else 1  # spec steps 1-3 of the next tick, unless at the horizon
+    refresh_copy(
+        b, begin, iparams, fparams, cdf, dur_lo, dur_span, willingness, can_do,
+        seed_key, episode, state_episode_key, t, queue, queue_len, next_id, busy_until, battery,
+        last_type, last_high_arrival, done, pending_penalty, assigned, dropped, busy_ticks,
+        team_return, ticks, slot_pos, slot_keys, slot_type, slot_high, idle, mask,
     )  # fmt: skip
 
 
@@ -494,14 +492,12 @@ def play_copy(
                 recorded += 1
             if rounds > 0 and recorded == rounds:
                 break
-            reset_copy(
-                b, iparams, fparams, cdf, dur_lo, dur_span, seed_key, episode, state_episode_key,
-                t, queue, queue_len, next_id, busy_until, battery, last_type, last_high_arrival,
-                done, pending_penalty, assigned, dropped, busy_ticks, team_return, ticks,
-            )  # fmt: skip
-            select_copy(
-                b, t, queue, queue_len, busy_until, done, slot_pos, slot_keys, can_do,
-                slot_type, slot_high, idle, mask,
+            refresh_copy(
+                b, 2, iparams, fparams, cdf, dur_lo, dur_span, willingness, can_do, seed_key,
+                episode, state_episode_key, t, queue, queue_len, next_id, busy_until, battery,
+                last_type, last_high_arrival, done, pending_penalty, assigned, dropped,
+                busy_ticks, team_return, ticks, slot_pos, slot_keys, slot_type, slot_high, idle,
+                mask,
             )  # fmt: skip
         if played == max_ticks:
             break
