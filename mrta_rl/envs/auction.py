@@ -75,6 +75,39 @@ class EpisodeStats:
         return EpisodeStats(*(np.array(getattr(self, f)) for f in self.__dataclass_fields__))
 
 
+def _packed(
+    initial: dict[str, np.ndarray],
+) -> tuple[np.ndarray, list[np.ndarray], dict[str, np.ndarray]]:
+    """The kernel's storage of :data:`kernel.FIELDS` (see :func:`kernel.unpack`).
+
+    Every field becomes a C-contiguous piece of one flat buffer per dtype, so that a compiled
+    call takes 4 buffers and a layout instead of 27 arrays.
+
+    Args:
+        initial: The first value of every field, by name.
+
+    Returns:
+        The layout (offset and shape of each field), the buffers (``kernel.BUFFER_DTYPES``
+        order) and the fields by name, as views of the buffers holding ``initial``'s values.
+    """
+    layout = np.ones((len(kernel.FIELDS), 4), np.int64)
+    sizes = [0] * len(kernel.BUFFER_DTYPES)
+    kinds = [kernel.BUFFER_DTYPES.index(initial[name].dtype.type) for name in kernel.FIELDS]
+    for f, (name, kind) in enumerate(zip(kernel.FIELDS, kinds, strict=True)):
+        layout[f, 0] = sizes[kind]
+        layout[f, 1 : 1 + initial[name].ndim] = initial[name].shape
+        sizes[kind] += initial[name].size
+    buffers = [
+        np.empty(size, dtype) for size, dtype in zip(sizes, kernel.BUFFER_DTYPES, strict=True)
+    ]
+    fields = {}
+    for f, (name, kind) in enumerate(zip(kernel.FIELDS, kinds, strict=True)):
+        value = initial[name]
+        fields[name] = buffers[kind][layout[f, 0] : layout[f, 0] + value.size].reshape(value.shape)
+        fields[name][...] = value
+    return layout, buffers, fields
+
+
 class StepResult:
     """One tick's outcome: ``team_reward`` ``[B]``, ``robot_reward`` ``[B, m]``, ``done`` ``[B]``.
 
@@ -146,6 +179,7 @@ class AuctionEnv:
         self.n_robots, self.n_task_types = system.n_robots, system.n_task_types
         self.n_slots = p.slots  # K
         self.n_actions = p.slots + 1  # wait + one bid per slot
+        self._action_shape = (batch_size, system.n_robots)  # [B, m]
         capable = system.willingness > 0
         active = capable if active_tasks is None else np.asarray(active_tasks, dtype=bool)
         if active.shape != capable.shape:
@@ -182,15 +216,15 @@ class AuctionEnv:
         fparams[kernel.F_ASSIGN : kernel.F_ASSIGN + 2] = p.reward_assign_low, p.reward_assign_high
         fparams[kernel.F_DROP : kernel.F_DROP + 2] = p.penalty_drop_low, p.penalty_drop_high
         cdf = rng.poisson_cdf(p.arrival_rate)
-        self._tables = (
-            iparams,
-            fparams,
-            cdf,
-            dur_lo.reshape(-1),  # by 2 * type + high
-            dur_span.reshape(-1),
-            np.ascontiguousarray(system.willingness.T, dtype=np.float64),  # d_iz by type, [n, m]
-            np.ascontiguousarray(active.T),  # Lambda_i by type, [n, m]
-        )
+        tables = {
+            "iparams": iparams,
+            "fparams": fparams,
+            "cdf": cdf,
+            "dur_lo": dur_lo.reshape(-1),  # by 2 * type + high
+            "dur_span": dur_span.reshape(-1),
+            "willingness": system.willingness.T.astype(np.float64),  # d_iz by type, [n, m]
+            "can_do": active.T.copy(),  # Lambda_i by type, [n, m]
+        }
 
         B, m, n, K = batch_size, self.n_robots, self.n_task_types, self.n_slots
         # a queue holds at most queue_capacity tasks between ticks, plus one tick's arrivals
@@ -217,7 +251,9 @@ class AuctionEnv:
             "slot_pos": ((B, K), -1, np.int64),
             "slot_keys": ((B, K), EMPTY, np.int64),
         }
-        self._state = {name: np.full(*shapes[name]) for name in kernel.STATE_FIELDS}
+        initial = tables | {name: np.full(*shapes[name]) for name in kernel.STATE_FIELDS}
+        self._layout, buffers, fields = _packed(initial)
+        self._state = {name: fields[name] for name in kernel.STATE_FIELDS}
         state = self._state
         self.t = state["t"]  # current tick per copy
         self.busy_until, self.battery = state["busy_until"], state["battery"]  # [B, m]
@@ -228,9 +264,9 @@ class AuctionEnv:
         self.stats = EpisodeStats(
             *(state[f] for f in ("assigned", "dropped", "busy_ticks", "team_return", "ticks"))
         )
-        # the kernel's leading arguments: tables, then the state arrays (updated in place, never
-        # replaced) in kernel.STATE_FIELDS order
-        self._fixed_args = self._tables + tuple(state[f] for f in kernel.STATE_FIELDS)
+        # the kernel's leading arguments: the layout and the buffers (updated in place, never
+        # replaced)
+        self._fixed_args = (self._layout, *buffers)
         self._new_views()
         self.seed(seed)
         self.reset()
@@ -316,14 +352,21 @@ class AuctionEnv:
         return rows
 
     # ------------------------------------------------------------------ the kernel's arguments
-    def _new_views(self) -> tuple[np.ndarray, ...]:
-        """Fresh arrays for the next decision's views (callers may keep the previous ones)."""
+    def _fresh_views(self) -> tuple[np.ndarray, ...]:
+        """New arrays for the next decision's views (callers may keep the previous ones)."""
         B, m, K = self.batch_size, self.n_robots, self.n_slots
-        self.slot_type = np.empty((B, K), np.int64)  # [B, K], -1 = empty slot
-        self.slot_high = np.empty((B, K), np.int64)  # [B, K], 1 = H, 0 = L, -1 = empty
-        self.idle = np.empty((B, m), np.bool_)  # spec step 4, [B, m]
-        self._mask = np.empty((B, m, K + 1), np.bool_)
-        return self.slot_type, self.slot_high, self.idle, self._mask
+        return (
+            np.empty((B, K), np.int64),  # slot_type [B, K], -1 = empty slot
+            np.empty((B, K), np.int64),  # slot_high [B, K], 1 = H, 0 = L, -1 = empty
+            np.empty((B, m), np.bool_),  # idle [B, m], spec step 4
+            np.empty((B, m, K + 1), np.bool_),  # action mask
+        )
+
+    def _new_views(self) -> tuple[np.ndarray, ...]:
+        """Fresh view arrays, installed as this tick's (the kernel writes them next)."""
+        views = self._fresh_views()
+        self.slot_type, self.slot_high, self.idle, self._mask = views
+        return views
 
     def _refresh(self, rows: np.ndarray | None, begin: int) -> None:
         """Reset (``begin=2``) or begin the tick of (1) the ``rows``, then re-select all slots."""
@@ -353,17 +396,26 @@ class AuctionEnv:
             ValueError: on a wrong shape, an invalid action (naming copy, robot and reason), or a
                 copy whose episode has ended and was not reset.
         """
-        actions = self._as_actions(actions)
-        if not validated:
-            self.validate(actions)
+        if (
+            type(actions) is not np.ndarray
+            or actions.dtype != np.int64
+            or actions.shape != self._action_shape
+            or not actions.flags.c_contiguous
+        ):
+            actions = self._as_actions(actions)
         B = self.batch_size
-        idle_before = self.idle
+        views = self._fresh_views()  # installed only once the tick has been played
         team = np.empty(B)
         assign = np.empty((B, self.n_robots))  # assign rewards won
         type_penalty = np.empty((B, self.n_task_types))  # drop penalties by type
-        kernel.step(
-            actions, *self._fixed_args, idle_before, *self._new_views(), team, assign, type_penalty
-        )
+        # the kernel checks the actions first (unless validated) and changes nothing if invalid
+        problem, where = kernel.step(
+            not validated, actions, *self._fixed_args, self.idle, self._mask, *views,
+            team, assign, type_penalty,
+        )  # fmt: skip
+        if problem:
+            self._raise_invalid(problem, where, actions)
+        self.slot_type, self.slot_high, self.idle, self._mask = views
         return StepResult(team, self.done.copy(), assign, type_penalty, self._penalty_share)
 
     def _as_actions(self, actions: np.ndarray) -> np.ndarray:
@@ -388,6 +440,11 @@ class AuctionEnv:
         """
         actions = self._as_actions(actions)
         problem, where = kernel.first_invalid(actions, self.done, self._mask)
+        if problem:
+            self._raise_invalid(problem, where, actions)
+
+    def _raise_invalid(self, problem: int, where: int, actions: np.ndarray) -> None:
+        """The ValueError of :func:`kernel.first_invalid`'s ``(problem, where)``."""
         if problem == 1:
             raise ValueError(
                 f"copy {where + self.copy_offset} has finished its episode; reset it first"
@@ -407,6 +464,36 @@ class AuctionEnv:
                 f"invalid action {a} for robot {robot} in copy {b + self.copy_offset} "
                 f"at tick {self.t[b]}: {why}"
             )
+
+    # ------------------------------------------------------------------ fixed policies, compiled
+    @staticmethod
+    def _policy_code(policy: str) -> int:
+        """The kernel's code of a spec fixed policy, or a ValueError naming the known ones."""
+        if policy not in kernel.POLICIES:
+            raise ValueError(f"unknown fixed policy {policy!r}; known: {sorted(kernel.POLICIES)}")
+        return kernel.POLICIES[policy]
+
+    def fixed_actions(self, policy: str = "greedy") -> np.ndarray:
+        """This tick's ``[B, m]`` actions of a spec fixed policy, from the compiled kernel.
+
+        The same rules as :meth:`play` plays: ``greedy`` equals
+        :func:`~mrta_rl.learners.fixed.lowest_valid_bid` of the mask, in one compiled call
+        instead of a few numpy ones (what counts at small batch sizes).
+
+        Args:
+            policy: ``greedy``, ``random`` or ``high_only``.
+
+        Returns:
+            ``[B, m]`` int64 actions, valid for :meth:`step` (waits in finished copies).
+
+        Raises:
+            ValueError: on an unknown policy.
+        """
+        actions = np.empty((self.batch_size, self.n_robots), np.int64)
+        kernel.fixed_actions(
+            self._policy_code(policy), *self._fixed_args, self.slot_high, self._mask, actions
+        )
+        return actions
 
     # ------------------------------------------------------------------ many ticks, compiled
     def play(
@@ -446,8 +533,7 @@ class AuctionEnv:
         """
         if not 1 <= threads <= self.batch_size:
             raise ValueError(f"play: threads must be in 1..{self.batch_size}, got {threads}")
-        if policy not in kernel.POLICIES:
-            raise ValueError(f"unknown fixed policy {policy!r}; known: {sorted(kernel.POLICIES)}")
+        code = self._policy_code(policy)
         if (episodes is None) == (ticks is None):
             raise ValueError("play: give exactly one of episodes= and ticks=")
         count = episodes if ticks is None else ticks
@@ -467,7 +553,7 @@ class AuctionEnv:
         for fresh, now in zip(views, current, strict=True):
             fresh[...] = now  # play_copy decides on them first
         args = (
-            kernel.POLICIES[policy],
+            code,
             -1 if ticks is None else int(ticks),
             rounds,
             *self._fixed_args,

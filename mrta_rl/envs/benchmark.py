@@ -3,8 +3,10 @@
 Throughput is ``copies x ticks / wall seconds`` under the greedy policy, the policy's own cost
 included, in one process:
 
-- ``step``: :meth:`AuctionEnv.step` under :class:`~mrta_rl.learners.fixed.GreedyLearner`'s numpy
-  policy, as a learner drives it (one thread, or the copies split over threads by
+- ``step``: :meth:`AuctionEnv.step` under actions from :meth:`AuctionEnv.fixed_actions`
+  (``greedy``, compiled; the same actions as
+  :class:`~mrta_rl.learners.fixed.GreedyLearner`'s numpy policy), one call per tick as a learner
+  drives it (one thread, or the copies split over threads by
   :class:`~mrta_rl.envs.threaded.ThreadedAuctionEnv`);
 - ``play``: :meth:`AuctionEnv.play`, many ticks in one compiled call with the policy compiled in
   (one thread, or the copies split over threads);
@@ -25,7 +27,6 @@ import numpy as np
 from mrta_rl.envs.auction import AuctionEnv
 from mrta_rl.envs.params import AuctionParams
 from mrta_rl.envs.threaded import ThreadedAuctionEnv
-from mrta_rl.learners.fixed import lowest_valid_bid
 from mrta_rl.systems import RobotSystem
 
 REFERENCE = Path(__file__).resolve().parents[2] / "tests" / "unit" / "reference_auction.py"
@@ -124,10 +125,10 @@ def bench_env(
         else:
             env = ThreadedAuctionEnv(system, params, batch_size=batch_size, seed=0, threads=threads)
         for _ in range(5):  # warm-up: first allocations, caches
-            env.step(lowest_valid_bid(env.action_mask[:, :, 1:]))
+            env.step(env.fixed_actions("greedy"))
 
         def run_chunk() -> int:
-            env.step(lowest_valid_bid(env.action_mask[:, :, 1:]))
+            env.step(env.fixed_actions("greedy"))
             if env.done.any():
                 env.reset()
             return 1
@@ -178,6 +179,8 @@ def format_table(results: list[BenchResult]) -> str:
     """
     sizes = sorted({r.batch_size for r in results if r.path != "plain"})
     rows = list(dict.fromkeys((r.system, r.n_robots, r.path, r.threads) for r in results))
+    systems = list(dict.fromkeys(r.system for r in results))
+    rows.sort(key=lambda row: (systems.index(row[0]), row[2] != "plain"))  # its yardstick first
     cells: dict[tuple, list[float]] = {}
     for r in results:
         cells.setdefault((r.system, r.path, r.threads, r.batch_size), []).append(r.ticks_per_s)

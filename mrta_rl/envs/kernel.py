@@ -13,6 +13,11 @@ tick, returned by the following step.
 
 Arguments keep one order everywhere (the env builds them once, see ``AuctionEnv``):
 
+- ``fields`` (:data:`FIELDS`): the tables, then the state. The entry points (:func:`step`,
+  :func:`refresh`, :func:`fixed_actions`, :func:`play`) take them as one flat buffer per dtype
+  (:data:`BUFFER_DTYPES`) and a ``layout`` (:func:`unpack`): numba unboxes every array argument
+  of a call from Python, the larger part of a call's cost at small batch sizes, so 4 buffers
+  cost less than 27 arrays. The per-copy functions take the fields as separate arrays.
 - ``tables``: ``iparams`` (int64, indices ``I_*``), ``fparams`` (float64, indices ``F_*``),
   ``cdf`` (Poisson CDF of the arrival count), ``dur_lo`` / ``dur_span`` (``[2n]`` by
   ``2 * type + high``), ``willingness`` (``[n, m]`` ``d_iz`` by type), ``can_do`` (``[n, m]``
@@ -75,6 +80,10 @@ STATE_FIELDS = (
     "slot_pos",  # [B, K] queue place of each slot's task, -1: empty slot
     "slot_keys",  # [B, K] packed task of each slot, EMPTY: empty slot
 )
+TABLE_FIELDS = ("iparams", "fparams", "cdf", "dur_lo", "dur_span", "willingness", "can_do")
+FIELDS = TABLE_FIELDS + STATE_FIELDS  # the order of unpack() and of every per-copy function
+BUFFER_DTYPES = (np.uint64, np.int64, np.float64, np.bool_)  # a field lives in its dtype's buffer
+_EPISODE_KEY, _T, _DONE = (FIELDS.index(f) for f in ("episode_key", "t", "done"))
 POLICIES = {"greedy": 0, "random": 1, "high_only": 2}  # the spec's fixed policies
 _POLICY_SALT = np.uint64(0x5851F42D4C957F2D)  # keys the random policy's draws apart from arrivals
 
@@ -250,14 +259,12 @@ def step_copy(
     ticks[b] += 1
     t[b] = now + 1
     done[b] = t[b] >= iparams[I_HORIZON]
-    if not done[b]:
-        begin_copy(
-            b, iparams, fparams, cdf, dur_lo, dur_span, state_episode_key, t, queue, queue_len,
-            next_id, last_high_arrival, pending_penalty, dropped,
-        )  # fmt: skip
-    select_copy(
-        b, t, queue, queue_len, busy_until, done, slot_pos, slot_keys, can_do, slot_type,
-        slot_high, idle, mask,
+    begin = 0 if done[b] else 1  # spec steps 1-3 of the next tick, unless at the horizon
+    refresh_copy(
+        b, begin, iparams, fparams, cdf, dur_lo, dur_span, willingness, can_do,
+        seed_key, episode, state_episode_key, t, queue, queue_len, next_id, busy_until, battery,
+        last_type, last_high_arrival, done, pending_penalty, assigned, dropped, busy_ticks,
+        team_return, ticks, slot_pos, slot_keys, slot_type, slot_high, idle, mask,
     )  # fmt: skip
 
 
@@ -310,53 +317,107 @@ def first_invalid(actions, done, mask):
 
 
 @njit(cache=True, nogil=True)
-def step(
-    actions, iparams, fparams, cdf, dur_lo, dur_span, willingness, can_do,
-    seed_key, episode, state_episode_key, t, queue, queue_len, next_id, busy_until, battery,
-    last_type, last_high_arrival, done, pending_penalty, assigned, dropped, busy_ticks,
-    team_return, ticks, slot_pos, slot_keys,
-    idle_before, slot_type, slot_high, idle, mask,
-    team_reward, assign_reward, type_penalty,
-):  # fmt: skip
-    """One tick of every copy (:func:`step_copy`); ``actions`` are valid (:func:`first_invalid`)."""
-    for b in range(actions.shape[0]):
-        step_copy(
-            b, actions, iparams, fparams, cdf, dur_lo, dur_span, willingness, can_do,
-            seed_key, episode, state_episode_key, t, queue, queue_len, next_id, busy_until,
-            battery, last_type, last_high_arrival, done, pending_penalty, assigned, dropped,
-            busy_ticks, team_return, ticks, slot_pos, slot_keys,
-            idle_before, slot_type, slot_high, idle, mask,
-            team_reward, assign_reward, type_penalty,
-        )  # fmt: skip
+def unpack(layout, ubuf, ibuf, fbuf, bbuf):
+    """The :data:`FIELDS` as views of the uint64, int64, float64 and bool buffers.
+
+    Row ``f`` of ``layout`` (int64 ``[len(FIELDS), 4]``) holds field ``f``'s offset in its
+    buffer and its shape (unused trailing dimensions 1); ``AuctionEnv`` writes it.
+    """
+    o, d = layout[:, 0], layout[:, 1:]
+    return (
+        ibuf[o[0] : o[0] + d[0].prod()],  # iparams
+        fbuf[o[1] : o[1] + d[1].prod()],  # fparams
+        fbuf[o[2] : o[2] + d[2].prod()],  # cdf
+        ibuf[o[3] : o[3] + d[3].prod()],  # dur_lo
+        ibuf[o[4] : o[4] + d[4].prod()],  # dur_span
+        fbuf[o[5] : o[5] + d[5].prod()].reshape((d[5, 0], d[5, 1])),  # willingness
+        bbuf[o[6] : o[6] + d[6].prod()].reshape((d[6, 0], d[6, 1])),  # can_do
+        ubuf[o[7] : o[7] + d[7].prod()],  # seed_key
+        ubuf[o[8] : o[8] + d[8].prod()],  # episode
+        ubuf[o[9] : o[9] + d[9].prod()],  # episode_key
+        ibuf[o[10] : o[10] + d[10].prod()],  # t
+        ibuf[o[11] : o[11] + d[11].prod()].reshape((d[11, 0], d[11, 1])),  # queue
+        ibuf[o[12] : o[12] + d[12].prod()],  # queue_len
+        ibuf[o[13] : o[13] + d[13].prod()],  # next_id
+        ibuf[o[14] : o[14] + d[14].prod()].reshape((d[14, 0], d[14, 1])),  # busy_until
+        fbuf[o[15] : o[15] + d[15].prod()].reshape((d[15, 0], d[15, 1])),  # battery
+        ibuf[o[16] : o[16] + d[16].prod()].reshape((d[16, 0], d[16, 1])),  # last_type
+        ibuf[o[17] : o[17] + d[17].prod()].reshape((d[17, 0], d[17, 1])),  # last_high_arrival
+        bbuf[o[18] : o[18] + d[18].prod()],  # done
+        fbuf[o[19] : o[19] + d[19].prod()].reshape((d[19, 0], d[19, 1])),  # pending_penalty
+        ibuf[o[20] : o[20] + d[20].prod()].reshape((d[20, 0], d[20, 1], d[20, 2])),  # assigned
+        ibuf[o[21] : o[21] + d[21].prod()].reshape((d[21, 0], d[21, 1], d[21, 2])),  # dropped
+        ibuf[o[22] : o[22] + d[22].prod()].reshape((d[22, 0], d[22, 1])),  # busy_ticks
+        fbuf[o[23] : o[23] + d[23].prod()],  # team_return
+        ibuf[o[24] : o[24] + d[24].prod()],  # ticks
+        ibuf[o[25] : o[25] + d[25].prod()].reshape((d[25, 0], d[25, 1])),  # slot_pos
+        ibuf[o[26] : o[26] + d[26].prod()].reshape((d[26, 0], d[26, 1])),  # slot_keys
+    )  # fmt: skip
 
 
 @njit(cache=True, nogil=True)
-def refresh(
-    rows, begin, iparams, fparams, cdf, dur_lo, dur_span, willingness, can_do,
+def step(
+    check, actions, layout, ubuf, ibuf, fbuf, bbuf,
+    idle_before, mask_before, slot_type, slot_high, idle, mask,
+    team_reward, assign_reward, type_penalty,
+):  # fmt: skip
+    """One tick of every copy (:func:`step_copy`), unless ``actions`` are invalid.
+
+    With ``check``, the actions are first checked (:func:`first_invalid`, one call instead of
+    two) and a problem is returned before anything is written; without, the caller vouches
+    for them. Returns :func:`first_invalid`'s ``(problem, where)``, ``(0, 0)`` once stepped.
+    """
+    fields = unpack(layout, ubuf, ibuf, fbuf, bbuf)
+    if check:
+        problem, where = first_invalid(actions, fields[_DONE], mask_before)
+        if problem:
+            return problem, where
+    for b in range(actions.shape[0]):
+        step_copy(
+            b, actions, *fields, idle_before, slot_type, slot_high, idle, mask,
+            team_reward, assign_reward, type_penalty,
+        )  # fmt: skip
+    return 0, 0
+
+
+@njit(cache=True, nogil=True)
+def refresh_copy(
+    b, begin, iparams, fparams, cdf, dur_lo, dur_span, willingness, can_do,
     seed_key, episode, state_episode_key, t, queue, queue_len, next_id, busy_until, battery,
     last_type, last_high_arrival, done, pending_penalty, assigned, dropped, busy_ticks,
     team_return, ticks, slot_pos, slot_keys,
     slot_type, slot_high, idle, mask,
 ):  # fmt: skip
+    """Reset (``begin=2``), begin the tick (``begin=1``) or not (0) copy ``b``, then select."""
+    if begin == 2:
+        reset_copy(
+            b, iparams, fparams, cdf, dur_lo, dur_span, seed_key, episode, state_episode_key,
+            t, queue, queue_len, next_id, busy_until, battery, last_type, last_high_arrival,
+            done, pending_penalty, assigned, dropped, busy_ticks, team_return, ticks,
+        )  # fmt: skip
+    elif begin == 1:
+        begin_copy(
+            b, iparams, fparams, cdf, dur_lo, dur_span, state_episode_key, t, queue,
+            queue_len, next_id, last_high_arrival, pending_penalty, dropped,
+        )  # fmt: skip
+    select_copy(
+        b, t, queue, queue_len, busy_until, done, slot_pos, slot_keys, can_do, slot_type,
+        slot_high, idle, mask,
+    )  # fmt: skip
+
+
+@njit(cache=True, nogil=True)
+def refresh(
+    rows, begin, layout, ubuf, ibuf, fbuf, bbuf, slot_type, slot_high, idle, mask
+):  # fmt: skip
     """Reset (``begin=2``), begin the tick (``begin=1``) or only re-select (0) the ``rows``.
 
     Every copy's slots and mask are (re)written, as the views are fresh arrays.
     """
-    for b in range(t.shape[0]):
-        if rows[b] and begin == 2:
-            reset_copy(
-                b, iparams, fparams, cdf, dur_lo, dur_span, seed_key, episode, state_episode_key,
-                t, queue, queue_len, next_id, busy_until, battery, last_type, last_high_arrival,
-                done, pending_penalty, assigned, dropped, busy_ticks, team_return, ticks,
-            )  # fmt: skip
-        elif rows[b] and begin == 1:
-            begin_copy(
-                b, iparams, fparams, cdf, dur_lo, dur_span, state_episode_key, t, queue,
-                queue_len, next_id, last_high_arrival, pending_penalty, dropped,
-            )  # fmt: skip
-        select_copy(
-            b, t, queue, queue_len, busy_until, done, slot_pos, slot_keys, can_do, slot_type,
-            slot_high, idle, mask,
+    fields = unpack(layout, ubuf, ibuf, fbuf, bbuf)
+    for b in range(rows.shape[0]):
+        refresh_copy(
+            b, begin if rows[b] else 0, *fields, slot_type, slot_high, idle, mask
         )  # fmt: skip
 
 
@@ -369,7 +430,9 @@ def fixed_policy_copy(b, policy, actions, slot_high, mask, state_episode_key, t)
     from counter-based hashes of the copy's episode key, tick and robot.
     """
     m, n_actions = mask.shape[1], mask.shape[2]
-    key = mix64(tick_key(state_episode_key[b], np.uint64(t[b])) ^ _POLICY_SALT)
+    key = np.uint64(0)
+    if policy == 1:  # only random draws (a hash per copy is a third of greedy's cost)
+        key = mix64(tick_key(state_episode_key[b], np.uint64(t[b])) ^ _POLICY_SALT)
     for i in range(m):
         choice = 0
         if policy == 1:  # random
@@ -388,6 +451,15 @@ def fixed_policy_copy(b, policy, actions, slot_high, mask, state_episode_key, t)
                     choice = a
                     break
         actions[b, i] = choice
+
+
+@njit(cache=True, nogil=True)
+def fixed_actions(policy, layout, ubuf, ibuf, fbuf, bbuf, slot_high, mask, actions):
+    """:func:`fixed_policy_copy` of every copy, into ``actions`` ``[B, m]``."""
+    fields = unpack(layout, ubuf, ibuf, fbuf, bbuf)
+    state_episode_key, t = fields[_EPISODE_KEY], fields[_T]
+    for b in range(t.shape[0]):
+        fixed_policy_copy(b, policy, actions, slot_high, mask, state_episode_key, t)
 
 
 @njit(cache=True, nogil=True)
@@ -420,14 +492,12 @@ def play_copy(
                 recorded += 1
             if rounds > 0 and recorded == rounds:
                 break
-            reset_copy(
-                b, iparams, fparams, cdf, dur_lo, dur_span, seed_key, episode, state_episode_key,
-                t, queue, queue_len, next_id, busy_until, battery, last_type, last_high_arrival,
-                done, pending_penalty, assigned, dropped, busy_ticks, team_return, ticks,
-            )  # fmt: skip
-            select_copy(
-                b, t, queue, queue_len, busy_until, done, slot_pos, slot_keys, can_do,
-                slot_type, slot_high, idle, mask,
+            refresh_copy(
+                b, 2, iparams, fparams, cdf, dur_lo, dur_span, willingness, can_do, seed_key,
+                episode, state_episode_key, t, queue, queue_len, next_id, busy_until, battery,
+                last_type, last_high_arrival, done, pending_penalty, assigned, dropped,
+                busy_ticks, team_return, ticks, slot_pos, slot_keys, slot_type, slot_high, idle,
+                mask,
             )  # fmt: skip
         if played == max_ticks:
             break
@@ -446,10 +516,7 @@ def play_copy(
 
 @njit(cache=True, nogil=True)
 def play(
-    lo, hi, policy, max_ticks, rounds, iparams, fparams, cdf, dur_lo, dur_span, willingness,
-    can_do, seed_key, episode, state_episode_key, t, queue, queue_len, next_id, busy_until,
-    battery, last_type, last_high_arrival, done, pending_penalty, assigned, dropped, busy_ticks,
-    team_return, ticks, slot_pos, slot_keys,
+    lo, hi, policy, max_ticks, rounds, layout, ubuf, ibuf, fbuf, bbuf,
     slot_type, slot_high, idle, mask,
     out_assigned, out_dropped, out_busy_ticks, out_team_return, out_ticks,
 ):  # fmt: skip
@@ -457,18 +524,15 @@ def play(
 
     Calls on disjoint copy ranges may run in concurrent threads (the GIL is released).
     """
-    B, m = busy_until.shape
-    n = last_high_arrival.shape[1]
+    B, m = idle.shape
+    n = out_assigned.shape[1]
     actions = np.zeros((B, m), np.int64)  # scratch rows of play_copy
     team_reward, assign_reward, type_penalty = np.zeros(B), np.zeros((B, m)), np.zeros((B, n))
+    fields = unpack(layout, ubuf, ibuf, fbuf, bbuf)
     played = 0
     for b in range(lo, hi):
         played += play_copy(
-            b, policy, max_ticks, rounds, iparams, fparams, cdf, dur_lo, dur_span, willingness,
-            can_do, seed_key, episode, state_episode_key, t, queue, queue_len, next_id,
-            busy_until, battery, last_type, last_high_arrival, done, pending_penalty, assigned,
-            dropped, busy_ticks, team_return, ticks, slot_pos, slot_keys,
-            slot_type, slot_high, idle, mask,
+            b, policy, max_ticks, rounds, *fields, slot_type, slot_high, idle, mask,
             actions, team_reward, assign_reward, type_penalty,
             out_assigned, out_dropped, out_busy_ticks, out_team_return, out_ticks,
         )  # fmt: skip

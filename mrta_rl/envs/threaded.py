@@ -111,6 +111,10 @@ class ThreadedAuctionEnv:
             results[0]._share,
         )
 
+    def fixed_actions(self, policy: str = "greedy") -> np.ndarray:
+        """As :meth:`AuctionEnv.fixed_actions`, joined over shards."""
+        return np.concatenate([shard.fixed_actions(policy) for shard in self._shards])
+
     # per-copy state, joined over shards (the same names and shapes as AuctionEnv)
     action_mask = property(lambda self: self._join("action_mask"), doc="``[B, m, K + 1]`` bool.")
     slot_type = property(lambda self: self._join("slot_type"), doc="``[B, K]`` (-1 empty).")

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from mrta_rl.envs import kernel
 from mrta_rl.envs.auction import AuctionEnv
 from mrta_rl.envs.params import AuctionParams
 from mrta_rl.envs.tasks import pack_tasks, task_high, task_type
@@ -231,6 +232,26 @@ def test_invalid_action_raises_naming_robot_and_reason(robot, action, message):
         env.step(actions)
 
 
+def test_an_invalid_action_changes_nothing():
+    """The kernel checks the actions before it writes anything: state and views stay."""
+    env = AuctionEnv(build_system(SYSTEM1), AuctionParams(horizon=50), batch_size=3, seed=4)
+    for _ in range(5):
+        env.step(greedy_actions(env))
+    before, views = env.get_state(), (env.slot_type, env.slot_high, env.idle, env.action_mask)
+    copies = [v.copy() for v in views]
+    actions = greedy_actions(env)
+    actions[2, 4] = 7  # out of range in any case
+    with pytest.raises(ValueError, match="invalid action 7 for robot R5 in copy 2"):
+        env.step(actions)
+    for name, value in before.items():
+        np.testing.assert_array_equal(env.get_state()[name], value, err_msg=name)
+    for now, view, copy in zip(
+        (env.slot_type, env.slot_high, env.idle, env.action_mask), views, copies, strict=True
+    ):
+        assert now is view
+        np.testing.assert_array_equal(now, copy)
+
+
 def test_wrong_action_shape_raises():
     env = quiet_env(SYSTEM1)
     with pytest.raises(ValueError, match="shape"):
@@ -448,6 +469,43 @@ def test_play_equals_stepping_the_same_policy(policy, act, threads):
         stepped.step(act(stepped))
     again = played.play(policy, episodes=1, threads=threads)
     np.testing.assert_array_equal(again.team_return, stepped.stats.team_return)
+
+
+@pytest.mark.parametrize(
+    "policy, act",
+    [("greedy", greedy_actions), ("high_only", high_only_actions), ("random", None)],
+)
+def test_fixed_actions_are_the_policies_play_plays(policy, act):
+    system = build_system(SYSTEM1)
+    params = AuctionParams(horizon=30, queue_capacity=6)
+    stepped = AuctionEnv(system, params, batch_size=3, seed=5)
+    for _ in range(70):
+        actions = stepped.fixed_actions(policy)
+        assert stepped.action_mask[np.arange(3)[:, None], np.arange(6), actions].all()
+        if act is not None:
+            np.testing.assert_array_equal(actions, act(stepped))
+        stepped.step(actions)
+        if stepped.done.any():
+            stepped.reset()
+    played = AuctionEnv(system, params, batch_size=3, seed=5)
+    assert played.play(policy, ticks=70) == 210
+    for name, value in stepped.get_state().items():
+        np.testing.assert_array_equal(played.get_state()[name], value, err_msg=name)
+    with pytest.raises(ValueError, match="unknown fixed policy 'best'"):
+        stepped.fixed_actions("best")
+
+
+def test_the_named_arrays_are_the_kernels_storage():
+    """Every state array the env names is the very memory the kernel reads and writes."""
+    env = AuctionEnv(build_system(MIXED), AuctionParams(horizon=40), batch_size=3, seed=1)
+    env.step(greedy_actions(env))
+    fields = dict(zip(kernel.FIELDS, kernel.unpack(*env._fixed_args), strict=True))
+    for name, value in env.get_state().items():
+        np.testing.assert_array_equal(fields[name], value, err_msg=name)
+        assert np.shares_memory(fields[name], env._state[name]), name
+        assert env._state[name].flags.c_contiguous, name
+    np.testing.assert_array_equal(fields["willingness"], [[0.5, 0.9, 0.9], [1.0, 0.0, 0.3]])
+    np.testing.assert_array_equal(fields["can_do"], [[True, True, True], [True, False, True]])
 
 
 def test_play_ticks_leaves_the_state_of_stepping_with_resets():
