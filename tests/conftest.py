@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import signal
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -18,6 +19,13 @@ from mrta_rl.systems import RobotSystem, build_system
 
 ROOT = Path(__file__).resolve().parents[1]
 CONF = ROOT / "conf"
+
+# The Ctrl-C tests send SIGINT to a script as a terminal would to a foreground process. A suite
+# started in the background (`pytest &`, nohup, some CI runners) inherits SIGINT *ignored*, and so
+# would every script it starts: Python then never raises KeyboardInterrupt and those tests hang.
+# A Python-level handler is reset to the default at exec, so the scripts get a normal Ctrl-C.
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def paper_system(name: str) -> RobotSystem:
