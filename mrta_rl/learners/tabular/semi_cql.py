@@ -65,10 +65,14 @@ class SemiCQLLearner(RobotQLearner):
         need = (int(self._index.sizes[0]) + extra) * self._row_size
         if need > len(self.q):
             capacity = max(need, 2 * len(self.q))
-            used = self._n_rows * self._row_size
-            q, visits = np.zeros(capacity), np.zeros(capacity, np.int64)
-            q[:used], visits[:used] = self.q[:used], self.visits[:used]
-            self.q, self.visits = q, visits
+            try:  # in place (realloc moves the pages: no copy, no fresh pages to zero)
+                self.q.resize(capacity, refcheck=True)
+                self.visits.resize(capacity, refcheck=True)
+            except ValueError:  # a view of the arrays is alive somewhere: copy them instead
+                used = self._n_rows * self._row_size
+                q, visits = np.zeros(capacity), np.zeros(capacity, np.int64)
+                q[:used], visits[:used] = self.q[:used], self.visits[:used]
+                self.q, self.visits = q, visits
         # rows that fit now: the row arrays, the hash table at most half full, the values
         rows, slots = self._index.rows.shape[1], self._index.hash.shape[1]
         self._room = min(rows, slots // 2, len(self.q) // self._row_size)
