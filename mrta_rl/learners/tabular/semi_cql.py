@@ -38,6 +38,8 @@ class SemiCQLLearner(RobotQLearner):
         self._index = JointQStorage(1)  # state index -> row (hash), row -> state index
         self.q = np.zeros(1024 * self._row_size)  # Q_i(s, a) at (row * m + i) * (K + 1) + a
         self.visits = np.zeros(1024 * self._row_size, np.int64)
+        self._room = 0  # rows that fit in every array (_reserve); train_tick grows past it
+        self._system_scratch: tuple[np.ndarray, ...] = ()  # tick_system's states, level, rows
 
     @property
     def _n_rows(self) -> int:
@@ -61,13 +63,19 @@ class SemiCQLLearner(RobotQLearner):
     def _reserve(self, extra: int) -> None:
         self._index.reserve(extra, 0)  # rows and hash table
         need = (int(self._index.sizes[0]) + extra) * self._row_size
-        if need <= len(self.q):
-            return
-        capacity = max(need, 2 * len(self.q))
-        used = self._n_rows * self._row_size
-        q, visits = np.zeros(capacity), np.zeros(capacity, np.int64)
-        q[:used], visits[:used] = self.q[:used], self.visits[:used]
-        self.q, self.visits = q, visits
+        if need > len(self.q):
+            capacity = max(need, 2 * len(self.q))
+            try:  # in place (realloc moves the pages: no copy, no fresh pages to zero)
+                self.q.resize(capacity, refcheck=True)
+                self.visits.resize(capacity, refcheck=True)
+            except ValueError:  # a view of the arrays is alive somewhere: copy them instead
+                used = self._n_rows * self._row_size
+                q, visits = np.zeros(capacity), np.zeros(capacity, np.int64)
+                q[:used], visits[:used] = self.q[:used], self.visits[:used]
+                self.q, self.visits = q, visits
+        # rows that fit now: the row arrays, the hash table at most half full, the values
+        rows, slots = self._index.rows.shape[1], self._index.hash.shape[1]
+        self._room = min(rows, slots // 2, len(self.q) // self._row_size)
 
     def _bases(self, view: RobotObservation) -> np.ndarray:
         bases = np.empty((len(view.states), self.n_robots), np.int64)
@@ -76,19 +84,24 @@ class SemiCQLLearner(RobotQLearner):
 
     def train_tick(self, env: AuctionEnv, result: StepResult | None) -> np.ndarray | None:
         """:meth:`RobotQLearner.train_tick`, with room first for the rows of the new states."""
-        self._reserve(env.batch_size)
+        if self._index.sizes[0] + env.batch_size > self._room:  # amortised: rarely grows
+            self._reserve(env.batch_size)
         return super().train_tick(env, result)
 
     def _tick_kernel(
         self, env: AuctionEnv, prior: np.ndarray | None, middle: tuple, tail: tuple
     ) -> int:
         index, batch = self._index, env.batch_size
-        # the whole-system state and level (one group, [1, B]) and their rows [B], not the
-        # local states [B, m] of tail[0]
+        if not self._system_scratch or self._system_scratch[0].shape[1] != batch:
+            # the whole-system state and level (one group, [1, B]) and their rows [B], not the
+            # local states [B, m] of tail[0]; written by the kernel, kept by nobody
+            self._system_scratch = (
+                np.empty((1, batch), np.int64), np.empty((1, batch), np.int64),
+                np.empty(batch, np.int64),
+            )  # fmt: skip
         return kernels.tick_system(
             *env_arrays(env), *self.encoder.tables, index.hash, index.rows, index.sizes,
-            self._row_size, *middle, np.empty((1, batch), np.int64), np.empty((1, batch), np.int64),
-            np.empty(batch, np.int64), *tail[1:],
+            self._row_size, *middle, *self._system_scratch, *tail[1:],
         )  # fmt: skip
 
     def _table_arrays(self) -> dict[str, np.ndarray]:
