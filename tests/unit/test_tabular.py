@@ -382,7 +382,8 @@ OPTION_CASES = {
     ),
     "cql/lcb": ("cql/every_tick", {"lcb": 20.0}),
     "cql/prior_target": ("cql/every_tick", {"target": "prior"}),
-    "semi_cql/prior_target_min_visits": ("semi_cql/explore", {"target": "prior", "min_visits": 2}),
+    "semi_cql/prior_target": ("semi_cql/explore", {"target": "prior"}),
+    "semi_cql/min_visits": ("semi_cql/explore", {"min_visits": 2}),
     "dql/prior_target": ("dql/explore", {"target": "prior"}),
     "dql/hold_prior_target": ("dql/hold", {"target": "prior"}),
 }
