@@ -23,6 +23,7 @@ from mrta_rl.learners.tabular.priors import (
 )
 from mrta_rl.learners.tabular.qtable import (
     ENTRY_CODE,
+    ROW_PRIOR,
     JointQStorage,
     best_entry,
     max_q,
@@ -234,6 +235,18 @@ def test_min_visits_keeps_the_prior_until_an_entry_is_tried():
     assert max_q(storage.rows, storage.entries, storage.q, row, 2) == 5.0
 
 
+def test_lcb_makes_a_deviation_beat_the_prior_by_more_than_its_noise():
+    """Hand-computed: prior Q 1, other entry Q 3 after 4 updates: bound 3 - lcb / 2."""
+    storage, row = one_row([[[1, 1, 0, 0], [1, 0, 1, 0]]])
+    prior, other = entry_of(storage, row, [1, 2]), entry_of(storage, row, [0, 0])
+    storage.q[prior], storage.q[other] = 1.0, 3.0
+    storage.visits()[[prior, other]] = 1, 4
+    args = (storage.rows, storage.entries, storage.q, row, 0)
+    assert best_actions(storage, row, 2) == [0, 0]  # lcb 0: the plain greater Q
+    assert best_entry(*args, 3.0) == other and max_q(*args, 3.0) == 1.5  # 3 - 3/2 > 1
+    assert best_entry(*args, 5.0) == prior and max_q(*args, 5.0) == 1.0  # 3 - 5/2 < 1
+
+
 @pytest.mark.parametrize("cls", [SubGCQLLearner, CQLLearner])
 def test_untrained_spread_prior_plays_spread(cls, trio, tiny_params):
     env, learner = make(cls, trio, tiny_params, batch=6, seed=3, prior="spread")
@@ -267,7 +280,7 @@ def test_updates_of_one_entry_are_sequential_eq3():
     pending = (np.array([[1], [1]]), np.array([[1.0], [2.0]]), np.array([[0.5], [0.5]]))
     no_prior = np.zeros((2, 1), np.int64)  # min_visits 0: every valid action competes
     td = robot_kernels.close_transitions(
-        q, visits, next_bases, next_mask, no_prior, 0, closing, *pending, 0.5, 0.0, 0.0
+        q, visits, next_bases, next_mask, no_prior, 0, False, closing, *pending, 0.5, 0.0, 0.0
     )
     target = 1.0 + 0.5 * 7.0  # both targets from the table before the tick's updates
     first = 0.5 * target
@@ -278,8 +291,8 @@ def test_updates_of_one_entry_are_sequential_eq3():
     for target in (3.0, 6.0, 9.0):  # alpha = 1 / visits: the sample mean
         pending = (np.array([[0]]), np.array([[target]]), np.array([[0.0]]))
         robot_kernels.close_transitions(
-            q, visits, np.array([[0]]), next_mask[:1], no_prior[:1], 0, closing[:1], *pending,
-            1.0, 1.0, 0.0,
+            q, visits, np.array([[0]]), next_mask[:1], no_prior[:1], 0, False, closing[:1],
+            *pending, 1.0, 1.0, 0.0,
         )  # fmt: skip
     assert q[0] == pytest.approx(6.0)
 
@@ -298,15 +311,16 @@ def test_dql_min_visits_keeps_the_prior_until_an_entry_has_enough_updates():
     assert chosen == [2, 3, 1]
     # eq. (3)'s max over the same competing actions: R = 0, gamma^tau = 1, alpha = 1
     targets = []
-    for min_visits in (0, 3, 4):
+    for min_visits, prior_target in ((0, False), (3, False), (4, False), (0, True)):
         qq, vv = np.concatenate([[0.0], q]), np.concatenate([[0], visits])  # entry 0: (s, a)
         pending = (np.array([[0]]), np.array([[0.0]]), np.array([[1.0]]))
         robot_kernels.close_transitions(
-            qq, vv, np.array([[1]]), mask, prior, min_visits, np.ones((1, 1), bool), *pending,
-            1.0, 0.0, 0.0,
+            qq, vv, np.array([[1]]), mask, prior, min_visits, prior_target,
+            np.ones((1, 1), bool), *pending, 1.0, 0.0, 0.0,
         )  # fmt: skip
         targets.append(qq[0])
-    assert targets == [5.0, 2.0, -1.0]
+    # target=prior: the prior's own Q (slot 1), whatever the others hold
+    assert targets == [5.0, 2.0, -1.0, -1.0]
 
 
 def test_schedules_and_pending_returns():
@@ -358,6 +372,24 @@ FUSED_CASES = {
     "dql/team": ("dql", {"reward": "team", "decisions_only": False, **EXPLORE}),
     "subg_cql/greedy": ("subg_cql", {"prior": "greedy", "prune_conflicts": False, **EXPLORE}),
     "cql/min_visits": ("cql", {"min_visits": 2, "decisions_only": False, **EXPLORE}),
+    "cql/every_tick": ("cql", {"decisions_only": False, **EXPLORE}),
+}
+# the options target, lcb and semi-CQL's min_visits, each with the case it changes
+OPTION_CASES = {
+    "subg_cql/prior_target_lcb": (
+        "subg_cql/explore",
+        {"target": "prior", "lcb": 2.0, "min_visits": 1},
+    ),
+    "cql/lcb": ("cql/every_tick", {"lcb": 20.0}),
+    "cql/prior_target": ("cql/every_tick", {"target": "prior"}),
+    "semi_cql/prior_target": ("semi_cql/explore", {"target": "prior"}),
+    "semi_cql/min_visits": ("semi_cql/explore", {"min_visits": 2}),
+    "dql/prior_target": ("dql/explore", {"target": "prior"}),
+    "dql/hold_prior_target": ("dql/hold", {"target": "prior"}),
+}
+FUSED_CASES |= {
+    case: (FUSED_CASES[base][0], {**FUSED_CASES[base][1], **options})
+    for case, (base, options) in OPTION_CASES.items()
 }
 
 
@@ -373,6 +405,13 @@ def test_train_tick_is_encode_update_act(case):
         np.testing.assert_array_equal(fused_tables[key], value, err_msg=f"{case}/{key}")
     assert plain.rng.bit_generator.state == fused.rng.bit_generator.state
     assert plain.rng.random() == fused.rng.random()
+    if case in OPTION_CASES:  # the options change the tables (else this test could not fail)
+        base_name, base_hyperparameters = FUSED_CASES[OPTION_CASES[case][0]]
+        base_tables = train(base_name, base_hyperparameters, ticks)._table_arrays()
+        assert any(
+            v.shape != tables[k].shape or not np.array_equal(v, tables[k])
+            for k, v in base_tables.items()
+        ), case
 
 
 @pytest.mark.parametrize("cls", LEARNERS)
@@ -426,12 +465,15 @@ def _h_task_in_slot_1(env):
     env.inject_tasks(0, [{"type": 0, "high": 1, "due": 0, "id": 0, "duration": 5}])
 
 
+@pytest.mark.parametrize("target", ["max", "prior"])
 @pytest.mark.parametrize("cls", LEARNERS)
-def test_hand_computed_q_update(cls, trio, tiny_params):
+def test_hand_computed_q_update(cls, target, trio, tiny_params):
+    """Eq. (3); with ``target=prior`` the next value is the prior's own Q, not the max."""
     alpha, gamma = 0.5, 0.9
     env, learner = make(
-        cls, trio, tiny_params, batch=1, alpha=alpha, gamma=gamma, decisions_only=False
-    )
+        cls, trio, tiny_params, batch=1, alpha=alpha, gamma=gamma, decisions_only=False,
+        target=target,
+    )  # fmt: skip
     _h_task_in_slot_1(env)
     view = learner.encode(env)
     actions = np.zeros((1, 3), np.int64)
@@ -451,6 +493,12 @@ def test_hand_computed_q_update(cls, trio, tiny_params):
             storage.q[at] = np.arange(at.stop - at.start) + 2.0
         storage.q[entry] = 1.0
         next_max = float(storage.q[at].max())
+        if target == "prior":  # the prior's entry of s', put below the max
+            prior_entry = storage.rows[ROW_PRIOR, next_row]
+            if prior_entry != entry:
+                storage.q[prior_entry] = 1.5
+            next_max = float(storage.q[prior_entry])
+            assert next_max < float(storage.q[at].max())
         reward = (
             result.robot_reward[0, robots].sum() if cls is SubGCQLLearner else result.team_reward[0]
         )
@@ -467,6 +515,9 @@ def test_hand_computed_q_update(cls, trio, tiny_params):
         learner.q[entry] = 1.0
         valid = next_mask[0, 1]
         next_max = max(v for v, ok in zip([3.0, 7.0, 5.0, 9.0], valid, strict=True) if ok)
+        if target == "prior":  # the plain auction's action of R2 in s' (busy: wait; the
+            # kernel test of min_visits checks a prior below the max)
+            next_max = [3.0, 7.0, 5.0, 9.0][greedy_actions(next_mask)[0, 1]]
         assert result.robot_reward[0, 1] == 10.0
         learner.update(view, actions, result, next_view, next_mask)
         assert learner.q[entry] == pytest.approx(1.0 + alpha * (10.0 + gamma * next_max - 1.0))

@@ -16,7 +16,7 @@ from typing import Annotated, Any, ClassVar
 
 import numpy as np
 
-from mrta_rl.config import Range
+from mrta_rl.config import Choices, Range
 from mrta_rl.envs import AuctionEnv, StepResult
 from mrta_rl.learners.base import Learner
 from mrta_rl.learners.tabular.schedules import LinearSchedule
@@ -25,6 +25,7 @@ from mrta_rl.partition import Partition
 logger = logging.getLogger(__name__)
 
 NO_UNIFORMS = np.zeros(0)  # the block of a call that draws nothing (greedy, epsilon 0)
+TARGETS = ("max", "prior")  # what eq. (3) bootstraps from (docs/learners.md, "Targets")
 
 Q_FILE = "q_tables.npz"  # arrays of every table, np.savez without object arrays
 META_FILE = "learner.json"  # hyperparameters and schedule position
@@ -97,6 +98,10 @@ class TabularLearner(Learner):
         epsilon_end: Exploration rate after the decay.
         epsilon_decay_episodes: Episodes of the linear decay (0: always ``epsilon_end``).
         decisions_only: Update only at decision points (semi-Markov, docs/learners.md).
+        target: What eq. (3) bootstraps from (:data:`TARGETS`): ``max``, the greatest
+            competing ``Q(s', .)`` (the paper's); ``prior``, the prior's ``Q(s', prior(s'))``,
+            so the table evaluates the prior and acting greedily on it is one step of policy
+            improvement over the prior.
     """
 
     kind: ClassVar = "tabular"
@@ -115,6 +120,7 @@ class TabularLearner(Learner):
         epsilon_end: Annotated[float, Range(0, 1)] = 0.0,
         epsilon_decay_episodes: Annotated[int, Range(0)] = 20,
         decisions_only: bool = True,
+        target: Annotated[str, Choices(*TARGETS)] = "max",
     ) -> None:
         # types and ranges: the annotations, checked before __init__ (mrta_rl.config)
         super().__init__(env=env, rng=rng, partition=partition)
@@ -122,6 +128,7 @@ class TabularLearner(Learner):
         self.gamma = gamma
         self.epsilon_schedule = LinearSchedule(epsilon_start, epsilon_end, epsilon_decay_episodes)
         self.decisions_only = decisions_only
+        self.prior_target = target == "prior"
         self.episodes_done = 0
         self.n_slots = env.n_slots
         self.uniforms = Uniforms(rng)

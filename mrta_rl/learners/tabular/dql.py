@@ -108,8 +108,8 @@ class RobotQLearner(TabularLearner):
             env, prior, (
                 self.q, self.visits, bases, actions, last_mask, mask,
                 greedy if prior is None else prior, rewards, done, *pending, result is not None,
-                self.decisions_only, self.gamma, self.min_visits, self.alpha, self.alpha_power,
-                self.alpha_min, epsilon, block,
+                self.decisions_only, self.gamma, self.min_visits, self.prior_target, self.alpha,
+                self.alpha_power, self.alpha_min, epsilon, block,
             ), (states, next_bases, closing, next_actions),
         )  # fmt: skip
         if used < 0:  # the episode has ended
@@ -178,12 +178,16 @@ class RobotQLearner(TabularLearner):
         if count == 0:
             return {}
         # the prior only matters to the max when min_visits > 0 (else every action competes)
+        # or when it is the target
         next_prior = (
-            self._prior(next_view, next_mask) if self.min_visits else np.zeros(shape, np.int64)
+            self._prior(next_view, next_mask)
+            if self.min_visits or self.prior_target
+            else np.zeros(shape, np.int64)
         )
         td_sum = kernels.close_transitions(
             self.q, self.visits, self._bases(next_view), next_mask, next_prior, self.min_visits,
-            closing, *self._pending, self.alpha, self.alpha_power, self.alpha_min,
+            self.prior_target, closing, *self._pending, self.alpha, self.alpha_power,
+            self.alpha_min,
         )  # fmt: skip
         return {"learner/td_error": td_sum / count} if count else {}
 

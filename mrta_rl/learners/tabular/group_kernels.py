@@ -154,7 +154,7 @@ def _decode_into(code: int, n_actions: int, robots: np.ndarray, n: int, out: np.
 @njit(cache=True)
 def act_groups(
     table, rows, entries, q, sizes, robots, size, order, weight_by_type, states, hold, mask,
-    slot_type, slot_high, decisions_only, prior, prune, min_visits, epsilon, uniforms,
+    slot_type, slot_high, decisions_only, prior, prune, min_visits, lcb, epsilon, uniforms,
     row_out, entry_out, actions,
 ):  # fmt: skip
     """Epsilon-greedy joint action of every group and copy (ties to the prior).
@@ -177,7 +177,7 @@ def act_groups(
     for g in range(n_groups):
         for b in range(batch):
             row = row_out[g, b]
-            entry_out[g, b] = -1 if row < 0 else best_entry(rows, entries, q, row, min_visits)
+            entry_out[g, b] = -1 if row < 0 else best_entry(rows, entries, q, row, min_visits, lcb)
         if epsilon > 0.0:
             for b in range(batch):
                 explore[b] = False
@@ -249,8 +249,8 @@ def update_groups(
     table, rows, entries, q, sizes, robots, size, order, weight_by_type, chosen, next_states,
     next_hold, next_mask, next_slot_type, next_slot_high, rewards, reward_columns, done,
     pending_entry,
-    pending_return, pending_discount, decisions_only, prior, prune, min_visits, gamma, alpha,
-    alpha_power, alpha_min, td_sum, td_count,
+    pending_return, pending_discount, decisions_only, prior, prune, min_visits, lcb,
+    prior_target, gamma, alpha, alpha_power, alpha_min, td_sum, td_count,
 ):  # fmt: skip
     """Eq. (3) per group on decision points (semi-Markov), all copies, in copy order.
 
@@ -260,8 +260,10 @@ def update_groups(
     numpy sums fewer than 9 terms along a row of a batch), drop them at truncation
     (``done``: no next state), and close those whose group decides at the next state:
     ``Q(s,a) += alpha_n [R + gamma^tau max_a' Q(s',a') - Q(s,a)]``, with every target taken
-    from the table before the tick's updates. ``td_sum`` / ``td_count`` ``[G]`` get the summed
-    absolute TD errors and the number of updates.
+    from the table before the tick's updates. With ``prior_target`` the max is replaced by the
+    prior's entry ``Q(s', prior(s'))``: the table then evaluates the prior (docs/learners.md,
+    "target"). ``td_sum`` / ``td_count`` ``[G]`` get the summed absolute TD errors and the
+    number of updates.
     """
     n_groups, batch = chosen.shape
     closing = np.empty(batch, np.bool_)
@@ -299,7 +301,10 @@ def update_groups(
             if closing[b]:
                 next_rows[b] = find_row(table, next_states[g, b], g)
                 # eq. (3): r + gamma max_a' Q(s', a'), from the table before this tick's updates
-                best = max_q(rows, entries, q, next_rows[b], min_visits)
+                if prior_target:  # the prior's value: its own Q, no max over noisy entries
+                    best = q[rows[ROW_PRIOR, next_rows[b]]]
+                else:
+                    best = max_q(rows, entries, q, next_rows[b], min_visits, lcb)
                 targets[b] = pending_return[g, b] + pending_discount[g, b] * best
         for b in range(batch):
             if closing[b]:
@@ -321,8 +326,8 @@ def tick_groups(
     t, last_high, margin, threshold, codes, slot_places, robots, size, robot_places,
     recency_place, types, thresholds, mask, learn, rewards, reward_columns, done, pending_entry,
     pending_return, pending_discount, epsilon, uniforms, decisions_only, prior, prune,
-    min_visits, gamma, alpha, alpha_power, alpha_min, states, level, hold, row_out, entry_out,
-    actions, td_sum, td_count,
+    min_visits, lcb, prior_target, gamma, alpha, alpha_power, alpha_min, states, level, hold,
+    row_out, entry_out, actions, td_sum, td_count,
 ):  # fmt: skip
     """One training tick in one call: encode the new state, eq. (3), act in it.
 
@@ -345,12 +350,13 @@ def tick_groups(
             table, rows, entries, q, sizes, robots, size, order, weight_by_type, entry_out,
             states, hold, mask, slot_type, slot_high, rewards, reward_columns, done,
             pending_entry, pending_return, pending_discount, decisions_only, prior, prune,
-            min_visits, gamma, alpha, alpha_power, alpha_min, td_sum, td_count,
+            min_visits, lcb, prior_target, gamma, alpha, alpha_power, alpha_min, td_sum,
+            td_count,
         )  # fmt: skip
     if done.any():
         return -1
     return act_groups(
         table, rows, entries, q, sizes, robots, size, order, weight_by_type, states, hold, mask,
-        slot_type, slot_high, decisions_only, prior, prune, min_visits, epsilon, uniforms,
+        slot_type, slot_high, decisions_only, prior, prune, min_visits, lcb, epsilon, uniforms,
         row_out, entry_out, actions,
     )  # fmt: skip

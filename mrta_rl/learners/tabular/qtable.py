@@ -69,26 +69,35 @@ def _rebuild_hash(rows: np.ndarray, n_rows: int, capacity: int) -> np.ndarray:
 
 
 @njit(cache=True)
-def candidate_value(rows, entries, q, row: int, entry: int, min_visits: int) -> float:
-    """Q of an entry if it competes (the prior, or tried ``min_visits`` times), else -inf."""
-    if min_visits > 0 and entries[ENTRY_VISITS, entry] < min_visits:
-        if entry != rows[ROW_PRIOR, row]:
-            return -np.inf
+def candidate_value(rows, entries, q, row: int, entry: int, min_visits: int, lcb=0.0) -> float:
+    """Q of an entry if it competes (the prior, or tried ``min_visits`` times), else -inf.
+
+    With ``lcb > 0`` an entry other than the prior's competes with its lower confidence bound
+    ``Q - lcb / sqrt(visits)``: the greatest of many noisy means is biased upwards (the winner's
+    curse), so a deviation from the prior must beat it by more than its own noise.
+    """
+    visits = entries[ENTRY_VISITS, entry]
+    if entry == rows[ROW_PRIOR, row]:
+        return q[entry]
+    if min_visits > 0 and visits < min_visits:
+        return -np.inf
+    if lcb > 0.0:
+        return q[entry] - lcb / np.sqrt(max(visits, 1))
     return q[entry]
 
 
 @njit(cache=True)
-def max_q(rows, entries, q, row: int, min_visits: int) -> float:
+def max_q(rows, entries, q, row: int, min_visits: int, lcb=0.0) -> float:
     """Eq. (3)'s ``max_a'`` over the competing entries of a row (the greedy policy's value)."""
     start = rows[ROW_OFFSET, row]
     best = -np.inf
     for e in range(start, start + rows[ROW_LENGTH, row]):
-        best = max(best, candidate_value(rows, entries, q, row, e, min_visits))
+        best = max(best, candidate_value(rows, entries, q, row, e, min_visits, lcb))
     return best
 
 
 @njit(cache=True)
-def best_entry(rows, entries, q, row: int, min_visits: int) -> int:
+def best_entry(rows, entries, q, row: int, min_visits: int, lcb=0.0) -> int:
     """Entry of the greatest Q of a row; ties go to the prior's joint action.
 
     With ``min_visits > 0`` only the prior and the entries updated at least ``min_visits`` times
@@ -98,7 +107,7 @@ def best_entry(rows, entries, q, row: int, min_visits: int) -> int:
     start = rows[ROW_OFFSET, row]
     best, first = -np.inf, start
     for e in range(start, start + rows[ROW_LENGTH, row]):
-        value = candidate_value(rows, entries, q, row, e, min_visits)
+        value = candidate_value(rows, entries, q, row, e, min_visits, lcb)
         if value > best:
             best, first = value, e
     prior = rows[ROW_PRIOR, row]

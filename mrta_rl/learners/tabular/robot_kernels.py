@@ -102,15 +102,16 @@ def open_transitions(
 
 @njit(cache=True)
 def close_transitions(
-    q, visits, next_bases, next_mask, next_prior, min_visits, closing, pending_entry,
-    pending_return, pending_discount, alpha, alpha_power, alpha_min,
+    q, visits, next_bases, next_mask, next_prior, min_visits, prior_target, closing,
+    pending_entry, pending_return, pending_discount, alpha, alpha_power, alpha_min,
 ):  # fmt: skip
     """Second half: ``Q_i(s,a) += alpha_n [R + gamma^tau max_a' Q_i(s',a') - Q_i(s,a)]``.
 
     The max runs over the next actions that compete (``act_robots``: the prior's, ``next_prior``
-    ``[B, m]``, and those updated at least ``min_visits`` times). Every target is taken from the
-    table before the tick's updates, then the updates are applied in (copy, robot) order. Returns
-    the summed absolute TD error.
+    ``[B, m]``, and those updated at least ``min_visits`` times); with ``prior_target`` the
+    prior's own ``Q_i(s', prior_i(s'))`` replaces it (the table evaluates the prior). Every
+    target is taken from the table before the tick's updates, then the updates are applied in
+    (copy, robot) order. Returns the summed absolute TD error.
     """
     batch, n_robots = closing.shape
     targets = np.zeros((batch, n_robots))
@@ -118,9 +119,12 @@ def close_transitions(
         for i in range(n_robots):
             if closing[b, i]:
                 # eq. (3): r + gamma max_a' Q_i(s', a') over the valid next actions
-                best = _max_valid(
-                    q, visits, next_bases[b, i], next_mask[b, i], next_prior[b, i], min_visits
-                )
+                if prior_target:  # the prior's value: its own Q, no max over noisy entries
+                    best = q[next_bases[b, i] + next_prior[b, i]]
+                else:
+                    best = _max_valid(
+                        q, visits, next_bases[b, i], next_mask[b, i], next_prior[b, i], min_visits
+                    )
                 targets[b, i] = pending_return[b, i] + pending_discount[b, i] * best
     td_sum = 0.0
     for b in range(batch):
@@ -216,14 +220,14 @@ def _open_if(
 @njit(cache=True)
 def _close_and_act(
     q, visits, next_bases, next_mask, next_prior, count, closing, pending_entry, pending_return,
-    pending_discount, alpha, alpha_power, alpha_min, act, min_visits, epsilon, uniforms,
-    next_actions,
+    pending_discount, alpha, alpha_power, alpha_min, act, min_visits, prior_target, epsilon,
+    uniforms, next_actions,
 ):  # fmt: skip
     """The end of ``update`` (``count`` transitions closing) and ``act`` (-1 if not ``act``)."""
     if count:
         close_transitions(
-            q, visits, next_bases, next_mask, next_prior, min_visits, closing, pending_entry,
-            pending_return, pending_discount, alpha, alpha_power, alpha_min,
+            q, visits, next_bases, next_mask, next_prior, min_visits, prior_target, closing,
+            pending_entry, pending_return, pending_discount, alpha, alpha_power, alpha_min,
         )  # fmt: skip
     if not act:
         return -1
@@ -237,8 +241,8 @@ def tick_local(
     slot_type, slot_high, idle, battery, t, last_high, margin, threshold, codes, slot_places,
     places, active, thresholds, greedy_prior, prior_digit, counts, robot_base, q, visits,
     bases, actions, mask, next_mask, next_prior, rewards, done, pending_entry, pending_return,
-    pending_discount, learn, decisions_only, gamma, min_visits, alpha, alpha_power, alpha_min,
-    epsilon, uniforms, states, next_bases, closing, next_actions,
+    pending_discount, learn, decisions_only, gamma, min_visits, prior_target, alpha, alpha_power,
+    alpha_min, epsilon, uniforms, states, next_bases, closing, next_actions,
 ):  # fmt: skip
     """One DQL training tick: ``encode``, ``update`` (if ``learn``), ``act``.
 
@@ -265,7 +269,7 @@ def tick_local(
     return _close_and_act(
         q, visits, next_bases, next_mask, next_prior, count, closing, pending_entry,
         pending_return, pending_discount, alpha, alpha_power, alpha_min, act, min_visits,
-        epsilon, uniforms, next_actions,
+        prior_target, epsilon, uniforms, next_actions,
     )  # fmt: skip
 
 
@@ -274,9 +278,9 @@ def tick_system(
     slot_type, slot_high, idle, battery, t, last_high, margin, threshold, codes, slot_places,
     robots, size, robot_places, recency_place, types, thresholds, table, rows, sizes, row_size,
     q, visits, bases, actions, mask, next_mask, next_prior, rewards, done, pending_entry,
-    pending_return, pending_discount, learn, decisions_only, gamma, min_visits, alpha,
-    alpha_power, alpha_min, epsilon, uniforms, states, level, next_rows, next_bases, closing,
-    next_actions,
+    pending_return, pending_discount, learn, decisions_only, gamma, min_visits, prior_target,
+    alpha, alpha_power, alpha_min, epsilon, uniforms, states, level, next_rows, next_bases,
+    closing, next_actions,
 ):  # fmt: skip
     """One semi-CQL training tick, as :func:`tick_local` with the plain auction's prior.
 
@@ -300,5 +304,5 @@ def tick_system(
     return _close_and_act(
         q, visits, next_bases, next_mask, next_prior, count, closing, pending_entry,
         pending_return, pending_discount, alpha, alpha_power, alpha_min, act, min_visits,
-        epsilon, uniforms, next_actions,
+        prior_target, epsilon, uniforms, next_actions,
     )  # fmt: skip

@@ -8,10 +8,11 @@ space is large (``|S|`` of CQL), so rows are stored only for the states met: a h
 
 from __future__ import annotations
 
-from typing import ClassVar
+from typing import Annotated, ClassVar
 
 import numpy as np
 
+from mrta_rl.config import Range
 from mrta_rl.envs import AuctionEnv, StepResult
 from mrta_rl.learners.tabular import robot_kernels as kernels
 from mrta_rl.learners.tabular.dql import RobotObservation, RobotQLearner
@@ -26,13 +27,16 @@ class SemiCQLLearner(RobotQLearner):
         env: The env (full task sets).
         rng: Exploration randomness.
         partition: Unused.
+        min_visits: Updates an entry needs before it competes with the prior's action (the plain
+            auction's bid), in the greedy choice and in eq. (3)'s max (0: every valid action).
         **hyperparameters: See :class:`~mrta_rl.learners.tabular.base.TabularLearner`.
     """
 
     space_name: ClassVar[str] = "semi_cql"
 
-    def __init__(self, **hyperparameters) -> None:
+    def __init__(self, *, min_visits: Annotated[int, Range(0)] = 0, **hyperparameters) -> None:
         super().__init__(**hyperparameters)
+        self.min_visits = min_visits
         self.encoder = GroupEncoder(self.env, [np.arange(self.env.n_robots)])
         self._row_size = self.n_robots * self.n_actions
         self._index = JointQStorage(1)  # state index -> row (hash), row -> state index

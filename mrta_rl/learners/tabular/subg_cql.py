@@ -64,6 +64,8 @@ class GroupQLearner(TabularLearner):
         prior: Tie-break joint action of untried states (``priors.PRIORS``).
         prior_order: Which idle robot the spread priors ask first (``priors.PRIOR_ORDERS``).
         min_visits: Updates an entry needs before it competes with the prior.
+        lcb: An entry other than the prior's competes with ``Q - lcb / sqrt(visits)`` (reward
+            units; 0: with its Q), in the greedy choice and in eq. (3)'s max.
         **kwargs: Env, generator, partition and the hyperparameters of
             :class:`~mrta_rl.learners.tabular.base.TabularLearner`.
     """
@@ -79,10 +81,11 @@ class GroupQLearner(TabularLearner):
         prior: Annotated[str | None, Choices(*PRIORS)] = None,
         prior_order: Annotated[str | None, Choices(*PRIOR_ORDERS)] = None,
         min_visits: Annotated[int, Range(0)] = 0,
+        lcb: Annotated[float, Range(0)] = 0.0,
         **hyperparameters,
     ) -> None:
         super().__init__(**hyperparameters)
-        self.prune_conflicts, self.min_visits = prune_conflicts, min_visits
+        self.prune_conflicts, self.min_visits, self.lcb = prune_conflicts, min_visits, lcb
         self.prior = self.default_prior if prior is None else prior
         self.prior_order = self.default_prior_order if prior_order is None else prior_order
         if self.prior not in PRIORS:
@@ -161,7 +164,7 @@ class GroupQLearner(TabularLearner):
             *self._kernel_tables(), self.robots, self.size, self.order, self._weight_by_type,
             view.states, view.level == 0, mask, view.slot_type, view.slot_high,
             self.decisions_only, self._prior_code, self.prune_conflicts, self.min_visits,
-            epsilon, block, view.rows, view.entries, actions,
+            self.lcb, epsilon, block, view.rows, view.entries, actions,
         )  # fmt: skip
         if epsilon > 0.0:
             self.uniforms.used(used)
@@ -207,8 +210,8 @@ class GroupQLearner(TabularLearner):
             *self._kernel_tables(), self.order, self._weight_by_type, *env_arrays(env),
             *self.encoder.tables, mask, result is not None, rewards, columns, done, *pending,
             epsilon, block, self.decisions_only, self._prior_code, self.prune_conflicts,
-            self.min_visits, self.gamma, self.alpha, self.alpha_power, self.alpha_min,
-            *self._tick, actions, self._td_sum, self._td_count,
+            self.min_visits, self.lcb, self.prior_target, self.gamma, self.alpha,
+            self.alpha_power, self.alpha_min, *self._tick, actions, self._td_sum, self._td_count,
         )  # fmt: skip
         if used < 0:  # the episode has ended
             self.uniforms.settle()
@@ -270,8 +273,8 @@ class GroupQLearner(TabularLearner):
             chosen, next_view.states, next_view.level == 0, np.ascontiguousarray(next_mask, bool),
             next_view.slot_type, next_view.slot_high, *self._group_rewards(result),
             np.asarray(result.done, bool), *self._pending, self.decisions_only, self._prior_code,
-            self.prune_conflicts, self.min_visits, self.gamma, self.alpha, self.alpha_power,
-            self.alpha_min, td_sum, td_count,
+            self.prune_conflicts, self.min_visits, self.lcb, self.prior_target, self.gamma,
+            self.alpha, self.alpha_power, self.alpha_min, td_sum, td_count,
         )  # fmt: skip
         return {
             f"learner/{name}/td_error": float(td_sum[g] / td_count[g])
