@@ -71,7 +71,7 @@ def _compose(overrides: list[str], config_name: str = "config") -> DictConfig:
 
 @pytest.fixture(scope="session")
 def compiled_env() -> None:
-    """The env's compiled kernels (``envs/kernel.py``), compiled in this process if not cached.
+    """The env kernels a run steps with (``envs/kernel.py``), compiled here if not cached.
 
     numba writes what it compiles to its cache (``cache=True``), so scripts a test starts load
     the kernels instead of compiling them; on an empty cache, concurrent workers (joblib) would
@@ -79,7 +79,6 @@ def compiled_env() -> None:
     """
     env = AuctionEnv(paper_system("system1"), AuctionParams(horizon=4), batch_size=2)
     env.step(env.fixed_actions("greedy"))
-    env.play("greedy", episodes=1)
 
 
 @pytest.fixture
