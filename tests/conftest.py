@@ -14,7 +14,7 @@ from hydra.core.global_hydra import GlobalHydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, open_dict
 
-from mrta_rl.envs import AuctionParams
+from mrta_rl.envs import AuctionEnv, AuctionParams
 from mrta_rl.systems import RobotSystem, build_system
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -67,6 +67,18 @@ def _compose(overrides: list[str], config_name: str = "config") -> DictConfig:
     with open_dict(cfg):
         del cfg["hydra"]  # as in a real run: cfg holds the job config, HydraConfig the rest
     return cfg
+
+
+@pytest.fixture(scope="session")
+def compiled_env() -> None:
+    """The env kernels a run steps with (``envs/kernel.py``), compiled here if not cached.
+
+    numba writes what it compiles to its cache (``cache=True``), so scripts a test starts load
+    the kernels instead of compiling them; on an empty cache, concurrent workers (joblib) would
+    otherwise each compile the same kernels at the same time.
+    """
+    env = AuctionEnv(paper_system("system1"), AuctionParams(horizon=4), batch_size=2)
+    env.step(env.fixed_actions("greedy"))
 
 
 @pytest.fixture

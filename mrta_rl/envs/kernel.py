@@ -486,16 +486,22 @@ def play_copy(
         if done[b]:
             if played > 0 and recorded < rounds:  # (an episode ended before this call: not)
                 row = recorded * B + b
-                out_assigned[row], out_dropped[row] = assigned[b], dropped[b]
-                out_busy_ticks[row] = busy_ticks[b]
+                # element by element: a slice copy (out[row] = a[b]) makes numba compile its
+                # shape-mismatch message (string formatting), about 7 s per empty-cache process
+                for j in range(assigned.shape[1]):
+                    for h in range(2):
+                        out_assigned[row, j, h] = assigned[b, j, h]
+                        out_dropped[row, j, h] = dropped[b, j, h]
+                for i in range(busy_ticks.shape[1]):
+                    out_busy_ticks[row, i] = busy_ticks[b, i]
                 out_team_return[row], out_ticks[row] = team_return[b], ticks[b]
                 recorded += 1
             if rounds > 0 and recorded == rounds:
                 break
-            refresh_copy(
-                b, 2, iparams, fparams, cdf, dur_lo, dur_span, willingness, can_do, seed_key,
-                episode, state_episode_key, t, queue, queue_len, next_id, busy_until, battery,
-                last_type, last_high_arrival, done, pending_penalty, assigned, dropped,
+            refresh_copy(  # begin typed int64 (a literal 2 would compile refresh_copy again)
+                b, np.int64(2), iparams, fparams, cdf, dur_lo, dur_span, willingness, can_do,
+                seed_key, episode, state_episode_key, t, queue, queue_len, next_id, busy_until,
+                battery, last_type, last_high_arrival, done, pending_penalty, assigned, dropped,
                 busy_ticks, team_return, ticks, slot_pos, slot_keys, slot_type, slot_high, idle,
                 mask,
             )  # fmt: skip

@@ -147,7 +147,7 @@ def test_report_files_and_numbers(sweep, tmp_path):
     assert {c["verdict"] for c in claims} == {"not evaluable"}
 
 
-def test_joblib_launcher(tmp_path):
+def test_joblib_launcher(tmp_path, compiled_env):
     sweep_dir = tmp_path / "sweep"
     result = run_sweep(
         sweep_dir,

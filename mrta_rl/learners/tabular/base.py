@@ -133,7 +133,10 @@ class TabularLearner(Learner):
         self.n_slots = env.n_slots
         self.uniforms = Uniforms(rng)
         # willingness d_i,type by slot type; the extra last row answers an empty slot (type -1)
-        self._weight_by_type = np.vstack([env.system.willingness.T, np.zeros(env.n_robots)])
+        # C order whatever the system's layout: the kernels then compile for one array type only
+        self._weight_by_type = np.ascontiguousarray(
+            np.vstack([env.system.willingness.T, np.zeros(env.n_robots)])
+        )
 
     @property
     def epsilon(self) -> float:

@@ -154,7 +154,7 @@ def spread_actions(mask: np.ndarray, order: Sequence[int] | None = None) -> np.n
         mask: Valid actions of a group.
         order: Robot positions in the order they are asked; default: lowest index first.
     """
-    mask = np.asarray(mask, bool)
+    mask = np.ascontiguousarray(mask, bool)  # one array type: _spread_batch compiles once
     order = np.arange(mask.shape[1]) if order is None else np.asarray(order, np.int64)
     return _spread_batch(mask, order)
 
