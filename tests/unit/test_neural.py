@@ -295,11 +295,12 @@ def test_shared_q_network_loads_multiagent_mlp_checkpoints():
 
 
 @pytest.mark.parametrize("name", ["qmix", "vdn", "iql", "subg_dqn"])
-def test_neural_fast_is_more_copies_for_the_same_frames_and_batches(name):
-    """conf/experiment/neural_fast.yaml: 80 copies x 6 episodes = 30 x 16 copy-episodes.
+def test_neural_budget_is_more_copies_for_the_same_frames_and_batches(name):
+    """conf/budget/neural.yaml: 80 copies x 6 episodes = the tabular 30 x 16 copy-episodes.
 
-    Opt-in: the defaults keep the 16-copy budget of the docs' results; with the experiment the
-    frames, the frames per Collector batch and so the gradient steps per frame are the same.
+    Every neural learner gets it by default; the frames, and the 800 frames per Collector batch
+    (10 ticks x 80 copies, as 50 x 16 before), are those of the 16-copy budget; the tabular
+    learners keep 16 copies; the command line and debug=smoke still win.
     """
     from pathlib import Path
 
@@ -307,16 +308,15 @@ def test_neural_fast_is_more_copies_for_the_same_frames_and_batches(name):
 
     conf = str(Path(__file__).resolve().parents[2] / "conf")
 
-    def budget(*overrides: str) -> tuple[int, int, int]:
+    def budget(*overrides: str) -> tuple[int, int, int | None]:
         with initialize_config_dir(config_dir=conf, version_base=None):
             cfg = compose(config_name="config", overrides=list(overrides))
         train = cfg.train
-        return int(train.batch_size), int(train.episodes), int(cfg.learner.collect_ticks)
+        return int(train.batch_size), int(train.episodes), cfg.learner.get("collect_ticks")
 
-    default = budget(f"learner={name}")
-    fast = budget(f"learner={name}", "experiment=neural_fast")
-    assert default == (16, 30, 50)
-    assert fast == (80, 6, 10)
-    assert fast[0] * fast[1] == default[0] * default[1]  # frames at any horizon
-    assert fast[0] * fast[2] == default[0] * default[2]  # frames per Collector batch
-    assert budget(f"learner={name}", "experiment=neural_fast", "train.batch_size=16")[0] == 16
+    assert budget(f"learner={name}") == (80, 6, 10)
+    assert budget(f"learner={name}", "system=system1") == (80, 6, 10)
+    assert budget("learner=subg_cql") == (16, 30, None)
+    assert budget("learner=dql") == (16, 30, None)
+    assert budget(f"learner={name}", "train.batch_size=16", "train.episodes=30")[:2] == (16, 30)
+    assert budget(f"learner={name}", "debug=smoke")[:2] == (4, 2)
