@@ -24,9 +24,8 @@ def greedy_bid(mask: torch.Tensor) -> torch.Tensor:
         ``[*, K + 1]`` float: 1 at the lowest-numbered valid bid, all zero if only wait is valid.
     """
     bids = mask[..., 1:]  # [*, K]
-    first = bids.to(torch.uint8).argmax(-1) + 1  # argmax returns the first maximum
-    onehot = nn.functional.one_hot(first, mask.shape[-1]).to(torch.float32)
-    return onehot * bids.any(-1, keepdim=True)
+    first = bids & (bids.cumsum(-1) == 1)  # the lowest-numbered valid bid
+    return nn.functional.pad(first.to(torch.float32), (1, 0))  # wait column: 0
 
 
 def spread_wait_bid(
