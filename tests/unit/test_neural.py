@@ -269,20 +269,25 @@ def test_epsilon_in_closed_form_follows_the_egreedy_schedule(system):
     assert learner.epsilon == pytest.approx(0.16)
 
 
-def test_shared_q_network_loads_multiagent_mlp_checkpoints():
-    """The shared per-robot net is TorchRL's MLP; weights saved from the former shared
-    MultiAgentMLP (keys mlp.params.*) load into it and give the same Q-values."""
-    torch.manual_seed(3)
-    old = MultiAgentMLP(
+def small_multiagent_mlp(share_params: bool) -> MultiAgentMLP:
+    """TorchRL's multi-agent MLP: 7 features -> 4 actions, 5 robots, two hidden layers of 16."""
+    return MultiAgentMLP(
         7,
         4,
         5,
         centralized=False,
-        share_params=True,
+        share_params=share_params,
         depth=2,
         num_cells=16,
         activation_class=torch.nn.ReLU,
     )
+
+
+def test_shared_q_network_loads_multiagent_mlp_checkpoints():
+    """The shared per-robot net is TorchRL's MLP; weights saved from the former shared
+    MultiAgentMLP (keys mlp.params.*) load into it and give the same Q-values."""
+    torch.manual_seed(3)
+    old = small_multiagent_mlp(share_params=True)
     with torch.no_grad():
         for p in old.parameters():
             p.normal_()
@@ -398,16 +403,7 @@ def test_joint_epsilon_greedy_explores_per_group_and_copy():
 def test_stacked_forward_is_multiagent_mlp():
     """IQL's per-robot nets as batched matmuls: MultiAgentMLP's outputs and gradients."""
     torch.manual_seed(0)
-    mlp = MultiAgentMLP(
-        7,
-        4,
-        5,
-        centralized=False,
-        share_params=False,
-        depth=2,
-        num_cells=16,
-        activation_class=torch.nn.ReLU,
-    )
+    mlp = small_multiagent_mlp(share_params=False)
     x = torch.rand(3, 2, 5, 7)
     expected = mlp(x)
     expected.square().sum().backward()
