@@ -1,7 +1,7 @@
 """Training copy-ticks/s of every learner, next to the bare env and a plain per-copy Python loop.
 
 Usage: python scripts/bench_learners.py [--learners subg_cql dql ...] [--episodes 2] [--repeats 3]
-       [--horizon 200] [--baseline /path/to/other/checkout] [--experiment neural_fast]
+       [--horizon 200] [--baseline /path/to/other/checkout] [--experiment NAME]
        [--out bench_learners.json]
 
 With ``--baseline`` the same measurements run, in turns, on another checkout of mrta_rl (e.g.
@@ -34,7 +34,7 @@ if __name__ == "__main__":
     parser.add_argument("--seconds", type=float, default=2.0, help="least wall time per yardstick")
     parser.add_argument("--baseline", type=Path, help="another checkout to measure in turns")
     parser.add_argument(
-        "--experiment", default="", help="conf/experiment for this checkout's runs (neural_fast)"
+        "--experiment", default="", help="conf/experiment for this checkout's runs"
     )
     parser.add_argument("--out", default="bench_learners.json")
     args = parser.parse_args()

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from hydra.errors import MissingConfigException
 from hydra.utils import instantiate
+from omegaconf import OmegaConf
 
 from mrta_rl.runners import build_run
 
@@ -19,15 +20,18 @@ GROUP_FILES = sorted(
     for path in group.glob("*.yaml")
 )
 PRIMARY = sorted(path.stem for path in CONF.glob("*.yaml"))
-# files that hold settings of one kind of learner (the fixture would otherwise pick greedy)
-LEARNER_OF = {("experiment", "neural_fast"): "qmix"}
+# groups that conf/config.yaml does not list (budget: pulled in by the neural learners' yamls)
+# are added with "+"
+LISTED = {
+    next(iter(entry))
+    for entry in OmegaConf.load(CONF / "config.yaml").defaults
+    if entry != "_self_"
+}
 
 
 @pytest.mark.parametrize(("group", "name"), GROUP_FILES, ids=[f"{g}/{n}" for g, n in GROUP_FILES])
 def test_group_file_builds(group, name, compose_cfg, tmp_path):
-    overrides = [f"{group}={name}"]
-    if (group, name) in LEARNER_OF:
-        overrides.append(f"learner={LEARNER_OF[group, name]}")
+    overrides = [f"{group}={name}" if group in LISTED else f"+{group}={name}"]
     if group != "debug":
         overrides.append("debug=smoke")  # keeps envs small (horizon, batches)
     cfg = compose_cfg(overrides)

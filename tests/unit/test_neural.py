@@ -8,14 +8,21 @@ import torch
 from tensordict import TensorDict
 from torchrl.collectors import Collector
 from torchrl.data import Categorical
-from torchrl.modules import EGreedyModule, MultiAgentMLP
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+from torchrl.modules import EGreedyModule, MultiAgentMLP, QValueModule
 
 from mrta_rl.envs import AuctionEnv, AuctionParams
 from mrta_rl.envs.torchrl_env import AuctionTorchRLEnv
 from mrta_rl.learners import SubGReserveLearner
 from mrta_rl.learners.neural import IQLLearner, QMIXLearner, SubGDQNLearner, VDNLearner
-from mrta_rl.learners.neural.common import WEIGHTS_FILE
-from mrta_rl.learners.neural.networks import PerRobotQ, greedy_bid, joint_combine, joint_decode
+from mrta_rl.learners.neural.common import WEIGHTS_FILE, EpsilonGreedy
+from mrta_rl.learners.neural.networks import (
+    PerRobotQ,
+    greedy_bid,
+    joint_combine,
+    joint_decode,
+    stacked_forward,
+)
 from mrta_rl.partition import subg_partition
 from mrta_rl.runners.evaluate import evaluate_policy
 from mrta_rl.systems import build_system
@@ -262,20 +269,25 @@ def test_epsilon_in_closed_form_follows_the_egreedy_schedule(system):
     assert learner.epsilon == pytest.approx(0.16)
 
 
-def test_shared_q_network_loads_multiagent_mlp_checkpoints():
-    """The shared per-robot net is TorchRL's MLP; weights saved from the former shared
-    MultiAgentMLP (keys mlp.params.*) load into it and give the same Q-values."""
-    torch.manual_seed(3)
-    old = MultiAgentMLP(
+def small_multiagent_mlp(share_params: bool) -> MultiAgentMLP:
+    """TorchRL's multi-agent MLP: 7 features -> 4 actions, 5 robots, two hidden layers of 16."""
+    return MultiAgentMLP(
         7,
         4,
         5,
         centralized=False,
-        share_params=True,
+        share_params=share_params,
         depth=2,
         num_cells=16,
         activation_class=torch.nn.ReLU,
     )
+
+
+def test_shared_q_network_loads_multiagent_mlp_checkpoints():
+    """The shared per-robot net is TorchRL's MLP; weights saved from the former shared
+    MultiAgentMLP (keys mlp.params.*) load into it and give the same Q-values."""
+    torch.manual_seed(3)
+    old = small_multiagent_mlp(share_params=True)
     with torch.no_grad():
         for p in old.parameters():
             p.normal_()
@@ -295,11 +307,12 @@ def test_shared_q_network_loads_multiagent_mlp_checkpoints():
 
 
 @pytest.mark.parametrize("name", ["qmix", "vdn", "iql", "subg_dqn"])
-def test_neural_fast_is_more_copies_for_the_same_frames_and_batches(name):
-    """conf/experiment/neural_fast.yaml: 80 copies x 6 episodes = 30 x 16 copy-episodes.
+def test_neural_budget_is_more_copies_for_the_same_frames_and_batches(name):
+    """conf/budget/neural.yaml: 80 copies x 6 episodes = the tabular 30 x 16 copy-episodes.
 
-    Opt-in: the defaults keep the 16-copy budget of the docs' results; with the experiment the
-    frames, the frames per Collector batch and so the gradient steps per frame are the same.
+    Every neural learner gets it by default; the frames, and the 800 frames per Collector batch
+    (10 ticks x 80 copies, as 50 x 16 before), are those of the 16-copy budget; the tabular
+    learners keep 16 copies; the command line and debug=smoke still win.
     """
     from pathlib import Path
 
@@ -307,16 +320,97 @@ def test_neural_fast_is_more_copies_for_the_same_frames_and_batches(name):
 
     conf = str(Path(__file__).resolve().parents[2] / "conf")
 
-    def budget(*overrides: str) -> tuple[int, int, int]:
+    def budget(*overrides: str) -> tuple[int, int, int | None]:
         with initialize_config_dir(config_dir=conf, version_base=None):
             cfg = compose(config_name="config", overrides=list(overrides))
         train = cfg.train
-        return int(train.batch_size), int(train.episodes), int(cfg.learner.collect_ticks)
+        return int(train.batch_size), int(train.episodes), cfg.learner.get("collect_ticks")
 
-    default = budget(f"learner={name}")
-    fast = budget(f"learner={name}", "experiment=neural_fast")
-    assert default == (16, 30, 50)
-    assert fast == (80, 6, 10)
-    assert fast[0] * fast[1] == default[0] * default[1]  # frames at any horizon
-    assert fast[0] * fast[2] == default[0] * default[2]  # frames per Collector batch
-    assert budget(f"learner={name}", "experiment=neural_fast", "train.batch_size=16")[0] == 16
+    assert budget(f"learner={name}") == (80, 6, 10)
+    assert budget(f"learner={name}", "system=system1") == (80, 6, 10)
+    assert budget("learner=subg_cql") == (16, 30, None)
+    assert budget("learner=dql") == (16, 30, None)
+    assert budget(f"learner={name}", "train.batch_size=16", "train.episodes=30")[:2] == (16, 30)
+    assert budget(f"learner={name}", "debug=smoke")[:2] == (4, 2)
+
+
+def _masks(shape, seed=0):
+    gen = torch.Generator().manual_seed(seed)
+    mask = torch.rand(shape, generator=gen) < 0.5
+    mask[..., 0] = True  # wait is always valid (spec step 4)
+    return mask
+
+
+def test_epsilon_greedy_plays_torchrl_masked_argmax_when_not_exploring():
+    """EpsilonGreedy's greedy action is QValueModule's masked argmax (the outside reference)."""
+    values, mask = torch.randn(64, 5, 4), _masks((64, 5, 4))
+    reference = QValueModule(
+        action_space="categorical",
+        action_value_key="action_value",
+        action_mask_key="action_mask",
+        out_keys=["action", "action_value", "chosen_action_value"],
+    )
+    expected = reference(TensorDict(action_value=values, action_mask=mask, batch_size=[64]))
+    module = EpsilonGreedy(1.0, torch.device("cpu"))  # would always explore under RANDOM
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        torch.testing.assert_close(module(values, mask), expected["action"])
+    module.eps.fill_(0.0)
+    with set_exploration_type(ExplorationType.RANDOM):
+        torch.testing.assert_close(module(values, mask), expected["action"])
+
+
+def test_epsilon_greedy_draws_uniform_valid_actions():
+    """eps = 1: each robot's action is uniform over its valid actions, never a masked one."""
+    n = 20_000
+    mask = torch.tensor([[1, 0, 1, 1], [1, 1, 0, 0]], dtype=torch.bool).expand(n, 2, 4)
+    module = EpsilonGreedy(1.0, torch.device("cpu"))
+    torch.manual_seed(0)
+    with set_exploration_type(ExplorationType.RANDOM):
+        actions = module(torch.randn(n, 2, 4), mask)
+    for robot, valid in enumerate(([0, 2, 3], [0, 1])):
+        counts = torch.bincount(actions[:, robot], minlength=4) / n
+        for a in range(4):
+            expected = 1 / len(valid) if a in valid else 0.0
+            assert counts[a] == pytest.approx(expected, abs=0.015)
+
+
+def test_joint_epsilon_greedy_explores_per_group_and_copy():
+    """Joint actions: one coin per copy (as EGreedyModule on the group's [B] keys), a uniform
+    valid joint action drawn per robot, and the joint action is the robots' actions encoded."""
+    n, n_g, A = 20_000, 3, 3
+    robot_mask = torch.tensor([1, 1, 0], dtype=torch.bool).expand(n, n_g, A)  # wait or slot 1
+    joint_mask = joint_combine(robot_mask, "and")  # [n, 27]
+    values = torch.zeros(n, A**n_g)
+    values[:, 0] = 1.0  # greedy: everyone waits
+    module = EpsilonGreedy(0.5, torch.device("cpu"), joint=(n_g, A))
+    torch.manual_seed(1)
+    with set_exploration_type(ExplorationType.RANDOM):
+        joint, robots = module(values, joint_mask, robot_mask)
+    torch.testing.assert_close(robots, joint_decode(joint, n_g, A))
+    assert joint_mask.gather(-1, joint.unsqueeze(-1)).all()
+    # all wait: greedy (1/2) or a random joint action that is all-wait (1/2 x 1/8); one coin
+    # per robot would give (1/2 + 1/4)^3 = 0.42
+    all_wait = (robots == 0).all(-1).float().mean()
+    assert all_wait == pytest.approx(0.5 + 0.5 / 8, abs=0.015)
+    # among explored copies, every valid joint action is equally likely
+    explored = joint[joint != 0]
+    counts = torch.bincount(explored, minlength=A**n_g) / (0.5 * n)
+    valid = joint_mask[0].nonzero().flatten()
+    assert counts[valid[1:]].sub(1 / 8).abs().max() < 0.015
+    assert counts.sum() == pytest.approx(7 / 8, abs=0.02)
+
+
+def test_stacked_forward_is_multiagent_mlp():
+    """IQL's per-robot nets as batched matmuls: MultiAgentMLP's outputs and gradients."""
+    torch.manual_seed(0)
+    mlp = small_multiagent_mlp(share_params=False)
+    x = torch.rand(3, 2, 5, 7)
+    expected = mlp(x)
+    expected.square().sum().backward()
+    grads = [p.grad.clone() for p in mlp.parameters()]
+    mlp.zero_grad()
+    got = stacked_forward(mlp, x)
+    got.square().sum().backward()
+    torch.testing.assert_close(got, expected)
+    for p, grad in zip(mlp.parameters(), grads, strict=True):
+        torch.testing.assert_close(p.grad, grad)

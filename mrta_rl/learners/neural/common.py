@@ -9,7 +9,7 @@ keys of :class:`~mrta_rl.envs.torchrl_env.AuctionTorchRLEnv`: per group ``(group
 modules serve
 
 * the TorchRL training loop (``mrta_rl.runners.torchrl``): :attr:`NeuralLearner.explore_policy`
-  (Q-network -> ``QValueModule`` -> ``EGreedyModule`` with the action mask) runs inside a
+  (Q-network -> :class:`EpsilonGreedy`: masked argmax, random valid actions) runs inside a
   ``Collector``, and :meth:`NeuralLearner.train_step` optimises the TorchRL loss on replayed
   batches;
 * the shared evaluation of every learner kind (``runners/evaluate.py``): :meth:`encode` builds the
@@ -38,15 +38,14 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torch import nn
-from torchrl.data import Categorical
-from torchrl.envs.utils import ExplorationType, set_exploration_type
-from torchrl.modules import EGreedyModule, QValueModule
+from torchrl.envs.utils import ExplorationType, exploration_type, set_exploration_type
+from torchrl.modules import QValueModule
 from torchrl.objectives import HardUpdate, LossModule, SoftUpdate
 
 from mrta_rl.config import Choices, Range
 from mrta_rl.envs import AuctionEnv, observations
 from mrta_rl.learners.base import Learner
-from mrta_rl.learners.neural.networks import PerRobotQ
+from mrta_rl.learners.neural.networks import PerRobotQ, joint_decode
 from mrta_rl.partition import Partition
 from mrta_rl.types import GroupMap
 
@@ -109,13 +108,71 @@ def observation_td(env: AuctionEnv, group_map: GroupMap, mask: np.ndarray) -> Te
     return TensorDict(out, batch_size=(B,))
 
 
+# ---------------------------------------------------------------------------------- exploration
+class EpsilonGreedy(nn.Module):
+    """Masked argmax of Q-values, then epsilon-greedy among valid actions: the collection policy.
+
+    Computes what TorchRL's ``QValueModule`` (masked argmax) followed by ``EGreedyModule`` with
+    ``action_mask_key`` [and ``JointDecode``] compute, in a few tensor ops per tick (the module
+    chain, its spec updates and ``multinomial`` draws over the masks were half of a collection
+    tick): with probability ``eps`` (one draw per robot, or per sub-group and copy for joint
+    actions, as ``EGreedyModule`` draws per element of its action's TensorDict) the greedy action
+    is replaced by a uniform valid one. A uniform valid *joint* action is a uniform valid action
+    per robot, since the joint mask is the product of the robots' masks (``joint_combine``), so
+    it is drawn on ``[*, n_g, K + 1]`` rather than over the ``(K + 1)^{n_g}`` joint actions. As
+    ``EGreedyModule``, it explores only under ``ExplorationType.RANDOM`` (the Collector's) or no
+    exploration type, and plays the greedy action otherwise. Draws come from torch's generator,
+    which the runner seeds.
+    """
+
+    def __init__(self, eps: float, device: torch.device, joint: tuple[int, int] | None = None):
+        """Hold the exploration rate (a buffer, set by :meth:`NeuralLearner.anneal`).
+
+        Args:
+            eps: Initial exploration rate.
+            device: Buffer device.
+            joint: ``(n_g, K + 1)`` for joint actions (subG-DQN), None for per-robot actions.
+        """
+        super().__init__()
+        self.register_buffer("eps", torch.tensor(float(eps), device=device))
+        self.joint = joint
+
+    def forward(
+        self, values: torch.Tensor, mask: torch.Tensor, robot_mask: torch.Tensor | None = None
+    ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
+        """Actions of the Q-values.
+
+        Args:
+            values: ``[*, n, A]`` per-robot Q-values, or ``[*, A^n_g]`` joint Q-values.
+            mask: Valid actions of ``values`` (bool, same shape).
+            robot_mask: Joint actions only: ``[*, n_g, K + 1]`` the robots' masks.
+
+        Returns:
+            ``[*, n]`` actions, or ``([*] joint actions, [*, n_g] the robots' actions)``.
+        """
+        action = torch.where(mask, values, torch.finfo(values.dtype).min).argmax(-1)
+        if self.joint is not None:
+            action = joint_decode(action, *self.joint)  # [*, n_g]
+            mask = robot_mask
+        if exploration_type() in (ExplorationType.RANDOM, None):
+            coin_shape = mask.shape[:-2] + (1 if self.joint else mask.shape[-2],)
+            explore = torch.rand(coin_shape, device=mask.device) < self.eps
+            # the largest of i.i.d. uniforms over the valid actions is a uniform valid action
+            random = (torch.rand(mask.shape, device=mask.device) * mask).argmax(-1)
+            action = torch.where(explore, random, action)
+        if self.joint is None:
+            return action
+        places = self.joint[1] ** torch.arange(self.joint[0], device=action.device)
+        return (action * places).sum(-1), action  # j = sum_r a_r (K + 1)^r
+
+
 # ---------------------------------------------------------------------------------- learner
 class NeuralLearner(Learner):
     """Base of the TorchRL learners: policies, masked epsilon-greedy, optimiser, target updates.
 
     Subclasses set :attr:`group_map` and build, in :meth:`_build`, ``self.networks`` (an
     ``nn.ModuleDict``, everything that is saved), ``self.policy`` (greedy, writes ``(group,
-    "action")``), ``self.explore_policy`` (with ``EGreedyModule``) and ``self.losses`` (TorchRL
+    "action")``), ``self.explore_policy`` (with :class:`EpsilonGreedy`) and ``self.losses`` (TorchRL
     loss modules). They may override :meth:`transitions` to add the keys their loss reads.
     Training runs in ``mrta_rl.runners.torchrl``; :meth:`update` stays the base no-op.
     """
@@ -163,7 +220,7 @@ class NeuralLearner(Learner):
             loss_function: TD loss, ``"l2"`` or ``"smooth_l1"`` (Huber).
             reward_scale: Rewards are multiplied by this before the TD target (Q-value scale).
             auction_prior: Bonus of the greedy bid in Q-units (module docstring); 0 = off.
-            eps_start: Initial exploration rate of ``EGreedyModule``.
+            eps_start: Initial exploration rate (random valid actions).
             eps_end: Final exploration rate.
             eps_decay_frames: Collected frames (copy-ticks) over which epsilon decays linearly.
             buffer_size: Replay buffer capacity in transitions (copy-ticks).
@@ -215,7 +272,7 @@ class NeuralLearner(Learner):
         self.group_map: GroupMap = self._group_map()
         self.networks = nn.ModuleDict()
         self.losses: dict[str, LossModule] = {}
-        self.egreedy: list[EGreedyModule] = []
+        self.egreedy: list[EpsilonGreedy] = []  # the exploration rates (anneal, checkpoints)
         # network initialisation draws from torch's generator: seed it from the learner's own
         # generator, in a forked state, so runs are reproducible and torch's global state is
         # left to the runner
@@ -225,7 +282,8 @@ class NeuralLearner(Learner):
         for loss in self.losses.values():
             loss.make_value_estimator(gamma=gamma)
         params = [p for loss in self.losses.values() for p in loss.parameters()]
-        self.optimizer = torch.optim.Adam(params, lr=lr)
+        # fused: one kernel over all parameters (the per-tensor loop was ~3 % of a gradient step)
+        self.optimizer = torch.optim.Adam(params, lr=lr, fused=True)
         self.target_updaters = [
             SoftUpdate(loss, tau=tau)
             if target_update == "soft"
@@ -243,22 +301,22 @@ class NeuralLearner(Learner):
     def _build(self) -> None:  # pragma: no cover - abstract in spirit
         raise NotImplementedError
 
-    def _egreedy(self, n_choices: int, action_key: tuple, mask_key: tuple) -> EGreedyModule:
-        """A masked ``EGreedyModule`` (random actions drawn among valid ones only)."""
-        module = EGreedyModule(
-            Categorical(n_choices),  # unbatched leaf spec, expanded to the action's shape
-            eps_init=self.hp["eps_start"],
-            eps_end=self.hp["eps_end"],
-            annealing_num_steps=self.hp["eps_decay_frames"],
-            action_key=action_key,
-            action_mask_key=mask_key,
-            device=self.device,
-        )
+    def _egreedy(self, joint: tuple[int, int] | None = None) -> EpsilonGreedy:
+        """An :class:`EpsilonGreedy` at ``eps_start``, annealed by :meth:`anneal`."""
+        module = EpsilonGreedy(self.hp["eps_start"], self.device, joint)
         self.egreedy.append(module)
         return module
 
-    def _per_robot_policy(self, group: str, share_params: bool) -> TensorDictSequential:
-        """Per-robot Q-network + ``QValueModule`` (masked argmax) of one group."""
+    def _per_robot_policy(
+        self, group: str, share_params: bool
+    ) -> tuple[TensorDictSequential, TensorDictSequential]:
+        """Greedy and exploring policies of one group over the same per-robot Q-network.
+
+        Returns:
+            ``(policy, explore_policy)``: Q-network + ``QValueModule`` (masked argmax; the
+            losses' value network, and the greedy policy), and Q-network +
+            :class:`EpsilonGreedy` (the collection policy, writing ``(group, "action")``).
+        """
         qnet = PerRobotQ(
             self.n_features,
             len(self.group_map[group]),
@@ -270,12 +328,13 @@ class NeuralLearner(Learner):
             device=self.device,
         )
         self.networks[group] = qnet
-        return TensorDictSequential(
-            TensorDictModule(
-                qnet,
-                in_keys=[(group, "observation"), (group, "action_mask")],
-                out_keys=[(group, "action_value")],
-            ),
+        value = TensorDictModule(
+            qnet,
+            in_keys=[(group, "observation"), (group, "action_mask")],
+            out_keys=[(group, "action_value")],
+        )
+        policy = TensorDictSequential(
+            value,
             QValueModule(
                 action_space="categorical",
                 action_value_key=(group, "action_value"),
@@ -287,6 +346,15 @@ class NeuralLearner(Learner):
                 ],
             ),
         )
+        explore = TensorDictSequential(
+            value,
+            TensorDictModule(
+                self._egreedy(),
+                in_keys=[(group, "action_value"), (group, "action_mask")],
+                out_keys=[(group, "action")],
+            ),
+        )
+        return policy, explore
 
     # -------------------------------------------------------------- runner hooks
     @property
@@ -454,7 +522,7 @@ class NeuralLearner(Learner):
             loss.load_state_dict(extra["losses"][name])
         self.optimizer.load_state_dict(extra["optimizer"])
         for module, saved in zip(self.egreedy, extra["egreedy"], strict=True):
-            module.load_state_dict(saved)
+            module.eps.copy_(saved["eps"])  # also EGreedyModule's state of older checkpoints
         self.gradient_steps = int(state["gradient_steps"])
         for updater, saved in zip(self.target_updaters, state["target_updaters"], strict=True):
             updater.load_state_dict(saved)
@@ -520,11 +588,7 @@ class MixedQLearner(NeuralLearner):
         from torchrl.objectives.multiagent import QMixerLoss
 
         group = "agents"
-        self.policy = self._per_robot_policy(group, share_params=True)
-        self.explore_policy = TensorDictSequential(
-            self.policy,
-            self._egreedy(self.n_actions, (group, "action"), (group, "action_mask")),
-        )
+        self.policy, self.explore_policy = self._per_robot_policy(group, share_params=True)
         mixer = self._mixer()
         self.networks["mixer"] = mixer.module
         loss = QMixerLoss(

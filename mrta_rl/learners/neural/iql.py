@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from tensordict import TensorDictBase
-from tensordict.nn import TensorDictSequential
 from torchrl.objectives import DQNLoss
 
 from mrta_rl.learners.neural.common import NeuralLearner
@@ -21,10 +20,7 @@ class IQLLearner(NeuralLearner):
     """
 
     def _build(self) -> None:
-        self.policy = self._per_robot_policy(GROUP, share_params=False)
-        self.explore_policy = TensorDictSequential(
-            self.policy, self._egreedy(self.n_actions, (GROUP, "action"), (GROUP, "action_mask"))
-        )
+        self.policy, self.explore_policy = self._per_robot_policy(GROUP, share_params=False)
         loss = DQNLoss(
             self.policy,
             loss_function=self.hp["loss_function"],

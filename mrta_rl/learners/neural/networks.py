@@ -24,9 +24,8 @@ def greedy_bid(mask: torch.Tensor) -> torch.Tensor:
         ``[*, K + 1]`` float: 1 at the lowest-numbered valid bid, all zero if only wait is valid.
     """
     bids = mask[..., 1:]  # [*, K]
-    first = bids.to(torch.uint8).argmax(-1) + 1  # argmax returns the first maximum
-    onehot = nn.functional.one_hot(first, mask.shape[-1]).to(torch.float32)
-    return onehot * bids.any(-1, keepdim=True)
+    first = bids & (bids.cumsum(-1) == 1)  # the lowest-numbered valid bid
+    return nn.functional.pad(first.to(torch.float32), (1, 0))  # wait column: 0
 
 
 def spread_wait_bid(
@@ -55,17 +54,16 @@ def spread_wait_bid(
     """
     *lead, n_g, n_actions = mask.shape
     codes = observation[..., slots].reshape(*lead, n_g, n_actions - 1, -1)  # [*, n_g, K, codes]
-    low = codes[..., 1::2].sum(-1) > 0  # odd codes 1 + 2 type are L tasks
+    low = (codes[..., 1::2] > 0).any(-1)  # odd codes 1 + 2 type are L tasks
     hold = (observation[..., recent] > 0).any(-1)[..., None, None]  # [*, 1, 1]
     bids = (mask[..., 1:] & ~(low & hold))[..., order, :]  # [*, n_g, K], robots in order
-    taken = torch.zeros(bids.shape[:-1], dtype=torch.bool, device=mask.device)
+    free = torch.ones(bids.shape[:-1], dtype=torch.bool, device=mask.device)  # not yet bidding
     ranked = torch.zeros(bids.shape[:-1], dtype=torch.long, device=mask.device)
     for k in range(n_actions - 1):
-        candidates = bids[..., k] & ~taken
-        first = nn.functional.one_hot(candidates.to(torch.uint8).argmax(-1), n_g).bool()
-        first &= candidates.any(-1, keepdim=True)
-        ranked = torch.where(first, k + 1, ranked)
-        taken |= first
+        candidates = bids[..., k] & free
+        first = candidates & (candidates.cumsum(-1) == 1)  # the first candidate in order
+        ranked += first * (k + 1)  # a robot is first for one slot at most
+        free &= ~first
     actions = torch.empty_like(ranked)
     actions[..., order] = ranked
     return nn.functional.one_hot(actions, n_actions).to(torch.float32)
@@ -163,7 +161,38 @@ class PerRobotQ(nn.Module):
 
     def forward(self, observation: torch.Tensor, action_mask: torch.Tensor) -> torch.Tensor:
         """Q-values ``[*, n_g, A]`` of ``observation`` ``[*, n_g, F]``."""
-        return self.mlp(observation) + self.auction_prior * greedy_bid(action_mask)
+        if isinstance(self.mlp, MultiAgentMLP):
+            values = stacked_forward(self.mlp, observation)
+        else:
+            values = self.mlp(observation)
+        return values + self.auction_prior * greedy_bid(action_mask)
+
+
+def stacked_forward(mlp: MultiAgentMLP, x: torch.Tensor) -> torch.Tensor:
+    """What a ``MultiAgentMLP(share_params=False, centralized=False)`` computes, as batched matmuls.
+
+    Its own forward ``vmap``s a functional call over the robots, swapping each robot's parameters
+    into a module (``to_module``) on every call, which costs more than the arithmetic at our sizes;
+    here each linear layer is one ``baddbmm`` of the robots' stacked weights ``[n, out, in]``
+    (same parameters, same outputs; the TorchRL losses' parameter swaps still apply, since the
+    weights are read from ``mlp.params`` at every call).
+
+    Args:
+        mlp: The multi-agent MLP (its layers: ``mlp._empty_net``, its weights: ``mlp.params``).
+        x: ``[*, n, F]`` inputs, robot axis second to last.
+
+    Returns:
+        ``[*, n, out]`` outputs.
+    """
+    *lead, n, features = x.shape
+    h = x.reshape(-1, n, features).transpose(0, 1)  # [n, N, F]: one matmul batch per robot
+    for name, layer in mlp._empty_net.named_children():
+        if isinstance(layer, nn.Linear):
+            weight, bias = mlp.params[name, "weight"], mlp.params[name, "bias"]  # [n, o, i], [n, o]
+            h = torch.baddbmm(bias.unsqueeze(1), h, weight.transpose(1, 2))
+        else:
+            h = layer(h)
+    return h.transpose(0, 1).reshape(*lead, n, h.shape[-1])
 
 
 def _shared_multiagent_keys(state_dict: dict, prefix: str, *args) -> None:

@@ -26,7 +26,8 @@ class SubGDQNLearner(NeuralLearner):
     state) to the ``(K + 1)^{m_g}`` joint actions (spec "Observations": the joint action is the
     tuple of the robots' actions). Invalid joint actions are masked: the joint mask is the
     product of the robots' masks, applied by ``QValueModule`` (argmax and target max) and by
-    ``EGreedyModule`` (random joint actions among valid ones). Each group is trained with its own
+    :class:`~mrta_rl.learners.neural.common.EpsilonGreedy` (random joint actions among valid
+    ones, drawn per robot). Each group is trained with its own
     TorchRL ``DQNLoss`` on the sub-group reward (spec step 8), as subG-CQL learns one table per
     sub-group. Joint keys live under the root ``("joint", group)`` (batch ``[*]``).
     """
@@ -81,12 +82,13 @@ class SubGDQNLearner(NeuralLearner):
                 layout=layout,
             )
             self.networks[group] = qnet
+            qvalues = TensorDictModule(
+                qnet,
+                in_keys=[(group, "observation"), (group, "action_mask")],
+                out_keys=[(JOINT, group, "action_value"), (JOINT, group, "action_mask")],
+            )
             value = TensorDictSequential(
-                TensorDictModule(
-                    qnet,
-                    in_keys=[(group, "observation"), (group, "action_mask")],
-                    out_keys=[(JOINT, group, "action_value"), (JOINT, group, "action_mask")],
-                ),
+                qvalues,
                 QValueModule(
                     action_space="categorical",
                     action_value_key=(JOINT, group, "action_value"),
@@ -103,9 +105,18 @@ class SubGDQNLearner(NeuralLearner):
                 in_keys=[(JOINT, group, "action")],
                 out_keys=[(group, "action")],
             )
-            egreedy = self._egreedy(A**n_g, (JOINT, group, "action"), (JOINT, group, "action_mask"))
+            # collection: masked joint argmax, epsilon-greedy, decode, in one module
+            egreedy = TensorDictModule(
+                self._egreedy(joint=(n_g, A)),
+                in_keys=[
+                    (JOINT, group, "action_value"),
+                    (JOINT, group, "action_mask"),
+                    (group, "action_mask"),
+                ],
+                out_keys=[(JOINT, group, "action"), (group, "action")],
+            )
             greedy += [value, decode]
-            explore += [value, egreedy, decode]
+            explore += [qvalues, egreedy]
             loss = DQNLoss(
                 value,
                 loss_function=self.hp["loss_function"],
