@@ -45,7 +45,7 @@ from torchrl.objectives import HardUpdate, LossModule, SoftUpdate
 from mrta_rl.config import Choices, Range
 from mrta_rl.envs import AuctionEnv, observations
 from mrta_rl.learners.base import Learner
-from mrta_rl.learners.neural.networks import PerRobotQ, joint_decode
+from mrta_rl.learners.neural.networks import PerRobotQ, joint_decode, joint_encode
 from mrta_rl.partition import Partition
 from mrta_rl.types import GroupMap
 
@@ -162,8 +162,7 @@ class EpsilonGreedy(nn.Module):
             action = torch.where(explore, random, action)
         if self.joint is None:
             return action
-        places = self.joint[1] ** torch.arange(self.joint[0], device=action.device)
-        return (action * places).sum(-1), action  # j = sum_r a_r (K + 1)^r
+        return joint_encode(action, self.joint[1]), action
 
 
 # ---------------------------------------------------------------------------------- learner

@@ -101,8 +101,25 @@ def joint_decode(joint: torch.Tensor, n_robots: int, n_actions: int) -> torch.Te
     Returns:
         ``[*, n_g]`` int64 actions.
     """
-    places = n_actions ** torch.arange(n_robots, device=joint.device)  # [n_g]
-    return (joint.unsqueeze(-1) // places) % n_actions
+    return (joint.unsqueeze(-1) // _places(n_robots, n_actions, joint.device)) % n_actions
+
+
+def joint_encode(actions: torch.Tensor, n_actions: int) -> torch.Tensor:
+    """Joint actions of per-robot actions (inverse of :func:`joint_decode`).
+
+    Args:
+        actions: ``[*, n_g]`` int actions.
+        n_actions: ``A = K + 1``.
+
+    Returns:
+        ``[*]`` int64 joint actions ``j = sum_r a_r (K + 1)^r``.
+    """
+    return (actions * _places(actions.shape[-1], n_actions, actions.device)).sum(-1)
+
+
+def _places(n_robots: int, n_actions: int, device: torch.device) -> torch.Tensor:
+    """Place value ``(K + 1)^r`` of robot ``r``'s digit in a joint action, ``[n_g]``."""
+    return n_actions ** torch.arange(n_robots, device=device)
 
 
 # ---------------------------------------------------------------------------------- modules
