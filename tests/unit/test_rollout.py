@@ -8,7 +8,9 @@ import pytest
 
 from mrta_rl.envs import AuctionEnv, AuctionParams
 from mrta_rl.learners import GreedyLearner, TeamReserveLearner
-from mrta_rl.learners.planning.rollout import RolloutPlanner, restore
+from mrta_rl.learners.fixed import SubGReserveLearner
+from mrta_rl.learners.planning.rollout import RolloutPlanner, SubGRolloutPlanner, restore
+from mrta_rl.partition import subg_partition
 from tests.conftest import paper_system
 
 
@@ -44,10 +46,30 @@ def test_planner_plays_valid_deterministic_episodes():
 @pytest.mark.parametrize("hp", [{"horizon": 0}, {"candidates": ["hold"]}])
 def test_no_planning_plays_the_base_rule(hp):
     planner, env = make(**hp)
-    base = TeamReserveLearner(env=env, rng=np.random.default_rng(1), hold_level=1)
+    # "hold": the best team_reserve of System-I (a robot's own recency), not the group's
+    base = TeamReserveLearner(env=env, rng=np.random.default_rng(1), hold_scope="robot")
     ours, theirs = play(planner, env, base)
     np.testing.assert_array_equal(ours, theirs)
     assert planner.decisions == 0
+
+
+@pytest.mark.parametrize("system", ["system1", "system2"])
+def test_subg_rollout_without_planning_is_subg_reserve(system):
+    partition = subg_partition(paper_system(system))
+    env = AuctionEnv(
+        paper_system(system),
+        AuctionParams(horizon=60),
+        3,
+        seed=4,
+        active_tasks=partition.active_tasks(paper_system(system)),
+    )
+    planner = SubGRolloutPlanner(
+        env=env, rng=np.random.default_rng(0), partition=partition, horizon=0
+    )
+    rule = SubGReserveLearner(env=env, rng=np.random.default_rng(1), partition=partition)
+    ours, theirs = play(planner, env, rule)
+    np.testing.assert_array_equal(ours, theirs)
+    assert planner.requires_partition and not RolloutPlanner.requires_partition  # runner: Lambda_i
 
 
 def test_greedy_base_with_no_planning_is_greedy():

@@ -2,6 +2,6 @@
 
 from __future__ import annotations
 
-from mrta_rl.learners.planning.rollout import RolloutPlanner
+from mrta_rl.learners.planning.rollout import RolloutPlanner, SubGRolloutPlanner
 
-__all__ = ["RolloutPlanner"]
+__all__ = ["RolloutPlanner", "SubGRolloutPlanner"]

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable
 from typing import Annotated, Any, ClassVar
 
 import numpy as np
@@ -33,16 +32,21 @@ from mrta_rl.learners.fixed import GreedyLearner, TeamReserveLearner
 logger = logging.getLogger(__name__)
 LOG_EVERY = 250  # planned ticks between two decision-time log lines
 
-# candidate rule name -> factory(env, rng) of a fixed policy; the team_reserve settings are
-# whole-team rules (mrta_rl/learners/fixed.py), all conflict-free except greedy
-CANDIDATES: dict[str, Callable[[AuctionEnv, np.random.Generator], Learner]] = {
-    "greedy": lambda env, rng: GreedyLearner(env=env, rng=rng),  # the plain auction
-    "spread": lambda env, rng: TeamReserveLearner(env=env, rng=rng, hold_level=0),
-    "hold": lambda env, rng: TeamReserveLearner(env=env, rng=rng, hold_level=1),
-    "hold2": lambda env, rng: TeamReserveLearner(env=env, rng=rng, hold_level=2),
-    "reserve1": lambda env, rng: TeamReserveLearner(env=env, rng=rng, reserve=1, hold_level=0),
-    "reserve2": lambda env, rng: TeamReserveLearner(env=env, rng=rng, reserve=2, hold_level=0),
-    "high_only": lambda env, rng: TeamReserveLearner(env=env, rng=rng, hold_level=3),  # wait for L
+# candidate rule name -> its team_reserve settings (mrta_rl/learners/fixed.py; None: the plain
+# auction). "hold" and "hold_reserve1" are the best whole-team rules of experiment=team_reserve_grid
+# (System-I and System-II: L waits while an H task of the robot's OWN types arrived within 3
+# ticks); "hold_group" waits on the group's types instead (with grouping=subg: the subg_reserve
+# rule, subG-CQL's starting policy). All are conflict-free except greedy.
+CANDIDATES: dict[str, dict[str, Any] | None] = {
+    "greedy": None,
+    "spread": {"hold_level": 0},
+    "hold": {"hold_level": 1, "hold_scope": "robot"},
+    "hold_reserve1": {"reserve": 1, "hold_level": 1, "hold_scope": "robot"},
+    "hold_group": {"hold_level": 1, "hold_scope": "group"},
+    "hold2": {"hold_level": 2, "hold_scope": "robot"},
+    "reserve1": {"reserve": 1, "hold_level": 0},
+    "reserve2": {"reserve": 2, "hold_level": 0},
+    "high_only": {"hold_level": 3},  # never bids for L
 }
 
 
@@ -70,6 +74,8 @@ class RolloutPlanner(Learner):
     """
 
     kind: ClassVar[LearnerKind] = "fixed"
+    # the candidates' grouping (team_reserve's): one group of all robots, or the subG sub-groups
+    grouping: ClassVar[str] = "team"
 
     def __init__(
         self,
@@ -80,6 +86,7 @@ class RolloutPlanner(Learner):
             "greedy",
             "spread",
             "hold",
+            "hold_reserve1",
             "reserve1",
             "high_only",
         ),
@@ -91,11 +98,19 @@ class RolloutPlanner(Learner):
         names = [base, *(c for c in candidates if c != base)]  # the base rule first: ties go to it
         self.samples, self.horizon, self.gamma = samples, horizon, gamma
         self.names = names
-        self._rules = [CANDIDATES[name](self.env, self.rng) for name in names]
+        self._rules = [self._rule(CANDIDATES[name]) for name in names]
         self._base = self._rules[0]
         self._rollout_envs: dict[int, AuctionEnv] = {}  # batch size -> env
         self.decisions = 0  # ticks at which some copy had candidates to compare
         self.planning_s = 0.0  # wall time spent in those decisions
+
+    def _rule(self, settings: dict[str, Any] | None) -> Learner:
+        """The fixed policy of a candidate's settings, on the planner's env and partition."""
+        if settings is None:
+            return GreedyLearner(env=self.env, rng=self.rng)
+        return TeamReserveLearner(
+            env=self.env, rng=self.rng, partition=self.partition, grouping=self.grouping, **settings
+        )
 
     def encode(self, env: AuctionEnv) -> tuple[Any, np.ndarray]:
         """A snapshot of every copy and the candidates' joint actions ``[C, B, m]``."""
@@ -181,3 +196,39 @@ class RolloutPlanner(Learner):
     def learning_space(self) -> dict[str, int]:
         """No table: ``{}`` (a fixed policy); decision time is logged at the end of evaluation."""
         return {}
+
+
+class SubGRolloutPlanner(RolloutPlanner):
+    """``rollout`` bound to the subG partition: how far a planner gets inside it.
+
+    The runner builds its env on the partition's ``Lambda_i`` (robots bid only for their kept
+    types) and every candidate rule bids per sub-group (``grouping="subg"``); the default base
+    ``hold_group`` is then the ``subg_reserve`` rule, subG-CQL's starting policy. Its margin over
+    ``subg_reserve`` measures what a partition-bound policy can still gain (issue 10, acceptance
+    4), with the planner's full view of the state.
+
+    Args:
+        candidates: As :class:`RolloutPlanner`; the default swaps ``hold_reserve1`` for
+            ``hold_group``.
+        base: As :class:`RolloutPlanner`, default ``hold_group``.
+        **kwargs: The other settings of :class:`RolloutPlanner`.
+    """
+
+    requires_partition: ClassVar[bool] = True
+    grouping: ClassVar[str] = "subg"
+
+    def __init__(
+        self,
+        *,
+        candidates: Annotated[tuple[str, ...], Choices(*CANDIDATES)] = (
+            "greedy",
+            "spread",
+            "hold_group",
+            "hold",
+            "reserve1",
+            "high_only",
+        ),
+        base: Annotated[str, Choices(*CANDIDATES)] = "hold_group",
+        **kwargs,
+    ) -> None:
+        super().__init__(candidates=candidates, base=base, **kwargs)
