@@ -523,6 +523,35 @@ def test_hand_computed_q_update(cls, target, trio, tiny_params):
         assert learner.q[entry] == pytest.approx(1.0 + alpha * (10.0 + gamma * next_max - 1.0))
 
 
+@pytest.mark.parametrize(("reward", "learned"), [("group", [10.0, 2.0]), ("team", [12.0, 12.0])])
+def test_subg_cql_reward_group_or_team(reward, learned, tiny_params):
+    """``reward``: each sub-group learns from its robots' rewards (group) or the team's (team).
+
+    Two sub-groups of one robot each; R1 wins an H task of T1 (10), R2 an L task of T2 (2), in
+    the fused training tick. From Q = 0 and a new next state (Q = 0): ``Q(s, a) = alpha r``
+    with ``r`` 10 and 2 (group), 12 for both (team).
+    """
+    duo = build_system({"name": "duo", "robots": {"R1": ["T1"], "R2": ["T2"]}})
+    alpha = 0.5
+    env, learner = make(
+        SubGCQLLearner, duo, tiny_params, batch=1, alpha=alpha, decisions_only=False,
+        epsilon_start=0.0, epsilon_end=0.0, prior="spread", reward=reward,
+    )  # fmt: skip
+    assert [list(rs) for rs in learner.groups] == [[0], [1]]
+    env.inject_tasks(0, [
+        {"type": 0, "high": 1, "due": 0, "id": 0, "duration": 5},
+        {"type": 1, "high": 0, "due": 0, "id": 1, "duration": 5},
+    ])  # fmt: skip
+    actions = learner.train_tick(env, None)
+    slot = {int(t): k + 1 for k, t in enumerate(env.slot_type[0]) if t >= 0}
+    assert actions.tolist() == [[slot[0], slot[1]]]  # each robot bids for its type's task
+    entries = learner._tick[4][:, 0].copy()  # the entry each group chose
+    result = env.step(actions)
+    assert result.robot_reward[0].tolist() == [10.0, 2.0]  # spec step 8
+    learner.train_tick(env, result)
+    assert learner.storage.q[entries].tolist() == pytest.approx([alpha * r for r in learned])
+
+
 # ------------------------------------------------------------------ masking, ties, persistence
 @pytest.mark.parametrize("cls", LEARNERS)
 def test_epsilon_one_never_picks_an_invalid_action(cls, trio, tiny_params):

@@ -26,6 +26,10 @@ from mrta_rl.learners.tabular.priors import PRIOR_CODES, PRIOR_ORDERS, PRIORS, s
 from mrta_rl.learners.tabular.qtable import TABLE_KEYS, JointQStorage
 from mrta_rl.metrics.learning_space import learning_space_dimension
 
+# what each sub-group's eq. (3) learns from (docs/learners.md, "Credit"): ``group``, the sum of
+# its robots' rewards (spec step 8, the paper's); ``team``, the team reward of the tick
+SUBG_REWARDS = ("group", "team")
+
 
 @dataclass
 class GroupObservation:
@@ -315,6 +319,9 @@ class SubGCQLLearner(GroupQLearner):
         prior: Tie-break joint action of untried states (``priors.PRIORS``, docs/learners.md).
         min_visits: Updates an entry needs before it competes with the prior.
         prior_order: Which idle robot the spread priors ask first (default ``fewest_types``).
+        reward: What each sub-group learns from (:data:`SUBG_REWARDS`): ``group``, the sum of
+            its robots' individual rewards (the paper's); ``team``, the team reward of the tick
+            (a sub-group is credited with what its choice does to the others' rewards too).
         **hyperparameters: See :class:`~mrta_rl.learners.tabular.base.TabularLearner`.
     """
 
@@ -324,8 +331,11 @@ class SubGCQLLearner(GroupQLearner):
     # a sub-group keeps its versatile robots free for the types only they can do (docs/learners.md)
     default_prior_order: ClassVar[str] = "fewest_types"
 
-    def __init__(self, **hyperparameters) -> None:
+    def __init__(
+        self, *, reward: Annotated[str, Choices(*SUBG_REWARDS)] = "group", **hyperparameters
+    ) -> None:
         super().__init__(**hyperparameters)
+        self.reward = reward
         env, partition = self.env, self.partition
         assert partition is not None  # checked by Learner.__init__
         expected = partition.active_tasks(env.system)
@@ -339,10 +349,15 @@ class SubGCQLLearner(GroupQLearner):
             list(group_map),
             [[robots.index(r) for r in rs] for rs in group_map.values()],
         )
-        self._reward_columns = np.where(  # the group's robots, -1 padded
-            np.arange(self.robots.shape[1]) < self.size[:, None], self.robots, -1
-        )
+        if reward == "team":  # every group reads the one column of the team reward
+            self._reward_columns = np.zeros((len(self.groups), 1), np.int64)
+        else:  # the group's robots, -1 padded
+            self._reward_columns = np.where(
+                np.arange(self.robots.shape[1]) < self.size[:, None], self.robots, -1
+            )
 
     def _group_rewards(self, result: StepResult) -> tuple[np.ndarray, np.ndarray]:
+        if self.reward == "team":  # spec step 8's team reward, for every sub-group
+            return np.asarray(result.team_reward, np.float64)[:, None], self._reward_columns
         # spec step 8: a sub-group's reward is the sum of its robots' individual rewards
         return np.asarray(result.robot_reward, np.float64), self._reward_columns
