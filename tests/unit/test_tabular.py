@@ -380,6 +380,8 @@ OPTION_CASES = {
         "subg_cql/explore",
         {"target": "prior", "lcb": 2.0, "min_visits": 1},
     ),
+    "subg_cql/team": ("subg_cql/explore", {"reward": "team"}),
+    "subg_cql/time_to_free": ("subg_cql/explore", {"features": "time_to_free"}),
     "cql/lcb": ("cql/every_tick", {"lcb": 20.0}),
     "cql/prior_target": ("cql/every_tick", {"target": "prior"}),
     "semi_cql/prior_target": ("semi_cql/explore", {"target": "prior"}),
@@ -440,16 +442,21 @@ def test_uniforms_drawn_ahead_are_the_plain_stream():
     assert rng.random() == plain.random()
 
 
-def test_compiled_encodings_are_the_observation_codes():
+@pytest.mark.parametrize("features", ["paper", "time_to_free"])
+def test_compiled_encodings_are_the_observation_codes(features):
     system = paper_system("system2")
     env = AuctionEnv(system, batch_size=6, seed=3)
     groups = [np.array([0, 3, 5]), np.arange(10), np.array([9])]
-    group_encoder, local_encoder = GroupEncoder(env, groups), LocalEncoder(env)
+    group_encoder, local_encoder = GroupEncoder(env, groups, features), LocalEncoder(env)
     rng = np.random.default_rng(0)
+    seen = set()
     for _ in range(120):
         states, level = group_encoder.index(env)
         for g, robots in enumerate(groups):
-            np.testing.assert_array_equal(states[g], ob.group_state_index(env, robots))
+            codes = ob.group_state_index(env, robots, features)
+            np.testing.assert_array_equal(states[g], codes)
+            seen.update(ob._group_view(env, robots, features).decode(int(c))["robots"].count(3)
+                        for c in codes)  # fmt: skip
             types = env.active_tasks[robots].any(axis=0)
             np.testing.assert_array_equal(level[g], ob.recency_level(env, types))
         np.testing.assert_array_equal(local_encoder.index(env), ob.local_state_index(env))
@@ -457,6 +464,8 @@ def test_compiled_encodings_are_the_observation_codes():
         env.step(logits.argmax(axis=2))
         if env.done.any():
             env.reset()
+    if features == "time_to_free":  # busy robots free soon were met (robot state 3)
+        assert max(seen) > 0
 
 
 # ---------------------------------------------------------------- hand-computed eq. (3), per learn
@@ -659,6 +668,18 @@ def test_save_load_round_trip(cls, trio, tiny_params, tmp_path):
     other = DQLLearner if cls is not DQLLearner else CQLLearner
     with pytest.raises(ValueError):
         make(other, trio, tiny_params)[1].load(tmp_path)
+
+
+def test_subg_cql_time_to_free_learning_space(tiny_params):
+    """Two sub-groups of one robot and one type, K = 3: ``|S_g|`` is ``3^3 * 3 * 3`` (paper) and
+    ``3^3 * 4 * 3 * 3 * 3`` (time_to_free), each times ``|A| = 4`` and summed (eq. 16)."""
+    duo = build_system({"name": "duo", "robots": {"R1": ["T1"], "R2": ["T2"]}})
+    for features, per_group in (("paper", 27 * 3 * 3), ("time_to_free", 27 * 4 * 27)):
+        env, learner = make(SubGCQLLearner, duo, tiny_params, batch=4, features=features)
+        assert learner.learning_space()["analytic"] == 2 * per_group * 4
+        play(env, learner, 60)
+        states, _ = learner.encoder.index(env)
+        assert (states < per_group).all() and learner.learning_space()["visited"] > 0
 
 
 def test_subg_requires_partition_env(trio):

@@ -18,6 +18,7 @@ import numpy as np
 
 from mrta_rl.config import Choices, Range
 from mrta_rl.envs import AuctionEnv, StepResult
+from mrta_rl.envs.observations import FEATURES
 from mrta_rl.learners.tabular import group_kernels as kernels
 from mrta_rl.learners.tabular.base import NO_UNIFORMS, TabularLearner
 from mrta_rl.learners.tabular.encoding import GroupEncoder, env_arrays
@@ -97,12 +98,15 @@ class GroupQLearner(TabularLearner):
         if min_visits < 0:
             raise ValueError(f"min_visits must be >= 0, got {min_visits}")
 
-    def _set_groups(self, names: list[str], groups: list[list[int]]) -> None:
+    def _set_groups(
+        self, names: list[str], groups: list[list[int]], features: str = "paper"
+    ) -> None:
         env = self.env
+        self.features = features
         self.group_names = names
         self.groups = [np.asarray(g, np.int64) for g in groups]
         self.joint = [JointActions(len(g), self.n_actions) for g in groups]  # checks int64 codes
-        self.encoder = GroupEncoder(env, self.groups)  # checks the state counts fit int64
+        self.encoder = GroupEncoder(env, self.groups, features)  # checks the counts fit int64
         self.robots, self.size = self.encoder.robots, self.encoder.size
         self.order = np.zeros_like(self.robots)
         for g, robots in enumerate(self.groups):
@@ -212,10 +216,11 @@ class GroupQLearner(TabularLearner):
         block = self.uniforms.block(2 * n_groups * batch) if epsilon > 0.0 else NO_UNIFORMS
         used = kernels.tick_groups(
             *self._kernel_tables(), self.order, self._weight_by_type, *env_arrays(env),
-            *self.encoder.tables, mask, result is not None, rewards, columns, done, *pending,
-            epsilon, block, self.decisions_only, self._prior_code, self.prune_conflicts,
-            self.min_visits, self.lcb, self.prior_target, self.gamma, self.alpha,
-            self.alpha_power, self.alpha_min, *self._tick, actions, self._td_sum, self._td_count,
+            *self.encoder.tables, self.encoder.offset(env), mask, result is not None, rewards,
+            columns, done, *pending, epsilon, block, self.decisions_only, self._prior_code,
+            self.prune_conflicts, self.min_visits, self.lcb, self.prior_target, self.gamma,
+            self.alpha, self.alpha_power, self.alpha_min, *self._tick, actions, self._td_sum,
+            self._td_count,
         )  # fmt: skip
         if used < 0:  # the episode has ended
             self.uniforms.settle()
@@ -288,7 +293,9 @@ class GroupQLearner(TabularLearner):
 
     def learning_space(self) -> dict[str, int]:
         """Analytic dimension (eqs. 13-16) and the table entries updated at least once."""
-        analytic = learning_space_dimension(self.space_name, self.env, self.partition)
+        analytic = learning_space_dimension(
+            self.space_name, self.env, self.partition, self.features
+        )
         return {"analytic": analytic, "visited": self.storage.n_visited()}
 
     def _table_arrays(self) -> dict[str, np.ndarray]:
@@ -322,6 +329,9 @@ class SubGCQLLearner(GroupQLearner):
         reward: What each sub-group learns from (:data:`SUBG_REWARDS`): ``group``, the sum of
             its robots' individual rewards (the paper's); ``team``, the team reward of the tick
             (a sub-group is credited with what its choice does to the others' rewards too).
+        features: The group state's encoding (``observations.FEATURES``): ``paper`` (the
+            paper's) or ``time_to_free`` (adds when busy robots become free and the queued H and
+            L counts over ``T_g``, coarsely; docs/learners.md).
         **hyperparameters: See :class:`~mrta_rl.learners.tabular.base.TabularLearner`.
     """
 
@@ -332,7 +342,11 @@ class SubGCQLLearner(GroupQLearner):
     default_prior_order: ClassVar[str] = "fewest_types"
 
     def __init__(
-        self, *, reward: Annotated[str, Choices(*SUBG_REWARDS)] = "group", **hyperparameters
+        self,
+        *,
+        reward: Annotated[str, Choices(*SUBG_REWARDS)] = "group",
+        features: Annotated[str, Choices(*FEATURES)] = "paper",
+        **hyperparameters,
     ) -> None:
         super().__init__(**hyperparameters)
         self.reward = reward
@@ -348,6 +362,7 @@ class SubGCQLLearner(GroupQLearner):
         self._set_groups(
             list(group_map),
             [[robots.index(r) for r in rs] for rs in group_map.values()],
+            features,
         )
         if reward == "team":  # every group reads the one column of the team reward
             self._reward_columns = np.zeros((len(self.groups), 1), np.int64)
