@@ -380,6 +380,8 @@ OPTION_CASES = {
         "subg_cql/explore",
         {"target": "prior", "lcb": 2.0, "min_visits": 1},
     ),
+    "subg_cql/team": ("subg_cql/explore", {"reward": "team"}),
+    "subg_cql/time_to_free": ("subg_cql/explore", {"features": "time_to_free"}),
     "cql/lcb": ("cql/every_tick", {"lcb": 20.0}),
     "cql/prior_target": ("cql/every_tick", {"target": "prior"}),
     "semi_cql/prior_target": ("semi_cql/explore", {"target": "prior"}),
@@ -440,16 +442,21 @@ def test_uniforms_drawn_ahead_are_the_plain_stream():
     assert rng.random() == plain.random()
 
 
-def test_compiled_encodings_are_the_observation_codes():
+@pytest.mark.parametrize("features", ["paper", "time_to_free"])
+def test_compiled_encodings_are_the_observation_codes(features):
     system = paper_system("system2")
     env = AuctionEnv(system, batch_size=6, seed=3)
     groups = [np.array([0, 3, 5]), np.arange(10), np.array([9])]
-    group_encoder, local_encoder = GroupEncoder(env, groups), LocalEncoder(env)
+    group_encoder, local_encoder = GroupEncoder(env, groups, features), LocalEncoder(env)
     rng = np.random.default_rng(0)
+    seen = set()
     for _ in range(120):
         states, level = group_encoder.index(env)
         for g, robots in enumerate(groups):
-            np.testing.assert_array_equal(states[g], ob.group_state_index(env, robots))
+            codes = ob.group_state_index(env, robots, features)
+            np.testing.assert_array_equal(states[g], codes)
+            seen.update(ob._group_view(env, robots, features).decode(int(c))["robots"].count(3)
+                        for c in codes)  # fmt: skip
             types = env.active_tasks[robots].any(axis=0)
             np.testing.assert_array_equal(level[g], ob.recency_level(env, types))
         np.testing.assert_array_equal(local_encoder.index(env), ob.local_state_index(env))
@@ -457,6 +464,8 @@ def test_compiled_encodings_are_the_observation_codes():
         env.step(logits.argmax(axis=2))
         if env.done.any():
             env.reset()
+    if features == "time_to_free":  # busy robots free soon were met (robot state 3)
+        assert max(seen) > 0
 
 
 # ---------------------------------------------------------------- hand-computed eq. (3), per learn
@@ -521,6 +530,35 @@ def test_hand_computed_q_update(cls, target, trio, tiny_params):
         assert result.robot_reward[0, 1] == 10.0
         learner.update(view, actions, result, next_view, next_mask)
         assert learner.q[entry] == pytest.approx(1.0 + alpha * (10.0 + gamma * next_max - 1.0))
+
+
+@pytest.mark.parametrize(("reward", "learned"), [("group", [10.0, 2.0]), ("team", [12.0, 12.0])])
+def test_subg_cql_reward_group_or_team(reward, learned, tiny_params):
+    """``reward``: each sub-group learns from its robots' rewards (group) or the team's (team).
+
+    Two sub-groups of one robot each; R1 wins an H task of T1 (10), R2 an L task of T2 (2), in
+    the fused training tick. From Q = 0 and a new next state (Q = 0): ``Q(s, a) = alpha r``
+    with ``r`` 10 and 2 (group), 12 for both (team).
+    """
+    duo = build_system({"name": "duo", "robots": {"R1": ["T1"], "R2": ["T2"]}})
+    alpha = 0.5
+    env, learner = make(
+        SubGCQLLearner, duo, tiny_params, batch=1, alpha=alpha, decisions_only=False,
+        epsilon_start=0.0, epsilon_end=0.0, prior="spread", reward=reward,
+    )  # fmt: skip
+    assert [list(rs) for rs in learner.groups] == [[0], [1]]
+    env.inject_tasks(0, [
+        {"type": 0, "high": 1, "due": 0, "id": 0, "duration": 5},
+        {"type": 1, "high": 0, "due": 0, "id": 1, "duration": 5},
+    ])  # fmt: skip
+    actions = learner.train_tick(env, None)
+    slot = {int(t): k + 1 for k, t in enumerate(env.slot_type[0]) if t >= 0}
+    assert actions.tolist() == [[slot[0], slot[1]]]  # each robot bids for its type's task
+    entries = learner._tick[4][:, 0].copy()  # the entry each group chose
+    result = env.step(actions)
+    assert result.robot_reward[0].tolist() == [10.0, 2.0]  # spec step 8
+    learner.train_tick(env, result)
+    assert learner.storage.q[entries].tolist() == pytest.approx([alpha * r for r in learned])
 
 
 # ------------------------------------------------------------------ masking, ties, persistence
@@ -630,6 +668,18 @@ def test_save_load_round_trip(cls, trio, tiny_params, tmp_path):
     other = DQLLearner if cls is not DQLLearner else CQLLearner
     with pytest.raises(ValueError):
         make(other, trio, tiny_params)[1].load(tmp_path)
+
+
+def test_subg_cql_time_to_free_learning_space(tiny_params):
+    """Two sub-groups of one robot and one type, K = 3: ``|S_g|`` is ``3^3 * 3 * 3`` (paper) and
+    ``3^3 * 4 * 3 * 3 * 3`` (time_to_free), each times ``|A| = 4`` and summed (eq. 16)."""
+    duo = build_system({"name": "duo", "robots": {"R1": ["T1"], "R2": ["T2"]}})
+    for features, per_group in (("paper", 27 * 3 * 3), ("time_to_free", 27 * 4 * 27)):
+        env, learner = make(SubGCQLLearner, duo, tiny_params, batch=4, features=features)
+        assert learner.learning_space()["analytic"] == 2 * per_group * 4
+        play(env, learner, 60)
+        states, _ = learner.encoder.index(env)
+        assert (states < per_group).all() and learner.learning_space()["visited"] > 0
 
 
 def test_subg_requires_partition_env(trio):

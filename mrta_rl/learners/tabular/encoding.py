@@ -10,6 +10,13 @@ recency rule (:func:`recency`) ``observations.RECENCY_THRESHOLDS``.
 A new digit of an encoding plugs in as one more place value: ``observations`` adds it to the
 view's radices (and its count), computes the digit for all copies, and the encoder adds
 ``digit * place`` in its loop (one more input array).
+
+The group encoder takes the view's ``features`` (``observations.FEATURES``): with
+``time_to_free``, :meth:`GroupEncoder.offset` computes the extra digits (a busy robot free
+within ``FREE_SOON`` ticks reads robot state 3; queued H and L levels over ``T_g``) with the
+numpy functions of ``observations`` and adds them as ``[G, B]`` offsets to the paper-era codes
+of :func:`encode_groups`, so the compiled loop is the paper one (and semi-CQL's whole-system
+state, which calls it directly, is unchanged).
 """
 
 from __future__ import annotations
@@ -20,7 +27,14 @@ import numpy as np
 from numba import njit
 
 from mrta_rl.envs import AuctionEnv
-from mrta_rl.envs.observations import RECENCY_THRESHOLDS, GroupView, LocalView, battery_margin
+from mrta_rl.envs.observations import (
+    RECENCY_THRESHOLDS,
+    GroupView,
+    LocalView,
+    battery_margin,
+    free_level,
+    queue_level,
+)
 
 _THRESHOLDS = np.array(RECENCY_THRESHOLDS, np.int64)
 
@@ -112,13 +126,17 @@ class GroupEncoder:
     Args:
         env: The env (its slots, types and active tasks fix the tables).
         groups: Robot indices of each group, in the order of its digits.
+        features: ``paper`` or ``time_to_free`` (``observations.FEATURES``).
 
     Raises:
         OverflowError: if a group's state count does not fit in int64.
     """
 
-    def __init__(self, env: AuctionEnv, groups: Sequence[np.ndarray]) -> None:
-        views = [GroupView(env, g) for g in groups]
+    def __init__(
+        self, env: AuctionEnv, groups: Sequence[np.ndarray], features: str = "paper"
+    ) -> None:
+        views = [GroupView(env, g, features) for g in groups]
+        self.features = features
         for view in views:
             if not view.fits_int64:
                 raise OverflowError(
@@ -136,11 +154,29 @@ class GroupEncoder:
         self._slot_places = np.stack([v._slot_places for v in views])  # [G, K]
         self._recency_place = np.array([v._recency_place for v in views], np.int64)
         self.types = np.stack([v.types_mask for v in views])  # T_g, [G, n]
+        # time_to_free: robot state 3 (busy, free soon) is the busy state 0 plus 3 places; queue
+        # places (H, L) follow the recency digit (observations.GroupView)
+        self._soon_places = 3 * self._robot_places  # 0 on padding
+        if features == "time_to_free":
+            self._queue_places = np.stack([v._queue_places for v in views])  # [G, 2]
+        self._zeros = np.zeros((len(groups), 0), np.int64)  # paper: no offset (per batch size)
         # the arguments of encode_groups after the env's
         self.tables = (
             *_battery_rule(env), self._codes, self._slot_places, self.robots, self.size,
             self._robot_places, self._recency_place, self.types, _THRESHOLDS,
         )  # fmt: skip
+
+    def offset(self, env: AuctionEnv) -> np.ndarray:
+        """``[G, B]`` what the features add to the paper codes of :func:`encode_groups` (0s)."""
+        if self.features == "paper":
+            if self._zeros.shape[1] != env.batch_size:
+                self._zeros = np.zeros((len(self.size), env.batch_size), np.int64)
+            return self._zeros
+        soon = free_level(env)[:, self.robots] == 1  # [B, G, widest]
+        offset = (soon * self._soon_places).sum(axis=2).T
+        queue = queue_level(env, self.types)  # [B, G, 2] (H, L)
+        offset += np.einsum("bgp,gp->gb", queue, self._queue_places)
+        return np.ascontiguousarray(offset)
 
     def index(self, env: AuctionEnv) -> tuple[np.ndarray, np.ndarray]:
         """``([G, B] state indices, [G, B] recency levels over T_g)``."""
@@ -148,6 +184,8 @@ class GroupEncoder:
         states = np.empty((n_groups, batch), np.int64)
         level = np.empty((n_groups, batch), np.int64)
         encode_groups(*env_arrays(env), *self.tables, states, level)
+        if self.features != "paper":
+            states += self.offset(env)
         return states, level
 
 

@@ -324,19 +324,21 @@ def update_groups(
 def tick_groups(
     table, rows, entries, q, sizes, order, weight_by_type, slot_type, slot_high, idle, battery,
     t, last_high, margin, threshold, codes, slot_places, robots, size, robot_places,
-    recency_place, types, thresholds, mask, learn, rewards, reward_columns, done, pending_entry,
-    pending_return, pending_discount, epsilon, uniforms, decisions_only, prior, prune,
-    min_visits, lcb, prior_target, gamma, alpha, alpha_power, alpha_min, states, level, hold,
+    recency_place, types, thresholds, offset, mask, learn, rewards, reward_columns, done,
+    pending_entry, pending_return, pending_discount, epsilon, uniforms, decisions_only, prior,
+    prune, min_visits, lcb, prior_target, gamma, alpha, alpha_power, alpha_min, states, level, hold,
     row_out, entry_out, actions, td_sum, td_count,
 ):  # fmt: skip
     """One training tick in one call: encode the new state, eq. (3), act in it.
 
     Exactly :func:`~mrta_rl.learners.tabular.encoding.encode_groups` (``states``, ``level``,
-    and ``hold = level == 0``), then, if ``learn``, :func:`update_groups` with the entries
-    ``entry_out`` chosen at the previous tick and this tick's rewards, then, unless a copy is
-    ``done`` (the episode has ended), :func:`act_groups` (``row_out``, ``entry_out``,
-    ``actions``): the calls of ``encode`` / ``update`` / ``act`` of the training loop, in the
-    same order, with the same draws. Returns the number of uniforms used, or -1 without acting.
+    and ``hold = level == 0``) plus ``offset`` ``[G, B]`` (``GroupEncoder.offset``: the digits
+    of the ``time_to_free`` features; 0 for the paper's), then, if ``learn``,
+    :func:`update_groups` with the entries ``entry_out`` chosen at the previous tick and this
+    tick's rewards, then, unless a copy is ``done`` (the episode has ended), :func:`act_groups`
+    (``row_out``, ``entry_out``, ``actions``): the calls of ``encode`` / ``update`` / ``act``
+    of the training loop, in the same order, with the same draws. Returns the number of
+    uniforms used, or -1 without acting.
     """
     encode_groups(
         slot_type, slot_high, idle, battery, t, last_high, margin, threshold, codes, slot_places,
@@ -344,6 +346,7 @@ def tick_groups(
     )  # fmt: skip
     for g in range(states.shape[0]):
         for b in range(states.shape[1]):
+            states[g, b] += offset[g, b]
             hold[g, b] = level[g, b] == 0
     if learn:
         update_groups(

@@ -18,6 +18,7 @@ import numpy as np
 
 from mrta_rl.config import Choices, Range
 from mrta_rl.envs import AuctionEnv, StepResult
+from mrta_rl.envs.observations import FEATURES
 from mrta_rl.learners.tabular import group_kernels as kernels
 from mrta_rl.learners.tabular.base import NO_UNIFORMS, TabularLearner
 from mrta_rl.learners.tabular.encoding import GroupEncoder, env_arrays
@@ -25,6 +26,10 @@ from mrta_rl.learners.tabular.joint_actions import JointActions, max_valid_joint
 from mrta_rl.learners.tabular.priors import PRIOR_CODES, PRIOR_ORDERS, PRIORS, spread_order
 from mrta_rl.learners.tabular.qtable import TABLE_KEYS, JointQStorage
 from mrta_rl.metrics.learning_space import learning_space_dimension
+
+# what each sub-group's eq. (3) learns from (docs/learners.md, "Credit"): ``group``, the sum of
+# its robots' rewards (spec step 8, the paper's); ``team``, the team reward of the tick
+SUBG_REWARDS = ("group", "team")
 
 
 @dataclass
@@ -93,12 +98,15 @@ class GroupQLearner(TabularLearner):
         if min_visits < 0:
             raise ValueError(f"min_visits must be >= 0, got {min_visits}")
 
-    def _set_groups(self, names: list[str], groups: list[list[int]]) -> None:
+    def _set_groups(
+        self, names: list[str], groups: list[list[int]], features: str = "paper"
+    ) -> None:
         env = self.env
+        self.features = features
         self.group_names = names
         self.groups = [np.asarray(g, np.int64) for g in groups]
         self.joint = [JointActions(len(g), self.n_actions) for g in groups]  # checks int64 codes
-        self.encoder = GroupEncoder(env, self.groups)  # checks the state counts fit int64
+        self.encoder = GroupEncoder(env, self.groups, features)  # checks the counts fit int64
         self.robots, self.size = self.encoder.robots, self.encoder.size
         self.order = np.zeros_like(self.robots)
         for g, robots in enumerate(self.groups):
@@ -208,10 +216,11 @@ class GroupQLearner(TabularLearner):
         block = self.uniforms.block(2 * n_groups * batch) if epsilon > 0.0 else NO_UNIFORMS
         used = kernels.tick_groups(
             *self._kernel_tables(), self.order, self._weight_by_type, *env_arrays(env),
-            *self.encoder.tables, mask, result is not None, rewards, columns, done, *pending,
-            epsilon, block, self.decisions_only, self._prior_code, self.prune_conflicts,
-            self.min_visits, self.lcb, self.prior_target, self.gamma, self.alpha,
-            self.alpha_power, self.alpha_min, *self._tick, actions, self._td_sum, self._td_count,
+            *self.encoder.tables, self.encoder.offset(env), mask, result is not None, rewards,
+            columns, done, *pending, epsilon, block, self.decisions_only, self._prior_code,
+            self.prune_conflicts, self.min_visits, self.lcb, self.prior_target, self.gamma,
+            self.alpha, self.alpha_power, self.alpha_min, *self._tick, actions, self._td_sum,
+            self._td_count,
         )  # fmt: skip
         if used < 0:  # the episode has ended
             self.uniforms.settle()
@@ -284,7 +293,9 @@ class GroupQLearner(TabularLearner):
 
     def learning_space(self) -> dict[str, int]:
         """Analytic dimension (eqs. 13-16) and the table entries updated at least once."""
-        analytic = learning_space_dimension(self.space_name, self.env, self.partition)
+        analytic = learning_space_dimension(
+            self.space_name, self.env, self.partition, self.features
+        )
         return {"analytic": analytic, "visited": self.storage.n_visited()}
 
     def _table_arrays(self) -> dict[str, np.ndarray]:
@@ -315,6 +326,12 @@ class SubGCQLLearner(GroupQLearner):
         prior: Tie-break joint action of untried states (``priors.PRIORS``, docs/learners.md).
         min_visits: Updates an entry needs before it competes with the prior.
         prior_order: Which idle robot the spread priors ask first (default ``fewest_types``).
+        reward: What each sub-group learns from (:data:`SUBG_REWARDS`): ``group``, the sum of
+            its robots' individual rewards (the paper's); ``team``, the team reward of the tick
+            (a sub-group is credited with what its choice does to the others' rewards too).
+        features: The group state's encoding (``observations.FEATURES``): ``paper`` (the
+            paper's) or ``time_to_free`` (adds when busy robots become free and the queued H and
+            L counts over ``T_g``, coarsely; docs/learners.md).
         **hyperparameters: See :class:`~mrta_rl.learners.tabular.base.TabularLearner`.
     """
 
@@ -324,8 +341,15 @@ class SubGCQLLearner(GroupQLearner):
     # a sub-group keeps its versatile robots free for the types only they can do (docs/learners.md)
     default_prior_order: ClassVar[str] = "fewest_types"
 
-    def __init__(self, **hyperparameters) -> None:
+    def __init__(
+        self,
+        *,
+        reward: Annotated[str, Choices(*SUBG_REWARDS)] = "group",
+        features: Annotated[str, Choices(*FEATURES)] = "paper",
+        **hyperparameters,
+    ) -> None:
         super().__init__(**hyperparameters)
+        self.reward = reward
         env, partition = self.env, self.partition
         assert partition is not None  # checked by Learner.__init__
         expected = partition.active_tasks(env.system)
@@ -338,11 +362,17 @@ class SubGCQLLearner(GroupQLearner):
         self._set_groups(
             list(group_map),
             [[robots.index(r) for r in rs] for rs in group_map.values()],
+            features,
         )
-        self._reward_columns = np.where(  # the group's robots, -1 padded
-            np.arange(self.robots.shape[1]) < self.size[:, None], self.robots, -1
-        )
+        if reward == "team":  # every group reads the one column of the team reward
+            self._reward_columns = np.zeros((len(self.groups), 1), np.int64)
+        else:  # the group's robots, -1 padded
+            self._reward_columns = np.where(
+                np.arange(self.robots.shape[1]) < self.size[:, None], self.robots, -1
+            )
 
     def _group_rewards(self, result: StepResult) -> tuple[np.ndarray, np.ndarray]:
+        if self.reward == "team":  # spec step 8's team reward, for every sub-group
+            return np.asarray(result.team_reward, np.float64)[:, None], self._reward_columns
         # spec step 8: a sub-group's reward is the sum of its robots' individual rewards
         return np.asarray(result.robot_reward, np.float64), self._reward_columns
