@@ -43,11 +43,11 @@ def test_planner_plays_valid_deterministic_episodes():
     assert (other != first).any()  # the candidates matter
 
 
-@pytest.mark.parametrize("hp", [{"horizon": 0}, {"candidates": ["hold"]}])
+@pytest.mark.parametrize("hp", [{"horizon": 0}, {"candidates": ["hold_group"]}])
 def test_no_planning_plays_the_base_rule(hp):
     planner, env = make(**hp)
-    # "hold": the best team_reserve of System-I (a robot's own recency), not the group's
-    base = TeamReserveLearner(env=env, rng=np.random.default_rng(1), hold_scope="robot")
+    # the default base "hold_group": L waits on the whole team's recency (not the best rule)
+    base = TeamReserveLearner(env=env, rng=np.random.default_rng(1), hold_scope="group")
     ours, theirs = play(planner, env, base)
     np.testing.assert_array_equal(ours, theirs)
     assert planner.decisions == 0
