@@ -30,6 +30,7 @@ from mrta_rl.metrics.resources import RunResources
 from mrta_rl.partition import Partition
 from mrta_rl.runners.checkpoint import (
     CHECKPOINT_DIR,
+    EVAL_METRICS_FILE,
     LEARNER_DIR,
     METRICS_FILE,
     REFUSED_FILE,
@@ -274,5 +275,5 @@ def evaluate_checkpoint(checkpoint: Path | str, episodes: int | None = None) -> 
         **evaluate_run(run, cfg),
         "learning_space": {k: int(v) for k, v in run.learner.learning_space().items()},
     }
-    write_json(run_dir / "eval_metrics.json", metrics)
+    write_json(run_dir / EVAL_METRICS_FILE, metrics)
     return metrics
