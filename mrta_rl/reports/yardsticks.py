@@ -396,7 +396,7 @@ def _start_markdown(by_system: dict[str, list[Policy]]) -> list[str]:
             f"{np.mean(c.start.means):.1f}",
             f"{c.trained.over_seeds.format(1)} ({len(c.trained.means)})",
             f"{_fmt(c.paired)} ({c.episodes})" if c.episodes else "–",
-            c.over_seeds.format(1) if c.over_seeds.n else "–",
+            _signed(c.over_seeds),
             c.verdict,
         ]
         for system, c in comparisons
@@ -411,6 +411,13 @@ def _start_markdown(by_system: dict[str, list[Policy]]) -> list[str]:
         markdown_table(header, rows),
         "",
     ]
+
+
+def _signed(value: MeanCI) -> str:
+    """``"+19.7 ± 5.7"``; ``"+19.7"`` for one value; ``"–"`` for none."""
+    if value.n == 0:
+        return "–"
+    return f"{value.mean:+.1f}" + (f" ± {value.ci95:.1f}" if value.n > 1 else "")
 
 
 def _round(value: float) -> float | str:
