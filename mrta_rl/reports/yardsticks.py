@@ -431,8 +431,10 @@ def _fmt(diff: MeanCI) -> str:
     return f"{diff.mean:+.1f} ± {diff.ci95:.1f}{mark}"
 
 
-def section_markdown(by_system: dict[str, list[Policy]], figure: Path | None) -> str:
-    """The section's text: one table per system and the figure."""
+def section_markdown(
+    by_system: dict[str, list[Policy]], figure: Path | None, start_plot: Path | None = None
+) -> str:
+    """The section's text: one table per system, its figure, the start table and its figure."""
     md = [
         f"## {TITLE}",
         "",
@@ -462,9 +464,11 @@ def section_markdown(by_system: dict[str, list[Policy]], figure: Path | None) ->
                 ]
             )
         md += [f"### {system_label(system)}", "", markdown_table(header, rows), ""]
-    md += _start_markdown(by_system)
     if figure is not None:
         md += [f"![{TITLE}]({figure.name})", ""]
+    md += _start_markdown(by_system)
+    if start_plot is not None:
+        md += [f"![Does training beat its own start?]({start_plot.name})", ""]
     return "\n".join(md)
 
 
@@ -497,14 +501,35 @@ def difference_figure(by_system: dict[str, list[Policy]], path: Path) -> Path | 
         y = np.arange(len(items))[::-1]
         means = np.array([d.mean for _, d in items])
         errs = np.array([0.0 if math.isnan(d.ci95) else d.ci95 for _, d in items])
-        colors = [
-            "tab:green" if d.low > 0 else "tab:red" if d.high < 0 else "tab:gray" for _, d in items
-        ]
+        colors = [_color(d) for _, d in items]
         ax.barh(y, means, xerr=errs, color=colors, alpha=0.8, capsize=3)
         ax.axvline(0.0, color="black", linewidth=0.8)
         ax.set_yticks(y, [n for n, _ in items], fontsize=8)
-        ax.set_xlabel(f"paired difference to {ref.name} (team return per episode)")
+        ax.set_xlabel(f"paired difference to {ref.name}\n(team return per episode)")
         ax.set_title(f"{system_label(system)}: {ref.name} = {ref.over_seeds.mean:.1f}", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    return path
+
+
+def start_figure(by_system: dict[str, list[Policy]], path: Path) -> Path | None:
+    """Trained - untrained, paired over episodes with 95 % intervals: one bar per learner/system."""
+    from matplotlib.figure import Figure
+
+    comparisons = [(s, c) for s, c in start_comparisons(by_system) if c.episodes]
+    if not comparisons:
+        return None
+    fig = Figure(figsize=(7.0, len(comparisons) * 0.32 + 1.4))
+    ax = fig.add_subplot(1, 1, 1)
+    y = np.arange(len(comparisons))[::-1]
+    diffs = [c.paired for _, c in comparisons]
+    errs = [0.0 if math.isnan(d.ci95) else d.ci95 for d in diffs]
+    ax.barh(y, [d.mean for d in diffs], xerr=errs, color=[_color(d) for d in diffs], capsize=3)
+    ax.axvline(0.0, color="black", linewidth=0.8)
+    labels = [f"{c.trained.name}, {system_label(s)}" for s, c in comparisons]
+    ax.set_yticks(y, labels, fontsize=8)
+    ax.set_xlabel("trained − untrained, paired over evaluation episodes (team return)")
+    ax.set_title("Does training beat its own start? (95 % t intervals)", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     return path
@@ -532,4 +557,7 @@ def write_section(runs: Sequence[RunRecord], out_dir: Path) -> tuple[str, dict[s
     figure = difference_figure(by_system, out_dir / "yardsticks.png")
     if figure is not None:
         files["yardsticks_png"] = figure
-    return section_markdown(by_system, figure), files
+    start = start_figure(by_system, out_dir / "yardsticks_start.png")
+    if start is not None:
+        files["yardsticks_start_png"] = start
+    return section_markdown(by_system, figure, start), files

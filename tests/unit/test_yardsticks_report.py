@@ -124,6 +124,7 @@ def test_start_table_by_hand(tmp_path):
     md, files = write_section(RUNS, tmp_path)
     assert "### Does training beat its own start?" in md
     assert "| +2.3 ± 4.2 | yes |" in md  # over seeds: 7/3 ± 12.706 * 0.4714 / sqrt(2)
+    assert files["yardsticks_start_png"].is_file() and "(yardsticks_start.png)" in md
     rows = list(csv.DictReader(files["yardsticks_start"].open()))
     assert [r["policy"] for r in rows] == ["subG-CQL", "subG-CQL [time_to_free]"]
     assert float(rows[0]["untrained"]) == 20.0 and rows[0]["met"] == "yes"
