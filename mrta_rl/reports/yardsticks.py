@@ -528,7 +528,7 @@ def start_figure(by_system: dict[str, list[Policy]], path: Path) -> Path | None:
     ax.axvline(0.0, color="black", linewidth=0.8)
     labels = [f"{c.trained.name}, {system_label(s)}" for s, c in comparisons]
     ax.set_yticks(y, labels, fontsize=8)
-    ax.set_xlabel("trained − untrained, paired over evaluation episodes (team return)")
+    ax.set_xlabel("trained − untrained, paired over the evaluation episodes\n(team return)")
     ax.set_title("Does training beat its own start? (95 % t intervals)", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
