@@ -1,6 +1,7 @@
 """Re-evaluate a finished training run and write eval_metrics.json in its run dir.
 
-Usage: ``python scripts/evaluate.py checkpoint=outputs/<date>/<time>_<learner>_<id> [episodes=50]``.
+Usage: ``python scripts/evaluate.py checkpoint=outputs/<date>/<time>_<learner>_<id> [episodes=50]
+[batch_size=50]``.
 The run dir is read as data (``mrta_rl/runners/checkpoint.py``): a tampered config or damaged
 tables are refused with a message naming the key or file.
 """
@@ -16,7 +17,9 @@ from mrta_rl.runners import cli, evaluate_checkpoint, format_summary
 @hydra.main(config_path="../conf", config_name="evaluate", version_base=None)
 @cli.job
 def main(cfg: DictConfig) -> None:
-    metrics = evaluate_checkpoint(hydra.utils.to_absolute_path(cfg.checkpoint), cfg.episodes)
+    metrics = evaluate_checkpoint(
+        hydra.utils.to_absolute_path(cfg.checkpoint), cfg.episodes, cfg.batch_size
+    )
     print(format_summary(metrics))
 
 

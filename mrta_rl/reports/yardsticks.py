@@ -16,11 +16,23 @@ evaluation-stream noise, which the pairing removes from the comparison; the spre
 seeds is reported next to it (the learner's own interval over seeds). Runs need the
 per-episode returns (``team_return.per_episode`` in ``metrics.json``); older runs without them
 are left out of the paired columns.
+
+A run re-evaluated with ``scripts/evaluate.py`` (for instance on more episodes:
+``episodes=100``) is scored on that re-evaluation: its ``eval_metrics.json`` replaces the
+evaluation and greedy blocks of ``metrics.json`` (the training block stays). Greedy is taken from
+the run of the system with the most evaluation episodes; policies evaluated on another number of
+episodes than a yardstick show no paired difference with it ("–").
+
+A second table, "Does training beat its own start?", gives per trained learner its untrained
+return, the trained mean over seeds, and trained - untrained twice: paired over the evaluation
+episodes and over the training seeds (each seed's mean minus the untrained mean), with the verdict
+of issue 10's acceptance 2 (the paired interval above zero).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 from collections import defaultdict
 from collections.abc import Sequence
@@ -34,6 +46,7 @@ from mrta_rl.reports.aggregate import learner_label, system_label
 from mrta_rl.reports.collect import RunRecord, configuration_variants
 from mrta_rl.reports.stats import MeanCI, mean_ci
 from mrta_rl.reports.tables import markdown_table, write_csv
+from mrta_rl.runners.checkpoint import EVAL_METRICS_FILE
 
 TITLE = "Learning against the rules"
 RULES = ("team_reserve", "rollout")  # the yardstick rules of issue 10 (fixed learners)
@@ -41,6 +54,21 @@ GREEDY = "greedy"
 BEST_RESERVE = "team_reserve (best)"
 RESERVE_KEYS = ("reserve", "hold_level", "hold_scope", "grouping", "order")
 CSV_HEADER = ["system", "policy", "seeds", "mean", "ci95_seeds", "versus", "diff", "diff_ci95"]
+START_HEADER = [
+    "system",
+    "policy",
+    "episodes",
+    "untrained",
+    "seeds",
+    "trained",
+    "trained_ci95",
+    "paired_diff",
+    "paired_ci95",
+    "seeds_diff",
+    "seeds_ci95",
+    "met",
+]
+EVALUATION_BLOCKS = ("eval", "baseline_greedy")  # what a re-evaluation replaces
 
 
 @dataclass
@@ -92,6 +120,27 @@ def _per_episode(block: dict[str, Any]) -> np.ndarray:
     return np.array([math.nan if v is None else v for v in values], float)
 
 
+def with_reevaluation(run: RunRecord) -> RunRecord:
+    """The run scored on its re-evaluation (``eval_metrics.json``) if it has one (module docstring).
+
+    Raises:
+        ValueError: if ``eval_metrics.json`` is not a re-evaluation (names the file and the key).
+    """
+    path = Path(run.run_dir) / EVAL_METRICS_FILE
+    if not path.is_file():
+        return run
+    again = json.loads(path.read_text())
+    missing = [k for k in EVALUATION_BLOCKS if k not in again]
+    if missing:
+        raise ValueError(f"{path}: not a re-evaluation of scripts/evaluate.py, no {missing}")
+    metrics = {**run.metrics, **{k: again[k] for k in EVALUATION_BLOCKS}}
+    return dataclasses.replace(run, metrics=metrics)
+
+
+def _episodes(block: dict[str, Any]) -> int:
+    return len((block.get("team_return") or {}).get("per_episode") or [])
+
+
 def _kind(run: RunRecord) -> str:
     """``"rule"`` (a fixed policy: no learning space), ``"untrained"`` or ``"trained"``."""
     if not run.metrics.get("learning_space"):
@@ -127,6 +176,7 @@ def collect_policies(runs: Sequence[RunRecord]) -> dict[str, list[Policy]]:
     """
     if not any(_base(r) in RULES or _kind(r) == "untrained" for r in runs):
         return {}
+    runs = [with_reevaluation(r) for r in runs]
     # trained configurations are told apart among the trained runs only: the settings in which
     # an untrained run differs (train.episodes, learning rates...) do not change its policy
     trained = [r for r in runs if _kind(r) == "trained"]
@@ -139,8 +189,12 @@ def collect_policies(runs: Sequence[RunRecord]) -> dict[str, list[Policy]]:
     )
     groups: dict[tuple[str, str, str, str], list[RunRecord]] = defaultdict(list)
     greedy: dict[str, RunRecord] = {}
-    for run in runs:
-        greedy.setdefault(run.system, run)
+    for run in runs:  # greedy of the run with the most evaluation episodes (the first on ties)
+        known = greedy.get(run.system)
+        if known is None or _episodes(run.metrics["baseline_greedy"]) > _episodes(
+            known.metrics["baseline_greedy"]
+        ):
+            greedy[run.system] = run
         learner = _base(run)
         if learner == GREEDY:
             continue
@@ -250,6 +304,122 @@ def section_rows(by_system: dict[str, list[Policy]]) -> list[list[Any]]:
     return rows
 
 
+@dataclass(frozen=True)
+class StartComparison:
+    """A trained policy against its untrained start (acceptance 2 of issue 10).
+
+    Attributes:
+        trained: The trained policy (one run per training seed).
+        start: Its untrained starting policy.
+        paired: Trained (mean over seeds) - untrained per evaluation episode, over episodes.
+        over_seeds: Each seed's mean return - the untrained mean return, over seeds.
+    """
+
+    trained: Policy
+    start: Policy
+    paired: MeanCI
+    over_seeds: MeanCI
+
+    @property
+    def episodes(self) -> int:
+        """Evaluation episodes of the paired difference (0 if unpaired)."""
+        return self.paired.n
+
+    @property
+    def verdict(self) -> str:
+        """``yes`` (paired interval above zero), ``over seeds only``, ``no (below)`` or ``no``."""
+        if self.paired.low > 0:
+            return "yes"
+        if self.paired.high < 0:
+            return "no (below)"
+        if self.over_seeds.low > 0:
+            return "over seeds only"
+        return "no"
+
+
+def start_comparisons(by_system: dict[str, list[Policy]]) -> list[tuple[str, StartComparison]]:
+    """``(system, comparison)`` for every trained policy that has an untrained start."""
+    out = []
+    for system, policies in by_system.items():
+        for p in policies:
+            start = _starting(p, policies)
+            if start is None:
+                continue
+            untrained = float(np.mean(start.means))
+            paired = paired_difference(p.per_episode, start.per_episode)
+            seeds = mean_ci([m - untrained for m in p.means])
+            out.append((system, StartComparison(p, start, paired, seeds)))
+    return out
+
+
+def start_rows(by_system: dict[str, list[Policy]]) -> list[list[Any]]:
+    """CSV rows of :func:`start_comparisons` (:data:`START_HEADER`)."""
+    rows = []
+    for system, c in start_comparisons(by_system):
+        trained = c.trained.over_seeds
+        rows.append(
+            [
+                system,
+                c.trained.name,
+                c.episodes,
+                round(float(np.mean(c.start.means)), 3),
+                trained.n,
+                round(trained.mean, 3),
+                _round(trained.ci95),
+                _round(c.paired.mean),
+                _round(c.paired.ci95),
+                _round(c.over_seeds.mean),
+                _round(c.over_seeds.ci95),
+                c.verdict,
+            ]
+        )
+    return rows
+
+
+def _start_markdown(by_system: dict[str, list[Policy]]) -> list[str]:
+    comparisons = start_comparisons(by_system)
+    if not comparisons:
+        return []
+    header = [
+        "learner",
+        "system",
+        "untrained",
+        "trained (seeds)",
+        "trained − untrained, paired over episodes",
+        "over seeds",
+        "met?",
+    ]
+    rows = [
+        [
+            c.trained.name,
+            system_label(system),
+            f"{np.mean(c.start.means):.1f}",
+            f"{c.trained.over_seeds.format(1)} ({len(c.trained.means)})",
+            f"{_fmt(c.paired)} ({c.episodes})" if c.episodes else "–",
+            _signed(c.over_seeds),
+            c.verdict,
+        ]
+        for system, c in comparisons
+    ]
+    return [
+        "### Does training beat its own start?",
+        "",
+        "Trained − untrained: paired over the evaluation episodes (their number in parentheses), "
+        "and over the training seeds (each seed's mean return minus the untrained return); "
+        "met: the paired interval is above zero.",
+        "",
+        markdown_table(header, rows),
+        "",
+    ]
+
+
+def _signed(value: MeanCI) -> str:
+    """``"+19.7 ± 5.7"``; ``"+19.7"`` for one value; ``"–"`` for none."""
+    if value.n == 0:
+        return "–"
+    return f"{value.mean:+.1f}" + (f" ± {value.ci95:.1f}" if value.n > 1 else "")
+
+
 def _round(value: float) -> float | str:
     return "" if math.isnan(value) else round(value, 3)
 
@@ -261,8 +431,10 @@ def _fmt(diff: MeanCI) -> str:
     return f"{diff.mean:+.1f} ± {diff.ci95:.1f}{mark}"
 
 
-def section_markdown(by_system: dict[str, list[Policy]], figure: Path | None) -> str:
-    """The section's text: one table per system and the figure."""
+def section_markdown(
+    by_system: dict[str, list[Policy]], figure: Path | None, start_plot: Path | None = None
+) -> str:
+    """The section's text: one table per system, its figure, the start table and its figure."""
     md = [
         f"## {TITLE}",
         "",
@@ -294,6 +466,9 @@ def section_markdown(by_system: dict[str, list[Policy]], figure: Path | None) ->
         md += [f"### {system_label(system)}", "", markdown_table(header, rows), ""]
     if figure is not None:
         md += [f"![{TITLE}]({figure.name})", ""]
+    md += _start_markdown(by_system)
+    if start_plot is not None:
+        md += [f"![Does training beat its own start?]({start_plot.name})", ""]
     return "\n".join(md)
 
 
@@ -326,14 +501,35 @@ def difference_figure(by_system: dict[str, list[Policy]], path: Path) -> Path | 
         y = np.arange(len(items))[::-1]
         means = np.array([d.mean for _, d in items])
         errs = np.array([0.0 if math.isnan(d.ci95) else d.ci95 for _, d in items])
-        colors = [
-            "tab:green" if d.low > 0 else "tab:red" if d.high < 0 else "tab:gray" for _, d in items
-        ]
+        colors = [_color(d) for _, d in items]
         ax.barh(y, means, xerr=errs, color=colors, alpha=0.8, capsize=3)
         ax.axvline(0.0, color="black", linewidth=0.8)
         ax.set_yticks(y, [n for n, _ in items], fontsize=8)
-        ax.set_xlabel(f"paired difference to {ref.name} (team return per episode)")
+        ax.set_xlabel(f"paired difference to {ref.name}\n(team return per episode)")
         ax.set_title(f"{system_label(system)}: {ref.name} = {ref.over_seeds.mean:.1f}", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    return path
+
+
+def start_figure(by_system: dict[str, list[Policy]], path: Path) -> Path | None:
+    """Trained - untrained, paired over episodes with 95 % intervals: one bar per learner/system."""
+    from matplotlib.figure import Figure
+
+    comparisons = [(s, c) for s, c in start_comparisons(by_system) if c.episodes]
+    if not comparisons:
+        return None
+    fig = Figure(figsize=(7.0, len(comparisons) * 0.32 + 1.4))
+    ax = fig.add_subplot(1, 1, 1)
+    y = np.arange(len(comparisons))[::-1]
+    diffs = [c.paired for _, c in comparisons]
+    errs = [0.0 if math.isnan(d.ci95) else d.ci95 for d in diffs]
+    ax.barh(y, [d.mean for d in diffs], xerr=errs, color=[_color(d) for d in diffs], capsize=3)
+    ax.axvline(0.0, color="black", linewidth=0.8)
+    labels = [f"{c.trained.name}, {system_label(s)}" for s, c in comparisons]
+    ax.set_yticks(y, labels, fontsize=8)
+    ax.set_xlabel("trained − untrained, paired over the evaluation episodes\n(team return)")
+    ax.set_title("Does training beat its own start? (95 % t intervals)", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     return path
@@ -353,9 +549,15 @@ def write_section(runs: Sequence[RunRecord], out_dir: Path) -> tuple[str, dict[s
     if not by_system:
         return "", {}
     files = {
-        "yardsticks": write_csv(out_dir / "yardsticks.csv", CSV_HEADER, section_rows(by_system))
+        "yardsticks": write_csv(out_dir / "yardsticks.csv", CSV_HEADER, section_rows(by_system)),
+        "yardsticks_start": write_csv(
+            out_dir / "yardsticks_start.csv", START_HEADER, start_rows(by_system)
+        ),
     }
     figure = difference_figure(by_system, out_dir / "yardsticks.png")
     if figure is not None:
         files["yardsticks_png"] = figure
-    return section_markdown(by_system, figure), files
+    start = start_figure(by_system, out_dir / "yardsticks_start.png")
+    if start is not None:
+        files["yardsticks_start_png"] = start
+    return section_markdown(by_system, figure, start), files

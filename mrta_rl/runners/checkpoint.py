@@ -47,6 +47,7 @@ HYDRA_FILE = Path(".hydra") / "hydra.yaml"
 LEARNER_DIR = "learner"  # final learner state (Learner.save)
 CHECKPOINT_DIR = "checkpoint"  # latest training checkpoint
 METRICS_FILE = "metrics.json"
+EVAL_METRICS_FILE = "eval_metrics.json"  # a re-evaluation (scripts/evaluate.py) beside metrics.json
 REFUSED_FILE = "refused.json"  # instead of metrics.json: the run was refused up front, and why
 STATE_FILE = "training.json"  # loop counters, curve so far, learner checkpoint_state
 PACKAGE = "mrta_rl."

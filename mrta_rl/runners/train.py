@@ -30,6 +30,7 @@ from mrta_rl.metrics.resources import RunResources
 from mrta_rl.partition import Partition
 from mrta_rl.runners.checkpoint import (
     CHECKPOINT_DIR,
+    EVAL_METRICS_FILE,
     LEARNER_DIR,
     METRICS_FILE,
     REFUSED_FILE,
@@ -239,7 +240,9 @@ def _check_resume_overrides() -> None:
         raise ConfigError(f"resume= continues a run with its own config; drop {other}")
 
 
-def evaluate_checkpoint(checkpoint: Path | str, episodes: int | None = None) -> dict[str, Any]:
+def evaluate_checkpoint(
+    checkpoint: Path | str, episodes: int | None = None, batch_size: int | None = None
+) -> dict[str, Any]:
     """Re-evaluate a finished run: rebuild it from its ``.hydra/config.yaml``, load the learner.
 
     The run dir is read as data (``runners/checkpoint.py``): its config must name a learner
@@ -250,6 +253,9 @@ def evaluate_checkpoint(checkpoint: Path | str, episodes: int | None = None) -> 
     Args:
         checkpoint: The run dir of ``scripts/train.py`` (holding ``.hydra/`` and ``learner/``).
         episodes: Evaluation episodes; default: the run's ``eval.episodes``.
+        batch_size: Copies per evaluation round; default: the run's ``eval.batch_size``. Episode
+            ``b`` of one round of ``batch_size >= episodes`` copies is copy ``b``'s first episode,
+            the layout of a run evaluated with ``eval.batch_size`` = ``eval.episodes``.
 
     Returns:
         The content of ``eval_metrics.json`` (as metrics.json, without the training block).
@@ -262,6 +268,8 @@ def evaluate_checkpoint(checkpoint: Path | str, episodes: int | None = None) -> 
     cfg = read_run_config(run_dir)
     if episodes is not None:
         cfg.eval.episodes = int(episodes)
+    if batch_size is not None:
+        cfg.eval.batch_size = int(batch_size)
     choices = run_choices(run_dir)
     run = build_run(cfg, name=choices.get("learner"))
     if run.learner.kind != "fixed":
@@ -274,5 +282,5 @@ def evaluate_checkpoint(checkpoint: Path | str, episodes: int | None = None) -> 
         **evaluate_run(run, cfg),
         "learning_space": {k: int(v) for k, v in run.learner.learning_space().items()},
     }
-    write_json(run_dir / "eval_metrics.json", metrics)
+    write_json(run_dir / EVAL_METRICS_FILE, metrics)
     return metrics

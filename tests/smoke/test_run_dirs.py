@@ -377,3 +377,14 @@ def test_sigkill_then_resume_ends_like_an_uninterrupted_run(tmp_path):
     a, b = (json.loads((d / "metrics.json").read_text()) for d in (full_dir, cut_dir))
     assert without_timings(a) == without_timings(b)
     assert_same_learner_state(full_dir, cut_dir)
+
+
+def test_a_reevaluation_on_more_copies_keeps_the_first_episodes(greedy_run):
+    """episodes=N batch_size=N: episode b is copy b's first episode, as in the run's evaluation."""
+    first = json.loads((greedy_run / "metrics.json").read_text())["eval"]["team_return"]
+    again = evaluate_checkpoint(greedy_run, episodes=4, batch_size=4)["eval"]["team_return"]
+    assert len(again["per_episode"]) == 4
+    assert again["per_episode"][:2] == first["per_episode"]  # smoke: 2 episodes in one round
+    rounds = evaluate_checkpoint(greedy_run, episodes=4)["eval"]["team_return"]  # 2 rounds of 2
+    assert rounds["per_episode"][:2] == first["per_episode"]
+    assert rounds["per_episode"][2:] != again["per_episode"][2:]  # second episodes of copies 0, 1

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import json
 from pathlib import Path
 
 import numpy as np
@@ -11,7 +12,13 @@ import pytest
 
 from mrta_rl.reports.collect import RunRecord
 from mrta_rl.reports.stats import t_quantile
-from mrta_rl.reports.yardsticks import BEST_RESERVE, collect_policies, section_rows, write_section
+from mrta_rl.reports.yardsticks import (
+    BEST_RESERVE,
+    collect_policies,
+    section_rows,
+    start_comparisons,
+    write_section,
+)
 
 GREEDY = [10.0, 20.0, 30.0]  # per evaluation episode, shared by every run
 
@@ -96,3 +103,91 @@ def test_untrained_run_is_found_when_the_collection_names_configurations():
     rows = [r for r in section_rows({"system2": policies}) if r[1] == "CQL"]
     assert rows[0][5] == "CQL untrained"
     assert rows[0][6] == pytest.approx(8 / 3, abs=1e-3)  # (13, 22, 33) - (10, 20, 30), rounded
+
+
+def test_start_table_by_hand(tmp_path):
+    """Acceptance 2: trained - untrained paired over episodes and over seeds, with its verdict."""
+    by_system = collect_policies(RUNS)
+    comparisons = dict((c.trained.name, c) for _, c in start_comparisons(by_system))
+    c = comparisons["subG-CQL"]
+    # per episode: mean of the seeds (12, 22, 33) - untrained (10, 20, 30) = (2, 2, 3)
+    assert c.paired.mean == pytest.approx(7 / 3)
+    assert c.paired.ci95 == pytest.approx(t_quantile(2) * np.sqrt(1 / 3) / np.sqrt(3))
+    assert c.episodes == 3
+    # per seed: 22 - 20 = 2 and 68/3 - 20 = 8/3
+    assert c.over_seeds.mean == pytest.approx(7 / 3)
+    assert c.over_seeds.ci95 == pytest.approx(
+        t_quantile(1) * np.std([2, 8 / 3], ddof=1) / np.sqrt(2)
+    )
+    assert c.verdict == "yes"  # 7/3 - 1.434 > 0
+    assert comparisons["subG-CQL [time_to_free]"].over_seeds.n == 1  # one seed: no interval
+    md, files = write_section(RUNS, tmp_path)
+    assert "### Does training beat its own start?" in md
+    assert "| +2.3 ± 4.2 | yes |" in md  # over seeds: 7/3 ± 12.706 * 0.4714 / sqrt(2)
+    assert files["yardsticks_start_png"].is_file() and "(yardsticks_start.png)" in md
+    rows = list(csv.DictReader(files["yardsticks_start"].open()))
+    assert [r["policy"] for r in rows] == ["subG-CQL", "subG-CQL [time_to_free]"]
+    assert float(rows[0]["untrained"]) == 20.0 and rows[0]["met"] == "yes"
+    assert float(rows[1]["paired_diff"]) == pytest.approx(13 / 3, abs=1e-3)
+
+
+@pytest.mark.parametrize(
+    ("trained", "verdict"),
+    [
+        # paired (10, 0, -10); each seed's mean is 20, the untrained mean: 0 ± 0 over seeds
+        ([[30.0, 20.0, 10.0], [10.0, 20.0, 30.0]], "no"),
+        # paired (-1, -1, -0.75): -0.917 ± 0.359, below zero
+        ([[9.0, 19.0, 29.0], [9.0, 19.0, 29.5]], "no (below)"),
+        # paired (1.25, 9.75, -9.5) holds zero; both seeds' means are 20.5: +0.5 ± 0 over seeds
+        ([[11.0, 30.0, 20.5], [11.5, 29.5, 20.5]], "over seeds only"),
+    ],
+)
+def test_start_verdicts(trained, verdict):
+    space = {"analytic": 5}
+    runs = [record("cql", 0, [10.0, 20.0, 30.0], space=space)]
+    runs += [record("cql", s, r, episodes=30, space=space) for s, r in enumerate(trained)]
+    [(_, c)] = start_comparisons(collect_policies(runs))
+    assert c.verdict == verdict
+
+
+def reevaluated(tmp_path, name, learner, returns, greedy, *, episodes=0, space=None):
+    """A run dir whose metrics.json holds 3 episodes and whose eval_metrics.json holds more."""
+    run = record(learner, 0, [1.0, 2.0, 3.0], episodes=episodes, space=space)
+    run_dir = tmp_path / name
+    run_dir.mkdir()
+    blocks = {
+        "eval": {"team_return": {"mean": float(np.mean(returns)), "per_episode": returns}},
+        "baseline_greedy": {"team_return": {"mean": float(np.mean(greedy)), "per_episode": greedy}},
+    }
+    (run_dir / "eval_metrics.json").write_text(json.dumps(blocks))
+    return dataclasses.replace(run, run_dir=run_dir)
+
+
+def test_reevaluated_runs_are_scored_on_their_reevaluation(tmp_path):
+    """eval_metrics.json (scripts/evaluate.py episodes=N) replaces the 3-episode evaluation."""
+    greedy5 = [10.0, 20.0, 30.0, 40.0, 50.0]
+    space = {"parameters": 7}
+    runs = [
+        record("team_reserve", 0, [11.0, 22.0, 33.0]),  # 3 episodes: not paired with the rest
+        reevaluated(tmp_path, "u", "qmix", greedy5, greedy5, space=space),
+        reevaluated(
+            tmp_path, "t", "qmix", [12.0, 21.0, 33.0, 41.0, 53.0], greedy5, episodes=6, space=space
+        ),
+    ]
+    policies = collect_policies(runs)["system2"]
+    greedy = policies[0]
+    np.testing.assert_array_equal(greedy.per_episode, greedy5)  # the run with the most episodes
+    qmix = next(p for p in policies if p.name == "QMIX")
+    assert qmix.means == [pytest.approx(32.0)]
+    [(_, c)] = start_comparisons({"system2": policies})
+    assert c.episodes == 5 and c.paired.mean == pytest.approx(2.0)  # (2, 1, 3, 1, 3)
+    md, _ = write_section(runs, tmp_path)
+    row = next(line for line in md.splitlines() if line.startswith("| QMIX |"))
+    assert row.split("|")[6].strip() == "–"  # vs team_reserve: 5 episodes against 3, unpaired
+
+
+def test_a_reevaluation_without_its_blocks_is_refused(tmp_path):
+    run = reevaluated(tmp_path, "r", "qmix", [1.0], [1.0], space={"parameters": 7})
+    (run.run_dir / "eval_metrics.json").write_text(json.dumps({"eval": {}}))
+    with pytest.raises(ValueError, match=r"eval_metrics.json.*baseline_greedy"):
+        collect_policies([RUNS[0], run])
