@@ -86,6 +86,20 @@ def collect(learner, env, frames=100):
     return learner.transitions(data)
 
 
+def assert_plays_the_rule(learner, env, rule):
+    """The learner's greedy actions are the rule's for a whole episode, in which it holds back."""
+    held = 0
+    while not env.done.all():
+        mask = env.action_mask.copy()
+        expected = rule.act(rule.encode(env), mask, explore=False)
+        np.testing.assert_array_equal(
+            learner.act(learner.encode(env), mask, explore=False), expected
+        )
+        held += int(((expected == 0) & mask[:, :, 1:].any(-1)).sum())  # a robot kept back
+        env.step(expected)
+    assert held > 0  # the rule did hold robots back, so this is not the plain auction again
+
+
 def test_joint_combine_and_decode_round_trip():
     A, n = 4, 3
     masks = torch.rand(5, n, A) < 0.6
@@ -129,16 +143,7 @@ def test_untrained_subg_dqn_plays_the_subg_cql_prior():
     rule = SubGReserveLearner(
         env=env, rng=np.random.default_rng(0), partition=learner.partition, reserve=0
     )
-    held = 0
-    while not env.done.all():
-        mask = env.action_mask.copy()
-        expected = rule.act(rule.encode(env), mask, explore=False)
-        np.testing.assert_array_equal(
-            learner.act(learner.encode(env), mask, explore=False), expected
-        )
-        held += int(((expected == 0) & mask[:, :, 1:].any(-1)).sum())  # a robot kept back
-        env.step(expected)
-    assert held > 0  # the rule did hold robots back, so this is not the plain auction again
+    assert_plays_the_rule(learner, env, rule)
     with pytest.raises(ValueError, match="prior: must be one of"):
         make(SubGDQNLearner, system2, prior="nope")
     with pytest.raises(ValueError, match="prior_order: must be one of"):
@@ -180,16 +185,7 @@ def test_untrained_network_with_the_hold_prior_plays_team_reserve(
     rule = TeamReserveLearner(
         env=env, rng=np.random.default_rng(0), reserve=reserve, hold_scope="robot"
     )
-    held = 0
-    while not env.done.all():
-        mask = env.action_mask.copy()
-        expected = rule.act(rule.encode(env), mask, explore=False)
-        np.testing.assert_array_equal(
-            learner.act(learner.encode(env), mask, explore=False), expected
-        )
-        held += int(((expected == 0) & mask[:, :, 1:].any(-1)).sum())  # a robot kept back
-        env.step(expected)
-    assert held > 0  # the rule did hold robots back, so this is not the plain auction again
+    assert_plays_the_rule(learner, env, rule)
 
 
 def test_hold_prior_reaches_the_network_through_the_torchrl_env(system):
