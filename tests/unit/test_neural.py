@@ -208,6 +208,15 @@ def test_hold_prior_reaches_the_network_through_the_torchrl_env(system):
     assert np.isfinite(learner.train_step(data[:64])["train/loss"])
 
 
+def test_checkpoint_of_another_prior_is_refused(system, tmp_path):
+    learner, _ = make(QMIXLearner, system, prior_reserve=1, **HOLD)
+    learner.save(tmp_path)
+    make(QMIXLearner, system, seed=3, prior_reserve=1, **HOLD)[0].load(tmp_path)  # same prior
+    for other in ({}, {**HOLD, "prior_reserve": 0}):
+        with pytest.raises(ValueError, match="trained with prior"):
+            make(QMIXLearner, system, **other)[0].load(tmp_path)
+
+
 def test_hold_prior_settings_are_checked(system):
     with pytest.raises(ValueError, match="prior: must be one of"):
         make(QMIXLearner, system, prior="spread_wait")

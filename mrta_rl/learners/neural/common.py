@@ -284,6 +284,14 @@ class NeuralLearner(Learner):
                 hold_scope=prior_hold_scope,
             )  # fmt: skip
         self.prior_in_state = prior_in_state
+        # what the Q bonus is added to: part of the Q-function, so a checkpoint must match it
+        self.prior_settings: dict[str, Any] = {"prior": prior, "prior_in_state": prior_in_state}
+        if prior == "hold":
+            self.prior_settings |= {
+                "prior_reserve": prior_reserve,
+                "prior_hold_level": prior_hold_level,
+                "prior_hold_scope": prior_hold_scope,
+            }
         self.device = torch.device(device)
         self.hp = {
             "hidden": hidden,
@@ -506,6 +514,7 @@ class NeuralLearner(Learner):
             "group_map": self.group_map,
             "gradient_steps": self.gradient_steps,
             "hyperparameters": self.hp,
+            "prior": self.prior_settings,
         }
         (directory / META_FILE).write_text(json.dumps(meta, indent=2) + "\n")
 
@@ -534,6 +543,13 @@ class NeuralLearner(Learner):
             if meta.get("class", type(self).__name__) != type(self).__name__:
                 raise ValueError(
                     f"{directory} holds a {meta['class']}, not a {type(self).__name__}"
+                )
+            # checkpoints of before the rule prior were all trained with the greedy bid's bonus
+            saved = meta.get("prior", {"prior": "greedy", "prior_in_state": False})
+            if saved != self.prior_settings:
+                raise ValueError(
+                    f"{meta_path}: trained with prior {saved}, this run's learner has "
+                    f"{self.prior_settings} (the prior is part of the Q-function)"
                 )
         path = directory / WEIGHTS_FILE
         state = read_tensors(path, self.device)
