@@ -8,7 +8,7 @@ group with shape ``[B, n_g]``, per-agent leaves under it and root ``done`` flags
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
 import torch
@@ -27,6 +27,14 @@ from mrta_rl.envs.view_inputs import (
 from mrta_rl.types import GroupMap
 
 GroupMapArg = Mapping[str, Sequence[str | int]] | MarlGroupMapType | str | None
+# a prior policy read from the core env: ``[B, m]`` int64 actions (``learners.tabular.priors``)
+PriorActions = Callable[[AuctionEnv], np.ndarray]
+PRIOR_KEY = "prior_action"  # (group, PRIOR_KEY): one-hot of the prior's action per robot
+
+
+def prior_one_hot(actions: np.ndarray, n_actions: int) -> torch.Tensor:
+    """``[B, m]`` int actions -> ``[B, m, K + 1]`` bool one-hot (the ``prior_action`` leaf)."""
+    return torch.nn.functional.one_hot(torch.from_numpy(actions), n_actions).to(torch.bool)
 
 
 def resolve_group_map(robots: Sequence[str], group_map: GroupMapArg) -> GroupMap:
@@ -94,7 +102,10 @@ class AuctionTorchRLEnv(EnvBase):
         ``(group, "observation")``: float32 ``[B, n_g, F]`` local features
         (:func:`~mrta_rl.envs.observations.local_features`); ``(group, "action_mask")``: bool
         ``[B, n_g, K + 1]`` (the core's mask); root ``"state"``: float32 ``[B, G]`` global
-        features (:func:`~mrta_rl.envs.observations.global_features`) for mixers. Two reward
+        features (:func:`~mrta_rl.envs.observations.global_features`) for mixers. With a
+        ``prior``, ``(group, "prior_action")`` bool ``[B, n_g, K + 1]`` is the one-hot of that
+        policy's action of every robot in the current state (the neural learners' ``hold``
+        prior: a rule that reads the whole team, computed here from the core). Two reward
         breakdowns ride along as observations of the step (zero after a reset):
         ``(group, "robot_reward")`` ``[B, n_g, 1]``, each robot's individual reward, and
         ``(group, "group_reward")`` ``[B, n_g, 1]``, the sub-group reward (sum of its robots'
@@ -117,6 +128,8 @@ class AuctionTorchRLEnv(EnvBase):
         group_map: See :func:`resolve_group_map`.
         device: Only ``"cpu"``.
         invalid_action: ``"wait"`` or ``"raise"`` (see Action Space).
+        prior: None, or a function of the core env giving ``[B, m]`` actions, written as the
+            observation ``(group, "prior_action")`` (see Observation Space).
     """
 
     batch_locked = True
@@ -127,11 +140,13 @@ class AuctionTorchRLEnv(EnvBase):
         group_map: GroupMapArg = None,
         device: str | torch.device = "cpu",
         invalid_action: InvalidAction = DEFAULT_INVALID_ACTION,
+        prior: PriorActions | None = None,
     ) -> None:
         if torch.device(device).type != "cpu":
             raise ValueError("AuctionTorchRLEnv runs on cpu (the dynamics are numpy)")
         check_invalid_action(invalid_action)
         self.invalid_action = invalid_action
+        self.prior = prior
         super().__init__(device="cpu", batch_size=torch.Size([env.batch_size]))
         self.auction = env
         self.group_map = resolve_group_map(env.system.robots, group_map)
@@ -168,6 +183,8 @@ class AuctionTorchRLEnv(EnvBase):
                 group_reward=Unbounded(shape=(*shape, 1)),
                 shape=shape,
             )
+            if self.prior is not None:
+                obs[group][PRIOR_KEY] = Binary(n=A, shape=(*shape, A), dtype=torch.bool)
             if self.invalid_action == "wait":
                 obs[group]["invalid_action"] = Binary(n=1, shape=(*shape, 1), dtype=torch.bool)
             act[group] = Composite(
@@ -227,6 +244,7 @@ class AuctionTorchRLEnv(EnvBase):
             robot = torch.zeros(B, core.n_robots)
         if invalid is None and self.invalid_action == "wait":
             invalid = torch.zeros(B, core.n_robots, dtype=torch.bool)
+        prior = None if self.prior is None else prior_one_hot(self.prior(core), core.n_actions)
         for group, cols in self._columns.items():
             n_g = len(self._group_index[group])
             whole = self._whole[group]
@@ -240,6 +258,8 @@ class AuctionTorchRLEnv(EnvBase):
             }
             if invalid is not None:
                 leaves["invalid_action"] = invalid[:, cols].unsqueeze(-1)
+            if prior is not None:
+                leaves[PRIOR_KEY] = prior if whole else prior[:, cols]
             if team is not None:
                 leaves["reward"] = team.reshape(B, 1, 1).expand(B, n_g, 1).clone()
             out.set(group, TensorDict(leaves, batch_size=(B, n_g), device=cpu))

@@ -112,7 +112,10 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     # a short run (debug=smoke) still reaches the gradient steps: warm up at most half of it
     warmup = min(int(hp["warmup_frames"]), total_frames // 2)
     # the learners play masked actions only: an invalid one is a bug, so it must raise
-    env = AuctionTorchRLEnv(run.env, group_map=learner.group_map, invalid_action="raise")
+    # with prior=hold the env view also writes the rule's action of every robot (common.py)
+    env = AuctionTorchRLEnv(
+        run.env, group_map=learner.group_map, invalid_action="raise", prior=learner.rule
+    )
     team_group = next(iter(learner.group_map))
     buffer = TensorDictReplayBuffer(
         storage=LazyTensorStorage(int(hp["buffer_size"]), device=device),

@@ -13,7 +13,7 @@ from torchrl.modules import EGreedyModule, MultiAgentMLP, QValueModule
 
 from mrta_rl.envs import AuctionEnv, AuctionParams
 from mrta_rl.envs.torchrl_env import AuctionTorchRLEnv
-from mrta_rl.learners import SubGReserveLearner
+from mrta_rl.learners import SubGReserveLearner, TeamReserveLearner
 from mrta_rl.learners.neural import IQLLearner, QMIXLearner, SubGDQNLearner, VDNLearner
 from mrta_rl.learners.neural.common import WEIGHTS_FILE, EpsilonGreedy
 from mrta_rl.learners.neural.networks import (
@@ -75,7 +75,7 @@ def randomize(learner, scale=3.0, seed=0):
 def collect(learner, env, frames=100):
     """One collector batch of the learner's exploring policy, as replay transitions."""
     collector = Collector(
-        AuctionTorchRLEnv(env, group_map=learner.group_map),
+        AuctionTorchRLEnv(env, group_map=learner.group_map, prior=learner.rule),
         learner.explore_policy,
         frames_per_batch=frames,
         total_frames=frames,
@@ -84,6 +84,20 @@ def collect(learner, env, frames=100):
     data = next(iter(collector))
     collector.shutdown()
     return learner.transitions(data)
+
+
+def assert_plays_the_rule(learner, env, rule):
+    """The learner's greedy actions are the rule's for a whole episode, in which it holds back."""
+    held = 0
+    while not env.done.all():
+        mask = env.action_mask.copy()
+        expected = rule.act(rule.encode(env), mask, explore=False)
+        np.testing.assert_array_equal(
+            learner.act(learner.encode(env), mask, explore=False), expected
+        )
+        held += int(((expected == 0) & mask[:, :, 1:].any(-1)).sum())  # a robot kept back
+        env.step(expected)
+    assert held > 0  # the rule did hold robots back, so this is not the plain auction again
 
 
 def test_joint_combine_and_decode_round_trip():
@@ -129,20 +143,87 @@ def test_untrained_subg_dqn_plays_the_subg_cql_prior():
     rule = SubGReserveLearner(
         env=env, rng=np.random.default_rng(0), partition=learner.partition, reserve=0
     )
-    held = 0
-    while not env.done.all():
-        mask = env.action_mask.copy()
-        expected = rule.act(rule.encode(env), mask, explore=False)
-        np.testing.assert_array_equal(
-            learner.act(learner.encode(env), mask, explore=False), expected
-        )
-        held += int(((expected == 0) & mask[:, :, 1:].any(-1)).sum())  # a robot kept back
-        env.step(expected)
-    assert held > 0  # the rule did hold robots back, so this is not the plain auction again
+    assert_plays_the_rule(learner, env, rule)
     with pytest.raises(ValueError, match="prior: must be one of"):
         make(SubGDQNLearner, system2, prior="nope")
     with pytest.raises(ValueError, match="prior_order: must be one of"):
         make(SubGDQNLearner, system2, prior_order="nope")
+
+
+HOLD = {"prior": "hold", "prior_hold_level": 1, "prior_hold_scope": "robot"}
+
+
+@pytest.mark.parametrize(
+    ("cls", "system_name", "reserve", "in_state"),
+    [
+        (QMIXLearner, "system2", 1, False),
+        (QMIXLearner, "system1", 0, False),
+        (QMIXLearner, "system2", 1, True),
+        (VDNLearner, "system1", 0, True),
+        (IQLLearner, "system2", 1, False),
+    ],
+)
+def test_untrained_network_with_the_hold_prior_plays_team_reserve(
+    cls, system_name, reserve, in_state
+):
+    """prior=hold: the untrained greedy policy is the team_reserve rule, tick by tick.
+
+    Random weights below the zero last layer (so ``prior_in_state``'s input does reach it), and
+    a whole episode, in which the rule holds robots back where the plain auction would bid.
+    """
+    system = paper_system(system_name)
+    learner, env = make(
+        cls, system, batch=6, horizon=150, seed=11, prior_reserve=reserve,
+        prior_in_state=in_state, **HOLD,
+    )  # fmt: skip
+    zero_last = {name: p.clone() for name, p in learner.networks.named_parameters()}
+    randomize(learner)
+    with torch.no_grad():  # back to the zero output layer of an untrained net
+        for name, p in learner.networks.named_parameters():
+            if not zero_last[name].any():
+                p.zero_()
+    rule = TeamReserveLearner(
+        env=env, rng=np.random.default_rng(0), reserve=reserve, hold_scope="robot"
+    )
+    assert_plays_the_rule(learner, env, rule)
+
+
+def test_hold_prior_reaches_the_network_through_the_torchrl_env(system):
+    """Training path: the env's prior_action is the rule's one-hot, the collector plays it (eps
+    0), the replayed transitions carry it for the next state too, and a gradient step runs."""
+    learner, env = make(
+        QMIXLearner, system, batch=5, prior_reserve=1, eps_start=0.0, eps_end=0.0, **HOLD
+    )
+    rule = TeamReserveLearner(env=env, rng=np.random.default_rng(0), reserve=1, hold_scope="robot")
+    torchrl_env = AuctionTorchRLEnv(env, group_map=learner.group_map, prior=learner.rule)
+    td = torchrl_env.reset()
+    prior = td.get(("agents", "prior_action"))
+    expected = rule.act(rule.encode(env), env.action_mask, explore=False)
+    assert torch.equal(prior.long().argmax(-1), torch.from_numpy(expected))
+    assert torch.equal(prior.sum(-1), torch.ones(5, env.n_robots, dtype=torch.long))
+    data = collect(learner, env, frames=200)
+    played = data.get(("agents", "action"))
+    assert torch.equal(played, data.get(("agents", "prior_action")).long().argmax(-1))
+    assert ("next", "agents", "prior_action") in data.keys(include_nested=True)
+    assert np.isfinite(learner.train_step(data[:64])["train/loss"])
+
+
+def test_checkpoint_of_another_prior_is_refused(system, tmp_path):
+    learner, _ = make(QMIXLearner, system, prior_reserve=1, **HOLD)
+    learner.save(tmp_path)
+    make(QMIXLearner, system, seed=3, prior_reserve=1, **HOLD)[0].load(tmp_path)  # same prior
+    for other in ({}, {**HOLD, "prior_reserve": 0}):
+        with pytest.raises(ValueError, match="trained with prior"):
+            make(QMIXLearner, system, **other)[0].load(tmp_path)
+
+
+def test_hold_prior_settings_are_checked(system):
+    with pytest.raises(ValueError, match="prior: must be one of"):
+        make(QMIXLearner, system, prior="spread_wait")
+    with pytest.raises(ValueError, match="prior_in_state needs prior=hold"):
+        make(VDNLearner, system, prior_in_state=True)
+    with pytest.raises(ValueError, match="prior_reserve"):
+        make(QMIXLearner, system, prior="hold", prior_reserve=-1)
 
 
 def test_joint_action_network_never_selects_a_masked_action(system):

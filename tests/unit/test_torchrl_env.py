@@ -16,6 +16,7 @@ from torchrl.envs.utils import check_env_specs
 from mrta_rl.envs import AuctionEnv, AuctionParams
 from mrta_rl.envs import observations as ob
 from mrta_rl.envs.torchrl_env import AuctionTorchRLEnv, resolve_group_map
+from mrta_rl.learners.fixed import lowest_valid_bid
 from mrta_rl.partition import subg_partition
 from mrta_rl.systems import RobotSystem, build_system
 
@@ -60,6 +61,30 @@ def to_td(env: AuctionTorchRLEnv, actions: np.ndarray) -> TensorDict:
 def test_check_env_specs(system, kind, batch_size):
     env = make(load_system(system), kind, batch_size, horizon=4)
     check_env_specs(env, break_when_any_done="both")
+
+
+@pytest.mark.parametrize("kind", GROUP_MAPS)
+def test_prior_action_key_is_the_prior_one_hot_per_group(kind):
+    """prior=: the one-hot of that policy's actions under every group, at reset and step."""
+    env = make(load_system("system2"), kind, 5, horizon=4)
+    assert "prior_action" not in env.reset().get(next(iter(env.group_map))).keys()
+    with_prior = AuctionTorchRLEnv(env.auction, env.group_map, prior=greedy_of_core)
+    check_env_specs(with_prior, break_when_any_done="both")
+    td = with_prior.reset()
+    rng = np.random.default_rng(0)
+    for _ in range(3):
+        for group in with_prior.group_map:
+            mask, got = td.get((group, "action_mask")), td.get((group, "prior_action"))
+            assert got.dtype == torch.bool and got.sum(-1).eq(1).all()
+            expected = lowest_valid_bid(mask[..., 1:].numpy())  # the plain auction, by the mask
+            np.testing.assert_array_equal(got.long().argmax(-1).numpy(), expected)
+        actions = random_valid(with_prior.auction.action_mask, rng)
+        td = with_prior.step(to_td(with_prior, actions))["next"]
+
+
+def greedy_of_core(core: AuctionEnv) -> np.ndarray:
+    """A prior read from the core env: the plain auction's actions."""
+    return lowest_valid_bid(core.action_mask[:, :, 1:])
 
 
 def test_group_maps():

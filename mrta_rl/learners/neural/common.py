@@ -24,6 +24,16 @@ deviating from it pays (wait for an H task, spread bids over slots). The bonus i
 Q-function in the online and the target network alike, so it is an initialisation, not reward
 shaping: the TD fixed point is unchanged, only the function the net must represent is
 ``Q* - prior``. ``auction_prior: 0`` turns it off.
+
+Rule prior (``prior: hold``, the words of DQL's ``prior``): the bonus goes instead to the action of
+the whole-team ``team_reserve`` rule (:class:`~mrta_rl.learners.tabular.priors.HoldRule`, the
+``prior_*`` settings), so the untrained network plays that rule exactly. The rule reads the whole
+team (which robots are idle, which one the team asks first), more than a robot's local features,
+so it is computed from the core env -- by :class:`~mrta_rl.envs.torchrl_env.AuctionTorchRLEnv`
+(its ``prior`` argument) while training and by :meth:`NeuralLearner.encode` in evaluation -- and
+reaches the Q-network as the observation ``(group, "prior_action")``, a one-hot per robot, stored
+in the replay buffer with the other observations so the target network sees the rule's action of
+the next state. ``prior_in_state`` also feeds that one-hot to the network as an input.
 """
 
 from __future__ import annotations
@@ -44,8 +54,11 @@ from torchrl.objectives import HardUpdate, LossModule, SoftUpdate
 
 from mrta_rl.config import Choices, Range
 from mrta_rl.envs import AuctionEnv, observations
+from mrta_rl.envs.torchrl_env import PRIOR_KEY, prior_one_hot
 from mrta_rl.learners.base import Learner
+from mrta_rl.learners.fixed import HOLD_SCOPES, HoldLevel, Reserve
 from mrta_rl.learners.neural.networks import PerRobotQ, joint_decode, joint_encode
+from mrta_rl.learners.tabular.priors import HOLD_PRIORS, HoldRule
 from mrta_rl.partition import Partition
 from mrta_rl.types import GroupMap
 
@@ -83,28 +96,33 @@ def require_torchrl() -> None:
 
 
 # ---------------------------------------------------------------------------------- features
-def observation_td(env: AuctionEnv, group_map: GroupMap, mask: np.ndarray) -> TensorDict:
+def observation_td(
+    env: AuctionEnv, group_map: GroupMap, mask: np.ndarray, prior: HoldRule | None = None
+) -> TensorDict:
     """The TorchRL observation of the env's decision point, as ``AuctionTorchRLEnv`` writes it.
 
     Args:
         env: The core env at a decision point (any batch size ``B``).
         group_map: ``{group: [robot ids]}``.
         mask: ``[B, m, K + 1]`` bool valid actions (copied, the core reuses its buffer).
+        prior: The rule prior, or None (plain auction: no ``prior_action`` key).
 
     Returns:
         TensorDict of batch ``[B]``: ``state`` ``[B, G]`` and per group ``observation``
-        ``[B, n_g, F]``, ``action_mask`` ``[B, n_g, K + 1]``.
+        ``[B, n_g, F]``, ``action_mask`` ``[B, n_g, K + 1]`` [and ``prior_action``, same shape].
     """
     local = torch.from_numpy(observations.local_features(env))  # [B, m, F]
     mask_t = torch.from_numpy(np.ascontiguousarray(mask, dtype=bool))  # [B, m, K + 1]
     B = mask_t.shape[0]
     out: dict[str, Any] = {"state": torch.from_numpy(observations.global_features(env))}
+    prior_t = None if prior is None else prior_one_hot(prior(env, mask), env.n_actions)
     robots = env.system.robots
     for group, ids in group_map.items():
         idx = torch.tensor([robots.index(r) for r in ids], dtype=torch.int64)
-        out[group] = TensorDict(
-            observation=local[:, idx], action_mask=mask_t[:, idx].clone(), batch_size=(B, len(idx))
-        )
+        leaves = {"observation": local[:, idx], "action_mask": mask_t[:, idx].clone()}
+        if prior_t is not None:
+            leaves[PRIOR_KEY] = prior_t[:, idx]
+        out[group] = TensorDict(leaves, batch_size=(B, len(idx)))
     return TensorDict(out, batch_size=(B,))
 
 
@@ -191,6 +209,11 @@ class NeuralLearner(Learner):
         loss_function: Literal["l2", "smooth_l1"] = "smooth_l1",
         reward_scale: Annotated[float, Range(0, low_open=True)] = 0.1,
         auction_prior: Annotated[float, Range(0)] = 1.0,
+        prior: Annotated[str, Choices(*HOLD_PRIORS)] = "greedy",
+        prior_reserve: Reserve = 0,
+        prior_hold_level: HoldLevel = 1,
+        prior_hold_scope: Annotated[str, Choices(*HOLD_SCOPES)] = "robot",
+        prior_in_state: bool = False,
         eps_start: Annotated[float, Range(0, 1)] = 0.3,
         eps_end: Annotated[float, Range(0, 1)] = 0.02,
         eps_decay_frames: Annotated[int, Range(1)] = 200_000,
@@ -218,7 +241,14 @@ class NeuralLearner(Learner):
             gamma: Discount per tick.
             loss_function: TD loss, ``"l2"`` or ``"smooth_l1"`` (Huber).
             reward_scale: Rewards are multiplied by this before the TD target (Q-value scale).
-            auction_prior: Bonus of the greedy bid in Q-units (module docstring); 0 = off.
+            auction_prior: Bonus of the prior's action in Q-units (module docstring); 0 = off.
+            prior: The action the bonus goes to: ``greedy`` (the plain auction's bid) or ``hold``
+                (the ``team_reserve`` rule's, :data:`~mrta_rl.learners.tabular.priors.HOLD_PRIORS`;
+                subG-DQN has its own ``prior``).
+            prior_reserve: ``prior="hold"``: the rule's ``reserve``.
+            prior_hold_level: ``prior="hold"``: the rule's ``hold_level``.
+            prior_hold_scope: ``prior="hold"``: the rule's ``hold_scope``.
+            prior_in_state: ``prior="hold"``: the rule's action (one-hot) is also a network input.
             eps_start: Initial exploration rate (random valid actions).
             eps_end: Final exploration rate.
             eps_decay_frames: Collected frames (copy-ticks) over which epsilon decays linearly.
@@ -244,6 +274,24 @@ class NeuralLearner(Learner):
         # types and ranges: the annotations (mrta_rl.config); here only a relation
         if eps_end > eps_start:
             raise ValueError(f"need eps_end <= eps_start, got {eps_end}, {eps_start}")
+        if prior_in_state and prior != "hold":
+            raise ValueError("prior_in_state needs prior=hold (the plain auction is no input)")
+        # the rule prior, computed from the env (module docstring); None: the plain auction's
+        self.rule: HoldRule | None = None
+        if prior == "hold":
+            self.rule = HoldRule(
+                env, reserve=prior_reserve, hold_level=prior_hold_level,
+                hold_scope=prior_hold_scope,
+            )  # fmt: skip
+        self.prior_in_state = prior_in_state
+        # what the Q bonus is added to: part of the Q-function, so a checkpoint must match it
+        self.prior_settings: dict[str, Any] = {"prior": prior, "prior_in_state": prior_in_state}
+        if prior == "hold":
+            self.prior_settings |= {
+                "prior_reserve": prior_reserve,
+                "prior_hold_level": prior_hold_level,
+                "prior_hold_scope": prior_hold_scope,
+            }
         self.device = torch.device(device)
         self.hp = {
             "hidden": hidden,
@@ -325,13 +373,14 @@ class NeuralLearner(Learner):
             depth=self.hp["depth"],
             auction_prior=self.hp["auction_prior"],
             device=self.device,
+            rule_prior=self.rule is not None,
+            prior_in_state=self.prior_in_state,
         )
         self.networks[group] = qnet
-        value = TensorDictModule(
-            qnet,
-            in_keys=[(group, "observation"), (group, "action_mask")],
-            out_keys=[(group, "action_value")],
-        )
+        in_keys = [(group, "observation"), (group, "action_mask")]
+        if self.rule is not None:
+            in_keys.append((group, PRIOR_KEY))
+        value = TensorDictModule(qnet, in_keys=in_keys, out_keys=[(group, "action_value")])
         policy = TensorDictSequential(
             value,
             QValueModule(
@@ -414,8 +463,12 @@ class NeuralLearner(Learner):
 
     # -------------------------------------------------------------- Learner interface
     def encode(self, env: AuctionEnv) -> TensorDict:
-        """Observation TensorDict of the decision point (:func:`observation_td`, copied arrays)."""
-        return observation_td(env, self.group_map, env.action_mask)
+        """Observation TensorDict of the decision point (:func:`observation_td`, copied arrays).
+
+        With ``prior=hold`` it carries the rule's action, computed under the env's mask (the
+        runner's evaluation passes that same mask to :meth:`act`).
+        """
+        return observation_td(env, self.group_map, env.action_mask, self.rule)
 
     def act(self, view: TensorDict, mask: np.ndarray, *, explore: bool) -> np.ndarray:
         """Greedy (or epsilon-greedy) actions of the TorchRL policy, valid under ``mask``.
@@ -461,6 +514,7 @@ class NeuralLearner(Learner):
             "group_map": self.group_map,
             "gradient_steps": self.gradient_steps,
             "hyperparameters": self.hp,
+            "prior": self.prior_settings,
         }
         (directory / META_FILE).write_text(json.dumps(meta, indent=2) + "\n")
 
@@ -489,6 +543,13 @@ class NeuralLearner(Learner):
             if meta.get("class", type(self).__name__) != type(self).__name__:
                 raise ValueError(
                     f"{directory} holds a {meta['class']}, not a {type(self).__name__}"
+                )
+            # checkpoints of before the rule prior were all trained with the greedy bid's bonus
+            saved = meta.get("prior", {"prior": "greedy", "prior_in_state": False})
+            if saved != self.prior_settings:
+                raise ValueError(
+                    f"{meta_path}: trained with prior {saved}, this run's learner has "
+                    f"{self.prior_settings} (the prior is part of the Q-function)"
                 )
         path = directory / WEIGHTS_FILE
         state = read_tensors(path, self.device)

@@ -1,8 +1,8 @@
 """Q-networks of the TorchRL learners: per-robot and joint-action nets, joint-action coding.
 
 The auction prior (see ``common.py``) lives here too: :func:`greedy_bid` marks the plain
-auction's action and the output layers start at zero, so an untrained network is the greedy
-auction.
+auction's action (or, for the ``hold`` prior, the env's ``prior_action`` one-hot does) and the
+output layers start at zero, so an untrained network is the greedy auction (or the rule).
 """
 
 from __future__ import annotations
@@ -145,6 +145,8 @@ class PerRobotQ(nn.Module):
         depth: int,
         auction_prior: float,
         device: torch.device,
+        rule_prior: bool = False,
+        prior_in_state: bool = False,
     ) -> None:
         """Build the MLP (last layer zero, so the untrained Q-values are the prior).
 
@@ -155,8 +157,11 @@ class PerRobotQ(nn.Module):
             share_params: One network for all robots (True) or one each.
             hidden: Units per hidden layer.
             depth: Hidden layers.
-            auction_prior: Bonus of the greedy bid (module docstring).
+            auction_prior: Bonus of the prior's action (module docstring).
             device: Parameter device.
+            rule_prior: The bonus goes to the ``prior_action`` input (a rule's one-hot, e.g. the
+                ``hold`` prior) instead of the greedy bid.
+            prior_in_state: ``rule_prior``: the one-hot is also an input (``F + K + 1``).
         """
         super().__init__()
         layers = {
@@ -165,6 +170,8 @@ class PerRobotQ(nn.Module):
             "activation_class": nn.ReLU,
             "device": device,
         }
+        self.rule_prior, self.prior_in_state = rule_prior, rule_prior and prior_in_state
+        n_features += n_actions if self.prior_in_state else 0
         if share_params:
             self.mlp = MLP(in_features=n_features, out_features=n_actions, **layers)
             # checkpoints written with the shared MultiAgentMLP keep loading
@@ -176,13 +183,27 @@ class PerRobotQ(nn.Module):
         zero_last_layer(self.mlp)
         self.auction_prior = auction_prior
 
-    def forward(self, observation: torch.Tensor, action_mask: torch.Tensor) -> torch.Tensor:
-        """Q-values ``[*, n_g, A]`` of ``observation`` ``[*, n_g, F]``."""
+    def forward(
+        self,
+        observation: torch.Tensor,
+        action_mask: torch.Tensor,
+        prior_action: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """Q-values ``[*, n_g, A]`` of ``observation`` ``[*, n_g, F]``.
+
+        ``prior_action`` (``rule_prior`` only): ``[*, n_g, A]`` bool one-hot of the rule's action.
+        """
+        if self.rule_prior:
+            prior = prior_action.to(observation.dtype)
+            if self.prior_in_state:
+                observation = torch.cat([observation, prior], -1)
+        else:
+            prior = greedy_bid(action_mask)
         if isinstance(self.mlp, MultiAgentMLP):
             values = stacked_forward(self.mlp, observation)
         else:
             values = self.mlp(observation)
-        return values + self.auction_prior * greedy_bid(action_mask)
+        return values + self.auction_prior * prior
 
 
 def stacked_forward(mlp: MultiAgentMLP, x: torch.Tensor) -> torch.Tensor:

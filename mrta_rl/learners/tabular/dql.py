@@ -16,11 +16,11 @@ import numpy as np
 
 from mrta_rl.config import Choices, Range
 from mrta_rl.envs import AuctionEnv, StepResult
-from mrta_rl.learners.fixed import HOLD_SCOPES, HoldLevel, Reserve, TeamReserveLearner
+from mrta_rl.learners.fixed import HOLD_SCOPES, HoldLevel, Reserve
 from mrta_rl.learners.tabular import robot_kernels as kernels
 from mrta_rl.learners.tabular.base import NO_UNIFORMS, TabularLearner
 from mrta_rl.learners.tabular.encoding import LocalEncoder, env_arrays
-from mrta_rl.learners.tabular.priors import greedy_actions
+from mrta_rl.learners.tabular.priors import HOLD_PRIORS, HoldRule, greedy_actions
 from mrta_rl.metrics.learning_space import learning_space_dimension
 
 
@@ -208,7 +208,7 @@ class RobotQLearner(TabularLearner):
         return {"analytic": analytic, "visited": int(np.count_nonzero(self.visits))}
 
 
-DQL_PRIORS = ("greedy", "hold")  # DQL's tie-break action of an untried state
+DQL_PRIORS = HOLD_PRIORS  # DQL's tie-break action of an untried state
 DQL_REWARDS = ("individual", "team")  # what each robot's eq. (3) learns from
 
 
@@ -263,11 +263,11 @@ class DQLLearner(RobotQLearner):
         super().__init__(**hyperparameters)  # types, ranges and choices: the annotations
         self.prior, self.prior_in_state = prior, prior_in_state
         self.team_reward, self.min_visits = reward == "team", min_visits
-        self.rule = None  # the hold rule (fixed, deterministic: its generator is never drawn)
+        self.rule = None  # the hold rule (tabular.priors.HoldRule)
         if prior == "hold":
-            self.rule = TeamReserveLearner(
-                env=self.env, rng=np.random.default_rng(0), reserve=prior_reserve,
-                hold_level=prior_hold_level, hold_scope=prior_hold_scope,
+            self.rule = HoldRule(
+                self.env, reserve=prior_reserve, hold_level=prior_hold_level,
+                hold_scope=prior_hold_scope,
             )  # fmt: skip
         self.encoder = LocalEncoder(self.env)
         # |S_i|, times K + 1 with the prior's action as a digit (the most significant)
@@ -294,7 +294,7 @@ class DQLLearner(RobotQLearner):
 
     def _rule_actions(self, env: AuctionEnv, mask: np.ndarray) -> np.ndarray:
         """``[B, m]`` the hold rule's actions in the env's state."""
-        return self.rule.act(self.rule.encode(env), mask, explore=False)
+        return self.rule(env, mask)
 
     def _bases(self, view: RobotObservation) -> np.ndarray:
         bases = np.empty(view.states.shape, np.int64)

@@ -13,6 +13,10 @@ Q starts at 0 and, among the actions of greatest Q, the prior's choice wins (doc
 
 The per-state rules are compiled (``*_row``) and called from the learners' kernels; the numpy
 functions below apply them to batches (tests, inspection).
+
+:class:`HoldRule` is the prior ``hold`` of DQL and of the neural learners (:data:`HOLD_PRIORS`):
+the whole-team ``team_reserve`` rule (:class:`~mrta_rl.learners.fixed.TeamReserveLearner`),
+computed from the env at each decision, so every learner that starts from it plays the same rule.
 """
 
 from __future__ import annotations
@@ -22,9 +26,40 @@ from collections.abc import Sequence
 import numpy as np
 from numba import njit
 
+from mrta_rl.envs import AuctionEnv
+from mrta_rl.learners.fixed import TeamReserveLearner
+
 PRIORS = ("greedy", "spread", "spread_wait")  # tie-break joint action of an untrained state
 PRIOR_ORDERS = ("index", "fewest_types")  # which idle robot the spread priors ask first
 PRIOR_CODES = {name: k for k, name in enumerate(PRIORS)}  # the kernels' integer codes
+HOLD_PRIORS = ("greedy", "hold")  # DQL's and the neural learners' prior: plain auction or rule
+
+
+class HoldRule:
+    """The prior ``hold``: the whole-team ``team_reserve`` rule's action of every robot.
+
+    The rule (:class:`~mrta_rl.learners.fixed.TeamReserveLearner`, whole team, ``fewest_types``
+    order) reads what a robot's local view lacks (the other robots' idleness, which robot the
+    team asks first), so it is computed from the env, not from a learner's observation.
+
+    Args:
+        env: The env (sizes and ``Lambda_i``; the rule is evaluated on the env it is called with).
+        reserve: The rule's ``reserve``.
+        hold_level: The rule's ``hold_level``.
+        hold_scope: The rule's ``hold_scope``.
+    """
+
+    def __init__(self, env: AuctionEnv, *, reserve: int, hold_level: int, hold_scope: str):
+        # a fixed, deterministic rule: its generator is never drawn
+        self.rule = TeamReserveLearner(
+            env=env, rng=np.random.default_rng(0), reserve=reserve, hold_level=hold_level,
+            hold_scope=hold_scope,
+        )  # fmt: skip
+
+    def __call__(self, env: AuctionEnv, mask: np.ndarray | None = None) -> np.ndarray:
+        """``[B, m]`` int64 the rule's actions in the env's state (mask: default the env's)."""
+        mask = env.action_mask if mask is None else mask
+        return self.rule.act(self.rule.encode(env), mask, explore=False)
 
 
 def spread_order(active_tasks: np.ndarray, rule: str) -> np.ndarray:
