@@ -140,6 +140,8 @@ def build_report(inputs: Iterable[Path | str], out_dir: Path | str | None = None
         raise ValueError(
             f"no finished run (metrics.json) under {[str(p) for p in inputs]}{missing}"
         )
+    # the yardstick runs are checked (re-evaluations, same task streams) before anything is written
+    yardsticks.collect_policies([*collection.runs, *collection.duplicates])
     out = Path(out_dir) if out_dir is not None else default_out_dir(inputs)
     out.mkdir(parents=True, exist_ok=True)
     files = ReportFiles(out_dir=out, report=out / REPORT_FILE, collection=collection)

@@ -42,6 +42,7 @@ from typing import Any
 
 import numpy as np
 
+from mrta_rl.config import UserError
 from mrta_rl.reports.aggregate import learner_label, system_label
 from mrta_rl.reports.collect import RunRecord, configuration_variants
 from mrta_rl.reports.stats import MeanCI, mean_ci
@@ -162,6 +163,31 @@ def _reserve_setting(run: RunRecord) -> str:
     return ", ".join(f"{k}={cfg[k]}" for k in RESERVE_KEYS if k in cfg)
 
 
+def _check_same_streams(runs: Sequence[RunRecord], greedy: dict[str, RunRecord]) -> None:
+    """Refuse runs of as many episodes as the reference greedy but other task streams.
+
+    Every run also plays greedy (deterministic) on its evaluation episodes, so two runs were
+    evaluated on the same task streams exactly when their greedy returns agree episode by
+    episode. Another ``eval.seed`` or ``eval.batch_size`` (a second round of copies continues
+    each copy's stream) changes them; pairing such runs episode by episode would be silently
+    wrong.
+
+    Raises:
+        UserError: naming the two run dirs (printed without traceback by the scripts).
+    """
+    for run in runs:
+        reference = greedy[run.system]
+        ours = _per_episode(run.metrics["baseline_greedy"])
+        theirs = _per_episode(reference.metrics["baseline_greedy"])
+        if len(ours) == len(theirs) and not np.array_equal(ours, theirs, equal_nan=True):
+            raise UserError(
+                f"{run.run_dir} and {reference.run_dir} were evaluated on different task streams "
+                f"({len(ours)} episodes each, but their greedy baselines differ): evaluate both "
+                "with the same eval.seed and eval.batch_size (scripts/evaluate.py episodes=N "
+                "batch_size=N)"
+            )
+
+
 def collect_policies(runs: Sequence[RunRecord]) -> dict[str, list[Policy]]:
     """Group the runs into policies per system (module docstring); ``{}`` if nothing to compare.
 
@@ -208,6 +234,7 @@ def collect_policies(runs: Sequence[RunRecord]) -> dict[str, list[Policy]]:
         else:
             variant = _features(run)
         groups[(run.system, learner, kind, variant)].append(run)
+    _check_same_streams(runs, greedy)
     out: dict[str, list[Policy]] = {}
     for system, base in greedy.items():
         block = base.metrics["baseline_greedy"]

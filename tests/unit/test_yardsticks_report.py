@@ -191,3 +191,11 @@ def test_a_reevaluation_without_its_blocks_is_refused(tmp_path):
     (run.run_dir / "eval_metrics.json").write_text(json.dumps({"eval": {}}))
     with pytest.raises(ValueError, match=r"eval_metrics.json.*baseline_greedy"):
         collect_policies([RUNS[0], run])
+
+
+def test_runs_on_other_task_streams_are_refused(tmp_path):
+    """Same number of episodes, other streams (greedy differs): pairing them would be wrong."""
+    other = record("qmix", 0, [12.0, 21.0, 33.0], episodes=6, space={"parameters": 7})
+    other.metrics["baseline_greedy"]["team_return"]["per_episode"] = [10.0, 20.0, 31.0]
+    with pytest.raises(ValueError, match=r"different task streams.*eval.batch_size"):
+        collect_policies([*RUNS, other])
