@@ -26,6 +26,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from mrta_rl.config import ConfigError
 from mrta_rl.envs import AuctionEnv, AuctionParams
 from mrta_rl.learners import Learner
+from mrta_rl.learners.tabular.qtable import TableGrowthError, limit_growth
 from mrta_rl.metrics.resources import RunResources
 from mrta_rl.partition import Partition
 from mrta_rl.runners.checkpoint import (
@@ -114,13 +115,18 @@ def build_run(cfg: DictConfig, name: str | None = None) -> RunSetup:
         )
     except (TypeError, ValueError) as err:  # a relation between settings (eps_end <= eps_start)
         raise ConfigError(f"learner {name!r} ({cls.__name__}): {err}") from err
+    limit_growth(learner, checked.memory_limit)  # tables grow with the states met (qtable.py)
     return RunSetup(
         name, checked.system, env.params, checked.partition, checked.active_tasks, env, learner
     )
 
 
 def _write_refusal(run_dir: Path, cfg: DictConfig, reason: str) -> None:
-    """``refused.json`` (``reports/collect.py``): this run was refused up front, and why."""
+    """``refused.json`` (``reports/collect.py``): this run was refused, and why.
+
+    Refused up front (:class:`ResourceRefusal`), or stopped in training because its tables
+    outgrew ``limits.memory_gb`` (:class:`TableGrowthError`).
+    """
     run_dir.mkdir(parents=True, exist_ok=True)
     record = {
         "learner": hydra_choice("learner", "?"),
@@ -206,6 +212,15 @@ def train(cfg: DictConfig, run_dir: Path | str | None = None) -> dict[str, Any]:
                 run_dir,
             )
         raise SystemExit(130) from None
+    except (TableGrowthError, MemoryError) as err:  # the tables outgrew the machine mid-run
+        where = f"{run.name} on system {system_name} ({run.system.n_robots} robots)"
+        reason = (
+            f"{where}: stopped in training: {err}; use smaller sub-groups "
+            "(partition.max_group_size), fewer train.episodes or train.batch_size, "
+            "or raise limits.memory_gb"
+        )
+        _write_refusal(run_dir, cfg, reason)  # kept as data: a sweep's report shows the reason
+        raise TableGrowthError(reason) from None
     train_info["wall_s"] = round(time.perf_counter() - start, 3)
     if run.learner.kind != "fixed":
         run.learner.save(run_dir / LEARNER_DIR)

@@ -87,7 +87,8 @@ class EvalSettings:
 class LimitSettings:
     """``limits:`` of ``conf/config.yaml``; refused before any work when passed."""
 
-    # memory the learner may take (GB); null: MEMORY_FRACTION of the machine's memory
+    # memory the learner may take (GB): up front, and its Q-tables as they grow (qtable.py);
+    # null: MEMORY_FRACTION of the machine's memory
     memory_gb: Annotated[float | None, Range(0, low_open=True)] = None
 
 
@@ -118,6 +119,7 @@ class CheckedConfig:
         params: The dynamics parameters (system layer, then run layer).
         partition: The subG partition if the learner requires one, else None.
         estimate: What the learner will need.
+        memory_limit: Bytes the learner may take (``limits.memory_gb``, :func:`memory_limit`).
     """
 
     learner_cls: type[Learner]
@@ -126,6 +128,7 @@ class CheckedConfig:
     params: AuctionParams
     partition: Partition | None
     estimate: ResourceEstimate
+    memory_limit: int
 
     @property
     def active_tasks(self) -> np.ndarray | None:
@@ -295,4 +298,4 @@ def validate_config(cfg: DictConfig) -> CheckedConfig:
             format_bytes(estimate.worst),
             format_bytes(limit),
         )
-    return CheckedConfig(cls, hyperparameters, system, params, partition, estimate)
+    return CheckedConfig(cls, hyperparameters, system, params, partition, estimate, limit)

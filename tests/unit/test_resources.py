@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import re
 
 import numpy as np
@@ -16,6 +17,7 @@ from mrta_rl.learners.resources import (
 )
 from mrta_rl.learners.tabular.dql import DQLLearner
 from mrta_rl.learners.tabular.joint_actions import JointActions
+from mrta_rl.learners.tabular.qtable import JointQStorage, TableGrowthError
 from mrta_rl.learners.tabular.subg_cql import SubGCQLLearner
 from mrta_rl.partition import subg_partition
 from mrta_rl.runners import build_run
@@ -133,3 +135,43 @@ def test_a_joint_row_that_cannot_fit_is_refused_up_front():
     assert estimate.advice.startswith("use fewer robots per group")
     bounded = estimate_resources(SubGCQLLearner, system, params, subg_partition(system, 4))
     assert bounded.reason is None and bounded.refusal(8 * 2**30) is None  # 4 robots: 1.1 MB rows
+
+
+def test_a_table_growing_past_the_limit_is_refused_and_left_unchanged():
+    """The growth check counts the arrays a growth would make (int64 / float64 columns)."""
+    storage = JointQStorage(1)
+    before = {name: getattr(storage, name).copy() for name in ("hash", "rows", "entries", "q")}
+    storage.max_bytes = storage.nbytes  # no room to grow at all
+    storage.reserve(10, 100)  # fits in the first arrays: no growth, no error
+    with pytest.raises(TableGrowthError, match=r"would grow from 133 kB to 231 kB .*limit of 133"):
+        storage.reserve(10, 5000)  # entries 4096 -> 8192: 3 columns x 4096 x 8 B more
+    for name, array in before.items():
+        assert np.array_equal(getattr(storage, name), array)  # nothing changed
+    storage.max_bytes = None
+    storage.reserve(10, 5000)
+    assert storage.q.size == 8192 and storage.nbytes == 8 * (3 * 1024 + 5 * 256 + 3 * 8192)
+
+
+def test_tables_that_outgrow_the_memory_limit_stop_the_run_with_the_reason(compose_cfg, tmp_path):
+    """The scaling sweep's subG-CQL at 50 robots (max_group_size=6) passed the up-front check and
+    died in its first episode asking numpy for 30 GiB; a run whose tables outgrow
+    limits.memory_gb now stops with a user error and leaves the reason as data."""
+    from mrta_rl.runners import train
+
+    cfg = compose_cfg(
+        [
+            "learner=subg_cql",
+            "system=system1",
+            "debug=smoke",
+            "limits.memory_gb=1e-4",
+            "train.episodes=10",
+            "train.batch_size=16",
+        ]  # fmt: skip
+    )
+    with pytest.raises(TableGrowthError, match=r"subg_cql on system system1 \(6 robots\): stopped "
+                       r"in training: its Q-table would grow .* more than the limit of 100 kB; "
+                       r"use smaller sub-groups .*or raise limits.memory_gb"):  # fmt: skip
+        train(cfg, run_dir=tmp_path)
+    assert not (tmp_path / "metrics.json").exists()
+    refused = json.loads((tmp_path / "refused.json").read_text())
+    assert refused["learner"] == "subg_cql" and "stopped in training" in refused["reason"]

@@ -13,12 +13,23 @@ CQL's one group) in flat numpy arrays, so that compiled loops can read and grow 
 Rows are created on a state's first visit at a decision, in increasing state order within a
 batch, entries of a row are contiguous. :meth:`JointQStorage.to_arrays` gives each group's table
 as it is saved (``q_tables.npz``, the format of the earlier per-group tables).
+
+The tables grow with the states met, which no up-front estimate bounds tightly
+(``learners/resources.py``). :attr:`JointQStorage.max_bytes` (set by the runner from
+``limits.memory_gb``, :func:`limit_growth`) makes a growth past the limit a
+:class:`TableGrowthError`, a user error with the sizes, instead of numpy's allocation failure (or
+the machine swapping) deep inside training.
 """
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from numba import njit
+
+from mrta_rl.config import UserError
+from mrta_rl.learners.resources import format_bytes
 
 ROW_STATE, ROW_GROUP, ROW_OFFSET, ROW_LENGTH, ROW_PRIOR = range(5)  # rows of ``rows``
 ENTRY_CODE, ENTRY_VISITS = range(2)  # rows of ``entries``
@@ -121,6 +132,22 @@ def random_entry(rows, row: int, u: float) -> int:
     return rows[ROW_OFFSET, row] + min(int(u * length), length - 1)
 
 
+class TableGrowthError(UserError):
+    """A Q-table would grow past the memory it may take (:attr:`JointQStorage.max_bytes`)."""
+
+
+def limit_growth(learner: Any, max_bytes: int | None) -> None:
+    """Bound the growth of every :class:`JointQStorage` a learner holds (None: unbounded).
+
+    Args:
+        learner: Any learner; those without a joint table are left as they are.
+        max_bytes: The bytes each table may take.
+    """
+    for value in vars(learner).values():
+        if isinstance(value, JointQStorage):
+            value.max_bytes = max_bytes
+
+
 class JointQStorage:
     """The Q tables of ``n_groups`` groups over (state, valid joint action), in flat arrays.
 
@@ -133,7 +160,10 @@ class JointQStorage:
         entries: ``[2, entry capacity]`` int64 per entry: joint code, visits.
         q: ``[entry capacity]`` float64 ``Q(s, a)``.
         sizes: ``[2]`` int64 rows and entries in use (the compiled loops bump them).
+        max_bytes: Bytes the arrays may take after a growth (None: unbounded; module docstring).
     """
+
+    max_bytes: int | None = None
 
     def __init__(self, n_groups: int) -> None:
         self.n_groups = n_groups
@@ -154,7 +184,12 @@ class JointQStorage:
         return int(self.sizes[1])
 
     def reserve(self, rows: int, entries: int) -> None:
-        """Make room for ``rows`` more rows and ``entries`` more entries (amortised doubling)."""
+        """Make room for ``rows`` more rows and ``entries`` more entries (amortised doubling).
+
+        Raises:
+            TableGrowthError: if the grown arrays would take more than :attr:`max_bytes`;
+                nothing is changed then.
+        """
         n_rows, n_entries = self.sizes.tolist()
         need_rows, need_entries = n_rows + rows, n_entries + entries
         if (  # the usual case, checked first: room everywhere
@@ -163,22 +198,45 @@ class JointQStorage:
             and 2 * need_rows <= self.hash.shape[1]
         ):
             return
-        if need_rows > self.rows.shape[1]:
-            grown = np.zeros((5, max(need_rows, 2 * self.rows.shape[1])), np.int64)
+        row_capacity = self.rows.shape[1]
+        if need_rows > row_capacity:
+            row_capacity = max(need_rows, 2 * row_capacity)
+        entry_capacity = self.q.size
+        if need_entries > entry_capacity:
+            entry_capacity = max(need_entries, 2 * entry_capacity)
+        hash_capacity = self.hash.shape[1]
+        while 2 * need_rows > hash_capacity:  # at most half full: short probe sequences
+            hash_capacity *= 2
+        self._check_growth(row_capacity, entry_capacity, hash_capacity, need_rows)
+        if row_capacity > self.rows.shape[1]:
+            grown = np.zeros((5, row_capacity), np.int64)
             grown[:, : self.n_rows] = self.rows[:, : self.n_rows]
             self.rows = grown
-        if need_entries > self.q.size:
-            capacity = max(need_entries, 2 * self.q.size)
-            grown = np.zeros((2, capacity), np.int64)
+        if entry_capacity > self.q.size:
+            grown = np.zeros((2, entry_capacity), np.int64)
             grown[:, : self.n_entries] = self.entries[:, : self.n_entries]
-            q = np.zeros(capacity)
+            q = np.zeros(entry_capacity)
             q[: self.n_entries] = self.q[: self.n_entries]
             self.entries, self.q = grown, q
-        if 2 * need_rows > self.hash.shape[1]:  # at most half full: short probe sequences
-            capacity = self.hash.shape[1]
-            while 2 * need_rows > capacity:
-                capacity *= 2
-            self.hash = _rebuild_hash(self.rows, self.n_rows, capacity)
+        if hash_capacity > self.hash.shape[1]:
+            self.hash = _rebuild_hash(self.rows, self.n_rows, hash_capacity)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the arrays (capacity, not only what is in use)."""
+        return self.hash.nbytes + self.rows.nbytes + self.entries.nbytes + self.q.nbytes
+
+    def _check_growth(self, rows: int, entries: int, hash_slots: int, states: int) -> None:
+        """Raise :class:`TableGrowthError` if arrays of these capacities pass :attr:`max_bytes`."""
+        if self.max_bytes is None:
+            return
+        grown = 8 * (3 * hash_slots + 5 * rows + 3 * entries)  # int64 / float64 columns
+        if grown > self.max_bytes:
+            raise TableGrowthError(
+                f"its Q-table would grow from {format_bytes(self.nbytes)} to "
+                f"{format_bytes(grown)} (room for {states:,} states and their valid joint "
+                f"actions), more than the limit of {format_bytes(self.max_bytes)}"
+            )
 
     def row(self, group: int, state: int) -> int:
         """Row of a state of a group, or -1 if it was never met."""
