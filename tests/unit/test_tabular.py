@@ -388,6 +388,10 @@ OPTION_CASES = {
     "semi_cql/min_visits": ("semi_cql/explore", {"min_visits": 2}),
     "dql/prior_target": ("dql/explore", {"target": "prior"}),
     "dql/hold_prior_target": ("dql/hold", {"target": "prior"}),
+    "cql/time_to_free": ("cql/every_tick", {"features": "time_to_free"}),
+    "semi_cql/time_to_free": ("semi_cql/explore", {"features": "time_to_free"}),
+    "dql/time_to_free": ("dql/explore", {"features": "time_to_free"}),
+    "dql/hold_time_to_free": ("dql/hold", {"features": "time_to_free"}),
 }
 FUSED_CASES |= {
     case: (FUSED_CASES[base][0], {**FUSED_CASES[base][1], **options})
@@ -442,15 +446,23 @@ def test_uniforms_drawn_ahead_are_the_plain_stream():
     assert rng.random() == plain.random()
 
 
+@pytest.mark.parametrize("system_name", ["system1", "system2"])
 @pytest.mark.parametrize("features", ["paper", "time_to_free"])
-def test_compiled_encodings_are_the_observation_codes(features):
-    system = paper_system("system2")
+def test_compiled_encodings_are_the_observation_codes(features, system_name):
+    system = paper_system(system_name)
     env = AuctionEnv(system, batch_size=6, seed=3)
-    groups = [np.array([0, 3, 5]), np.arange(10), np.array([9])]
-    group_encoder, local_encoder = GroupEncoder(env, groups, features), LocalEncoder(env)
+    m = env.n_robots
+    groups = [np.array([0, 3, m - 1]), np.arange(m), np.array([m - 1])]
+    group_encoder = GroupEncoder(env, groups, features)
+    local_encoder = LocalEncoder(env, features)
     rng = np.random.default_rng(0)
-    seen = set()
-    for _ in range(120):
+    seen, local_seen = set(), set()
+    for tick in range(120):
+        if tick == 60:  # a full queue in copy 0: 3 H and 9 L tasks of T1 (queue levels 2)
+            env.inject_tasks(0, [
+                {"type": 0, "high": int(k < 3), "due": int(env.t[0]), "id": k, "duration": 4}
+                for k in range(12)
+            ])  # fmt: skip
         states, level = group_encoder.index(env)
         for g, robots in enumerate(groups):
             codes = ob.group_state_index(env, robots, features)
@@ -459,13 +471,22 @@ def test_compiled_encodings_are_the_observation_codes(features):
                         for c in codes)  # fmt: skip
             types = env.active_tasks[robots].any(axis=0)
             np.testing.assert_array_equal(level[g], ob.recency_level(env, types))
-        np.testing.assert_array_equal(local_encoder.index(env), ob.local_state_index(env))
+        local = local_encoder.index(env)
+        np.testing.assert_array_equal(local, ob.local_state_index(env, features))
+        view = ob._local_view(env, features)
+        for (_, robot), code in np.ndenumerate(local):
+            fields = view.decode(robot, int(code))
+            local_seen.add((fields.get("free", 0), fields.get("queue_high", 0),
+                            fields.get("queue_low", 0)))  # fmt: skip
         logits = rng.random(env.action_mask.shape) * env.action_mask
         env.step(logits.argmax(axis=2))
         if env.done.any():
             env.reset()
     if features == "time_to_free":  # busy robots free soon were met (robot state 3)
         assert max(seen) > 0
+        # every free level and queue level (H and L) was met by the local views
+        for part in range(3):
+            assert {levels[part] for levels in local_seen} == {0, 1, 2}, part
 
 
 # ---------------------------------------------------------------- hand-computed eq. (3), per learn
@@ -680,6 +701,110 @@ def test_subg_cql_time_to_free_learning_space(tiny_params):
         play(env, learner, 60)
         states, _ = learner.encoder.index(env)
         assert (states < per_group).all() and learner.learning_space()["visited"] > 0
+
+
+def test_dql_time_to_free_local_state_by_hand(trio, tiny_params):
+    """Hand-computed local states with ``features=time_to_free`` (observations, "Features").
+
+    Copy 0 queues an H task of T1 and L tasks of T2, T2, T2, T1: the slots hold H T1, L T2, L T2.
+    R1 is idle, R2 busy until t + 1 (idle again in 2 ticks: free level 1), R3 busy until t + 10
+    (free level 2); no H arrival for 50 ticks (recency 2); batteries full (level 0). Queue over
+    ``Lambda_i``: R1 and R3 (T1, T2) see 1 H (level 1) and 4 L (level 1); R2 (T1) 1 H, 1 L
+    (levels 1, 0). Digits (least significant first): free level 3, slots ``1 + 2 |Lambda_i|``,
+    battery 2, recency 3, H 3, L 3; slot code ``1 + 2 rank + high`` (0 outside ``Lambda_i``).
+    """
+    env, learner = make(DQLLearner, trio, tiny_params, batch=1, features="time_to_free")
+    tasks = [(0, 1), (1, 0), (1, 0), (1, 0), (0, 0)]  # (type, high)
+    env.inject_tasks(0, [
+        {"type": ttype, "high": high, "due": int(env.t[0]), "id": k, "duration": 4}
+        for k, (ttype, high) in enumerate(tasks)
+    ])  # fmt: skip
+    assert env.slot_type[0].tolist() == [0, 1, 1] and env.slot_high[0].tolist() == [1, 0, 0]
+    env.busy_until[0] = [-1, env.t[0] + 1, env.t[0] + 10]
+    env.idle[0] = [True, False, False]
+    env.last_high_arrival[0, :] = env.t[0] - 50
+    # R1, R3 places 1, 3, 15, 75, 375, 750, 2250, 6750; R2 places 1, 3, 9, 27, 81, 162, 486, 1458
+    r1 = 0 + (2 * 3 + 3 * 15 + 3 * 75) + 0 * 375 + 2 * 750 + 1 * 2250 + 1 * 6750
+    r2 = 1 + 2 * 3 + 0 * 81 + 2 * 162 + 1 * 486 + 0 * 1458
+    r3 = r1 + 2
+    assert learner.encode(env).states.tolist() == [[r1, r2, r3]] == [[10776, 817, 10778]]
+    np.testing.assert_array_equal(
+        learner.encoder.index(env), ob.local_state_index(env, "time_to_free")
+    )
+
+
+def test_time_to_free_learning_space_on_system1():
+    """Hand-computed on System-I (6 robots, 5 types, K = 3, ``|A_i| = 4``; ``|Lambda_i|`` 3, 2,
+    2, 2, 1, 3): DQL ``sum_i 3 (1 + 2 |Lambda_i|)^3 2 3 3 3 x 4``; the whole-system state
+    ``11^3 4^6 3 3 3``, semi-CQL ``6 x 4`` times it, CQL ``4^6`` times it."""
+    system = paper_system("system1")
+    local = sum(3 * (1 + 2 * n) ** 3 * 2 * 3 * 3 * 3 for n in (3, 2, 2, 2, 1, 3))
+    whole = 11**3 * 4**6 * 3 * 3 * 3
+    expected = {DQLLearner: local * 4, SemiCQLLearner: whole * 6 * 4, CQLLearner: whole * 4**6}
+    assert expected[DQLLearner] == 705_024 and whole == 147_197_952
+    for cls, dimension in expected.items():
+        learner = make(cls, system, batch=1, features="time_to_free")[1]
+        assert learner.learning_space()["analytic"] == dimension, cls.__name__
+        paper = make(cls, system, batch=1)[1].learning_space()["analytic"]
+        assert paper < dimension, cls.__name__
+
+
+TIME_TO_FREE_CASES = [
+    (CQLLearner, {}),
+    (SemiCQLLearner, {}),
+    (DQLLearner, {}),
+    (DQLLearner, {"prior": "hold", "prior_reserve": 1, "prior_in_state": True}),
+]
+
+
+@pytest.mark.parametrize(("cls", "hp"), TIME_TO_FREE_CASES)
+def test_untrained_time_to_free_plays_as_paper(cls, hp, tiny_params):
+    """Untrained, ``features=time_to_free`` plays the paper encoding's actions (the same prior),
+    tick by tick over two episodes of System-II, and its states are observations' codes."""
+    system = paper_system("system2")
+    (env, paper), (env2, extra) = (
+        make(cls, system, tiny_params, batch=5, seed=2, features=f, **hp)
+        for f in ("paper", "time_to_free")
+    )
+    robots = list(range(env.n_robots))
+    for _ in range(2):
+        while not env.done.any():
+            view, view2 = paper.encode(env), extra.encode(env2)
+            states = view2.states[0] if cls is CQLLearner else view2.states
+            if cls is DQLLearner:
+                reference = ob.local_state_index(env2, "time_to_free")
+                if extra.prior_in_state:
+                    reference = reference + view2.prior * np.array(extra._local_counts)
+            else:
+                reference = ob.group_state_index(env2, robots, "time_to_free")
+            np.testing.assert_array_equal(states, reference)
+            actions = paper.act(view, env.action_mask, explore=False)
+            np.testing.assert_array_equal(
+                extra.act(view2, env2.action_mask, explore=False), actions
+            )
+            env.step(actions)
+            env2.step(actions)
+        env.reset()
+        env2.reset()
+
+
+@pytest.mark.parametrize("cls", [CQLLearner, SemiCQLLearner, DQLLearner])
+def test_fused_tick_time_to_free_states_are_the_observation_codes(cls, tiny_params):
+    """The states ``train_tick`` encodes with ``features=time_to_free`` are observations'."""
+    system = paper_system("system2")
+    env, learner = make(cls, system, tiny_params, batch=4, seed=1, features="time_to_free")
+    robots = list(range(env.n_robots))
+    actions, checked = learner.train_tick(env, None), 0
+    while actions is not None:
+        if cls is DQLLearner:
+            reference, states = ob.local_state_index(env, "time_to_free"), learner._scratch[4]
+        else:
+            reference = ob.group_state_index(env, robots, "time_to_free")
+            states = learner._tick[0][0] if cls is CQLLearner else learner._system_scratch[0][0]
+        np.testing.assert_array_equal(states, reference)
+        checked += 1
+        actions = learner.train_tick(env, env.step(actions))
+    assert checked == tiny_params.horizon
 
 
 def test_subg_requires_partition_env(trio):

@@ -7,11 +7,13 @@ valid conflict-free joint actions (``qtable.JointQStorage``).
 
 from __future__ import annotations
 
-from typing import ClassVar
+from typing import Annotated, ClassVar
 
 import numpy as np
 
+from mrta_rl.config import Choices
 from mrta_rl.envs import StepResult
+from mrta_rl.envs.observations import FEATURES
 from mrta_rl.learners.tabular.subg_cql import GroupQLearner
 
 
@@ -29,15 +31,19 @@ class CQLLearner(GroupQLearner):
         prior: Tie-break joint action of untried states (``priors.PRIORS``, docs/learners.md).
         min_visits: Updates an entry needs before it competes with the prior.
         prior_order: Which idle robot the spread priors ask first (default ``index``).
+        features: The whole-system state's encoding (``observations.FEATURES``): ``paper`` or
+            ``time_to_free`` (robot state 3 = busy, free soon; queued H and L levels; coarse,
+            docs/learners.md).
         **hyperparameters: See :class:`~mrta_rl.learners.tabular.base.TabularLearner`.
     """
 
     space_name: ClassVar[str] = "cql"
 
-    def __init__(self, **hyperparameters) -> None:
+    def __init__(
+        self, *, features: Annotated[str, Choices(*FEATURES)] = "paper", **hyperparameters
+    ) -> None:
         super().__init__(**hyperparameters)
-        env = self.env
-        self._set_groups(["team"], [list(range(env.n_robots))])
+        self._set_groups(["team"], [list(range(self.env.n_robots))], features)
 
     def _group_rewards(self, result: StepResult) -> tuple[np.ndarray, np.ndarray]:
         # spec step 8: the team reward

@@ -16,6 +16,7 @@ import numpy as np
 
 from mrta_rl.config import Choices, Range
 from mrta_rl.envs import AuctionEnv, StepResult
+from mrta_rl.envs.observations import FEATURES
 from mrta_rl.learners.fixed import HOLD_SCOPES, HoldLevel, Reserve
 from mrta_rl.learners.tabular import robot_kernels as kernels
 from mrta_rl.learners.tabular.base import NO_UNIFORMS, TabularLearner
@@ -49,6 +50,7 @@ class RobotQLearner(TabularLearner):
     space_name: ClassVar[str]
     q: np.ndarray
     visits: np.ndarray
+    features: str = "paper"  # the state encoding (observations.FEATURES), set by the subclass
     team_reward: bool = False  # learn from the team reward (spec step 8) instead of the robot's
     min_visits: int = 0  # updates an entry needs before it competes with the prior (0: always)
 
@@ -204,7 +206,9 @@ class RobotQLearner(TabularLearner):
 
     def learning_space(self) -> dict[str, int]:
         """Analytic dimension (eq. 11) and the table entries updated at least once."""
-        analytic = learning_space_dimension(self.space_name, self.env, self.partition)
+        analytic = learning_space_dimension(
+            self.space_name, self.env, self.partition, self.features
+        )
         return {"analytic": analytic, "visited": int(np.count_nonzero(self.visits))}
 
 
@@ -239,6 +243,9 @@ class DQLLearner(RobotQLearner):
             credited when a teammate does it).
         min_visits: Updates an entry needs before it competes with the prior's action, in the
             greedy choice and in eq. (3)'s max (0: every valid action competes).
+        features: The local view's encoding (``observations.FEATURES``): ``paper`` or
+            ``time_to_free`` (the free level instead of the idle flag, queued H and L levels
+            over ``Lambda_i``; coarse, docs/learners.md).
         **hyperparameters: Env, rng, partition (unused) and those of
             :class:`~mrta_rl.learners.tabular.base.TabularLearner`.
 
@@ -258,10 +265,11 @@ class DQLLearner(RobotQLearner):
         prior_in_state: bool = False,
         reward: Annotated[str, Choices(*DQL_REWARDS)] = "individual",
         min_visits: Annotated[int, Range(0)] = 0,
+        features: Annotated[str, Choices(*FEATURES)] = "paper",
         **hyperparameters,
     ) -> None:
         super().__init__(**hyperparameters)  # types, ranges and choices: the annotations
-        self.prior, self.prior_in_state = prior, prior_in_state
+        self.prior, self.prior_in_state, self.features = prior, prior_in_state, features
         self.team_reward, self.min_visits = reward == "team", min_visits
         self.rule = None  # the hold rule (tabular.priors.HoldRule)
         if prior == "hold":
@@ -269,7 +277,7 @@ class DQLLearner(RobotQLearner):
                 self.env, reserve=prior_reserve, hold_level=prior_hold_level,
                 hold_scope=prior_hold_scope,
             )  # fmt: skip
-        self.encoder = LocalEncoder(self.env)
+        self.encoder = LocalEncoder(self.env, features)
         # |S_i|, times K + 1 with the prior's action as a digit (the most significant)
         self._local_counts = self.encoder.counts
         self.state_counts = [
@@ -308,7 +316,7 @@ class DQLLearner(RobotQLearner):
         self, env: AuctionEnv, prior: np.ndarray | None, middle: tuple, tail: tuple
     ) -> int:
         return kernels.tick_local(
-            *env_arrays(env), *self.encoder.tables, prior is None,
+            *env_arrays(env), *self.encoder.state_arrays(env), *self.encoder.tables, prior is None,
             self.prior_in_state and prior is not None, self._digit_place, self._robot_base,
             *middle, *tail,
         )  # fmt: skip

@@ -15,8 +15,10 @@ The group encoder takes the view's ``features`` (``observations.FEATURES``): wit
 ``time_to_free``, :meth:`GroupEncoder.offset` computes the extra digits (a busy robot free
 within ``FREE_SOON`` ticks reads robot state 3; queued H and L levels over ``T_g``) with the
 numpy functions of ``observations`` and adds them as ``[G, B]`` offsets to the paper-era codes
-of :func:`encode_groups`, so the compiled loop is the paper one (and semi-CQL's whole-system
-state, which calls it directly, is unchanged).
+of :func:`encode_groups`, so the compiled loop is the paper one (semi-CQL's fused tick adds the
+same offset). The local encoder computes its ``time_to_free`` digits in its compiled loop
+(:func:`encode_local`: the free level from ``busy_until``, the queued H and L counts over
+``Lambda_i`` from the queue), a flag of its tables, so DQL's fused tick needs no offset.
 """
 
 from __future__ import annotations
@@ -28,6 +30,8 @@ from numba import njit
 
 from mrta_rl.envs import AuctionEnv
 from mrta_rl.envs.observations import (
+    FREE_SOON,
+    QUEUE_THRESHOLDS,
     RECENCY_THRESHOLDS,
     GroupView,
     LocalView,
@@ -35,8 +39,10 @@ from mrta_rl.envs.observations import (
     free_level,
     queue_level,
 )
+from mrta_rl.envs.tasks import EMPTY, task_high, task_type
 
 _THRESHOLDS = np.array(RECENCY_THRESHOLDS, np.int64)
+_QUEUE_THRESHOLDS = np.array([QUEUE_THRESHOLDS["H"], QUEUE_THRESHOLDS["L"]], np.int64)  # [H, L]
 
 
 @njit(cache=True)
@@ -89,24 +95,58 @@ def encode_groups(
 
 
 @njit(cache=True)
+def _level(count: int, thresholds: np.ndarray) -> int:
+    """Queue level of a count (``observations.queue_level``): 0, 1 or 2 over two thresholds."""
+    return int(count > thresholds[0]) + int(count > thresholds[1])
+
+
+@njit(cache=True)
+def _queued(queue: np.ndarray, length: int, counts: np.ndarray) -> None:
+    """Queued tasks of one copy per type and priority (``observations.queue_counts``), written."""
+    counts[:] = 0
+    for w in range(length):  # places past the length are EMPTY (envs/kernel.py)
+        if queue[w] != EMPTY:
+            counts[task_type(queue[w]), task_high(queue[w])] += 1
+
+
+@njit(cache=True)
 def encode_local(
-    slot_type, slot_high, idle, battery, t, last_high, margin, threshold, codes, slot_places,
-    places, active, thresholds, out,
+    slot_type, slot_high, idle, battery, t, last_high, busy_until, queue, queue_len, margin,
+    threshold, codes, slot_places, places, active, thresholds, time_to_free, free_soon,
+    queue_thresholds, out,
 ):  # fmt: skip
     """``LocalView`` state indices ``out`` ``[B, m]`` (written).
 
-    The leading six arguments are :func:`env_arrays`, the next seven a ``LocalEncoder``'s
-    :attr:`~LocalEncoder.tables`.
+    The leading six arguments are :func:`env_arrays`, the next three
+    :meth:`LocalEncoder.state_arrays`, the next ten a ``LocalEncoder``'s
+    :attr:`~LocalEncoder.tables`. With ``time_to_free`` the first digit is the free level
+    (instead of the idle flag) and the H and L queue levels over ``Lambda_i`` follow the recency
+    digit (``observations`` module docstring, "Features").
     """
-    n_places = places.shape[1]
+    n_slots = slot_type.shape[1]
+    counts = np.zeros((active.shape[1] if time_to_free else 0, 2), np.int64)  # [n, (L, H)]
     for b in range(out.shape[0]):
+        if time_to_free:
+            _queued(queue[b], queue_len[b], counts)
         for i in range(out.shape[1]):
-            index = np.int64(idle[b, i])
-            for k in range(slot_type.shape[1]):
+            if time_to_free:  # free level: idle again at busy_until + 1
+                ticks = busy_until[b, i] - t[b] + 1
+                index = np.int64(ticks > 0) + np.int64(ticks > free_soon)
+            else:
+                index = np.int64(idle[b, i])
+            for k in range(n_slots):
                 ttype = slot_type[b, k] if slot_type[b, k] >= 0 else codes.shape[0] - 1
                 index += codes[ttype, max(slot_high[b, k], 0), i] * slot_places[k, i]
-            index += battery_low(battery[b, i], margin[i], threshold) * places[i, n_places - 2]
-            index += recency(last_high[b], t[b], active[i], thresholds) * places[i, n_places - 1]
+            index += battery_low(battery[b, i], margin[i], threshold) * places[i, n_slots + 1]
+            index += recency(last_high[b], t[b], active[i], thresholds) * places[i, n_slots + 2]
+            if time_to_free:  # queued H and L tasks over Lambda_i
+                high = low = 0
+                for j in range(active.shape[1]):
+                    if active[i, j]:
+                        high += counts[j, 1]
+                        low += counts[j, 0]
+                index += _level(high, queue_thresholds[0]) * places[i, n_slots + 3]
+                index += _level(low, queue_thresholds[1]) * places[i, n_slots + 4]
             out[b, i] = index
 
 
@@ -194,23 +234,30 @@ class LocalEncoder:
 
     Args:
         env: The env (its slots, types and active tasks fix the tables).
+        features: ``paper`` or ``time_to_free`` (``observations.FEATURES``).
     """
 
-    def __init__(self, env: AuctionEnv) -> None:
-        view = LocalView(env)
+    def __init__(self, env: AuctionEnv, features: str = "paper") -> None:
+        view = LocalView(env, features)
+        self.features = features
         self.counts = view.counts  # |S_i|
         self._codes = view._codes  # [n + 1, 2, m]
         self._slot_places = view._slot_places  # [K, m]
-        self._places = view._places  # [m, K + 3]
+        self._places = view._places  # [m, K + 3] (time_to_free: K + 5)
         self._active = view._active  # Lambda_i, [m, n]
         # the arguments of encode_local after the env's
         self.tables = (
             *_battery_rule(env), self._codes, self._slot_places, self._places, self._active,
-            _THRESHOLDS,
+            _THRESHOLDS, features == "time_to_free", FREE_SOON, _QUEUE_THRESHOLDS,
         )  # fmt: skip
+
+    @staticmethod
+    def state_arrays(env: AuctionEnv) -> tuple[np.ndarray, ...]:
+        """The env arrays the ``time_to_free`` digits read: busy-until ticks, the queue."""
+        return env.busy_until, env._queue, env._queue_len
 
     def index(self, env: AuctionEnv) -> np.ndarray:
         """``[B, m]`` int64 local state indices."""
         out = np.empty((env.batch_size, env.n_robots), np.int64)
-        encode_local(*env_arrays(env), *self.tables, out)
+        encode_local(*env_arrays(env), *self.state_arrays(env), *self.tables, out)
         return out

@@ -238,8 +238,9 @@ def _close_and_act(
 
 @njit(cache=True)
 def tick_local(
-    slot_type, slot_high, idle, battery, t, last_high, margin, threshold, codes, slot_places,
-    places, active, thresholds, greedy_prior, prior_digit, counts, robot_base, q, visits,
+    slot_type, slot_high, idle, battery, t, last_high, busy_until, queue, queue_len, margin,
+    threshold, codes, slot_places, places, active, thresholds, time_to_free, free_soon,
+    queue_thresholds, greedy_prior, prior_digit, counts, robot_base, q, visits,
     bases, actions, mask, next_mask, next_prior, rewards, done, pending_entry, pending_return,
     pending_discount, learn, decisions_only, gamma, min_visits, prior_target, alpha, alpha_power,
     alpha_min, epsilon, uniforms, states, next_bases, closing, next_actions,
@@ -256,8 +257,9 @@ def tick_local(
     if greedy_prior:
         _greedy_prior(next_mask, next_prior)
     encode_local(
-        slot_type, slot_high, idle, battery, t, last_high, margin, threshold, codes, slot_places,
-        places, active, thresholds, states,
+        slot_type, slot_high, idle, battery, t, last_high, busy_until, queue, queue_len, margin,
+        threshold, codes, slot_places, places, active, thresholds, time_to_free, free_soon,
+        queue_thresholds, states,
     )  # fmt: skip
     if prior_digit:
         add_prior_digit(states, next_prior, counts)
@@ -276,7 +278,8 @@ def tick_local(
 @njit(cache=True)
 def tick_system(
     slot_type, slot_high, idle, battery, t, last_high, margin, threshold, codes, slot_places,
-    robots, size, robot_places, recency_place, types, thresholds, table, rows, sizes, row_size,
+    robots, size, robot_places, recency_place, types, thresholds, offset, table, rows, sizes,
+    row_size,
     q, visits, bases, actions, mask, next_mask, next_prior, rewards, done, pending_entry,
     pending_return, pending_discount, learn, decisions_only, gamma, min_visits, prior_target,
     alpha, alpha_power, alpha_min, epsilon, uniforms, states, level, next_rows, next_bases,
@@ -284,15 +287,18 @@ def tick_system(
 ):  # fmt: skip
     """One semi-CQL training tick, as :func:`tick_local` with the plain auction's prior.
 
-    The state is the whole system's (``encode_groups``, one group); its row is looked up, and
-    created on a first visit, only when ``update`` or ``act`` reads it (as the learner's calls
-    do), so the rows are numbered as theirs.
+    The state is the whole system's (``encode_groups``, one group, plus ``offset`` ``[1, B]``,
+    ``GroupEncoder.offset``: the ``time_to_free`` digits, 0 for the paper's); its row is looked
+    up, and created on a first visit, only when ``update`` or ``act`` reads it (as the learner's
+    calls do), so the rows are numbered as theirs.
     """
     _greedy_prior(next_mask, next_prior)
     encode_groups(
         slot_type, slot_high, idle, battery, t, last_high, margin, threshold, codes, slot_places,
         robots, size, robot_places, recency_place, types, thresholds, states, level,
     )  # fmt: skip
+    for b in range(states.shape[1]):
+        states[0, b] += offset[0, b]
     count = _open_if(
         learn, bases, actions, mask, next_mask, rewards, done, pending_entry, pending_return,
         pending_discount, decisions_only, gamma, closing,

@@ -12,8 +12,9 @@ from typing import Annotated, ClassVar
 
 import numpy as np
 
-from mrta_rl.config import Range
+from mrta_rl.config import Choices, Range
 from mrta_rl.envs import AuctionEnv, StepResult
+from mrta_rl.envs.observations import FEATURES
 from mrta_rl.learners.tabular import robot_kernels as kernels
 from mrta_rl.learners.tabular.dql import RobotObservation, RobotQLearner
 from mrta_rl.learners.tabular.encoding import GroupEncoder, env_arrays
@@ -29,15 +30,24 @@ class SemiCQLLearner(RobotQLearner):
         partition: Unused.
         min_visits: Updates an entry needs before it competes with the prior's action (the plain
             auction's bid), in the greedy choice and in eq. (3)'s max (0: every valid action).
+        features: The whole-system state's encoding (``observations.FEATURES``): ``paper`` or
+            ``time_to_free`` (robot state 3 = busy, free soon; queued H and L levels; coarse,
+            docs/learners.md).
         **hyperparameters: See :class:`~mrta_rl.learners.tabular.base.TabularLearner`.
     """
 
     space_name: ClassVar[str] = "semi_cql"
 
-    def __init__(self, *, min_visits: Annotated[int, Range(0)] = 0, **hyperparameters) -> None:
+    def __init__(
+        self,
+        *,
+        min_visits: Annotated[int, Range(0)] = 0,
+        features: Annotated[str, Choices(*FEATURES)] = "paper",
+        **hyperparameters,
+    ) -> None:
         super().__init__(**hyperparameters)
-        self.min_visits = min_visits
-        self.encoder = GroupEncoder(self.env, [np.arange(self.env.n_robots)])
+        self.min_visits, self.features = min_visits, features
+        self.encoder = GroupEncoder(self.env, [np.arange(self.env.n_robots)], features)
         self._row_size = self.n_robots * self.n_actions
         self._index = JointQStorage(1)  # state index -> row (hash), row -> state index
         self.q = np.zeros(1024 * self._row_size)  # Q_i(s, a) at (row * m + i) * (K + 1) + a
@@ -104,8 +114,8 @@ class SemiCQLLearner(RobotQLearner):
                 np.empty(batch, np.int64),
             )  # fmt: skip
         return kernels.tick_system(
-            *env_arrays(env), *self.encoder.tables, index.hash, index.rows, index.sizes,
-            self._row_size, *middle, *self._system_scratch, *tail[1:],
+            *env_arrays(env), *self.encoder.tables, self.encoder.offset(env), index.hash,
+            index.rows, index.sizes, self._row_size, *middle, *self._system_scratch, *tail[1:],
         )  # fmt: skip
 
     def _table_arrays(self) -> dict[str, np.ndarray]:
