@@ -202,6 +202,7 @@ def _tabular(
     cls: type, env: AuctionEnv, partition: Partition | None, hp: dict[str, Any], decisions: int
 ) -> ResourceEstimate:
     name, space = cls.__name__, getattr(cls, "space_name", None)
+    features = hp.get("features", "paper")  # the state's encoding (observations.FEATURES)
     A, K = env.n_actions, env.n_slots
     parts: dict[str, int] = {}
     if space in ("cql", "subg_cql"):
@@ -213,7 +214,7 @@ def _tabular(
             if A ** len(robots) >= INT64_CODES:
                 reason = _too_many_joint_actions(group, len(robots), A)
                 return ResourceEstimate(name, reason=reason, advice=GROUP_ADVICE)
-            states = group_state_count(env, robots)
+            states = group_state_count(env, robots, features)
             if states >= INT64_CODES:
                 reason = f"{group}: {states:.3g} group states do not fit in int64"
                 return ResourceEstimate(name, reason=reason, advice=GROUP_ADVICE)
@@ -229,7 +230,7 @@ def _tabular(
         worst = max(full_rows, sum(parts.values()))
         return ResourceEstimate(name, full_rows, worst, parts, advice=GROUP_ADVICE)
     if space == "semi_cql":
-        states = group_state_count(env, list(range(env.n_robots)))
+        states = group_state_count(env, list(range(env.n_robots)), features)
         if states >= INT64_CODES:
             reason = f"{states:.3g} whole-system states do not fit in int64"
             return ResourceEstimate(name, reason=reason, advice="use a smaller system")
@@ -238,7 +239,7 @@ def _tabular(
         return ResourceEstimate(name, 0, parts["table"], parts)
     if space == "dql":
         try:
-            stride = max(local_state_count(env))
+            stride = max(local_state_count(env, features))
         except OverflowError as err:
             return ResourceEstimate(name, reason=str(err), advice="use fewer task types or slots")
         parts["tables"] = env.n_robots * stride * A * TABLE_ENTRY_BYTES  # dense, allocated
@@ -254,7 +255,8 @@ def _neural(
 
     name = cls.__name__
     m, A = env.n_robots, env.n_actions
-    F, S = local_feature_size(env), global_feature_size(env)
+    features = hp.get("features", "paper")  # the observation's encoding (observations.FEATURES)
+    F, S = local_feature_size(env, features), global_feature_size(env, features)
     depth, hidden = int(hp["depth"]), int(hp["hidden"])
     advice = "lower learner.buffer_size or learner.hidden, or use a smaller system"
     if issubclass(cls, SubGDQNLearner):
