@@ -13,12 +13,13 @@ view's radices (and its count), computes the digit for all copies, and the encod
 
 The group encoder takes the view's ``features`` (``observations.FEATURES``): with
 ``time_to_free``, :meth:`GroupEncoder.offset` computes the extra digits (a busy robot free
-within ``FREE_SOON`` ticks reads robot state 3; queued H and L levels over ``T_g``) with the
-numpy functions of ``observations`` and adds them as ``[G, B]`` offsets to the paper-era codes
-of :func:`encode_groups`, so the compiled loop is the paper one (semi-CQL's fused tick adds the
-same offset). The local encoder computes its ``time_to_free`` digits in its compiled loop
-(:func:`encode_local`: the free level from ``busy_until``, the queued H and L counts over
-``Lambda_i`` from the queue), a flag of its tables, so DQL's fused tick needs no offset.
+within ``FREE_SOON`` ticks reads robot state 3; queued H and L levels over ``T_g``) in its
+own compiled loop (:func:`group_offsets`) and adds them as ``[G, B]`` offsets to the paper-era
+codes of :func:`encode_groups`, so the paper loop is unchanged (the fused ticks of subG-CQL,
+CQL and semi-CQL add the same offset). The local encoder computes its ``time_to_free`` digits
+in its compiled loop (:func:`encode_local`: the free level from ``busy_until``, the queued H and
+L counts over ``Lambda_i`` from the queue), a flag of its tables, so DQL's fused tick needs no
+offset.
 """
 
 from __future__ import annotations
@@ -36,8 +37,6 @@ from mrta_rl.envs.observations import (
     GroupView,
     LocalView,
     battery_margin,
-    free_level,
-    queue_level,
 )
 from mrta_rl.envs.tasks import EMPTY, task_high, task_type
 
@@ -107,6 +106,37 @@ def _queued(queue: np.ndarray, length: int, counts: np.ndarray) -> None:
     for w in range(length):  # places past the length are EMPTY (envs/kernel.py)
         if queue[w] != EMPTY:
             counts[task_type(queue[w]), task_high(queue[w])] += 1
+
+
+@njit(cache=True)
+def group_offsets(
+    busy_until, t, queue, queue_len, robots, size, soon_places, types, queue_places, free_soon,
+    queue_thresholds, out,
+):  # fmt: skip
+    """``[G, B]`` what ``time_to_free`` adds to the paper codes of :func:`encode_groups` (written).
+
+    A busy robot free within ``free_soon`` ticks reads robot state 3 (the busy state 0 plus
+    ``3 x`` its place), and the queued H and L levels over ``T_g`` follow the recency digit
+    (``observations.GroupView``, "Features"). The first four arguments are
+    :meth:`LocalEncoder.state_arrays`'s and ``env.t``.
+    """
+    counts = np.zeros((types.shape[1], 2), np.int64)  # [n, (L, H)]
+    for b in range(out.shape[1]):
+        _queued(queue[b], queue_len[b], counts)
+        for g in range(out.shape[0]):
+            value = np.int64(0)
+            for r in range(size[g]):
+                ticks = busy_until[b, robots[g, r]] - t[b] + 1  # idle again at busy_until + 1
+                if 0 < ticks <= free_soon:
+                    value += soon_places[g, r]
+            high = low = 0
+            for j in range(types.shape[1]):
+                if types[g, j]:
+                    high += counts[j, 1]
+                    low += counts[j, 0]
+            value += _level(high, queue_thresholds[0]) * queue_places[g, 0]
+            value += _level(low, queue_thresholds[1]) * queue_places[g, 1]
+            out[g, b] = value
 
 
 @njit(cache=True)
@@ -194,11 +224,14 @@ class GroupEncoder:
         self._slot_places = np.stack([v._slot_places for v in views])  # [G, K]
         self._recency_place = np.array([v._recency_place for v in views], np.int64)
         self.types = np.stack([v.types_mask for v in views])  # T_g, [G, n]
-        # time_to_free: robot state 3 (busy, free soon) is the busy state 0 plus 3 places; queue
-        # places (H, L) follow the recency digit (observations.GroupView)
-        self._soon_places = 3 * self._robot_places  # 0 on padding
         if features == "time_to_free":
-            self._queue_places = np.stack([v._queue_places for v in views])  # [G, 2]
+            # robot state 3 (busy, free soon) is the busy state 0 plus 3 places; queue places
+            # (H, L) follow the recency digit (observations.GroupView)
+            self._offset_tables = (
+                self.robots, self.size, 3 * self._robot_places,  # 0 on padding
+                self.types, np.stack([v._queue_places for v in views]),  # [G, 2]
+                FREE_SOON, _QUEUE_THRESHOLDS,
+            )  # fmt: skip
         self._zeros = np.zeros((len(groups), 0), np.int64)  # paper: no offset (per batch size)
         # the arguments of encode_groups after the env's
         self.tables = (
@@ -212,11 +245,11 @@ class GroupEncoder:
             if self._zeros.shape[1] != env.batch_size:
                 self._zeros = np.zeros((len(self.size), env.batch_size), np.int64)
             return self._zeros
-        soon = free_level(env)[:, self.robots] == 1  # [B, G, widest]
-        offset = (soon * self._soon_places).sum(axis=2).T
-        queue = queue_level(env, self.types)  # [B, G, 2] (H, L)
-        offset += np.einsum("bgp,gp->gb", queue, self._queue_places)
-        return np.ascontiguousarray(offset)
+        offset = np.empty((len(self.size), env.batch_size), np.int64)
+        group_offsets(
+            env.busy_until, env.t, env._queue, env._queue_len, *self._offset_tables, offset
+        )
+        return offset
 
     def index(self, env: AuctionEnv) -> tuple[np.ndarray, np.ndarray]:
         """``([G, B] state indices, [G, B] recency levels over T_g)``."""
