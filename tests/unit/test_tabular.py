@@ -382,8 +382,11 @@ OPTION_CASES = {
     ),
     "subg_cql/team": ("subg_cql/explore", {"reward": "team"}),
     "subg_cql/time_to_free": ("subg_cql/explore", {"features": "time_to_free"}),
+    "subg_cql/n_step": ("subg_cql/explore", {"n_step": 3}),
+    "subg_cql/n_step_prior_target": ("subg_cql/explore", {"n_step": 2, "target": "prior"}),
     "cql/lcb": ("cql/every_tick", {"lcb": 20.0}),
     "cql/prior_target": ("cql/every_tick", {"target": "prior"}),
+    "cql/n_step": ("cql/every_tick", {"n_step": 2}),
     "semi_cql/prior_target": ("semi_cql/explore", {"target": "prior"}),
     "semi_cql/min_visits": ("semi_cql/explore", {"min_visits": 2}),
     "dql/prior_target": ("dql/explore", {"target": "prior"}),
@@ -551,6 +554,76 @@ def test_hand_computed_q_update(cls, target, trio, tiny_params):
         assert result.robot_reward[0, 1] == 10.0
         learner.update(view, actions, result, next_view, next_mask)
         assert learner.q[entry] == pytest.approx(1.0 + alpha * (10.0 + gamma * next_max - 1.0))
+
+
+# one robot, two actions (wait, bid slot 1); ticks 0-4 meet states 10-14 with rewards 1, 2, 4, 8,
+# 16; state 12 is no decision (no slot), so decision 1's interval is ticks 1-2; tick 4 ends the
+# episode. With gamma 1/2 and a state 1k's Q = [10k + 1 (wait), 10k (bid)], V_k is 10k + 1
+# (max) or 10k (prior: the bid); the decisions bid (entries e0, e1, e3, e4; e4 is open at the end).
+N_STEP_REWARDS = [1.0, 2.0, 4.0, 8.0, 16.0]
+
+
+def _n_step_targets(n, v):
+    """Hand-computed targets of e0, e1, e3 and the tick of each update (gamma = 1/2)."""
+    r0, r1, r3 = 1.0, 2.0 + 0.5 * 4.0, 8.0  # R of the intervals after decisions 0, 1, 3
+    d0, d1, d3 = 0.5, 0.25, 0.5  # their gamma^tau (decision 1's spans two ticks)
+    one = [r0 + d0 * v[1], r1 + d1 * v[3], r3 + d3 * v[4]]
+    if n == 1:  # decision 3's update at tick 3; e4's interval has no next state: dropped
+        return one, [1, 0, 1, 1, 0]
+    two = [r0 + d0 * (r1 + d1 * v[3]), r1 + d1 * (r3 + d3 * v[4])]
+    if n == 2:  # at truncation e3 has one interval: bootstrapped from V_4
+        return [*two, one[2]], [0, 0, 1, 1, 1]
+    three = r0 + d0 * (r1 + d1 * (r3 + d3 * v[4]))
+    return [three, two[1], one[2]], [0, 0, 0, 1, 2]  # truncation: e1 two intervals, e3 one
+
+
+@pytest.mark.parametrize("target", ["max", "prior"])
+@pytest.mark.parametrize("n_step", [1, 2, 3])
+def test_hand_computed_n_step_targets(n_step, target):
+    """``n_step``: the rewards of n decision intervals, then ``gamma^ticks`` times V(s_n)."""
+    states = np.array([10, 11, 13, 14])  # the decision states
+    mask = np.ones((4, 1, 2), bool)
+    storage, rows = JointQStorage(1), np.empty(4, np.int64)
+    storage.reserve(4, 8)
+    tables = (storage.hash, storage.rows, storage.entries, storage.q, storage.sizes)
+    group = (np.array([[0]]), np.array([1]), np.array([[0]]), np.ones((2, 1)))
+    slots = np.zeros((1, 1), np.int64)  # one L slot of type 0
+    spread = PRIOR_CODES["spread"]
+    group_kernels.rows_of(
+        *tables, 0, states, np.ones(4, bool), mask, slots.repeat(4, 0), slots.repeat(4, 0),
+        np.zeros(4, bool), group[0][0], 1, group[2][0], group[3], spread, True, rows,
+    )  # fmt: skip
+    bid = {}
+    for k, row in zip(states.tolist(), rows.tolist(), strict=True):
+        at = storage.row_entries(row)
+        bid[k] = at.start + 1  # codes 0 (wait), 1 (bid)
+        assert storage.entries[ENTRY_CODE, at].tolist() == [0, 1]
+        assert storage.rows[ROW_PRIOR, row] == bid[k]  # the spread prior bids
+        storage.q[at] = [10 * (k - 10) + 1.0, 10 * (k - 10)]
+    v = {k - 10: float(storage.q[bid[k]] + (target == "max")) for k in states.tolist()}
+    pending = (
+        np.full((1, 1, n_step), -1), np.zeros((1, 1, n_step)), np.ones((1, 1, n_step)),
+        np.zeros((1, 1), np.int64), np.zeros((1, 1), bool), np.zeros((1, 1)),
+    )  # fmt: skip
+    chosen = [bid[10], bid[11], -1, bid[13], bid[14]]
+    counts = []
+    for tick, reward in enumerate(N_STEP_REWARDS):
+        after = 11 + tick
+        next_mask = np.array([[[True, after != 12]]])  # state 12: no slot to bid for
+        td_sum, td_count = np.zeros(1), np.zeros(1, np.int64)
+        group_kernels.update_groups(
+            *tables, group[0], group[1], group[2], group[3], np.array([[chosen[tick]]]),
+            np.array([[after]]), np.zeros((1, 1), bool), next_mask, slots, slots,
+            np.array([[reward]]), np.zeros((1, 1), np.int64), np.array([tick == 4]), *pending,
+            True, spread, True, 0, 0.0, target == "prior", 0.5, 1.0, 0.0, 0.0, td_sum, td_count,
+        )  # fmt: skip
+        counts.append(int(td_count[0]))
+    expected, ticks = _n_step_targets(n_step, v)
+    assert counts == ticks
+    # alpha 1: each entry holds its one target; e4 (open at truncation) is never updated
+    assert storage.q[[bid[10], bid[11], bid[13]]].tolist() == pytest.approx(expected)
+    assert storage.q[bid[14]] == 40.0 and storage.entries[1, bid[14]] == 0
+    assert pending[3][0, 0] == 0 and not pending[4][0, 0]  # the episode's decisions all closed
 
 
 @pytest.mark.parametrize(("reward", "learned"), [("group", [10.0, 2.0]), ("team", [12.0, 12.0])])

@@ -245,33 +245,66 @@ def entries_for_actions(
 
 # ---------------------------------------------------------------------------------- eq. (3)
 @njit(cache=True)
+def n_step_target(returns: np.ndarray, discounts: np.ndarray, first: int, last: int, value: float):
+    """``R_first + D_first (R_first+1 + ... + D_last-1 (R_last + D_last value))``.
+
+    The n-step semi-Markov target of the decision ``first`` (docs/learners.md, ``n_step``):
+    ``R_j`` the discounted reward sum of the interval after decision ``j``, ``D_j`` its
+    ``gamma^tau``, ``value`` the bootstrap of the decision state after interval ``last``. Folded
+    from the newest interval, so that one interval is exactly ``R + gamma^tau value``.
+    """
+    for j in range(last, first - 1, -1):
+        value = returns[j] + discounts[j] * value
+    return value
+
+
+@njit(cache=True)
+def _learn(entries, q, e, target, alpha, alpha_power, alpha_min) -> float:
+    """Eq. (3) on entry ``e`` towards ``target``; returns ``|TD error|``."""
+    entries[ENTRY_VISITS, e] += 1
+    td = target - q[e]
+    q[e] += alpha_of_visits(entries[ENTRY_VISITS, e], alpha, alpha_power, alpha_min) * td
+    return abs(td)
+
+
+@njit(cache=True)
 def update_groups(
     table, rows, entries, q, sizes, robots, size, order, weight_by_type, chosen, next_states,
     next_hold, next_mask, next_slot_type, next_slot_high, rewards, reward_columns, done,
-    pending_entry,
-    pending_return, pending_discount, decisions_only, prior, prune, min_visits, lcb,
-    prior_target, gamma, alpha, alpha_power, alpha_min, td_sum, td_count,
+    pending_entry, pending_return, pending_discount, pending_count, pending_open, pending_value,
+    decisions_only, prior, prune, min_visits, lcb, prior_target, gamma, alpha, alpha_power,
+    alpha_min, td_sum, td_count,
 ):  # fmt: skip
-    """Eq. (3) per group on decision points (semi-Markov), all copies, in copy order.
+    """Eq. (3) per group on decision points (semi-Markov, n-step), all copies, in copy order.
 
-    Per group: open a transition at each decision (``chosen[g, b] >= 0``), add the tick's
-    group reward to the open ones (``R += gamma^k r``; the group reward is the sum of the
-    columns ``reward_columns[g]`` of ``rewards`` ``[B, R]``, -1 padded, added left to right as
-    numpy sums fewer than 9 terms along a row of a batch), drop them at truncation
-    (``done``: no next state), and close those whose group decides at the next state:
-    ``Q(s,a) += alpha_n [R + gamma^tau max_a' Q(s',a') - Q(s,a)]``, with every target taken
-    from the table before the tick's updates. With ``prior_target`` the max is replaced by the
-    prior's entry ``Q(s', prior(s'))``: the table then evaluates the prior (docs/learners.md,
-    "target"). ``td_sum`` / ``td_count`` ``[G]`` get the summed absolute TD errors and the
+    Per group and copy, ``pending_*`` hold the last ``n`` decisions (``n`` = their last axis),
+    oldest first: ``pending_entry [G, B, n]`` the chosen entries, ``pending_return`` /
+    ``pending_discount`` the interval after each (``R = sum_k gamma^k r_k`` over its ticks and
+    ``gamma^tau``), ``pending_count [G, B]`` how many are held, ``pending_open`` whether the
+    newest interval still runs, ``pending_value`` the bootstrap of the last decision state met.
+
+    A decision (``chosen[g, b] >= 0``) opens an interval; the tick's group reward is added to
+    the open one (the group reward is the sum of the columns ``reward_columns[g]`` of
+    ``rewards`` ``[B, R]``, -1 padded, added left to right as numpy sums fewer than 9 terms
+    along a row of a batch). When the group decides at the next state, the open interval ends
+    and, once ``n`` decisions are held, the oldest is updated and dropped:
+    ``Q(s,a) += alpha_n [R_0 + gamma^tau_0 (R_1 + ... gamma^tau_n-1 V(s')) - Q(s,a)]`` with
+    ``V(s') = max_a' Q(s', a')`` (with ``prior_target`` the prior's entry ``Q(s', prior(s'))``:
+    the table then evaluates the prior, docs/learners.md "target"), every target taken from
+    the table before the tick's updates. ``n = 1`` is the one-step semi-Markov eq. (3).
+    At truncation (``done``: no next state) the open interval is dropped and the decisions
+    before it are updated with the intervals they have, bootstrapped from the last decision
+    state's value. ``td_sum`` / ``td_count`` ``[G]`` get the summed absolute TD errors and the
     number of updates.
     """
     n_groups, batch = chosen.shape
+    n_step = pending_entry.shape[2]
     closing = np.empty(batch, np.bool_)
     next_rows = np.empty(batch, np.int64)
     targets = np.empty(batch)
     for g in range(n_groups):  # next rows first (creating them draws and updates nothing)
         for b in range(batch):
-            opened = chosen[g, b] >= 0 or pending_entry[g, b] >= 0
+            opened = chosen[g, b] >= 0 or pending_open[g, b]
             closing[b] = (
                 opened and not done[b] and decides(next_mask[b], robots[g], size[g], decisions_only)
             )
@@ -282,41 +315,64 @@ def update_groups(
         )  # fmt: skip
     for g in range(n_groups):
         td_sum[g], td_count[g] = 0.0, 0
+        returns, discounts = pending_return[g], pending_discount[g]
         for b in range(batch):
-            if chosen[g, b] >= 0:  # a decision opens a transition
-                pending_entry[g, b] = chosen[g, b]
-                pending_return[g, b] = 0.0
-                pending_discount[g, b] = 1.0
+            if chosen[g, b] >= 0:  # a decision opens an interval
+                if pending_open[g, b]:  # the last one never met its next state: chain broken
+                    pending_count[g, b] = 0
+                c = pending_count[g, b]
+                pending_entry[g, b, c] = chosen[g, b]
+                returns[b, c] = 0.0
+                discounts[b, c] = 1.0
+                pending_count[g, b] = c + 1
+                pending_open[g, b] = True
+            closing[b] = False
+            if not pending_open[g, b]:
+                continue
+            c = pending_count[g, b] - 1
             reward = rewards[b, reward_columns[g, 0]]
-            for c in range(1, reward_columns.shape[1]):
-                if reward_columns[g, c] >= 0:
-                    reward += rewards[b, reward_columns[g, c]]
-            pending_return[g, b] += pending_discount[g, b] * reward
-            pending_discount[g, b] *= gamma
-            if done[b]:  # truncation: no next state to bootstrap from (spec: horizon)
-                pending_entry[g, b] = -1
-            closing[b] = pending_entry[g, b] >= 0 and decides(
-                next_mask[b], robots[g], size[g], decisions_only
-            )
-            if closing[b]:
+            for k in range(1, reward_columns.shape[1]):
+                if reward_columns[g, k] >= 0:
+                    reward += rewards[b, reward_columns[g, k]]
+            returns[b, c] += discounts[b, c] * reward
+            discounts[b, c] *= gamma
+            if done[b]:  # truncation: no next state; the decisions before are flushed below
+                continue
+            if decides(next_mask[b], robots[g], size[g], decisions_only):
                 next_rows[b] = find_row(table, next_states[g, b], g)
                 # eq. (3): r + gamma max_a' Q(s', a'), from the table before this tick's updates
                 if prior_target:  # the prior's value: its own Q, no max over noisy entries
                     best = q[rows[ROW_PRIOR, next_rows[b]]]
                 else:
                     best = max_q(rows, entries, q, next_rows[b], min_visits, lcb)
-                targets[b] = pending_return[g, b] + pending_discount[g, b] * best
+                pending_open[g, b] = False
+                pending_value[g, b] = best
+                if c + 1 == n_step:  # the oldest decision has its n intervals
+                    closing[b] = True
+                    targets[b] = n_step_target(returns[b], discounts[b], 0, c, best)
         for b in range(batch):
             if closing[b]:
-                e = pending_entry[g, b]
-                entries[ENTRY_VISITS, e] += 1
-                td = targets[b] - q[e]
-                q[e] += (
-                    alpha_of_visits(entries[ENTRY_VISITS, e], alpha, alpha_power, alpha_min) * td
+                td_sum[g] += _learn(
+                    entries, q, pending_entry[g, b, 0], targets[b], alpha, alpha_power, alpha_min
                 )
-                td_sum[g] += abs(td)
                 td_count[g] += 1
-                pending_entry[g, b] = -1
+                for j in range(n_step - 1):  # drop the oldest
+                    pending_entry[g, b, j] = pending_entry[g, b, j + 1]
+                    returns[b, j] = returns[b, j + 1]
+                    discounts[b, j] = discounts[b, j + 1]
+                pending_count[g, b] -= 1
+            elif done[b]:
+                # truncation: the open interval has no next state and is dropped; each decision
+                # before it bootstraps from the last decision state met (fewer than n intervals)
+                last = pending_count[g, b] - (2 if pending_open[g, b] else 1)
+                for j in range(last + 1):
+                    target = n_step_target(returns[b], discounts[b], j, last, pending_value[g, b])
+                    td_sum[g] += _learn(
+                        entries, q, pending_entry[g, b, j], target, alpha, alpha_power, alpha_min
+                    )
+                    td_count[g] += 1
+                pending_count[g, b] = 0
+                pending_open[g, b] = False
 
 
 # ---------------------------------------------------------------------------------- one tick
@@ -325,9 +381,9 @@ def tick_groups(
     table, rows, entries, q, sizes, order, weight_by_type, slot_type, slot_high, idle, battery,
     t, last_high, margin, threshold, codes, slot_places, robots, size, robot_places,
     recency_place, types, thresholds, offset, mask, learn, rewards, reward_columns, done,
-    pending_entry, pending_return, pending_discount, epsilon, uniforms, decisions_only, prior,
-    prune, min_visits, lcb, prior_target, gamma, alpha, alpha_power, alpha_min, states, level, hold,
-    row_out, entry_out, actions, td_sum, td_count,
+    pending_entry, pending_return, pending_discount, pending_count, pending_open, pending_value,
+    epsilon, uniforms, decisions_only, prior, prune, min_visits, lcb, prior_target, gamma, alpha,
+    alpha_power, alpha_min, states, level, hold, row_out, entry_out, actions, td_sum, td_count,
 ):  # fmt: skip
     """One training tick in one call: encode the new state, eq. (3), act in it.
 
@@ -352,9 +408,9 @@ def tick_groups(
         update_groups(
             table, rows, entries, q, sizes, robots, size, order, weight_by_type, entry_out,
             states, hold, mask, slot_type, slot_high, rewards, reward_columns, done,
-            pending_entry, pending_return, pending_discount, decisions_only, prior, prune,
-            min_visits, lcb, prior_target, gamma, alpha, alpha_power, alpha_min, td_sum,
-            td_count,
+            pending_entry, pending_return, pending_discount, pending_count, pending_open,
+            pending_value, decisions_only, prior, prune, min_visits, lcb, prior_target, gamma,
+            alpha, alpha_power, alpha_min, td_sum, td_count,
         )  # fmt: skip
     if done.any():
         return -1

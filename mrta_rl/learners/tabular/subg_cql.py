@@ -71,6 +71,9 @@ class GroupQLearner(TabularLearner):
         min_visits: Updates an entry needs before it competes with the prior.
         lcb: An entry other than the prior's competes with ``Q - lcb / sqrt(visits)`` (reward
             units; 0: with its Q), in the greedy choice and in eq. (3)'s max.
+        n_step: Decision intervals in eq. (3)'s target: the discounted group rewards of the next
+            ``n_step`` intervals plus ``gamma^ticks`` times the bootstrap (``target``) of the
+            decision state after them (1: the one-step semi-Markov eq. 3; docs/learners.md).
         **kwargs: Env, generator, partition and the hyperparameters of
             :class:`~mrta_rl.learners.tabular.base.TabularLearner`.
     """
@@ -87,10 +90,12 @@ class GroupQLearner(TabularLearner):
         prior_order: Annotated[str | None, Choices(*PRIOR_ORDERS)] = None,
         min_visits: Annotated[int, Range(0)] = 0,
         lcb: Annotated[float, Range(0)] = 0.0,
+        n_step: Annotated[int, Range(1)] = 1,
         **hyperparameters,
     ) -> None:
         super().__init__(**hyperparameters)
         self.prune_conflicts, self.min_visits, self.lcb = prune_conflicts, min_visits, lcb
+        self.n_step = n_step
         self.prior = self.default_prior if prior is None else prior
         self.prior_order = self.default_prior_order if prior_order is None else prior_order
         if self.prior not in PRIORS:
@@ -116,7 +121,7 @@ class GroupQLearner(TabularLearner):
             max_valid_joint_actions(len(g), self.n_actions, self.prune_conflicts) for g in groups
         )
         self.storage = JointQStorage(len(groups))
-        self._pending: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._pending: tuple[np.ndarray, ...] | None = None
         self._tick: tuple[np.ndarray, ...] | None = None  # train_tick's arrays, [G, B] each
         self._td_sum, self._td_count = np.zeros(len(groups)), np.zeros(len(groups), np.int64)
 
@@ -179,14 +184,21 @@ class GroupQLearner(TabularLearner):
         view.actions = actions.copy()
         return actions
 
-    def _pending_of(self, batch: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The open transitions of ``batch`` copies, ``[G, B]`` each (new ones if ``B`` changed)."""
+    def _pending_of(self, batch: int) -> tuple[np.ndarray, ...]:
+        """The last ``n_step`` decisions of ``batch`` copies per group (new ones if ``B`` changed).
+
+        The ``pending_*`` arrays of ``group_kernels.update_groups``.
+        """
         n_groups = len(self.groups)
         if self._pending is None or self._pending[0].shape[1] != batch:
+            ring = (n_groups, batch, self.n_step)
             self._pending = (
-                np.full((n_groups, batch), -1, np.int64),  # open entry, -1: none
-                np.zeros((n_groups, batch)),  # R = sum_k gamma^k r_k since the decision
-                np.ones((n_groups, batch)),  # gamma^tau
+                np.full(ring, -1, np.int64),  # the decisions' entries, oldest first
+                np.zeros(ring),  # R = sum_k gamma^k r_k over the interval after each
+                np.ones(ring),  # gamma^tau of that interval
+                np.zeros((n_groups, batch), np.int64),  # decisions held
+                np.zeros((n_groups, batch), bool),  # the newest interval still runs
+                np.zeros((n_groups, batch)),  # bootstrap value of the last decision state met
             )
         return self._pending
 
