@@ -34,6 +34,12 @@ so it is computed from the core env -- by :class:`~mrta_rl.envs.torchrl_env.Auct
 reaches the Q-network as the observation ``(group, "prior_action")``, a one-hot per robot, stored
 in the replay buffer with the other observations so the target network sees the rule's action of
 the next state. ``prior_in_state`` also feeds that one-hot to the network as an input.
+
+Inputs (``features``, :data:`~mrta_rl.envs.observations.FEATURES`): ``paper`` (default) or
+``time_to_free`` (free levels and queue levels added, ``observations`` module docstring,
+"Features"). The networks are built for that encoding's sizes; the training runner builds the
+TorchRL view with it and :meth:`NeuralLearner.encode` uses it in evaluation, and checkpoints
+record it (``learner.json``), so a re-evaluation rebuilds the same inputs.
 """
 
 from __future__ import annotations
