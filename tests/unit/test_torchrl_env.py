@@ -28,15 +28,11 @@ def load_system(name: str) -> RobotSystem:
     return build_system(yaml.safe_load((ROOT / "conf" / "system" / f"{name}.yaml").read_text()))
 
 
-def make(
-    system: RobotSystem,
-    kind: str,
-    batch_size: int,
-    horizon: int = 6,
-    seed: int = 0,
-    features: str = "paper",
-):
-    """The TorchRL env for a group-map kind; subG also restricts Lambda_i as the runner does."""
+def make(system: RobotSystem, kind: str, batch_size: int, horizon: int = 6, seed: int = 0, **view):
+    """The TorchRL env for a group-map kind; subG also restricts Lambda_i as the runner does.
+
+    ``view``: more arguments of the view (``features=``); none is how outside clients build it.
+    """
     active, group_map = None, kind
     if kind == "subg":
         partition = subg_partition(system)
@@ -44,9 +40,7 @@ def make(
     core = AuctionEnv(
         system, AuctionParams(horizon=horizon), batch_size, active_tasks=active, seed=seed
     )
-    if features == "paper":  # the default, as outside clients build it
-        return AuctionTorchRLEnv(core, group_map)
-    return AuctionTorchRLEnv(core, group_map, features=features)
+    return AuctionTorchRLEnv(core, group_map, **view)
 
 
 def random_valid(mask: np.ndarray, rng: np.random.Generator) -> np.ndarray:
