@@ -327,6 +327,7 @@ class NeuralLearner(Learner):
             "tau": tau,
             "hard_update_interval": hard_update_interval,
             "max_grad_norm": max_grad_norm,
+            "features": features,  # saved with the weights: load() checks it
         }
         # the inputs' encoding: the env view builds the observations with it (runners/torchrl.py)
         self.features = features
@@ -531,7 +532,6 @@ class NeuralLearner(Learner):
             "gradient_steps": self.gradient_steps,
             "hyperparameters": self.hp,
             "prior": self.prior_settings,
-            "features": self.features,
         }
         (directory / META_FILE).write_text(json.dumps(meta, indent=2) + "\n")
 
@@ -568,7 +568,8 @@ class NeuralLearner(Learner):
                     f"{meta_path}: trained with prior {saved}, this run's learner has "
                     f"{self.prior_settings} (the prior is part of the Q-function)"
                 )
-            saved = meta.get("features", "paper")  # checkpoints of before the option: paper
+            # checkpoints of before the option were all trained with the paper's features
+            saved = meta.get("hyperparameters", {}).get("features", "paper")
             if saved != self.features:
                 raise ValueError(
                     f"{meta_path}: trained with features={saved}, this run's learner has "
