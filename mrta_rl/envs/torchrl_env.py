@@ -102,7 +102,9 @@ class AuctionTorchRLEnv(EnvBase):
         ``(group, "observation")``: float32 ``[B, n_g, F]`` local features
         (:func:`~mrta_rl.envs.observations.local_features`); ``(group, "action_mask")``: bool
         ``[B, n_g, K + 1]`` (the core's mask); root ``"state"``: float32 ``[B, G]`` global
-        features (:func:`~mrta_rl.envs.observations.global_features`) for mixers. With a
+        features (:func:`~mrta_rl.envs.observations.global_features`) for mixers; both in the
+        encoding ``features`` (``"paper"`` by default, ``"time_to_free"`` adds free and queue
+        levels: ``observations`` module docstring, "Features"). With a
         ``prior``, ``(group, "prior_action")`` bool ``[B, n_g, K + 1]`` is the one-hot of that
         policy's action of every robot in the current state (the neural learners' ``hold``
         prior: a rule that reads the whole team, computed here from the core). Two reward
@@ -130,6 +132,8 @@ class AuctionTorchRLEnv(EnvBase):
         invalid_action: ``"wait"`` or ``"raise"`` (see Action Space).
         prior: None, or a function of the core env giving ``[B, m]`` actions, written as the
             observation ``(group, "prior_action")`` (see Observation Space).
+        features: ``observations.FEATURES``: the encoding of ``observation`` and ``state``
+            (a neural learner's ``features``).
     """
 
     batch_locked = True
@@ -141,10 +145,12 @@ class AuctionTorchRLEnv(EnvBase):
         device: str | torch.device = "cpu",
         invalid_action: InvalidAction = DEFAULT_INVALID_ACTION,
         prior: PriorActions | None = None,
+        features: str = "paper",
     ) -> None:
         if torch.device(device).type != "cpu":
             raise ValueError("AuctionTorchRLEnv runs on cpu (the dynamics are numpy)")
         check_invalid_action(invalid_action)
+        self.features = observations.check_features(features)
         self.invalid_action = invalid_action
         self.prior = prior
         super().__init__(device="cpu", batch_size=torch.Size([env.batch_size]))
@@ -170,8 +176,8 @@ class AuctionTorchRLEnv(EnvBase):
     def _make_specs(self) -> None:
         B, A = self.auction.batch_size, self.auction.n_actions
         F, G = (
-            observations.local_feature_size(self.auction),
-            observations.global_feature_size(self.auction),
+            observations.local_feature_size(self.auction, self.features),
+            observations.global_feature_size(self.auction, self.features),
         )
         obs, act, rew = {}, {}, {}
         for group, idx in self._group_index.items():
@@ -233,10 +239,10 @@ class AuctionTorchRLEnv(EnvBase):
         """
         core, cpu = self.auction, self.device
         B = core.batch_size
-        local = torch.from_numpy(observations.local_features(core))  # [B, m, F], a fresh array
+        local = torch.from_numpy(observations.local_features(core, self.features))  # [B, m, F]
         mask = torch.from_numpy(core.action_mask)  # [B, m, K + 1], a view of the core's buffer
         out = TensorDict(
-            {"state": torch.from_numpy(observations.global_features(core))},
+            {"state": torch.from_numpy(observations.global_features(core, self.features))},
             batch_size=self.batch_size,
             device=cpu,
         )

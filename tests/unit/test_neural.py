@@ -12,6 +12,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import EGreedyModule, MultiAgentMLP, QValueModule
 
 from mrta_rl.envs import AuctionEnv, AuctionParams
+from mrta_rl.envs import observations as ob
 from mrta_rl.envs.torchrl_env import AuctionTorchRLEnv
 from mrta_rl.learners import SubGReserveLearner, TeamReserveLearner
 from mrta_rl.learners.neural import IQLLearner, QMIXLearner, SubGDQNLearner, VDNLearner
@@ -24,9 +25,11 @@ from mrta_rl.learners.neural.networks import (
     stacked_forward,
 )
 from mrta_rl.partition import subg_partition
+from mrta_rl.runners import build_run, evaluate_checkpoint, train
 from mrta_rl.runners.evaluate import evaluate_policy
 from mrta_rl.systems import build_system
 from tests.conftest import paper_system
+from tests.smoke.test_run_dirs import save_hydra_files
 
 SMALL = {"hidden": 16, "depth": 1, "batch_size": 32, "buffer_size": 1000}
 
@@ -74,8 +77,11 @@ def randomize(learner, scale=3.0, seed=0):
 
 def collect(learner, env, frames=100):
     """One collector batch of the learner's exploring policy, as replay transitions."""
+    view = AuctionTorchRLEnv(
+        env, group_map=learner.group_map, prior=learner.rule, features=learner.features
+    )  # as the runner builds it
     collector = Collector(
-        AuctionTorchRLEnv(env, group_map=learner.group_map, prior=learner.rule),
+        view,
         learner.explore_policy,
         frames_per_batch=frames,
         total_frames=frames,
@@ -122,11 +128,12 @@ def test_greedy_bid_is_the_lowest_valid_bid():
     assert torch.equal(greedy_bid(mask), expected)
 
 
+@pytest.mark.parametrize("features", ob.FEATURES)
 @pytest.mark.parametrize("cls", [SubGDQNLearner, VDNLearner, QMIXLearner, IQLLearner])
-def test_untrained_network_is_the_plain_auction(cls, system):
+def test_untrained_network_is_the_plain_auction(cls, system, features):
     """auction_prior + zero last layer: the greedy policy of an untrained net bids like greedy."""
     hp = {"prior": "greedy"} if cls is SubGDQNLearner else {}  # subG-DQN's default: spread_wait
-    learner, env = make(cls, system, batch=6, **hp)
+    learner, env = make(cls, system, batch=6, features=features, **hp)
     for _ in range(40):
         mask = env.action_mask.copy()
         actions = learner.act(learner.encode(env), mask, explore=False)
@@ -136,10 +143,12 @@ def test_untrained_network_is_the_plain_auction(cls, system):
         env.step(actions)
 
 
-def test_untrained_subg_dqn_plays_the_subg_cql_prior():
-    """prior spread_wait: the untrained nets play subG-CQL's prior, i.e. subg_reserve (0, 1)."""
+@pytest.mark.parametrize("features", ob.FEATURES)
+def test_untrained_subg_dqn_plays_the_subg_cql_prior(features):
+    """prior spread_wait: the untrained nets play subG-CQL's prior, i.e. subg_reserve (0, 1),
+    reading the slots and the recency from either encoding's layout."""
     system2 = paper_system("system2")
-    learner, env = make(SubGDQNLearner, system2, batch=6, horizon=150, seed=11)
+    learner, env = make(SubGDQNLearner, system2, batch=6, horizon=150, seed=11, features=features)
     rule = SubGReserveLearner(
         env=env, rng=np.random.default_rng(0), partition=learner.partition, reserve=0
     )
@@ -154,17 +163,20 @@ HOLD = {"prior": "hold", "prior_hold_level": 1, "prior_hold_scope": "robot"}
 
 
 @pytest.mark.parametrize(
-    ("cls", "system_name", "reserve", "in_state"),
+    ("cls", "system_name", "reserve", "in_state", "features"),
     [
-        (QMIXLearner, "system2", 1, False),
-        (QMIXLearner, "system1", 0, False),
-        (QMIXLearner, "system2", 1, True),
-        (VDNLearner, "system1", 0, True),
-        (IQLLearner, "system2", 1, False),
+        (QMIXLearner, "system2", 1, False, "paper"),
+        (QMIXLearner, "system1", 0, False, "paper"),
+        (QMIXLearner, "system2", 1, True, "paper"),
+        (VDNLearner, "system1", 0, True, "paper"),
+        (IQLLearner, "system2", 1, False, "paper"),
+        (QMIXLearner, "system2", 1, False, "time_to_free"),
+        (VDNLearner, "system1", 0, True, "time_to_free"),
+        (IQLLearner, "system2", 1, True, "time_to_free"),
     ],
 )
 def test_untrained_network_with_the_hold_prior_plays_team_reserve(
-    cls, system_name, reserve, in_state
+    cls, system_name, reserve, in_state, features
 ):
     """prior=hold: the untrained greedy policy is the team_reserve rule, tick by tick.
 
@@ -174,7 +186,7 @@ def test_untrained_network_with_the_hold_prior_plays_team_reserve(
     system = paper_system(system_name)
     learner, env = make(
         cls, system, batch=6, horizon=150, seed=11, prior_reserve=reserve,
-        prior_in_state=in_state, **HOLD,
+        prior_in_state=in_state, features=features, **HOLD,
     )  # fmt: skip
     zero_last = {name: p.clone() for name, p in learner.networks.named_parameters()}
     randomize(learner)
@@ -215,6 +227,66 @@ def test_checkpoint_of_another_prior_is_refused(system, tmp_path):
     for other in ({}, {**HOLD, "prior_reserve": 0}):
         with pytest.raises(ValueError, match="trained with prior"):
             make(QMIXLearner, system, **other)[0].load(tmp_path)
+
+
+TTF = "time_to_free"
+
+
+@pytest.mark.parametrize("cls", [SubGDQNLearner, VDNLearner, QMIXLearner, IQLLearner])
+def test_time_to_free_features_are_what_the_networks_read(cls, system):
+    """features=time_to_free: the networks' input sizes are the encoding's, and the observation
+    and state of encode() (evaluation) and of the TorchRL view (training) are that encoding."""
+    learner, env = make(cls, system, batch=3, features=TTF)
+    F, G = ob.local_feature_size(env, TTF), ob.global_feature_size(env, TTF)
+    assert (learner.n_features, learner.state_size) == (F, G)
+    assert (F, G) != (ob.local_feature_size(env), ob.global_feature_size(env))
+    for name, net in learner.networks.items():  # first layer: F per robot (or state G)
+        first = next((p for p in net.parameters() if p.dim() >= 2), None)
+        if name == "mixer":  # QMIX's hypernetworks read the state; VDN's sum has no weights
+            assert first is None if cls is VDNLearner else first.shape[-1] == G
+        elif cls is SubGDQNLearner:
+            assert first.shape[-1] == len(learner.group_map[name]) * F
+        else:
+            assert first.shape[-1] == F
+    view = AuctionTorchRLEnv(env, group_map=learner.group_map, features=learner.features)
+    td = view.reset()
+    encoded = learner.encode(env)
+    local = torch.from_numpy(ob.local_features(env, TTF))
+    robots = env.system.robots
+    for group, ids in learner.group_map.items():
+        idx = [robots.index(r) for r in ids]
+        assert torch.equal(encoded.get((group, "observation")), local[:, idx])
+        assert torch.equal(td.get((group, "observation")), local[:, idx])
+    state = torch.from_numpy(ob.global_features(env, TTF))
+    assert torch.equal(encoded.get("state"), state) and torch.equal(td.get("state"), state)
+    randomize(learner)
+    assert np.isfinite(learner.train_step(collect(learner, env, frames=60))["train/loss"])
+    with pytest.raises(ValueError, match="features: must be one of"):
+        make(cls, system, features="queue")
+
+
+def test_checkpoint_of_other_features_is_refused(system, tmp_path):
+    learner, _ = make(QMIXLearner, system, features=TTF)
+    learner.save(tmp_path)
+    make(QMIXLearner, system, seed=3, features=TTF)[0].load(tmp_path)
+    with pytest.raises(ValueError, match="trained with features=time_to_free"):
+        make(QMIXLearner, system)[0].load(tmp_path)
+
+
+@pytest.mark.parametrize("learner", ["subg_dqn", "qmix"])
+def test_time_to_free_run_evaluates_again_from_its_checkpoint(compose_cfg, tmp_path, learner):
+    """One tiny training episode with time_to_free, then scripts/evaluate.py's path rebuilds the
+    same inputs from the run dir: the same evaluation, episode by episode."""
+    overrides = [f"learner={learner}", "system=system1", "debug=smoke", "train.episodes=1"]
+    cfg = compose_cfg([*overrides, f"learner.features={TTF}", "learner.warmup_frames=50"])
+    save_hydra_files(cfg, tmp_path, learner, "system1")
+    metrics = train(cfg, run_dir=tmp_path)
+    assert metrics["train"]["gradient_steps"] > 0
+    saved = (tmp_path / "learner" / "learner.json").read_text()
+    assert f'"features": "{TTF}"' in saved
+    again = evaluate_checkpoint(tmp_path)
+    assert again["eval"]["team_return"] == metrics["eval"]["team_return"]
+    assert build_run(cfg).learner.features == TTF
 
 
 def test_hold_prior_settings_are_checked(system):

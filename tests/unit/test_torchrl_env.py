@@ -28,8 +28,11 @@ def load_system(name: str) -> RobotSystem:
     return build_system(yaml.safe_load((ROOT / "conf" / "system" / f"{name}.yaml").read_text()))
 
 
-def make(system: RobotSystem, kind: str, batch_size: int, horizon: int = 6, seed: int = 0):
-    """The TorchRL env for a group-map kind; subG also restricts Lambda_i as the runner does."""
+def make(system: RobotSystem, kind: str, batch_size: int, horizon: int = 6, seed: int = 0, **view):
+    """The TorchRL env for a group-map kind; subG also restricts Lambda_i as the runner does.
+
+    ``view``: more arguments of the view (``features=``); none is how outside clients build it.
+    """
     active, group_map = None, kind
     if kind == "subg":
         partition = subg_partition(system)
@@ -37,7 +40,7 @@ def make(system: RobotSystem, kind: str, batch_size: int, horizon: int = 6, seed
     core = AuctionEnv(
         system, AuctionParams(horizon=horizon), batch_size, active_tasks=active, seed=seed
     )
-    return AuctionTorchRLEnv(core, group_map)
+    return AuctionTorchRLEnv(core, group_map, **view)
 
 
 def random_valid(mask: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -61,6 +64,22 @@ def to_td(env: AuctionTorchRLEnv, actions: np.ndarray) -> TensorDict:
 def test_check_env_specs(system, kind, batch_size):
     env = make(load_system(system), kind, batch_size, horizon=4)
     check_env_specs(env, break_when_any_done="both")
+
+
+@pytest.mark.parametrize("kind", GROUP_MAPS)
+def test_time_to_free_features_size_the_specs(kind):
+    """features=time_to_free: observation and state specs are the wider encoding's sizes."""
+    env = make(load_system("system2"), kind, 3, horizon=4, features="time_to_free")
+    check_env_specs(env, break_when_any_done="both")
+    core = env.auction
+    F = ob.local_feature_size(core, "time_to_free")
+    assert F == ob.local_feature_size(core) + 9
+    for group, idx in env._group_index.items():
+        assert env.observation_spec[group, "observation"].shape == (3, len(idx), F)
+    G = ob.global_feature_size(core, "time_to_free")
+    assert env.observation_spec["state"].shape == (3, G)
+    with pytest.raises(ValueError, match="features must be one of"):
+        AuctionTorchRLEnv(core, kind if kind != "subg" else None, features="queue")
 
 
 @pytest.mark.parametrize("kind", GROUP_MAPS)
@@ -105,11 +124,12 @@ def test_group_maps():
             resolve_group_map(robots, bad)
 
 
+@pytest.mark.parametrize("features", ob.FEATURES)
 @pytest.mark.parametrize("kind", GROUP_MAPS)
-def test_same_results_as_core(kind):
+def test_same_results_as_core(kind, features):
     """Driving the view and the core with the same seed and actions gives identical data."""
     system = load_system("system2")
-    env = make(system, kind, batch_size=4, horizon=15, seed=11)
+    env = make(system, kind, batch_size=4, horizon=15, seed=11, features=features)
     core = AuctionEnv(system, env.auction.params, 4, active_tasks=env.auction.active_tasks, seed=11)
     rng = np.random.default_rng(0)
     env.set_seed(
@@ -122,9 +142,9 @@ def test_same_results_as_core(kind):
         for g, idx in env._group_index.items():
             np.testing.assert_array_equal(td[g, "action_mask"].numpy(), mask[:, idx])
             np.testing.assert_array_equal(
-                td[g, "observation"].numpy(), ob.local_features(core)[:, idx]
+                td[g, "observation"].numpy(), ob.local_features(core, features)[:, idx]
             )
-        np.testing.assert_array_equal(td["state"].numpy(), ob.global_features(core))
+        np.testing.assert_array_equal(td["state"].numpy(), ob.global_features(core, features))
         actions = random_valid(mask, rng)
         result = core.step(actions)
         out = env.step(to_td(env, actions))["next"]

@@ -34,6 +34,12 @@ so it is computed from the core env -- by :class:`~mrta_rl.envs.torchrl_env.Auct
 reaches the Q-network as the observation ``(group, "prior_action")``, a one-hot per robot, stored
 in the replay buffer with the other observations so the target network sees the rule's action of
 the next state. ``prior_in_state`` also feeds that one-hot to the network as an input.
+
+Inputs (``features``, :data:`~mrta_rl.envs.observations.FEATURES`): ``paper`` (default) or
+``time_to_free`` (free levels and queue levels added, ``observations`` module docstring,
+"Features"). The networks are built for that encoding's sizes; the training runner builds the
+TorchRL view with it and :meth:`NeuralLearner.encode` uses it in evaluation, and checkpoints
+record it (``learner.json``), so a re-evaluation rebuilds the same inputs.
 """
 
 from __future__ import annotations
@@ -97,7 +103,11 @@ def require_torchrl() -> None:
 
 # ---------------------------------------------------------------------------------- features
 def observation_td(
-    env: AuctionEnv, group_map: GroupMap, mask: np.ndarray, prior: HoldRule | None = None
+    env: AuctionEnv,
+    group_map: GroupMap,
+    mask: np.ndarray,
+    prior: HoldRule | None = None,
+    features: str = "paper",
 ) -> TensorDict:
     """The TorchRL observation of the env's decision point, as ``AuctionTorchRLEnv`` writes it.
 
@@ -106,15 +116,16 @@ def observation_td(
         group_map: ``{group: [robot ids]}``.
         mask: ``[B, m, K + 1]`` bool valid actions (copied, the core reuses its buffer).
         prior: The rule prior, or None (plain auction: no ``prior_action`` key).
+        features: ``observations.FEATURES``: the encoding of ``observation`` and ``state``.
 
     Returns:
         TensorDict of batch ``[B]``: ``state`` ``[B, G]`` and per group ``observation``
         ``[B, n_g, F]``, ``action_mask`` ``[B, n_g, K + 1]`` [and ``prior_action``, same shape].
     """
-    local = torch.from_numpy(observations.local_features(env))  # [B, m, F]
+    local = torch.from_numpy(observations.local_features(env, features))  # [B, m, F]
     mask_t = torch.from_numpy(np.ascontiguousarray(mask, dtype=bool))  # [B, m, K + 1]
     B = mask_t.shape[0]
-    out: dict[str, Any] = {"state": torch.from_numpy(observations.global_features(env))}
+    out: dict[str, Any] = {"state": torch.from_numpy(observations.global_features(env, features))}
     prior_t = None if prior is None else prior_one_hot(prior(env, mask), env.n_actions)
     robots = env.system.robots
     for group, ids in group_map.items():
@@ -214,6 +225,7 @@ class NeuralLearner(Learner):
         prior_hold_level: HoldLevel = 1,
         prior_hold_scope: Annotated[str, Choices(*HOLD_SCOPES)] = "robot",
         prior_in_state: bool = False,
+        features: Annotated[str, Choices(*observations.FEATURES)] = "paper",
         eps_start: Annotated[float, Range(0, 1)] = 0.3,
         eps_end: Annotated[float, Range(0, 1)] = 0.02,
         eps_decay_frames: Annotated[int, Range(1)] = 200_000,
@@ -249,6 +261,8 @@ class NeuralLearner(Learner):
             prior_hold_level: ``prior="hold"``: the rule's ``hold_level``.
             prior_hold_scope: ``prior="hold"``: the rule's ``hold_scope``.
             prior_in_state: ``prior="hold"``: the rule's action (one-hot) is also a network input.
+            features: The inputs' encoding (``observations.FEATURES``): ``paper`` (the paper-era
+                local and global features) or ``time_to_free`` (+ free levels and queue levels).
             eps_start: Initial exploration rate (random valid actions).
             eps_end: Final exploration rate.
             eps_decay_frames: Collected frames (copy-ticks) over which epsilon decays linearly.
@@ -313,9 +327,12 @@ class NeuralLearner(Learner):
             "tau": tau,
             "hard_update_interval": hard_update_interval,
             "max_grad_norm": max_grad_norm,
+            "features": features,  # saved with the weights: load() checks it
         }
-        self.n_features = observations.local_feature_size(env)
-        self.state_size = observations.global_feature_size(env)
+        # the inputs' encoding: the env view builds the observations with it (runners/torchrl.py)
+        self.features = features
+        self.n_features = observations.local_feature_size(env, features)
+        self.state_size = observations.global_feature_size(env, features)
         self.group_map: GroupMap = self._group_map()
         self.networks = nn.ModuleDict()
         self.losses: dict[str, LossModule] = {}
@@ -468,7 +485,7 @@ class NeuralLearner(Learner):
         With ``prior=hold`` it carries the rule's action, computed under the env's mask (the
         runner's evaluation passes that same mask to :meth:`act`).
         """
-        return observation_td(env, self.group_map, env.action_mask, self.rule)
+        return observation_td(env, self.group_map, env.action_mask, self.rule, self.features)
 
     def act(self, view: TensorDict, mask: np.ndarray, *, explore: bool) -> np.ndarray:
         """Greedy (or epsilon-greedy) actions of the TorchRL policy, valid under ``mask``.
@@ -550,6 +567,13 @@ class NeuralLearner(Learner):
                 raise ValueError(
                     f"{meta_path}: trained with prior {saved}, this run's learner has "
                     f"{self.prior_settings} (the prior is part of the Q-function)"
+                )
+            # checkpoints of before the option were all trained with the paper's features
+            saved = meta.get("hyperparameters", {}).get("features", "paper")
+            if saved != self.features:
+                raise ValueError(
+                    f"{meta_path}: trained with features={saved}, this run's learner has "
+                    f"features={self.features} (the networks' inputs differ)"
                 )
         path = directory / WEIGHTS_FILE
         state = read_tensors(path, self.device)

@@ -65,7 +65,7 @@ class SubGDQNLearner(NeuralLearner):
         greedy, explore = [], []
         A = self.n_actions
         env = self.env
-        layout = local_feature_layout(env.n_slots, env.n_task_types)
+        layout = local_feature_layout(env.n_slots, env.n_task_types, self.features)
         for group, ids in self.group_map.items():
             n_g = len(ids)
             robots = [env.system.robots.index(r) for r in ids]
