@@ -35,6 +35,7 @@ from typing import Any
 
 from omegaconf import OmegaConf
 
+from mrta_rl.config import UserError, declared_keywords
 from mrta_rl.runners.checkpoint import METRICS_FILE, REFUSED_FILE
 
 logger = logging.getLogger(__name__)
@@ -209,6 +210,11 @@ def configuration_variants(records: Sequence[RunRecord]) -> list[str]:
         groups.setdefault((record.learner, record.system), []).append(i)
     for members in groups.values():
         keys = list(dict.fromkeys(k for i in members for k in flat[i]))  # config order
+        for i in members:  # a learner setting added after a run was made: its declared default
+            missing = [k for k in keys if k not in flat[i] and k.startswith("learner.")]
+            if missing:
+                defaults = _declared_defaults(records[i].config)
+                flat[i].update({k: defaults[k] for k in missing if k in defaults})
         differing = [
             k
             for k in keys
@@ -220,6 +226,25 @@ def configuration_variants(records: Sequence[RunRecord]) -> list[str]:
                 f"{_setting_name(k)}={_format_value(flat[i].get(k))}" for k in differing
             )
     return variants
+
+
+def _declared_defaults(config: dict[str, Any]) -> dict[str, Any]:
+    """``{"learner.<name>": default}`` of the run's learner class, ``{}`` if it is unknown.
+
+    A run made before a learner setting existed has no such key in its ``.hydra/config.yaml``
+    and ran with the setting's declared default, so it is compared with that default.
+    """
+    from mrta_rl.runners.validation import learner_class  # imports the learner (and its deps)
+
+    try:
+        cls = learner_class(config.get("learner"))
+    except UserError:
+        return {}
+    return {
+        f"learner.{name}": (list(d.default) if isinstance(d.default, tuple) else d.default)
+        for name, d in declared_keywords(cls).items()
+        if not d.required
+    }
 
 
 def _format_value(value: Any) -> str:

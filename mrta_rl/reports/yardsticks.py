@@ -228,7 +228,13 @@ def collect_policies(runs: Sequence[RunRecord]) -> dict[str, list[Policy]]:
         if kind == "rule":
             variant = _reserve_setting(run) if learner == "team_reserve" else ""
         elif kind == "trained":  # the encoding first, then any other setting that differs
-            rest = [t for t in trained_variant[id(run)].split() if not t.startswith("features=")]
+            # eval.* settings do not make a policy: each run is scored on its (re-)evaluation
+            # and other task streams are refused (_check_same_streams)
+            rest = [
+                t
+                for t in trained_variant[id(run)].split()
+                if not t.startswith(("features=", "eval."))
+            ]
             features = _features(run)
             variant = " ".join([features] * (features != "paper") + rest) or "paper"
         else:

@@ -19,7 +19,7 @@ from mrta_rl.reports import (
     summarize_runs,
     t_quantile,
 )
-from mrta_rl.reports.collect import expected_sweep_jobs
+from mrta_rl.reports.collect import RunRecord, configuration_variants, expected_sweep_jobs
 
 TYPES, ROBOTS = ("T1", "T2", "T3"), ("R1", "R2")
 ROBOT_TABLE = {"R1": ["T1", "T2", "T3"], "R2": ["T1"]}  # T1: 2 robots, T2/T3: 1
@@ -290,3 +290,23 @@ def test_report_splits_the_return_by_sub_group(tmp_path):
         ("subg_cql", "G2", "T2 T3"),
     ]
     assert float(rows[0]["return_mean"]) == 62.0 and float(rows[1]["greedy_return_mean"]) == 40.0
+
+
+def test_a_learner_setting_absent_from_an_older_run_is_its_declared_default():
+    """QMIX runs made before ``features`` / ``prior`` existed were labelled by every new key
+    (``prior=null prior_reserve=null ...``) against runs that state the defaults; now an absent
+    learner setting compares as its declared default, and only what really differs names a run."""
+    learner = {"_target_": "mrta_rl.learners.tabular.dql.DQLLearner", "_partial_": True}
+    old = {"learner": {**learner, "alpha": 0.1}, "eval": {"episodes": 20}}
+    same = {"learner": {**learner, "alpha": 0.1, "prior": "greedy", "features": "paper"}}
+    new = {"learner": {**learner, "alpha": 0.1, "prior": "greedy", "features": "time_to_free"}}
+    records = [
+        RunRecord(Path(f"/x/{i}"), "dql", "system2", 0, {}, (), config, ())
+        for i, config in enumerate((old, same, new))
+    ]
+    assert configuration_variants(records) == [
+        "eval.episodes=20 features=paper",
+        "eval.episodes=null features=paper",
+        "eval.episodes=null features=time_to_free",
+    ]
+    assert configuration_variants(records[:2]) == ["eval.episodes=20", "eval.episodes=null"]
