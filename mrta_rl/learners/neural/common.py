@@ -329,8 +329,6 @@ class NeuralLearner(Learner):
             "max_grad_norm": max_grad_norm,
             "features": features,  # saved with the weights: load() checks it
         }
-        # the inputs' encoding: the env view builds the observations with it (runners/torchrl.py)
-        self.features = features
         self.n_features = observations.local_feature_size(env, features)
         self.state_size = observations.global_feature_size(env, features)
         self.group_map: GroupMap = self._group_map()
@@ -479,6 +477,11 @@ class NeuralLearner(Learner):
         return {"train/loss": float(total.detach())}
 
     # -------------------------------------------------------------- Learner interface
+    @property
+    def features(self) -> str:
+        """The inputs' encoding (``hp``): the env view builds the observations with it."""
+        return self.hp["features"]
+
     def encode(self, env: AuctionEnv) -> TensorDict:
         """Observation TensorDict of the decision point (:func:`observation_td`, copied arrays).
 

@@ -207,8 +207,8 @@ class SubGRolloutPlanner(RolloutPlanner):
     4), with the planner's full view of the state.
 
     Args:
-        candidates: As :class:`RolloutPlanner`; the default swaps ``hold_reserve1`` for
-            ``hold_group``.
+        candidates: As :class:`RolloutPlanner`; the default keeps six of the nine (all nine
+            change it by -1.5 on System-I and +9.5 on System-II, docs/results.md).
         base: As :class:`RolloutPlanner`, default ``hold_group``.
         **kwargs: The other settings of :class:`RolloutPlanner`.
     """

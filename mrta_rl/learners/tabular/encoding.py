@@ -109,6 +109,24 @@ def _queued(queue: np.ndarray, length: int, counts: np.ndarray) -> None:
 
 
 @njit(cache=True)
+def _free_level(busy_until: int, t: int, free_soon: int) -> int:
+    """Free level (``observations.free_level``): 0 idle, 1 free within ``free_soon``, 2 later."""
+    ticks = busy_until - t + 1  # idle again at busy_until + 1; <= 0 when idle
+    return int(ticks > 0) + int(ticks > free_soon)
+
+
+@njit(cache=True)
+def _queue_digits(counts, types, thresholds, high_place: int, low_place: int) -> int:
+    """The queued H and L levels over the types ``types`` ``[n]``, times their places."""
+    high = low = 0
+    for j in range(types.shape[0]):
+        if types[j]:
+            high += counts[j, 1]
+            low += counts[j, 0]
+    return _level(high, thresholds[0]) * high_place + _level(low, thresholds[1]) * low_place
+
+
+@njit(cache=True)
 def group_offsets(
     busy_until, t, queue, queue_len, robots, size, soon_places, types, queue_places, free_soon,
     queue_thresholds, out,
@@ -124,18 +142,12 @@ def group_offsets(
     for b in range(out.shape[1]):
         _queued(queue[b], queue_len[b], counts)
         for g in range(out.shape[0]):
-            value = np.int64(0)
+            value = _queue_digits(
+                counts, types[g], queue_thresholds, queue_places[g, 0], queue_places[g, 1]
+            )
             for r in range(size[g]):
-                ticks = busy_until[b, robots[g, r]] - t[b] + 1  # idle again at busy_until + 1
-                if 0 < ticks <= free_soon:
+                if _free_level(busy_until[b, robots[g, r]], t[b], free_soon) == 1:
                     value += soon_places[g, r]
-            high = low = 0
-            for j in range(types.shape[1]):
-                if types[g, j]:
-                    high += counts[j, 1]
-                    low += counts[j, 0]
-            value += _level(high, queue_thresholds[0]) * queue_places[g, 0]
-            value += _level(low, queue_thresholds[1]) * queue_places[g, 1]
             out[g, b] = value
 
 
@@ -159,9 +171,8 @@ def encode_local(
         if time_to_free:
             _queued(queue[b], queue_len[b], counts)
         for i in range(out.shape[1]):
-            if time_to_free:  # free level: idle again at busy_until + 1
-                ticks = busy_until[b, i] - t[b] + 1
-                index = np.int64(ticks > 0) + np.int64(ticks > free_soon)
+            if time_to_free:
+                index = np.int64(_free_level(busy_until[b, i], t[b], free_soon))
             else:
                 index = np.int64(idle[b, i])
             for k in range(n_slots):
@@ -170,13 +181,10 @@ def encode_local(
             index += battery_low(battery[b, i], margin[i], threshold) * places[i, n_slots + 1]
             index += recency(last_high[b], t[b], active[i], thresholds) * places[i, n_slots + 2]
             if time_to_free:  # queued H and L tasks over Lambda_i
-                high = low = 0
-                for j in range(active.shape[1]):
-                    if active[i, j]:
-                        high += counts[j, 1]
-                        low += counts[j, 0]
-                index += _level(high, queue_thresholds[0]) * places[i, n_slots + 3]
-                index += _level(low, queue_thresholds[1]) * places[i, n_slots + 4]
+                index += _queue_digits(
+                    counts, active[i], queue_thresholds, places[i, n_slots + 3],
+                    places[i, n_slots + 4],
+                )  # fmt: skip
             out[b, i] = index
 
 
