@@ -231,7 +231,7 @@ def _tabular(
         worst = max(full_rows, sum(parts.values()))
         return ResourceEstimate(name, full_rows, worst, parts, advice=GROUP_ADVICE)
     if space == "semi_cql":
-        states = system_state_count(env, hp.get("state", "system"), features)  # its `state`
+        states = system_state_count(env, hp["state"], features)  # its shared state
         if states >= INT64_CODES:
             reason = f"{states:.3g} whole-system states do not fit in int64"
             return ResourceEstimate(name, reason=reason, advice="use a smaller system")

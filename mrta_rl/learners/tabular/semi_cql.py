@@ -39,18 +39,22 @@ class SemiCQLLearner(RobotQLearner):
         state: The shared state (``encoding.SYSTEM_STATES``): ``system``, the paper's group view
             of all robots; or, coarser, the slot codes and the recency level with the number of
             idle robots (``idle_count``), each robot's idle flag (``idle``) or nothing more
-            (``slots``); the coarser ones need ``features=paper``.
+            (``slots``, the default: docs/results.md, "semi-CQL: a coarser shared state"); the
+            coarser ones need ``features=paper``.
         **hyperparameters: See :class:`~mrta_rl.learners.tabular.base.TabularLearner`.
     """
 
     space_name: ClassVar[str] = "semi_cql"
+    # what runs made before `state` existed ran with (reports compare them with it, not with
+    # today's default)
+    settings_before: ClassVar[dict[str, object]] = {"state": "system"}
 
     def __init__(
         self,
         *,
         min_visits: Annotated[int, Range(0)] = 0,
         features: Annotated[str, Choices(*FEATURES)] = "paper",
-        state: Annotated[str, Choices(*SYSTEM_STATES)] = "system",
+        state: Annotated[str, Choices(*SYSTEM_STATES)] = "slots",
         **hyperparameters,
     ) -> None:
         super().__init__(**hyperparameters)
