@@ -130,3 +130,20 @@ def test_save_load_keeps_the_coarse_table_and_refuses_another_state(tmp_path):
     paper.save(tmp_path)
     with pytest.raises(ValueError, match="another learner.state"):
         _learner("idle_count")[1].load(tmp_path)
+
+
+def test_a_coarser_state_fits_a_team_whose_paper_state_does_not():
+    """45 robots of one type: ``3^3 x 3^45 x 3`` paper states pass int64; ``slots`` has 81,
+    ``idle_count`` ``27 x 46 x 3``."""
+    team = build_system({"name": "many", "robots": {f"R{i}": ["T1"] for i in range(1, 46)}})
+    env = AuctionEnv(team, AuctionParams(horizon=20), batch_size=4, seed=0)
+    with pytest.raises(OverflowError):
+        SemiCQLLearner(env=env, rng=np.random.default_rng(0), state="system")
+    for state, count in (("slots", 81), ("idle_count", 27 * 46 * 3)):
+        learner = SemiCQLLearner(env=env, rng=np.random.default_rng(0), state=state)
+        assert learner.learning_space()["analytic"] == 45 * count * 4
+        env.reset()
+        actions = learner.train_tick(env, None)
+        while actions is not None:
+            actions = learner.train_tick(env, env.step(actions))
+        assert 0 < len(learner.states) and learner.states.max() < count

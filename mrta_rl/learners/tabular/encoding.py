@@ -327,7 +327,7 @@ class SystemEncoder(GroupEncoder):
     paper loop (:func:`encode_groups`) with other tables: every idle robot adds the same place
     (``idle_count``) or its own (``idle``, ``slots``: 0), and a zero battery margin under a
     threshold of ``-inf`` makes no battery low, so the compiled ticks of semi-CQL need no code of
-    their own.
+    their own. A coarser state also fits teams whose paper state does not fit in int64.
 
     Args:
         env: The env.
@@ -341,22 +341,29 @@ class SystemEncoder(GroupEncoder):
     """
 
     def __init__(self, env: AuctionEnv, state: str = "system", features: str = "paper") -> None:
-        super().__init__(env, [np.arange(env.n_robots)], features)
         self.state = state
-        self.count = system_state_count(env, state, features)
+        self.count = system_state_count(env, state, features)  # checks state and features
         if state == "system":
+            super().__init__(env, [np.arange(env.n_robots)], features)
             return
         if self.count >= 2**63:
             raise OverflowError(f"{state} state count {self.count} >= 2**63: too many robots")
-        m = env.n_robots
-        place = (1 + 2 * int(self.types[0].sum())) ** env.n_slots  # after the K slot digits
-        robot_places, radix = {
+        # the group view's slot codes and types T_g (its own count may pass int64: many robots)
+        m, view = env.n_robots, GroupView(env, range(env.n_robots))
+        radix = 1 + 2 * view.n_types
+        place = radix**env.n_slots  # after the K slot digits
+        robot_places, robot_radix = {
             "idle_count": (np.full(m, place), m + 1),
             "idle": (place * 2 ** np.arange(m), 2**m),
             "slots": (np.zeros(m), 1),
         }[state]
+        self.features, self.size = features, np.array([m], np.int64)
+        self.robots, self.types = np.arange(m, dtype=np.int64)[None], view.types_mask[None]
+        self._codes = view._codes[None]  # [1, n + 1, 2]
+        self._slot_places = (radix ** np.arange(env.n_slots, dtype=np.int64))[None]  # [1, K]
         self._robot_places = robot_places.astype(np.int64)[None]  # [1, m]
-        self._recency_place = np.array([place * radix], np.int64)
+        self._recency_place = np.array([place * robot_radix], np.int64)
+        self._zeros = np.zeros((1, 0), np.int64)  # no offset (GroupEncoder.offset)
         self.tables = (
             np.zeros(m), -np.inf, self._codes, self._slot_places, self.robots, self.size,
             self._robot_places, self._recency_place, self.types, _THRESHOLDS,
