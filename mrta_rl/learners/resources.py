@@ -35,6 +35,7 @@ from mrta_rl.envs.observations import (
     local_feature_size,
     local_state_count,
 )
+from mrta_rl.learners.tabular.encoding import system_state_count
 from mrta_rl.partition import Partition, subg_partition
 from mrta_rl.systems import RobotSystem
 
@@ -230,7 +231,7 @@ def _tabular(
         worst = max(full_rows, sum(parts.values()))
         return ResourceEstimate(name, full_rows, worst, parts, advice=GROUP_ADVICE)
     if space == "semi_cql":
-        states = group_state_count(env, list(range(env.n_robots)), features)
+        states = system_state_count(env, hp["state"], features)  # its shared state
         if states >= INT64_CODES:
             reason = f"{states:.3g} whole-system states do not fit in int64"
             return ResourceEstimate(name, reason=reason, advice="use a smaller system")

@@ -4,7 +4,8 @@ The state counts come from the project's encodings (``mrta_rl.envs.observations`
 robot has ``|A_i| = K + 1`` actions (wait or bid for one of ``K`` slots, spec step 4):
 
 * DQL, eqs. (10)-(11): ``sum_i |S_i| |A_i|`` with ``S_i`` the local view of robot ``i``.
-* semi-CQL, eq. (11) with each robot's state the whole-system state: ``sum_i |S| |A_i|``.
+* semi-CQL, eq. (11) with each robot's state the whole-system state: ``sum_i |S| |A_i|``; with
+  a coarser shared ``state`` its ``|S|`` (``tabular.encoding.system_state_count``).
 * CQL, eqs. (13), (15), (16): ``|S| prod_i |A_i|`` with ``S`` the whole-system group view. The
   paper bounds ``|S|`` by the sum of the individual spaces (eq. 13); here ``|S|`` is the exact
   count of the encoding, which holds every robot's idle and battery state.
@@ -22,6 +23,7 @@ from typing import Literal
 
 from mrta_rl.envs import AuctionEnv, AuctionParams
 from mrta_rl.envs.observations import group_state_count, local_state_count
+from mrta_rl.learners.tabular.encoding import system_state_count
 from mrta_rl.partition import Partition, subg_partition
 from mrta_rl.systems import RobotSystem
 
@@ -77,6 +79,7 @@ def learning_space_dimension(
     env: AuctionEnv,
     partition: Partition | None = None,
     features: str = "paper",
+    state: str = "system",
 ) -> int:
     """Analytic learning space dimension of one tabular learner on ``env``'s encodings.
 
@@ -86,6 +89,8 @@ def learning_space_dimension(
         partition: The subG partition (required for ``"subg_cql"``).
         features: The learner's encoding, ``"paper"`` or ``"time_to_free"``
             (``envs/observations.py``).
+        state: semi-CQL's shared state (``tabular.encoding.SYSTEM_STATES``); ``system`` for
+            the others.
 
     Returns:
         The exact dimension.
@@ -98,7 +103,7 @@ def learning_space_dimension(
     if learner == "dql":
         return decentralized_dimension(local_state_count(env, features), actions)
     if learner == "semi_cql":
-        whole = group_state_count(env, list(range(m)), features)
+        whole = system_state_count(env, state, features)
         return decentralized_dimension([whole] * m, actions)
     if learner == "cql":
         return centralized_dimension(group_state_count(env, list(range(m)), features), actions)

@@ -232,7 +232,8 @@ def _declared_defaults(config: dict[str, Any]) -> dict[str, Any]:
     """``{"learner.<name>": default}`` of the run's learner class, ``{}`` if it is unknown.
 
     A run made before a learner setting existed has no such key in its ``.hydra/config.yaml``
-    and ran with the setting's declared default, so it is compared with that default.
+    and ran with the setting's declared default, so it is compared with that default; where the
+    default has moved since, the class's ``settings_before`` says what such a run ran with.
     """
     from mrta_rl.runners.validation import learner_class  # imports the learner (and its deps)
 
@@ -240,11 +241,12 @@ def _declared_defaults(config: dict[str, Any]) -> dict[str, Any]:
         cls = learner_class(config.get("learner"))
     except UserError:
         return {}
-    return {
+    defaults = {
         f"learner.{name}": (list(d.default) if isinstance(d.default, tuple) else d.default)
         for name, d in declared_keywords(cls).items()
         if not d.required
     }
+    return defaults | {f"learner.{k}": v for k, v in getattr(cls, "settings_before", {}).items()}
 
 
 def _format_value(value: Any) -> str:

@@ -17,8 +17,8 @@ from tests.unit.tabular_tables import train
 TICKS = 700  # 4 copies: 2,756 states met, past 1,024 rows (the first growth)
 # rows, visits and sum of Q after TICKS ticks: the tables of a65b176 (before growing in place)
 KNOWN = [
-    ({}, (2756, 4843, 1315.7005362696245)),
-    ({"alpha": 1.0, "alpha_power": 1.0}, (2756, 4843, 13116.884646089657)),
+    ({"state": "system"}, (2756, 4843, 1315.7005362696245)),
+    ({"state": "system", "alpha": 1.0, "alpha_power": 1.0}, (2756, 4843, 13116.884646089657)),
 ]
 
 

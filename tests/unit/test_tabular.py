@@ -37,6 +37,8 @@ from tests.conftest import paper_system
 from tests.unit.tabular_tables import CASES, EXPLORE, FIXTURE, HORIZON, play, play_tables, train
 
 LEARNERS = [SubGCQLLearner, CQLLearner, SemiCQLLearner, DQLLearner]
+# time_to_free digits need semi-CQL's paper-era whole-system state (its default is coarser)
+SYSTEM_STATE = {SemiCQLLearner: {"state": "system"}}
 
 
 @pytest.fixture
@@ -393,6 +395,8 @@ OPTION_CASES = {
     "dql/hold_prior_target": ("dql/hold", {"target": "prior"}),
     "cql/time_to_free": ("cql/every_tick", {"features": "time_to_free"}),
     "semi_cql/time_to_free": ("semi_cql/explore", {"features": "time_to_free"}),
+    "semi_cql/idle_count": ("semi_cql/explore", {"state": "idle_count"}),
+    "semi_cql/slots": ("semi_cql/explore", {"state": "slots"}),
     "dql/time_to_free": ("dql/explore", {"features": "time_to_free"}),
     "dql/hold_time_to_free": ("dql/hold", {"features": "time_to_free"}),
 }
@@ -816,15 +820,16 @@ def test_time_to_free_learning_space_on_system1():
     expected = {DQLLearner: local * 4, SemiCQLLearner: whole * 6 * 4, CQLLearner: whole * 4**6}
     assert expected[DQLLearner] == 705_024 and whole == 147_197_952
     for cls, dimension in expected.items():
-        learner = make(cls, system, batch=1, features="time_to_free")[1]
+        hp = SYSTEM_STATE.get(cls, {})
+        learner = make(cls, system, batch=1, features="time_to_free", **hp)[1]
         assert learner.learning_space()["analytic"] == dimension, cls.__name__
-        paper = make(cls, system, batch=1)[1].learning_space()["analytic"]
+        paper = make(cls, system, batch=1, **hp)[1].learning_space()["analytic"]
         assert paper < dimension, cls.__name__
 
 
 TIME_TO_FREE_CASES = [
     (CQLLearner, {}),
-    (SemiCQLLearner, {}),
+    (SemiCQLLearner, SYSTEM_STATE[SemiCQLLearner]),
     (DQLLearner, {}),
     (DQLLearner, {"prior": "hold", "prior_reserve": 1, "prior_in_state": True}),
 ]
@@ -865,7 +870,8 @@ def test_untrained_time_to_free_plays_as_paper(cls, hp, tiny_params):
 def test_fused_tick_time_to_free_states_are_the_observation_codes(cls, tiny_params):
     """The states ``train_tick`` encodes with ``features=time_to_free`` are observations'."""
     system = paper_system("system2")
-    env, learner = make(cls, system, tiny_params, batch=4, seed=1, features="time_to_free")
+    hp = SYSTEM_STATE.get(cls, {})
+    env, learner = make(cls, system, tiny_params, batch=4, seed=1, features="time_to_free", **hp)
     robots = list(range(env.n_robots))
     actions, checked = learner.train_tick(env, None), 0
     while actions is not None:

@@ -29,9 +29,11 @@ from collections.abc import Sequence
 import numpy as np
 from numba import njit
 
+from mrta_rl.config import ConfigError
 from mrta_rl.envs import AuctionEnv
 from mrta_rl.envs.observations import (
     FREE_SOON,
+    N_RECENCY_LEVELS,
     QUEUE_THRESHOLDS,
     RECENCY_THRESHOLDS,
     GroupView,
@@ -302,3 +304,88 @@ class LocalEncoder:
         out = np.empty((env.batch_size, env.n_robots), np.int64)
         encode_local(*env_arrays(env), *self.state_arrays(env), *self.tables, out)
         return out
+
+
+SYSTEM_STATES = ("system", "idle_count", "idle", "slots")  # semi-CQL's shared state (its `state`)
+
+
+class SystemEncoder(GroupEncoder):
+    """semi-CQL's shared whole-system state: the paper's group view, or a coarser one.
+
+    ``state="system"`` is the ``GroupView`` of all robots (``features`` as given): slot codes,
+    each robot's 3 states (busy, idle, idle with low battery), the recency level over all types.
+    The coarser states keep the slot codes (``1 + 2n`` each, ``n`` the active types) and the
+    recency level (3) and replace the robots' digits, with no battery and no ``time_to_free``
+    digits (``features`` must be ``paper``):
+
+    * ``idle_count``: the number of idle robots, one digit of radix ``m + 1``;
+    * ``idle``: each robot's idle flag, ``m`` digits of radix 2 (robot 0 least significant);
+    * ``slots``: nothing.
+
+    Digits least significant first: slots, robots, recency, so ``|S| = (1 + 2n)^K x R x 3``
+    with ``R`` = ``m + 1``, ``2^m`` or 1 (:func:`system_state_count`). The codes come from the
+    paper loop (:func:`encode_groups`) with other tables: every idle robot adds the same place
+    (``idle_count``) or its own (``idle``, ``slots``: 0), and a zero battery margin under a
+    threshold of ``-inf`` makes no battery low, so the compiled ticks of semi-CQL need no code of
+    their own. A coarser state also fits teams whose paper state does not fit in int64.
+
+    Args:
+        env: The env.
+        state: One of :data:`SYSTEM_STATES`.
+        features: ``observations.FEATURES``; only ``paper`` with a coarser ``state``.
+
+    Raises:
+        ConfigError: on an unknown ``state``, or ``features`` other than ``paper`` with a
+            coarser one (:func:`system_state_count`).
+        OverflowError: if the state count does not fit in int64.
+    """
+
+    def __init__(self, env: AuctionEnv, state: str = "system", features: str = "paper") -> None:
+        self.state = state
+        self.count = system_state_count(env, state, features)  # checks state and features
+        if state == "system":
+            super().__init__(env, [np.arange(env.n_robots)], features)
+            return
+        if self.count >= 2**63:
+            raise OverflowError(f"{state} state count {self.count} >= 2**63: too many robots")
+        # the group view's slot codes and types T_g (its own count may pass int64: many robots)
+        m, view = env.n_robots, GroupView(env, range(env.n_robots))
+        radix = 1 + 2 * view.n_types
+        place = radix**env.n_slots  # after the K slot digits
+        robot_places, robot_radix = {
+            "idle_count": (np.full(m, place), m + 1),
+            "idle": (place * 2 ** np.arange(m), 2**m),
+            "slots": (np.zeros(m), 1),
+        }[state]
+        self.features, self.size = features, np.array([m], np.int64)
+        self.robots, self.types = np.arange(m, dtype=np.int64)[None], view.types_mask[None]
+        self._codes = view._codes[None]  # [1, n + 1, 2]
+        self._slot_places = (radix ** np.arange(env.n_slots, dtype=np.int64))[None]  # [1, K]
+        self._robot_places = robot_places.astype(np.int64)[None]  # [1, m]
+        self._recency_place = np.array([place * robot_radix], np.int64)
+        self._zeros = np.zeros((1, 0), np.int64)  # no offset (GroupEncoder.offset)
+        self.tables = (
+            np.zeros(m), -np.inf, self._codes, self._slot_places, self.robots, self.size,
+            self._robot_places, self._recency_place, self.types, _THRESHOLDS,
+        )  # fmt: skip
+
+
+def system_state_count(env: AuctionEnv, state: str = "system", features: str = "paper") -> int:
+    """Exact ``|S|`` of semi-CQL's shared state (:class:`SystemEncoder`), a Python int.
+
+    Raises:
+        ConfigError: on an unknown ``state``, or ``features`` other than ``paper`` with a
+            coarser one (it has no ``time_to_free`` digits).
+    """
+    if state not in SYSTEM_STATES:
+        raise ConfigError(f"learner.state: must be one of {SYSTEM_STATES}, got {state!r}")
+    if state != "system" and features != "paper":
+        raise ConfigError(
+            f"learner.state={state}: the coarser states have no time_to_free digits; "
+            f"learner.features must be paper, got {features!r}"
+        )
+    if state == "system":
+        return GroupView(env, range(env.n_robots), features).count
+    radix = {"idle_count": env.n_robots + 1, "idle": 2**env.n_robots, "slots": 1}[state]
+    types = int(env.active_tasks.any(axis=0).sum())
+    return (1 + 2 * types) ** env.n_slots * radix * N_RECENCY_LEVELS

@@ -3,7 +3,9 @@
 Robots share the observation of the whole system (the whole-team ``GroupView``, as CQL) but each
 learns its own ``Q_i(s, a_i)`` from its individual reward, as in the paper's ref. [38]. The state
 space is large (``|S|`` of CQL), so rows are stored only for the states met: a hash table
-(``qtable``) from state index to a row of ``m x (K + 1)`` values.
+(``qtable``) from state index to a row of ``m x (K + 1)`` values. ``state`` selects a coarser
+shared state (``encoding.SystemEncoder``): at the default budget the paper's one meets 314,000
+states on System-II, each too rarely for any robot's action to leave the prior.
 """
 
 from __future__ import annotations
@@ -17,8 +19,9 @@ from mrta_rl.envs import AuctionEnv, StepResult
 from mrta_rl.envs.observations import FEATURES
 from mrta_rl.learners.tabular import robot_kernels as kernels
 from mrta_rl.learners.tabular.dql import RobotObservation, RobotQLearner
-from mrta_rl.learners.tabular.encoding import GroupEncoder, env_arrays
+from mrta_rl.learners.tabular.encoding import SYSTEM_STATES, SystemEncoder, env_arrays
 from mrta_rl.learners.tabular.qtable import ROW_STATE, JointQStorage
+from mrta_rl.metrics.learning_space import learning_space_dimension
 
 
 class SemiCQLLearner(RobotQLearner):
@@ -33,21 +36,30 @@ class SemiCQLLearner(RobotQLearner):
         features: The whole-system state's encoding (``observations.FEATURES``): ``paper`` or
             ``time_to_free`` (robot state 3 = busy, free soon; queued H and L levels; coarse,
             docs/learners.md).
+        state: The shared state (``encoding.SYSTEM_STATES``): ``system``, the paper's group view
+            of all robots; or, coarser, the slot codes and the recency level with the number of
+            idle robots (``idle_count``), each robot's idle flag (``idle``) or nothing more
+            (``slots``, the default: docs/results.md, "semi-CQL: a coarser shared state"); the
+            coarser ones need ``features=paper``.
         **hyperparameters: See :class:`~mrta_rl.learners.tabular.base.TabularLearner`.
     """
 
     space_name: ClassVar[str] = "semi_cql"
+    # what runs made before `state` existed ran with (reports compare them with it, not with
+    # today's default)
+    settings_before: ClassVar[dict[str, object]] = {"state": "system"}
 
     def __init__(
         self,
         *,
         min_visits: Annotated[int, Range(0)] = 0,
         features: Annotated[str, Choices(*FEATURES)] = "paper",
+        state: Annotated[str, Choices(*SYSTEM_STATES)] = "slots",
         **hyperparameters,
     ) -> None:
         super().__init__(**hyperparameters)
-        self.min_visits, self.features = min_visits, features
-        self.encoder = GroupEncoder(self.env, [np.arange(self.env.n_robots)], features)
+        self.min_visits, self.features, self.state = min_visits, features, state
+        self.encoder = SystemEncoder(self.env, state, features)
         self._row_size = self.n_robots * self.n_actions
         self._index = JointQStorage(1)  # state index -> row (hash), row -> state index
         self.q = np.zeros(1024 * self._row_size)  # Q_i(s, a) at (row * m + i) * (K + 1) + a
@@ -118,6 +130,13 @@ class SemiCQLLearner(RobotQLearner):
             index.rows, index.sizes, self._row_size, *middle, *self._system_scratch, *tail[1:],
         )  # fmt: skip
 
+    def learning_space(self) -> dict[str, int]:
+        """Analytic dimension (eq. 11 over the shared ``state``) and the entries updated."""
+        analytic = learning_space_dimension(
+            self.space_name, self.env, features=self.features, state=self.state
+        )
+        return {**super().learning_space(), "analytic": analytic}
+
     def _table_arrays(self) -> dict[str, np.ndarray]:
         used = self._n_rows * self._row_size
         shape = (self._n_rows, self.n_robots, self.n_actions)
@@ -133,6 +152,11 @@ class SemiCQLLearner(RobotQLearner):
             raise ValueError(
                 f"saved table has shape {arrays['q'].shape}, "
                 f"expected [rows, {self.n_robots}, {self.n_actions}]"
+            )
+        if len(states) and int(states.max()) >= self.encoder.count:
+            raise ValueError(
+                f"saved table has state {int(states.max())}, past the {self.encoder.count} "
+                f"states of state={self.state!r}: saved with another learner.state?"
             )
         self._index = JointQStorage(1)
         self._index.from_rows(states)
