@@ -54,3 +54,39 @@ def test_primary_config_composes(name, compose_cfg):
 def test_unknown_learner_is_named(compose_cfg):
     with pytest.raises(MissingConfigException, match="nope"):
         compose_cfg(["learner=nope"])
+
+
+SPECIALIZED = sorted(
+    (path.parent.name, path.stem) for path in (CONF / "experiment_learner").glob("*/*.yaml")
+)
+
+
+@pytest.mark.parametrize(("experiment", "learner"), SPECIALIZED)
+def test_an_experiments_own_learner_settings_name_both_and_build(experiment, learner, compose_cfg):
+    # a misspelt folder or file would be skipped silently by the `optional` defaults entry
+    assert (CONF / "experiment" / f"{experiment}.yaml").exists()
+    assert (CONF / "learner" / f"{learner}.yaml").exists()
+    cfg = compose_cfg([f"experiment={experiment}", f"learner={learner}", "debug=smoke"])
+    own = OmegaConf.load(CONF / "experiment_learner" / experiment / f"{learner}.yaml")
+    assert {key: cfg.learner[key] for key in own} == dict(own)
+    build_run(cfg)
+
+
+def test_the_paper_experiment_runs_the_papers_semi_cql_and_nothing_else_changes(compose_cfg):
+    # paper §6's semi-CQL learns over the whole-system state; the learner's own default is coarser
+    assert compose_cfg(["learner=semi_cql"]).learner.state == "slots"
+    paper = compose_cfg(["experiment=paper", "learner=semi_cql"]).learner
+    assert (paper.state, paper.min_visits) == ("system", 5)
+    # the command line still wins over the experiment's settings
+    assert (
+        compose_cfg(["experiment=paper", "learner=semi_cql", "learner.min_visits=7"]).learner[
+            "min_visits"
+        ]
+        == 7
+    )
+    # other learners and other experiments keep their own yaml
+    assert (
+        compose_cfg(["experiment=paper", "learner=cql"]).learner
+        == compose_cfg(["learner=cql"]).learner
+    )
+    assert compose_cfg(["experiment=yardsticks", "learner=semi_cql"]).learner.state == "slots"
