@@ -528,7 +528,8 @@ def difference_figure(by_system: dict[str, list[Policy]], path: Path) -> Path | 
     if not panels:
         return None
     height = max(len(items) for _, _, items in panels) * 0.45 + 1.4
-    fig = Figure(figsize=(6.4 * len(panels), height))
+    names = [n for _, _, items in panels for n, _ in items]
+    fig = Figure(figsize=((3.6 + _label_inches(names)) * len(panels), height))
     for k, (system, ref, items) in enumerate(panels):
         ax = fig.add_subplot(1, len(panels), k + 1)
         y = np.arange(len(items))[::-1]
@@ -545,6 +546,15 @@ def difference_figure(by_system: dict[str, list[Policy]], path: Path) -> Path | 
     return path
 
 
+def _label_inches(labels: list[str]) -> float:
+    """Width the longest y tick label takes at font size 8 (about 0.065 inch a character).
+
+    A figure of fixed width lets long variant names (``semi-CQL [state=slots ...]``) push the
+    axes out of it, and ``tight_layout`` then cuts the title and the axis label.
+    """
+    return 0.065 * max((len(label) for label in labels), default=0)
+
+
 def start_figure(by_system: dict[str, list[Policy]], path: Path) -> Path | None:
     """Trained - untrained, paired over episodes with 95 % intervals: one bar per learner/system."""
     from matplotlib.figure import Figure
@@ -552,14 +562,14 @@ def start_figure(by_system: dict[str, list[Policy]], path: Path) -> Path | None:
     comparisons = [(s, c) for s, c in start_comparisons(by_system) if c.episodes]
     if not comparisons:
         return None
-    fig = Figure(figsize=(7.0, len(comparisons) * 0.32 + 1.4))
+    labels = [f"{c.trained.name}, {system_label(s)}" for s, c in comparisons]
+    fig = Figure(figsize=(4.4 + _label_inches(labels), len(comparisons) * 0.32 + 1.4))
     ax = fig.add_subplot(1, 1, 1)
     y = np.arange(len(comparisons))[::-1]
     diffs = [c.paired for _, c in comparisons]
     errs = [0.0 if math.isnan(d.ci95) else d.ci95 for d in diffs]
     ax.barh(y, [d.mean for d in diffs], xerr=errs, color=[_color(d) for d in diffs], capsize=3)
     ax.axvline(0.0, color="black", linewidth=0.8)
-    labels = [f"{c.trained.name}, {system_label(s)}" for s, c in comparisons]
     ax.set_yticks(y, labels, fontsize=8)
     ax.set_xlabel("trained − untrained, paired over the evaluation episodes\n(team return)")
     ax.set_title("Does training beat its own start? (95 % t intervals)", fontsize=9)
