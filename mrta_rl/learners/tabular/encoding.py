@@ -389,3 +389,76 @@ def system_state_count(env: AuctionEnv, state: str = "system", features: str = "
     radix = {"idle_count": env.n_robots + 1, "idle": 2**env.n_robots, "slots": 1}[state]
     types = int(env.active_tasks.any(axis=0).sum())
     return (1 + 2 * types) ** env.n_slots * radix * N_RECENCY_LEVELS
+
+
+# subG-CQL's group state (its `state`): the paper's group view, or its robots' idle flags only
+GROUP_STATES = ("group", "idle")
+
+
+def subgroup_state_count(
+    env: AuctionEnv, robots: Sequence[int], state: str = "group", features: str = "paper"
+) -> int:
+    """Exact ``|S_g|`` of one group under subG-CQL's ``state`` (:class:`SubGroupEncoder`).
+
+    Raises:
+        ConfigError: on an unknown ``state``, or ``features`` other than ``paper`` with
+            ``idle`` (it has no ``time_to_free`` digits).
+    """
+    if state not in GROUP_STATES:
+        raise ConfigError(f"learner.state: must be one of {GROUP_STATES}, got {state!r}")
+    if state != "group" and features != "paper":
+        raise ConfigError(
+            f"learner.state={state}: it has no time_to_free digits; learner.features must be "
+            f"paper, got {features!r}"
+        )
+    view = GroupView(env, robots, features)
+    if state == "group":
+        return view.count
+    return (1 + 2 * view.n_types) ** env.n_slots * 2 ** len(view.robots) * N_RECENCY_LEVELS
+
+
+class SubGroupEncoder(GroupEncoder):
+    """subG-CQL's group states: the paper's ``GroupView`` per group, or a coarser one.
+
+    ``state="group"`` is :class:`GroupEncoder` (``features`` as given). ``state="idle"`` keeps
+    the slot codes over ``T_g`` and the recency level and reads each robot's idle flag instead of
+    its three states (busy, idle, idle with low battery): ``|S_g| = (1 + 2 n_g)^K x 2^{m_g} x 3``
+    (:func:`subgroup_state_count`). It is the coarsest state the joint-action tables allow: a
+    row holds the valid joint actions and the prior's of its state's first visit, and the mask
+    is a function of the idle flags and the slots (spec step 4), the prior of the mask, the
+    slots and the recency level; fewer robot digits (the idle count) would mix masks in one row.
+    The battery of an idle robot changes neither. The codes come from the paper loop
+    (:func:`encode_groups`) with other tables, as :class:`SystemEncoder`'s: robot ``r`` of a
+    group adds ``2^r`` places after the slot digits when idle, and a zero battery margin under a
+    threshold of ``-inf`` makes no battery low, so the compiled ticks need no code of their own.
+
+    Args:
+        env: The env.
+        groups: Robot indices of each group, in the order of its digits.
+        state: One of :data:`GROUP_STATES`.
+        features: ``observations.FEATURES``; only ``paper`` with ``idle``.
+
+    Raises:
+        ConfigError: on an unknown ``state``, or ``features`` other than ``paper`` with ``idle``.
+        OverflowError: if a group's state count does not fit in int64.
+    """
+
+    def __init__(
+        self,
+        env: AuctionEnv,
+        groups: Sequence[np.ndarray],
+        state: str = "group",
+        features: str = "paper",
+    ) -> None:
+        self.state = state
+        self.counts = [subgroup_state_count(env, g, state, features) for g in groups]  # checks
+        super().__init__(env, groups, features)
+        if state == "group":
+            return
+        for g, robots in enumerate(groups):
+            place = (1 + 2 * int(self.types[g].sum())) ** env.n_slots  # after the K slot digits
+            self._robot_places[g, : len(robots)] = place * 2 ** np.arange(len(robots))
+            self._recency_place[g] = place * 2 ** len(robots)
+        self.tables = (
+            np.zeros(env.n_robots), -np.inf, *self.tables[2:],
+        )  # fmt: skip
