@@ -22,10 +22,11 @@ from mrta_rl.runners.evaluate import evaluate_policy
 from mrta_rl.systems import build_system
 from tests.conftest import paper_system
 
-# one sub-group G1 of all three robots, T_g = {T1, T2} (subg_partition keeps every type)
-TRIO = {"name": "trio", "robots": {"R1": ["T1", "T2"], "R2": ["T1"], "R3": ["T1", "T2"]}}
-# the hand-made situation below: slot codes 2, 3, 3 (places 1, 5, 25); 5^3 = 125 slot states
-SLOTS = 2 + 3 * 5 + 3 * 25
+# the trio and its hand-made situation of semi-CQL's states: subg_partition keeps every type,
+# one sub-group G1 of all three robots, T_g = {T1, T2}; slot codes 2, 3, 3 (places 1, 5, 25)
+from tests.unit.test_semi_cql_state import SLOTS, TRIO
+from tests.unit.test_semi_cql_state import _hand_made as hand_made
+
 # R1 and R3 idle (R3 with a low battery), R2 busy; recency level 1
 HAND = {
     "group": SLOTS + 1 * 125 + 0 * 375 + 2 * 1125 + 1 * 3375,  # robot states 1, 0, 2; radix 3
@@ -47,21 +48,6 @@ def _learner(
     return env, SubGCQLLearner(env=env, rng=rng, partition=partition, state=state, **hp)
 
 
-def _hand_made(env: AuctionEnv) -> None:
-    """Copy 0: slots H T1, L T2, L T2; R1 idle, R2 busy, R3 idle with a low battery; the last H
-    arrival 5 ticks ago (recency level 1: 3 < 5 <= 10)."""
-    tasks = [(0, 1), (1, 0), (1, 0), (1, 0)]  # (type, high)
-    env.inject_tasks(0, [
-        {"type": ttype, "high": high, "due": int(env.t[0]), "id": k, "duration": 4}
-        for k, (ttype, high) in enumerate(tasks)
-    ])  # fmt: skip
-    assert env.slot_type[0].tolist() == [0, 1, 1] and env.slot_high[0].tolist() == [1, 0, 0]
-    env.busy_until[0] = [-1, env.t[0] + 4, -1]
-    env.idle[0] = [True, False, True]
-    env.battery[0, 2] = 0.0  # below the threshold: low
-    env.last_high_arrival[0, :] = env.t[0] - 5
-
-
 def _play(env: AuctionEnv, learner: SubGCQLLearner, episodes: int = 1) -> None:
     for _ in range(episodes):
         env.reset()
@@ -76,13 +62,29 @@ def test_group_state_by_hand(state):
     high``), the robots' digits, recency (3). ``group`` is the paper's group view (0 busy, 1
     idle, 2 idle with low battery); ``idle`` reads the idle flags and ignores the battery."""
     env, learner = _learner(state)
-    _hand_made(env)
+    hand_made(env)
     assert learner.encode(env).states.tolist() == [[HAND[state]]]
     if state == "group":
         assert ob.group_state_index(env, [0, 1, 2]).tolist() == [HAND[state]]
     # the fused training tick encodes the same state: its row is made
     learner.train_tick(env, None)
     assert learner.storage.rows[ROW_STATE, : learner.storage.n_rows].tolist() == [HAND[state]]
+
+
+def test_idle_state_with_time_to_free_by_hand():
+    """``idle`` with ``time_to_free``: robot digits busy 0 / idle 1 / free soon 2 (radix 3, no
+    battery), then recency (3), queued H and L levels over ``T_g`` (3 each). The hand-made
+    situation with R2 idle again in 3 ticks (free soon); the queue holds 1 H task (level 1:
+    0 < 1 <= 1) and 3 L tasks (level 1: 2 < 3 <= 8)."""
+    env, learner = _learner("idle", features="time_to_free")
+    hand_made(env)
+    env.busy_until[0, 1] = env.t[0] + 2  # idle again at t + 3: within FREE_SOON = 3 ticks
+    robots = 1 * 125 + 2 * 375 + 1 * 1125  # R1 idle, R2 free soon, R3 idle (battery ignored)
+    expected = SLOTS + robots + 1 * 3375 + 1 * 3375 * 3 + 1 * 3375 * 9
+    assert learner.encode(env).states.tolist() == [[expected]]
+    assert learner.encoder.counts == [125 * 27 * 3 * 9]
+    learner.train_tick(env, None)  # the fused tick adds the same offset
+    assert learner.storage.rows[ROW_STATE, : learner.storage.n_rows].tolist() == [expected]
 
 
 def test_idle_state_of_two_groups_by_hand():
