@@ -397,8 +397,7 @@ GROUP_STATES = ("group", "idle")
 
 
 def _idle_radix(features: str) -> int:
-    """Robot digit of ``state=idle``: idle or busy (2), with ``time_to_free`` also busy, free
-    within ``FREE_SOON`` ticks (3)."""
+    """Radix of a robot's digit in ``state=idle``: busy, idle (2); ``time_to_free``: + free soon."""
     return 3 if features == "time_to_free" else 2
 
 
