@@ -35,7 +35,7 @@ from mrta_rl.envs.observations import (
     local_feature_size,
     local_state_count,
 )
-from mrta_rl.learners.tabular.encoding import system_state_count
+from mrta_rl.learners.tabular.encoding import subgroup_state_count, system_state_count
 from mrta_rl.partition import Partition, subg_partition
 from mrta_rl.systems import RobotSystem
 
@@ -215,7 +215,11 @@ def _tabular(
             if A ** len(robots) >= INT64_CODES:
                 reason = _too_many_joint_actions(group, len(robots), A)
                 return ResourceEstimate(name, reason=reason, advice=GROUP_ADVICE)
-            states = group_state_count(env, robots, features)
+            states = (
+                subgroup_state_count(env, robots, hp.get("state", "group"), features)
+                if space == "subg_cql"
+                else group_state_count(env, robots, features)
+            )
             if states >= INT64_CODES:
                 reason = f"{group}: {states:.3g} group states do not fit in int64"
                 return ResourceEstimate(name, reason=reason, advice=GROUP_ADVICE)

@@ -10,7 +10,8 @@ robot has ``|A_i| = K + 1`` actions (wait or bid for one of ``K`` slots, spec st
   paper bounds ``|S|`` by the sum of the individual spaces (eq. 13); here ``|S|`` is the exact
   count of the encoding, which holds every robot's idle and battery state.
 * subG-CQL (§5.2, last paragraph): ``sum_g |S_g| prod_{i in g} |A_i|`` over the sub-groups, each
-  with its own group view over its kept task types.
+  with its own group view over its kept task types; with ``group_state=idle`` each robot's idle
+  flag instead of its three states (``tabular.encoding.subgroup_state_count``).
 
 Python ints never overflow, which matters for CQL on System-II.
 """
@@ -23,7 +24,7 @@ from typing import Literal
 
 from mrta_rl.envs import AuctionEnv, AuctionParams
 from mrta_rl.envs.observations import group_state_count, local_state_count
-from mrta_rl.learners.tabular.encoding import system_state_count
+from mrta_rl.learners.tabular.encoding import subgroup_state_count, system_state_count
 from mrta_rl.partition import Partition, subg_partition
 from mrta_rl.systems import RobotSystem
 
@@ -80,6 +81,7 @@ def learning_space_dimension(
     partition: Partition | None = None,
     features: str = "paper",
     state: str = "system",
+    group_state: str = "group",
 ) -> int:
     """Analytic learning space dimension of one tabular learner on ``env``'s encodings.
 
@@ -91,6 +93,8 @@ def learning_space_dimension(
             (``envs/observations.py``).
         state: semi-CQL's shared state (``tabular.encoding.SYSTEM_STATES``); ``system`` for
             the others.
+        group_state: subG-CQL's group state (``tabular.encoding.GROUP_STATES``); ``group``
+            for the others.
 
     Returns:
         The exact dimension.
@@ -112,7 +116,7 @@ def learning_space_dimension(
             raise ValueError("subg_cql needs the partition")
         groups = []
         for robots in partition.group_map().values():
-            count = group_state_count(env, robots, features)
+            count = subgroup_state_count(env, robots, group_state, features)
             groups.append((count, [env.n_actions] * len(robots)))
         return subgroup_dimension(groups)
     raise ValueError(f"unknown tabular learner {learner!r}; expected one of {TABULAR_LEARNERS}")

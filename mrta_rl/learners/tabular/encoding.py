@@ -33,6 +33,7 @@ from mrta_rl.config import ConfigError
 from mrta_rl.envs import AuctionEnv
 from mrta_rl.envs.observations import (
     FREE_SOON,
+    N_QUEUE_LEVELS,
     N_RECENCY_LEVELS,
     QUEUE_THRESHOLDS,
     RECENCY_THRESHOLDS,
@@ -389,3 +390,86 @@ def system_state_count(env: AuctionEnv, state: str = "system", features: str = "
     radix = {"idle_count": env.n_robots + 1, "idle": 2**env.n_robots, "slots": 1}[state]
     types = int(env.active_tasks.any(axis=0).sum())
     return (1 + 2 * types) ** env.n_slots * radix * N_RECENCY_LEVELS
+
+
+# subG-CQL's group state (its `state`): the paper's group view, or its robots' idle flags only
+GROUP_STATES = ("group", "idle")
+
+
+def _idle_radix(features: str) -> int:
+    """Radix of a robot's digit in ``state=idle``: busy, idle (2); ``time_to_free``: + free soon."""
+    return 3 if features == "time_to_free" else 2
+
+
+def subgroup_state_count(
+    env: AuctionEnv, robots: Sequence[int | str], state: str = "group", features: str = "paper"
+) -> int:
+    """Exact ``|S_g|`` of one group under subG-CQL's ``state`` (:class:`SubGroupEncoder`).
+
+    Raises:
+        ConfigError: on an unknown ``state``.
+    """
+    if state not in GROUP_STATES:
+        raise ConfigError(f"learner.state: must be one of {GROUP_STATES}, got {state!r}")
+    view = GroupView(env, robots, features)
+    if state == "group":
+        return view.count
+    queue = N_QUEUE_LEVELS**2 if features == "time_to_free" else 1  # queued H and L levels
+    robot_states = _idle_radix(features) ** len(view.robots)
+    return (1 + 2 * view.n_types) ** env.n_slots * robot_states * N_RECENCY_LEVELS * queue
+
+
+class SubGroupEncoder(GroupEncoder):
+    """subG-CQL's group states: the paper's ``GroupView`` per group, or a coarser one.
+
+    ``state="group"`` is :class:`GroupEncoder`. ``state="idle"`` keeps the slot codes over
+    ``T_g``, the recency level and the ``features`` and drops the battery: each robot's digit
+    reads busy (0) or idle (1), and with ``time_to_free`` busy but free within ``FREE_SOON``
+    ticks (2) too, instead of the group view's busy / idle / idle with low battery (/ free
+    soon): ``|S_g| = (1 + 2 n_g)^K x 2^{m_g} x 3`` (``paper``), ``(1 + 2 n_g)^K x 3^{m_g} x 3
+    x 9`` (``time_to_free``, the queued H and L levels last; :func:`subgroup_state_count`). It
+    is the coarsest state the joint-action tables allow: a row holds the valid joint actions
+    and the prior's of its state's first visit, the mask is a function of the idle flags and
+    the slots (spec step 4), the prior of the mask, the slots and the recency level; fewer
+    robot digits (the idle count) would mix masks in one row. A battery changes neither. The
+    codes come from the paper loop (:func:`encode_groups`) and :func:`group_offsets` with
+    other tables, as :class:`SystemEncoder`'s: robot ``r`` of a group adds its place when
+    idle, a zero battery margin under a threshold of ``-inf`` makes no battery low, so the
+    compiled ticks need no code of their own.
+
+    Args:
+        env: The env.
+        groups: Robot indices of each group, in the order of its digits.
+        state: One of :data:`GROUP_STATES`.
+        features: ``observations.FEATURES``.
+
+    Raises:
+        ConfigError: on an unknown ``state``.
+        OverflowError: if a group's state count does not fit in int64.
+    """
+
+    def __init__(
+        self,
+        env: AuctionEnv,
+        groups: Sequence[np.ndarray],
+        state: str = "group",
+        features: str = "paper",
+    ) -> None:
+        self.state = state
+        self.counts = [subgroup_state_count(env, g, state, features) for g in groups]  # checks
+        super().__init__(env, groups, features)
+        if state == "group":
+            return
+        radix = _idle_radix(features)
+        queue_places = np.zeros((len(groups), 2), np.int64)  # (H, L) after the recency digit
+        for g, robots in enumerate(groups):
+            place = (1 + 2 * int(self.types[g].sum())) ** env.n_slots  # after the K slot digits
+            self._robot_places[g, : len(robots)] = place * radix ** np.arange(len(robots))
+            self._recency_place[g] = place * radix ** len(robots)
+            queue_places[g] = self._recency_place[g] * N_RECENCY_LEVELS * np.array([1, 3])
+        if features == "time_to_free":  # free soon: the busy digit 0 plus 2 places
+            self._offset_tables = (
+                self.robots, self.size, 2 * self._robot_places, self.types, queue_places,
+                FREE_SOON, _QUEUE_THRESHOLDS,
+            )  # fmt: skip
+        self.tables = (np.zeros(env.n_robots), -np.inf, *self.tables[2:])

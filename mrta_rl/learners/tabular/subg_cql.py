@@ -21,7 +21,7 @@ from mrta_rl.envs import AuctionEnv, StepResult
 from mrta_rl.envs.observations import FEATURES
 from mrta_rl.learners.tabular import group_kernels as kernels
 from mrta_rl.learners.tabular.base import NO_UNIFORMS, TabularLearner
-from mrta_rl.learners.tabular.encoding import GroupEncoder, env_arrays
+from mrta_rl.learners.tabular.encoding import GROUP_STATES, SubGroupEncoder, env_arrays
 from mrta_rl.learners.tabular.joint_actions import JointActions, max_valid_joint_actions
 from mrta_rl.learners.tabular.priors import PRIOR_CODES, PRIOR_ORDERS, PRIORS, spread_order
 from mrta_rl.learners.tabular.qtable import TABLE_KEYS, JointQStorage
@@ -104,14 +104,19 @@ class GroupQLearner(TabularLearner):
             raise ValueError(f"min_visits must be >= 0, got {min_visits}")
 
     def _set_groups(
-        self, names: list[str], groups: list[list[int]], features: str = "paper"
+        self,
+        names: list[str],
+        groups: list[list[int]],
+        features: str = "paper",
+        state: str = "group",
     ) -> None:
         env = self.env
-        self.features = features
+        self.features, self.state = features, state
         self.group_names = names
         self.groups = [np.asarray(g, np.int64) for g in groups]
         self.joint = [JointActions(len(g), self.n_actions) for g in groups]  # checks int64 codes
-        self.encoder = GroupEncoder(env, self.groups, features)  # checks the counts fit int64
+        # checks state, features and that the counts fit int64
+        self.encoder = SubGroupEncoder(env, self.groups, state, features)
         self.robots, self.size = self.encoder.robots, self.encoder.size
         self.order = np.zeros_like(self.robots)
         for g, robots in enumerate(self.groups):
@@ -306,17 +311,29 @@ class GroupQLearner(TabularLearner):
     def learning_space(self) -> dict[str, int]:
         """Analytic dimension (eqs. 13-16) and the table entries updated at least once."""
         analytic = learning_space_dimension(
-            self.space_name, self.env, self.partition, self.features
+            self.space_name, self.env, self.partition, self.features, group_state=self.state
         )
         return {"analytic": analytic, "visited": self.storage.n_visited()}
 
     def _table_arrays(self) -> dict[str, np.ndarray]:
-        arrays: dict[str, np.ndarray] = {}
+        # a coarser group state marks its file, so that a table of one state never loads into a
+        # learner of another (its state indices would read as other states); ``group`` adds
+        # nothing, so the files of before load as they are
+        arrays: dict[str, np.ndarray] = (
+            {} if self.state == "group" else {f"state.{self.state}": np.zeros(1, np.int64)}
+        )
         for g, name in enumerate(self.group_names):
             arrays.update({f"{name}.{k}": v for k, v in self.storage.to_arrays(g).items()})
         return arrays
 
     def _load_table_arrays(self, arrays: dict[str, np.ndarray]) -> None:
+        for name, count in zip(self.group_names, self.encoder.counts, strict=True):
+            states = arrays[f"{name}.states"]
+            if len(states) and int(states.max()) >= count:
+                raise ValueError(
+                    f"saved table of {name} has state {int(states.max())}, past the {count} "
+                    f"states of state={self.state!r}: saved with another learner.state?"
+                )
         self.storage.from_arrays(
             [{k: arrays[f"{name}.{k}"] for k in TABLE_KEYS} for name in self.group_names],
             [joint.count for joint in self.joint],
@@ -344,6 +361,9 @@ class SubGCQLLearner(GroupQLearner):
         features: The group state's encoding (``observations.FEATURES``): ``paper`` (the
             paper's) or ``time_to_free`` (adds when busy robots become free and the queued H and
             L counts over ``T_g``, coarsely; docs/learners.md).
+        state: The group state (``encoding.GROUP_STATES``): ``group``, the paper's
+            ``GroupView``; or ``idle``, each robot's idle flag instead of its three states (no
+            battery digit; needs ``features=paper``; ``encoding.SubGroupEncoder``).
         **hyperparameters: See :class:`~mrta_rl.learners.tabular.base.TabularLearner`.
     """
 
@@ -358,6 +378,7 @@ class SubGCQLLearner(GroupQLearner):
         *,
         reward: Annotated[str, Choices(*SUBG_REWARDS)] = "group",
         features: Annotated[str, Choices(*FEATURES)] = "paper",
+        state: Annotated[str, Choices(*GROUP_STATES)] = "group",
         **hyperparameters,
     ) -> None:
         super().__init__(**hyperparameters)
@@ -375,6 +396,7 @@ class SubGCQLLearner(GroupQLearner):
             list(group_map),
             [[robots.index(r) for r in rs] for rs in group_map.values()],
             features,
+            state,
         )
         if reward == "team":  # every group reads the one column of the team reward
             self._reward_columns = np.zeros((len(self.groups), 1), np.int64)
