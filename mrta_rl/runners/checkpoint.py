@@ -215,7 +215,27 @@ def read_run_config(run_dir: Path | str) -> DictConfig:
     except Exception as err:  # YAML and OmegaConf raise several types
         raise RunDirError(f"{path}: not a readable YAML config ({err})") from err
     check_run_config(OmegaConf.to_container(cfg, resolve=False), path)
+    _fill_settings_before(cfg)
     return cfg  # type: ignore[return-value]
+
+
+def _fill_settings_before(cfg: DictConfig) -> None:
+    """Give a run made before a learner setting existed the value it ran with.
+
+    Such a run's config has no key for the setting, and building its learner from the config
+    would take today's declared default; where that default has moved since, the class's
+    ``settings_before`` names what the run used (semi-CQL's ``state: system``). The reports read
+    the same attribute (``reports.collect``).
+    """
+    from mrta_rl.runners.validation import learner_class  # imports the learner (and its deps)
+
+    try:
+        cls = learner_class(cfg.get("learner"))
+    except UserError:  # the run's own checks name it when the run is built
+        return
+    for key, value in getattr(cls, "settings_before", {}).items():
+        if key not in cfg.learner:
+            cfg.learner[key] = value
 
 
 def run_choices(run_dir: Path) -> dict[str, str]:

@@ -154,6 +154,20 @@ def test_runs_written_before_checkpoints_still_evaluate(greedy_run):
     assert again["eval"] == json.loads((greedy_run / "metrics.json").read_text())["eval"]
 
 
+def test_a_run_made_before_a_moved_default_evaluates_with_what_it_ran(compose_cfg, tmp_path):
+    # semi-CQL's `state` came with its move to `slots`: a run of before has no such key and
+    # learned over the paper's whole-system state (SemiCQLLearner.settings_before)
+    cfg = compose_cfg(["learner=semi_cql", "learner.state=system", "debug=smoke"])
+    run_dir = tmp_path / "run"
+    save_hydra_files(cfg, run_dir, "semi_cql", "system2")
+    metrics = train(cfg, run_dir=run_dir)
+    path = run_dir / ".hydra" / "config.yaml"
+    old = OmegaConf.load(path)
+    del old.learner["state"]
+    OmegaConf.save(old, path)
+    assert evaluate_checkpoint(run_dir)["eval"] == metrics["eval"]
+
+
 # ---------------------------------------------------------------------------------- defect 9
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory) -> dict[str, Path]:

@@ -127,9 +127,12 @@ def test_save_load_keeps_the_coarse_table_and_refuses_another_state(tmp_path):
     actions = paper.train_tick(env, None)
     while actions is not None:
         actions = paper.train_tick(env, env.step(actions))
-    paper.save(tmp_path)
-    with pytest.raises(ValueError, match="another learner.state"):
-        _learner("idle_count")[1].load(tmp_path)
+    paper.save(tmp_path / "system")
+    with pytest.raises(ValueError, match="state.idle_count"):
+        _learner("idle_count")[1].load(tmp_path / "system")
+    # and the other way: the coarse table's small indices would fit the paper's state space
+    with pytest.raises(ValueError, match="state.idle_count"):
+        _learner("system")[1].load(tmp_path)
 
 
 def test_a_coarser_state_fits_a_team_whose_paper_state_does_not():

@@ -140,7 +140,13 @@ class SemiCQLLearner(RobotQLearner):
     def _table_arrays(self) -> dict[str, np.ndarray]:
         used = self._n_rows * self._row_size
         shape = (self._n_rows, self.n_robots, self.n_actions)
+        # a coarser shared state marks its file (as subG-CQL's group states do), so that a table
+        # of one state never loads into a learner of another, in either direction (its indices
+        # would read as other states; TabularLearner.load compares the arrays' names); `system`
+        # adds nothing, so the files of before load as they are
+        marker = {} if self.state == "system" else {f"state.{self.state}": np.zeros(1, np.int64)}
         return {
+            **marker,
             "states": self.states.copy(),
             "q": self.q[:used].reshape(shape),
             "visits": self.visits[:used].reshape(shape),
@@ -152,11 +158,6 @@ class SemiCQLLearner(RobotQLearner):
             raise ValueError(
                 f"saved table has shape {arrays['q'].shape}, "
                 f"expected [rows, {self.n_robots}, {self.n_actions}]"
-            )
-        if len(states) and int(states.max()) >= self.encoder.count:
-            raise ValueError(
-                f"saved table has state {int(states.max())}, past the {self.encoder.count} "
-                f"states of state={self.state!r}: saved with another learner.state?"
             )
         self._index = JointQStorage(1)
         self._index.from_rows(states)

@@ -363,7 +363,8 @@ class SubGCQLLearner(GroupQLearner):
             L counts over ``T_g``, coarsely; docs/learners.md).
         state: The group state (``encoding.GROUP_STATES``): ``group``, the paper's
             ``GroupView``; or ``idle``, each robot's idle flag instead of its three states (no
-            battery digit; needs ``features=paper``; ``encoding.SubGroupEncoder``).
+            battery digit; with ``features=time_to_free`` busy / idle / free soon and the queue
+            levels; ``encoding.SubGroupEncoder``).
         **hyperparameters: See :class:`~mrta_rl.learners.tabular.base.TabularLearner`.
     """
 
