@@ -22,6 +22,7 @@ the same seed is a duplicate.
 
 from __future__ import annotations
 
+import copy
 import csv
 import dataclasses
 import itertools
@@ -36,7 +37,7 @@ from typing import Any
 from omegaconf import OmegaConf
 
 from mrta_rl.config import UserError, declared_keywords
-from mrta_rl.runners.checkpoint import METRICS_FILE, REFUSED_FILE
+from mrta_rl.runners.checkpoint import METRICS_FILE, REFUSED_FILE, fill_settings_before
 
 logger = logging.getLogger(__name__)
 
@@ -203,7 +204,7 @@ def configuration_variants(records: Sequence[RunRecord]) -> list[str]:
         ``(learner, system)`` (seed and :data:`NOT_CONFIGURATION` aside), in config order;
         ``""`` when nothing differs.
     """
-    flat = [_flatten(r.config) for r in records]
+    flat = [_flatten(_as_ran(r.config)) for r in records]
     variants = [""] * len(records)
     groups: dict[tuple[str, str], list[int]] = {}
     for i, record in enumerate(records):
@@ -228,12 +229,24 @@ def configuration_variants(records: Sequence[RunRecord]) -> list[str]:
     return variants
 
 
+def _as_ran(config: dict[str, Any]) -> dict[str, Any]:
+    """A copy of a run's config with the settings it ran with where a default has moved since.
+
+    See :func:`~mrta_rl.runners.checkpoint.fill_settings_before`, which evaluation and resume
+    apply to the same config.
+    """
+    config = copy.deepcopy(config)
+    fill_settings_before(config)
+    return config
+
+
 def _declared_defaults(config: dict[str, Any]) -> dict[str, Any]:
     """``{"learner.<name>": default}`` of the run's learner class, ``{}`` if it is unknown.
 
     A run made before a learner setting existed has no such key in its ``.hydra/config.yaml``
-    and ran with the setting's declared default, so it is compared with that default; where the
-    default has moved since, the class's ``settings_before`` says what such a run ran with.
+    and ran with the setting's declared default, so it is compared with that default (where the
+    default has moved since, :func:`~mrta_rl.runners.checkpoint.fill_settings_before` has
+    already put in what the run ran with).
     """
     from mrta_rl.runners.validation import learner_class  # imports the learner (and its deps)
 
@@ -241,12 +254,11 @@ def _declared_defaults(config: dict[str, Any]) -> dict[str, Any]:
         cls = learner_class(config.get("learner"))
     except UserError:
         return {}
-    defaults = {
+    return {
         f"learner.{name}": (list(d.default) if isinstance(d.default, tuple) else d.default)
         for name, d in declared_keywords(cls).items()
         if not d.required
     }
-    return defaults | {f"learner.{k}": v for k, v in getattr(cls, "settings_before", {}).items()}
 
 
 def _format_value(value: Any) -> str:

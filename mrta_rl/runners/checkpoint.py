@@ -215,27 +215,29 @@ def read_run_config(run_dir: Path | str) -> DictConfig:
     except Exception as err:  # YAML and OmegaConf raise several types
         raise RunDirError(f"{path}: not a readable YAML config ({err})") from err
     check_run_config(OmegaConf.to_container(cfg, resolve=False), path)
-    _fill_settings_before(cfg)
+    fill_settings_before(cfg)
     return cfg  # type: ignore[return-value]
 
 
-def _fill_settings_before(cfg: DictConfig) -> None:
-    """Give a run made before a learner setting existed the value it ran with.
+def fill_settings_before(config: DictConfig | dict[str, Any]) -> None:
+    """Give a run made before a learner setting existed the value it ran with (in place).
 
     Such a run's config has no key for the setting, and building its learner from the config
     would take today's declared default; where that default has moved since, the class's
-    ``settings_before`` names what the run used (semi-CQL's ``state: system``). The reports read
-    the same attribute (``reports.collect``).
+    ``settings_before`` names what the run used (semi-CQL's ``state: system``). Every reader of
+    a run's config goes through here: evaluation and resume (:func:`read_run_config`) and the
+    reports (``reports.collect``).
     """
     from mrta_rl.runners.validation import learner_class  # imports the learner (and its deps)
 
+    learner = config.get("learner")
     try:
-        cls = learner_class(cfg.get("learner"))
-    except UserError:  # the run's own checks name it when the run is built
+        cls = learner_class(learner)
+    except UserError:  # not a learner config: the run's own checks name it when it is built
         return
     for key, value in getattr(cls, "settings_before", {}).items():
-        if key not in cfg.learner:
-            cfg.learner[key] = value
+        if key not in learner:
+            learner[key] = value
 
 
 def run_choices(run_dir: Path) -> dict[str, str]:

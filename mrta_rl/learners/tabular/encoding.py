@@ -353,11 +353,12 @@ class SystemEncoder(GroupEncoder):
         m, view = env.n_robots, GroupView(env, range(env.n_robots))
         radix = 1 + 2 * view.n_types
         place = radix**env.n_slots  # after the K slot digits
-        robot_places, robot_radix = {
-            "idle_count": (np.full(m, place), m + 1),
-            "idle": (place * 2 ** np.arange(m), 2**m),
-            "slots": (np.zeros(m), 1),
+        robot_places = {
+            "idle_count": np.full(m, place),
+            "idle": place * 2 ** np.arange(m),
+            "slots": np.zeros(m),
         }[state]
+        robot_radix = _system_robot_radix(state, m)
         self.features, self.size = features, np.array([m], np.int64)
         self.robots, self.types = np.arange(m, dtype=np.int64)[None], view.types_mask[None]
         self._codes = view._codes[None]  # [1, n + 1, 2]
@@ -387,9 +388,14 @@ def system_state_count(env: AuctionEnv, state: str = "system", features: str = "
         )
     if state == "system":
         return GroupView(env, range(env.n_robots), features).count
-    radix = {"idle_count": env.n_robots + 1, "idle": 2**env.n_robots, "slots": 1}[state]
     types = int(env.active_tasks.any(axis=0).sum())
+    radix = _system_robot_radix(state, env.n_robots)
     return (1 + 2 * types) ** env.n_slots * radix * N_RECENCY_LEVELS
+
+
+def _system_robot_radix(state: str, m: int) -> int:
+    """Values of the robots' part of a coarser shared state (:class:`SystemEncoder`)."""
+    return {"idle_count": m + 1, "idle": 2**m, "slots": 1}[state]
 
 
 # subG-CQL's group state (its `state`): the paper's group view, or its robots' idle flags only
