@@ -103,9 +103,8 @@ def test_the_paper_experiment_runs_the_papers_semi_cql_and_nothing_else_changes(
     tabular = compose_cfg(["experiment=paper", "learner=cql"]).train
     assert (tabular.episodes, tabular.batch_size) == (30, 16)
     # the command line and debug=smoke still win over the pin
-    assert compose_cfg(
-        ["experiment=paper", "learner=subg_cql", "train.batch_size=64"]
-    ).train.batch_size == 64
+    wider = compose_cfg(["experiment=paper", "learner=subg_cql", "train.batch_size=64"])
+    assert wider.train.batch_size == 64
     smoke = compose_cfg(["experiment=paper", "learner=subg_cql", "debug=smoke"]).train
     assert (smoke.episodes, smoke.batch_size) == tuple(
         compose_cfg(["experiment=paper", "learner=cql", "debug=smoke"]).train[key]

@@ -334,7 +334,7 @@ def test_an_older_run_compares_with_the_setting_it_ran_where_the_default_has_mov
         for i, config in enumerate(configs)
     ]
     assert configuration_variants(records) == [
-        "features=paper state=group",
-        "features=time_to_free state=group",
-        "features=time_to_free state=idle",
+        "state=group features=paper",
+        "state=group features=time_to_free",
+        "state=idle features=time_to_free",
     ]
