@@ -68,6 +68,7 @@ def test_an_experiments_own_learner_settings_name_both_and_build(experiment, lea
     assert (CONF / "learner" / f"{learner}.yaml").exists()
     cfg = compose_cfg([f"experiment={experiment}", f"learner={learner}", "debug=smoke"])
     own = OmegaConf.load(CONF / "experiment_learner" / experiment / f"{learner}.yaml")
+    own.pop("defaults", None)  # what the file pulls in elsewhere (a budget), not learner keys
     assert {key: cfg.learner[key] for key in own} == dict(own)
     build_run(cfg)
 
@@ -90,3 +91,25 @@ def test_the_paper_experiment_runs_the_papers_semi_cql_and_nothing_else_changes(
         == compose_cfg(["learner=cql"]).learner
     )
     assert compose_cfg(["experiment=yardsticks", "learner=semi_cql"]).learner.state == "slots"
+    # paper §6's subG-CQL: the paper's group state at the tabular budget (30 episodes x 16
+    # copies); the learner's defaults are the coarse `idle` state with time_to_free at 512 copies
+    default = compose_cfg(["learner=subg_cql"])
+    assert (default.learner.state, default.learner.features) == ("idle", "time_to_free")
+    assert (default.train.episodes, default.train.batch_size) == (30, 512)
+    paper = compose_cfg(["experiment=paper", "learner=subg_cql"])
+    assert (paper.learner.state, paper.learner.features) == ("group", "paper")
+    assert (paper.train.episodes, paper.train.batch_size) == (30, 16)
+    # the pin is conf/config.yaml's tabular budget, which the paper's other learners run
+    tabular = compose_cfg(["experiment=paper", "learner=cql"]).train
+    assert (tabular.episodes, tabular.batch_size) == (30, 16)
+    # the command line and debug=smoke still win over the pin
+    wider = compose_cfg(["experiment=paper", "learner=subg_cql", "train.batch_size=64"])
+    assert wider.train.batch_size == 64
+    smoke = compose_cfg(["experiment=paper", "learner=subg_cql", "debug=smoke"]).train
+    assert (smoke.episodes, smoke.batch_size) == tuple(
+        compose_cfg(["experiment=paper", "learner=cql", "debug=smoke"]).train[key]
+        for key in ("episodes", "batch_size")
+    )
+    # other experiments run subG-CQL's own defaults and budget
+    yardsticks = compose_cfg(["experiment=yardsticks", "learner=subg_cql"])
+    assert (yardsticks.learner.state, yardsticks.train.batch_size) == ("idle", 512)

@@ -30,9 +30,10 @@ CLASSES = {
     "dql": "mrta_rl.learners.tabular.dql:DQLLearner",
 }
 EXPLORE = {"epsilon_start": 0.5, "epsilon_end": 0.3, "alpha": 1.0, "alpha_power": 1.0}
-# the fixture's semi-CQL learns over the paper's whole-system state, its default then (the
-# vectorised learners had no `state`: regenerating the fixture from them needs this left out)
-PAPER_ERA = {"semi_cql": {"state": "system"}}
+# the fixture's semi-CQL learns over the paper's whole-system state and its subG-CQL over the
+# paper's group state, their defaults then (the vectorised learners had no `state` and no
+# `features`: regenerating the fixture from them needs this left out)
+PAPER_ERA = {"semi_cql": {"state": "system"}, "subg_cql": {"state": "group", "features": "paper"}}
 # (learner, hyperparameters): the defaults, and much exploration with 1/n learning rates
 CASES = {
     f"{name}/{hp}": (name, {**PAPER_ERA.get(name, {}), **kw})

@@ -465,7 +465,7 @@ def test_neural_budget_is_more_copies_for_the_same_frames_and_batches(name):
 
     Every neural learner gets it by default; the frames, and the 800 frames per Collector batch
     (10 ticks x 80 copies, as 50 x 16 before), are those of the 16-copy budget; the tabular
-    learners keep 16 copies; the command line and debug=smoke still win.
+    learners keep 16 copies (subG-CQL its own 512); the command line and debug=smoke still win.
     """
     from pathlib import Path
 
@@ -481,7 +481,7 @@ def test_neural_budget_is_more_copies_for_the_same_frames_and_batches(name):
 
     assert budget(f"learner={name}") == (80, 6, 10)
     assert budget(f"learner={name}", "system=system1") == (80, 6, 10)
-    assert budget("learner=subg_cql") == (16, 30, None)
+    assert budget("learner=subg_cql") == (512, 30, None)  # its own: conf/budget/subg_cql.yaml
     assert budget("learner=dql") == (16, 30, None)
     assert budget(f"learner={name}", "train.batch_size=16", "train.episodes=30")[:2] == (16, 30)
     assert budget(f"learner={name}", "debug=smoke")[:2] == (4, 2)

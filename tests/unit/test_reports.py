@@ -322,3 +322,19 @@ def test_an_older_run_compares_with_the_setting_it_ran_where_the_default_has_mov
         for i, config in enumerate(configs)
     ]
     assert configuration_variants(records) == ["state=system", "state=slots"]
+    # subG-CQL's runs of before `state` and `features` ran the paper's group state
+    learner = {"_target_": "mrta_rl.learners.tabular.subg_cql.SubGCQLLearner", "_partial_": True}
+    configs = (
+        {"learner": learner},
+        {"learner": {**learner, "features": "time_to_free"}},
+        {"learner": {**learner, "state": "idle", "features": "time_to_free"}},
+    )
+    records = [
+        RunRecord(Path(f"/x/{i}"), "subg_cql", "system2", 0, {}, (), config, ())
+        for i, config in enumerate(configs)
+    ]
+    assert configuration_variants(records) == [
+        "state=group features=paper",
+        "state=group features=time_to_free",
+        "state=idle features=time_to_free",
+    ]

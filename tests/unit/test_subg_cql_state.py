@@ -36,7 +36,12 @@ COUNTS = {"group": 125 * 27 * 3, "idle": 125 * 8 * 3}
 
 
 def _learner(
-    state: str, system: dict | None = None, batch: int = 1, seed: int = 0, **hp
+    state: str,
+    system: dict | None = None,
+    batch: int = 1,
+    seed: int = 0,
+    features: str = "paper",  # the hand-computed states below are of the paper's encoding
+    **hp,
 ) -> tuple[AuctionEnv, SubGCQLLearner]:
     team = build_system(system or TRIO)
     partition = subg_partition(team)
@@ -45,7 +50,9 @@ def _learner(
         active_tasks=partition.active_tasks(team),
     )  # fmt: skip
     rng = np.random.default_rng(seed)
-    return env, SubGCQLLearner(env=env, rng=rng, partition=partition, state=state, **hp)
+    return env, SubGCQLLearner(
+        env=env, rng=rng, partition=partition, state=state, features=features, **hp
+    )
 
 
 def _play(env: AuctionEnv, learner: SubGCQLLearner, episodes: int = 1) -> None:
@@ -123,7 +130,7 @@ def test_learning_space_of_each_state(state):
     partition = subg_partition(system)
     env = AuctionEnv(system, batch_size=1, active_tasks=partition.active_tasks(system))
     learner = SubGCQLLearner(
-        env=env, rng=np.random.default_rng(0), partition=partition, state=state
+        env=env, rng=np.random.default_rng(0), partition=partition, state=state, features="paper"
     )
     robots = {"group": lambda m: 3**m, "idle": lambda m: 2**m}[state]
     big, small = 7**3 * robots(4) * 3, 5**3 * robots(2) * 3
@@ -170,7 +177,8 @@ def test_memory_estimate_bounds_rows_by_the_state_count():
     row = 13 * JOINT_ENTRY_BYTES + JOINT_ROW_BYTES
     for state, count in (("group", 5**3 * 9 * 3), ("idle", 5**3 * 4 * 3)):
         estimate = estimate_resources(
-            SubGCQLLearner, system, params, subg_partition(system), {"state": state},
+            SubGCQLLearner, system, params, subg_partition(system),
+            {"state": state, "features": "paper"},
             batch_size=64, episodes=100,
         )  # fmt: skip
         assert estimate.parts["G2 table"] == GROWTH * count * row, state

@@ -773,7 +773,9 @@ def test_subg_cql_time_to_free_learning_space(tiny_params):
     ``3^3 * 4 * 3 * 3 * 3`` (time_to_free), each times ``|A| = 4`` and summed (eq. 16)."""
     duo = build_system({"name": "duo", "robots": {"R1": ["T1"], "R2": ["T2"]}})
     for features, per_group in (("paper", 27 * 3 * 3), ("time_to_free", 27 * 4 * 27)):
-        env, learner = make(SubGCQLLearner, duo, tiny_params, batch=4, features=features)
+        env, learner = make(
+            SubGCQLLearner, duo, tiny_params, batch=4, features=features, state="group"
+        )
         assert learner.learning_space()["analytic"] == 2 * per_group * 4
         play(env, learner, 60)
         states, _ = learner.encoder.index(env)

@@ -359,12 +359,14 @@ class SubGCQLLearner(GroupQLearner):
             its robots' individual rewards (the paper's); ``team``, the team reward of the tick
             (a sub-group is credited with what its choice does to the others' rewards too).
         features: The group state's encoding (``observations.FEATURES``): ``paper`` (the
-            paper's) or ``time_to_free`` (adds when busy robots become free and the queued H and
-            L counts over ``T_g``, coarsely; docs/learners.md).
+            paper's) or ``time_to_free`` (the default: adds when busy robots become free and the
+            queued H and L counts over ``T_g``, coarsely; docs/learners.md).
         state: The group state (``encoding.GROUP_STATES``): ``group``, the paper's
-            ``GroupView``; or ``idle``, each robot's idle flag instead of its three states (no
-            battery digit; with ``features=time_to_free`` busy / idle / free soon and the queue
-            levels; ``encoding.SubGroupEncoder``).
+            ``GroupView``; or ``idle`` (the default), each robot's idle flag instead of its three
+            states (no battery digit; with ``features=time_to_free`` busy / idle / free soon and
+            the queue levels; ``encoding.SubGroupEncoder``). The paper's subG-CQL is
+            ``state="group", features="paper"`` (``experiment=paper`` pins it; docs/results.md,
+            "subG-CQL: larger budgets on the coarse state").
         **hyperparameters: See :class:`~mrta_rl.learners.tabular.base.TabularLearner`.
     """
 
@@ -373,13 +375,16 @@ class SubGCQLLearner(GroupQLearner):
     default_prior: ClassVar[str] = "spread_wait"
     # a sub-group keeps its versatile robots free for the types only they can do (docs/learners.md)
     default_prior_order: ClassVar[str] = "fewest_types"
+    # what runs made before `features` and `state` existed ran with: the paper's group state
+    # (evaluation, resume and the reports rebuild them with it, not with today's defaults)
+    settings_before: ClassVar[dict[str, object]] = {"state": "group", "features": "paper"}
 
     def __init__(
         self,
         *,
         reward: Annotated[str, Choices(*SUBG_REWARDS)] = "group",
-        features: Annotated[str, Choices(*FEATURES)] = "paper",
-        state: Annotated[str, Choices(*GROUP_STATES)] = "group",
+        features: Annotated[str, Choices(*FEATURES)] = "time_to_free",
+        state: Annotated[str, Choices(*GROUP_STATES)] = "idle",
         **hyperparameters,
     ) -> None:
         super().__init__(**hyperparameters)
