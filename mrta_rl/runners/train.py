@@ -66,7 +66,7 @@ class RunSetup:
         params: Resolved dynamics parameters.
         partition: The subG partition if the learner requires one, else None.
         active_tasks: ``[m, n]`` bool ``Lambda_i`` of the learner's envs, None = ``Gamma_i``.
-        env: The training env (``train.batch_size`` copies).
+        env: The training env (``train.batch_size`` copies, capped by ``train.robot_copies``).
         learner: The learner, built on ``env``.
         checkpoint: Periodic training checkpoints and resuming (set by :func:`train`; None:
             none).
@@ -102,7 +102,7 @@ def build_run(cfg: DictConfig, name: str | None = None) -> RunSetup:
     env = AuctionEnv(
         checked.system,
         checked.params,
-        batch_size=cfg.train.batch_size,
+        batch_size=checked.batch_size,
         active_tasks=checked.active_tasks,
         seed=cfg.seed * SEED_STRIDE,
     )

@@ -72,6 +72,9 @@ class TrainSettings:
     # episodes between training checkpoints, 0 = only on Ctrl-C; absent from the configs of runs
     # written before checkpoints existed, which then have none
     checkpoint_every: Annotated[int, Range(0)] = 0
+    # robot-copies per tick: caps B at robot_copies // m for a team of m robots (a tick costs in
+    # proportion to the team); None = no cap, also for runs written before it existed
+    robot_copies: Annotated[int | None, Range(1)] = None
 
 
 @dataclass(frozen=True)
@@ -120,6 +123,8 @@ class CheckedConfig:
         partition: The subG partition if the learner requires one, else None.
         estimate: What the learner will need.
         memory_limit: Bytes the learner may take (``limits.memory_gb``, :func:`memory_limit`).
+        batch_size: Env copies per training tick (``train.batch_size`` capped by
+            ``train.robot_copies``, :func:`training_copies`).
     """
 
     learner_cls: type[Learner]
@@ -129,6 +134,7 @@ class CheckedConfig:
     partition: Partition | None
     estimate: ResourceEstimate
     memory_limit: int
+    batch_size: int
 
     @property
     def active_tasks(self) -> np.ndarray | None:
@@ -216,6 +222,17 @@ def training_loop(kind: str) -> Any:
     return getattr(module, function)
 
 
+def training_copies(batch_size: int, robot_copies: int | None, n_robots: int) -> int:
+    """Env copies per training tick: ``train.batch_size``, capped by ``train.robot_copies``.
+
+    A tick costs in proportion to the team, so ``robot_copies`` bounds copies x robots:
+    ``min(batch_size, max(1, robot_copies // n_robots))``; None leaves ``batch_size``.
+    """
+    if robot_copies is None:
+        return batch_size
+    return min(batch_size, max(1, robot_copies // n_robots))
+
+
 def memory_limit(limits: dict[str, Any]) -> int:
     """Bytes a learner may take: ``limits.memory_gb``, else a fraction of the machine's memory."""
     if limits.get("memory_gb") is not None:
@@ -266,6 +283,16 @@ def validate_config(cfg: DictConfig) -> CheckedConfig:
     partition = (
         subg_partition(system, bound.get("max_group_size")) if cls.requires_partition else None
     )
+    robot_copies = train.get("robot_copies")
+    batch_size = training_copies(train["batch_size"], robot_copies, system.n_robots)
+    if batch_size < train["batch_size"]:
+        logger.info(
+            "train.batch_size %d capped to %d copies by train.robot_copies=%d (%d robots)",
+            train["batch_size"],
+            batch_size,
+            robot_copies,
+            system.n_robots,
+        )
 
     try:
         estimate = estimate_resources(
@@ -274,7 +301,7 @@ def validate_config(cfg: DictConfig) -> CheckedConfig:
             params,
             partition,
             hyperparameters,
-            batch_size=train["batch_size"],
+            batch_size=batch_size,
             episodes=train["episodes"],
             eval_batch_size=min(evaluation["batch_size"], evaluation["episodes"]),
         )
@@ -298,4 +325,6 @@ def validate_config(cfg: DictConfig) -> CheckedConfig:
             format_bytes(estimate.worst),
             format_bytes(limit),
         )
-    return CheckedConfig(cls, hyperparameters, system, params, partition, estimate, limit)
+    return CheckedConfig(
+        cls, hyperparameters, system, params, partition, estimate, limit, batch_size
+    )

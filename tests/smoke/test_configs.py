@@ -113,3 +113,28 @@ def test_the_paper_experiment_runs_the_papers_semi_cql_and_nothing_else_changes(
     # other experiments run subG-CQL's own defaults and budget
     yardsticks = compose_cfg(["experiment=yardsticks", "learner=subg_cql"])
     assert (yardsticks.learner.state, yardsticks.train.batch_size) == ("idle", 512)
+
+
+def test_subg_cqls_copies_are_capped_by_team_size(compose_cfg):
+    # conf/budget/subg_cql.yaml: 512 copies, at most 5120 robot-copies per tick (512 x 10 robots)
+    for system, copies in [("system1", 512), ("system2", 512)]:  # 5120 // 6 = 853, 5120 // 10 = 512
+        cfg = compose_cfg(["learner=subg_cql", f"system={system}"])
+        assert (cfg.train.batch_size, cfg.train.robot_copies) == (512, 5120)
+        assert build_run(cfg).env.batch_size == copies
+    # issue 11's 200 robots: 5120 // 200 = 25 copies
+    big = [
+        "learner=subg_cql",
+        "system=random",
+        "system.n_robots=200",
+        "system.n_task_types=12",
+        "system.density=0.25",
+        "system.seed=0",
+        "partition.max_group_size=4",
+    ]
+    assert build_run(compose_cfg(big)).env.batch_size == 25
+    assert build_run(compose_cfg([*big, "train.robot_copies=null"])).env.batch_size == 512
+    # every other learner, and subG-CQL at the paper's budget, has no cap
+    assert compose_cfg(["learner=cql"]).train.robot_copies is None
+    assert compose_cfg(["learner=qmix"]).train.robot_copies is None
+    paper = compose_cfg(["experiment=paper", "learner=subg_cql"]).train  # conf/budget/tabular.yaml
+    assert paper == compose_cfg(["experiment=paper", "learner=cql"]).train  # conf/config.yaml's

@@ -27,6 +27,7 @@ from mrta_rl.runners.validation import (
     LimitSettings,
     TrainSettings,
     learner_class,
+    training_copies,
 )
 from tests.conftest import _compose
 
@@ -85,6 +86,25 @@ def test_run_level_keys_are_checked(compose_cfg):
     ]:
         with pytest.raises(ConfigError, match=message):
             validate_config(compose_cfg([*base, override]))
+
+
+def test_robot_copies_cap_the_training_copies_by_team_size():
+    # 5120 robot-copies = 512 copies x System-II's 10 robots (conf/budget/subg_cql.yaml)
+    assert training_copies(512, 5120, 10) == 512  # System-II: 5120 // 10 = 512
+    assert training_copies(512, 5120, 6) == 512  # System-I: 5120 // 6 = 853, B stays 512
+    assert training_copies(512, 5120, 200) == 25  # 5120 // 200 = 25.6 -> 25
+    assert training_copies(16, 5120, 200) == 16  # the cap never raises B
+    assert training_copies(512, 100, 200) == 1  # 100 // 200 = 0 -> at least one copy
+    assert training_copies(512, None, 200) == 512  # null: no cap
+
+
+@pytest.mark.parametrize("value", ["0", "-5", "2.5", "abc", "true"])
+def test_bad_robot_copies_are_refused_naming_the_key(value, compose_cfg):
+    cfg = compose_cfg(
+        ["learner=subg_cql", "system=system1", "debug=smoke", f"train.robot_copies={value}"]
+    )
+    with pytest.raises(ConfigError, match="train.robot_copies: must be an integer >= 1 or null"):
+        validate_config(cfg)
 
 
 def test_system_env_block_is_checked_with_its_own_key(compose_cfg):
