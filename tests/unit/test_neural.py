@@ -463,9 +463,11 @@ def test_shared_q_network_loads_multiagent_mlp_checkpoints():
 def test_neural_budget_is_more_copies_for_the_same_frames_and_batches(name):
     """conf/budget/neural.yaml: 80 copies x 6 episodes = the tabular 30 x 16 copy-episodes.
 
-    Every neural learner gets it by default; the frames, and the 800 frames per Collector batch
-    (10 ticks x 80 copies, as 50 x 16 before), are those of the 16-copy budget; the tabular
-    learners keep 16 copies (subG-CQL its own 512); the command line and debug=smoke still win.
+    Every neural learner gets its copies by default; the frames, and the 800 frames per Collector
+    batch (10 ticks x 80 copies, as 50 x 16 before), are those of the 16-copy budget; subG-DQN
+    trains three times the episodes (conf/budget/subg_dqn.yaml, which pulls in the neural budget);
+    the tabular learners keep 16 copies (subG-CQL its own 512); the command line and debug=smoke
+    still win.
     """
     from pathlib import Path
 
@@ -479,8 +481,9 @@ def test_neural_budget_is_more_copies_for_the_same_frames_and_batches(name):
         train = cfg.train
         return int(train.batch_size), int(train.episodes), cfg.learner.get("collect_ticks")
 
-    assert budget(f"learner={name}") == (80, 6, 10)
-    assert budget(f"learner={name}", "system=system1") == (80, 6, 10)
+    episodes = 18 if name == "subg_dqn" else 6  # subG-DQN: 3x (docs/results.md)
+    assert budget(f"learner={name}") == (80, episodes, 10)
+    assert budget(f"learner={name}", "system=system1") == (80, episodes, 10)
     assert budget("learner=subg_cql") == (512, 30, None)  # its own: conf/budget/subg_cql.yaml
     assert budget("learner=dql") == (16, 30, None)
     assert budget(f"learner={name}", "train.batch_size=16", "train.episodes=30")[:2] == (16, 30)
