@@ -30,7 +30,7 @@ from mrta_rl.config import RUNNER_ARGUMENTS, check_keywords
 from mrta_rl.envs import AuctionEnv, StepResult
 from mrta_rl.partition import Partition
 
-LearnerKind = Literal["fixed", "tabular", "neural"]
+LearnerKind = Literal["fixed", "tabular", "neural", "search"]
 
 
 class Learner(ABC):
@@ -43,7 +43,8 @@ class Learner(ABC):
     runner shows it when present.
 
     Attributes:
-        kind: Selects the runner: ``"fixed"`` (no training), ``"tabular"`` or ``"neural"``.
+        kind: Selects the runner: ``"fixed"`` (no training), ``"tabular"``, ``"neural"`` or
+            ``"search"`` (policy search; the numpy loop of ``"tabular"``).
         requires_partition: True if the learner needs the subG partition (paper §4); the runner
             then builds the env with ``Lambda_i = partition.active_tasks(system)``.
         env: The env the learner acts in (built by the runner).

@@ -29,6 +29,7 @@ LEARNER_LABELS: dict[str, str] = {
     "vdn": "VDN",
     "qmix": "QMIX",
     "iql": "IQL",
+    "reserve_es": "reserve-ES",
     "greedy": "greedy",
     "random": "random",
     "high_only": "high-only",

@@ -50,6 +50,7 @@ TRAINING_LOOPS: dict[str, str] = {
     "fixed": "mrta_rl.runners.tabular:skip_training",
     "tabular": "mrta_rl.runners.tabular:train_loop",
     "neural": "mrta_rl.runners.torchrl:train_loop",
+    "search": "mrta_rl.runners.tabular:train_loop",  # policy search: the same numpy tick loop
 }
 SEED_STRIDE = 2**32  # training env seed = seed * SEED_STRIDE + copy; eval seeds stay below it
 MEMORY_FRACTION = 0.5  # default limits.memory_gb: this fraction of the machine's memory

@@ -335,8 +335,10 @@ def assert_same_learner_state(a: Path, b: Path) -> None:
         ["learner=subg_cql", "system=system1", "train.episodes=5"],
         # short budget that still reaches the gradient steps before the interruption
         ["learner=qmix", "system=system1", "train.episodes=3", "learner.warmup_frames=100"],
+        # debug=smoke's 4 copies: 2 antithetic pairs of one copy each
+        ["learner=reserve_es", "system=system1", "train.episodes=5", "learner.pairs=2"],
     ],
-    ids=["subg_cql", "qmix"],
+    ids=["subg_cql", "qmix", "reserve_es"],
 )
 def test_interrupted_run_resumes_to_the_same_end(compose_cfg, tmp_path, monkeypatch, overrides):
     overrides = [*overrides, "debug=smoke"]

@@ -19,6 +19,8 @@ from mrta_rl.systems import SystemConfigError
 ROOT = Path(__file__).resolve().parents[2]
 LEARNERS = sorted(path.stem for path in (ROOT / "conf" / "learner").glob("*.yaml"))
 SYSTEMS = {"system1": (6, 5), "system2": (10, 8)}  # robots, task types (paper Tables 1-2)
+# debug=smoke's 4 training copies hold 2 antithetic pairs of reserve_es (default 12 pairs)
+SMOKE_OVERRIDES = {"reserve_es": ["learner.pairs=2"]}
 EVAL_KEYS = {"episodes", "team_return", "ctr", "ctr_overall", "itr", "return_by_type"}
 
 
@@ -94,7 +96,8 @@ def check_metrics(metrics: dict, run_dir: Path, system: str, learner: str) -> No
 @pytest.mark.parametrize("system", sorted(SYSTEMS))
 @pytest.mark.parametrize("learner", LEARNERS)
 def test_learner_runs(learner, system, compose_cfg, tmp_path):
-    cfg = compose_cfg([f"learner={learner}", f"system={system}", "debug=smoke"])
+    overrides = [f"learner={learner}", f"system={system}", "debug=smoke"]
+    cfg = compose_cfg([*overrides, *SMOKE_OVERRIDES.get(learner, [])])
     metrics = train(cfg, run_dir=tmp_path)
     check_metrics(metrics, tmp_path, system, learner)
     with (tmp_path / "curve.csv").open() as f:

@@ -1,0 +1,307 @@
+"""``reserve_es``: evolution strategies over the weights of a parametric whole-team reserve rule.
+
+The policy is the ``team_reserve`` rule (``mrta_rl/learners/fixed.py``) over the whole team with
+its two fixed choices made by learned linear scores over coarse features (:data:`FEATURES`):
+
+* **who takes an H slot**: among the idle robots without a bid that may bid for it, the one with
+  the highest preference ``theta_H . phi_H(i)`` (:data:`HIGH_FEATURES`); ties go to the rule's
+  order (fewest active types first, then the lowest index);
+* **whether and who takes an L slot**: an idle robot ``i`` may bid for L slot ``k`` only if its
+  score ``theta_L . phi(i, k)`` is positive, and the one with the highest score bids (ties to the
+  same order).
+
+H slots go first, then L slots, each in slot order, one robot per slot, so a joint action never
+has two bids for one slot (no lost bids, spec step 7).
+
+The weights (``len(FEATURES) + len(HIGH_FEATURES)`` = 20 numbers) are learned from the team
+return by antithetic evolution strategies (Salimans et al. 2017, "Evolution Strategies as a
+Scalable Alternative to Reinforcement Learning"): each training episode plays ``2 * pairs``
+perturbed policies ``theta +- sigma eps_j``, each on ``train.batch_size / (2 * pairs)`` copies, and
+all of them on the *same* task streams (common random numbers): copy ``b`` starts as a clone of
+copy ``b mod copies``, so the members differ only by their policy. The gradient estimate is
+``sum_j (F+_j - F-_j) eps_j / pairs`` with the differences divided by their standard deviation
+(fitness shaping), and Adam takes the step. Evaluation plays ``theta`` itself.
+
+The start ``theta_0`` (``theta_H = 0``: every H preference ties) reproduces ``team_reserve`` with
+``hold_scope=robot`` and the given ``reserve`` (0-2) and ``hold_level`` exactly (a test checks it
+tick by tick), so the untrained policy is the best whole-team rule of
+``experiment=team_reserve_grid`` (System-I: the defaults; System-II: ``reserve=1``), and every
+gain over it is learned from returns.
+
+Every feature is coarse and in the centralized observation with ``time_to_free``
+(``docs/neural.md``, "Inputs"): slot contents, idle flags, free levels, per-robot recency levels
+and queue levels. It reads neither the queue's order nor the durations.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Any, ClassVar
+
+import numpy as np
+
+from mrta_rl.config import Range
+from mrta_rl.envs import AuctionEnv, StepResult
+from mrta_rl.envs.observations import N_RECENCY_LEVELS, free_level, queue_level, recency_level
+from mrta_rl.learners.base import Learner, LearnerKind
+
+# phi(i, k) for idle robot i and L slot k; levels in {0, 1, 2} enter divided by 2.
+FEATURES = (
+    "bias",  # 1
+    "h_within_3",  # an H task of one of Lambda_i's types arrived within 3 ticks (recency level 0)
+    "h_within_10",  # ... within 4-10 ticks (recency level 1)
+    "queued_h",  # queued H tasks of Lambda_i's types, level 0-2 (observations.QUEUE_THRESHOLDS)
+    "queued_l",  # queued L tasks of Lambda_i's types, level 0-2
+    "sole_idle",  # i is the only idle robot for one of its types
+    "sole_soon",  # no other robot is idle or free within 3 ticks for one of its types
+    "no_other_idle",  # no other idle robot is left without a bid (so far this tick)
+    "one_other_idle",  # exactly one is
+    "slot_contested",  # another idle robot without a bid may also take slot k
+    "versatility",  # |Lambda_i| / n
+    "team_queued_l",  # queued L tasks of all types, level 0-2
+    "team_queued_h",  # queued H tasks of all types, level 0-2
+)
+# phi_H(i) for the H-slot preference: the robot's own features (the others are equal for every
+# robot of a copy, so they cannot change who is preferred)
+HIGH_FEATURES = (
+    "h_within_3",
+    "h_within_10",
+    "queued_h",
+    "queued_l",
+    "sole_idle",
+    "sole_soon",
+    "versatility",
+)
+N_LOW = len(FEATURES)
+HIGH_COLUMNS = np.array([FEATURES.index(name) for name in HIGH_FEATURES])
+N_FEATURES = N_LOW + len(HIGH_FEATURES)  # theta = [theta_L, theta_H]
+WEIGHT_NAMES = FEATURES + tuple(f"H:{name}" for name in HIGH_FEATURES)  # theta's entries, saved
+DYNAMIC = ("no_other_idle", "one_other_idle", "slot_contested")  # depend on the bids placed so far
+START_WEIGHT = 2.0  # |theta_0| of a hold: any weight > 1 outweighs the bias of 1
+ADAM_BETAS = (0.9, 0.999)  # Adam's moment decays (Kingma and Ba 2015's defaults)
+ADAM_EPS = 1e-8
+STATE_FILE = "reserve_es.npz"
+
+
+def start_theta(reserve: int, hold_level: int) -> np.ndarray:
+    """``theta_0``: the weights that bid exactly where ``team_reserve`` (``hold_scope=robot``) bids.
+
+    L score ``1 - 2 [level < hold_level] - 2 [fewer than reserve other idle robots]``, with the
+    recency level read as its two indicators and the reserve as ``no_other_idle`` /
+    ``one_other_idle``; ``hold_level=3`` (never bid for L) is a bias of -1. Every positive score
+    is 1, so the highest is the first in the rule's order; ``theta_H = 0`` likewise.
+    """
+    theta = np.zeros(N_FEATURES)  # theta_H (the last entries) stays 0
+    theta[FEATURES.index("bias")] = 1.0
+    if hold_level >= 1:
+        theta[FEATURES.index("h_within_3")] = -START_WEIGHT
+    if hold_level >= 2:
+        theta[FEATURES.index("h_within_10")] = -START_WEIGHT
+    if hold_level >= N_RECENCY_LEVELS:
+        theta[FEATURES.index("bias")] = -1.0
+    if reserve >= 1:
+        theta[FEATURES.index("no_other_idle")] = -START_WEIGHT
+    if reserve >= 2:
+        theta[FEATURES.index("one_other_idle")] = -START_WEIGHT
+    return theta
+
+
+class ReserveESLearner(Learner):
+    """Evolution strategies over the weights of a whole-team reserve rule (module docstring).
+
+    Args:
+        pairs: Antithetic pairs per training episode; ``train.batch_size`` must be a multiple of
+            ``2 * pairs`` (each member plays ``train.batch_size / (2 * pairs)`` copies).
+        sigma: Standard deviation of the perturbations ``eps_j`` (in weight units; the start's
+            weights are 1 and 2).
+        lr: Adam's step size.
+        reserve: Start rule: idle robots kept back for H work (``team_reserve``'s ``reserve``).
+        hold_level: Start rule: L waits while the robot's recency level is below this.
+        **kwargs: Env, generator and partition of :class:`~mrta_rl.learners.base.Learner`.
+
+    Raises:
+        ValueError: if the training batch is not a multiple of ``2 * pairs``.
+    """
+
+    kind: ClassVar[LearnerKind] = "search"
+
+    def __init__(
+        self,
+        *,
+        pairs: Annotated[int, Range(1)] = 12,
+        sigma: Annotated[float, Range(0, low_open=True)] = 0.3,
+        lr: Annotated[float, Range(0, low_open=True)] = 0.15,
+        reserve: Annotated[int, Range(0, 2)] = 0,
+        hold_level: Annotated[int, Range(0, N_RECENCY_LEVELS)] = 1,
+        **kwargs: Any,
+    ) -> None:
+        super().__init__(**kwargs)
+        batch = self.env.batch_size
+        if batch % (2 * pairs):
+            raise ValueError(
+                f"train.batch_size {batch} must be a multiple of 2 * pairs = {2 * pairs} "
+                "(every perturbed policy plays the same number of copies)"
+            )
+        self.pairs, self.sigma, self.lr = pairs, sigma, lr
+        self.copies = batch // (2 * pairs)  # copies per perturbed policy
+        self.theta = start_theta(reserve, hold_level)
+        self._adam_m = np.zeros(N_FEATURES)
+        self._adam_v = np.zeros(N_FEATURES)
+        self.steps = 0  # ES updates made
+        active = self.env.active_tasks  # Lambda_i, [m, n]
+        self._order = np.asarray(sorted(range(self.n_robots), key=lambda i: (active[i].sum(), i)))
+        self._versatility = active.sum(axis=1) / self.env.n_task_types
+        # common random numbers: copy b starts as a clone of copy b mod copies (seed and episode
+        # count included), so every member plays the same task streams, episode after episode
+        self.env.set_state(self.env.get_state(np.arange(batch) % self.copies))
+        self._draw()
+
+    # ------------------------------------------------------------------ policy
+    def _draw(self) -> None:
+        """New perturbations and the per-copy weights of the next training episode."""
+        self._rng_before_draw = self.rng.bit_generator.state  # a fresh dict: what resuming redraws from
+        self._eps = self.rng.standard_normal((self.pairs, N_FEATURES))
+        members = np.concatenate([self.theta + self.sigma * self._eps, self.theta - self.sigma * self._eps])
+        self._copy_theta = np.repeat(members, self.copies, axis=0)  # [B, P], member-major
+        self._returns = np.zeros(self.env.batch_size)
+
+    def encode(self, env: AuctionEnv) -> dict[str, np.ndarray]:
+        """The features that do not change while a tick's bids are placed, and the slots.
+
+        Returns:
+            ``static`` ``[B, m, len(FEATURES)]`` (the robot features of :data:`FEATURES`, zero where a
+            feature depends on the bids), ``slot_high`` ``[B, K]`` and ``idle`` ``[B, m]``.
+        """
+        active = env.active_tasks
+        batch = env.batch_size
+        idle = env.idle.astype(bool)
+        level = recency_level(env, active)  # [B, m]
+        queued = queue_level(env, active)  # [B, m, 2]: H, L
+        team = queue_level(env, np.ones(env.n_task_types, bool))  # [B, 2]
+        covers = active.astype(np.int64)
+        idle_per_type = idle.astype(np.int64) @ covers  # [B, n]
+        soon_per_type = (free_level(env) <= 1).astype(np.int64) @ covers
+        shape = (batch, self.n_robots)
+        columns = {
+            "bias": np.ones(shape),
+            "h_within_3": level == 0,
+            "h_within_10": level == 1,
+            "queued_h": queued[..., 0] / 2,
+            "queued_l": queued[..., 1] / 2,
+            "sole_idle": ((idle_per_type[:, None, :] == 1) & active[None]).any(-1) & idle,
+            # a robot counts itself among the idle-or-soon robots of its types
+            "sole_soon": ((soon_per_type[:, None, :] <= 1) & active[None]).any(-1),
+            "versatility": np.broadcast_to(self._versatility, shape),
+            "team_queued_l": np.broadcast_to(team[:, None, 1] / 2, shape),
+            "team_queued_h": np.broadcast_to(team[:, None, 0] / 2, shape),
+        }
+        static = np.zeros((*shape, N_LOW))  # the DYNAMIC columns stay 0: act adds them
+        for name, column in columns.items():
+            static[..., FEATURES.index(name)] = column
+        return {"static": static, "slot_high": env.slot_high.copy(), "idle": idle}
+
+    def act(self, view: dict[str, np.ndarray], mask: np.ndarray, *, explore: bool) -> np.ndarray:
+        """Bid per the rule of the module docstring, with the member's weights when exploring."""
+        batch, _, n_actions = mask.shape
+        if explore:
+            if batch != len(self._copy_theta):
+                raise ValueError(f"explore=True needs the training batch {len(self._copy_theta)}")
+            theta = self._copy_theta
+        else:
+            theta = np.broadcast_to(self.theta, (batch, N_FEATURES))
+        robots = self._order
+        features = view["static"][:, robots]  # [B, m, P] in the rule's order
+        low = np.einsum("bmp,bp->bm", features, theta[:, :N_LOW])
+        preference = np.einsum("bmp,bp->bm", features[..., HIGH_COLUMNS], theta[:, N_LOW:])
+        w_none, w_one, w_contested = (theta[:, FEATURES.index(name)] for name in DYNAMIC)
+        rows = np.arange(batch)
+        actions = np.zeros(mask.shape[:2], np.int64)
+        free = view["idle"][:, robots].copy()  # idle robots without a bid yet, in order
+        idle_left = free.sum(axis=1)
+        slot_high = view["slot_high"]
+        for high in (1, 0):  # H slots first, as team_reserve
+            for k in range(n_actions - 1):
+                candidates = mask[:, robots, k + 1] & free & (slot_high[:, k] == high)[:, None]
+                if not high:
+                    others = idle_left - 1
+                    dynamic = (
+                        w_none * (others == 0)
+                        + w_one * (others == 1)
+                        + w_contested * (candidates.sum(axis=1) > 1)
+                    )
+                    score = low + dynamic[:, None]
+                    candidates &= score > 0
+                else:
+                    score = preference
+                # the highest score among the candidates; argmax takes the first of equals
+                has = candidates.any(axis=1)
+                first = np.where(candidates, score, -np.inf).argmax(axis=1)
+                actions[rows[has], robots[first[has]]] = k + 1
+                free[rows[has], first[has]] = False
+                idle_left -= has
+        return actions
+
+    # ------------------------------------------------------------------ learning
+    def update(
+        self,
+        view: Any,
+        actions: np.ndarray,
+        result: StepResult,
+        next_view: Any,
+        next_mask: np.ndarray,
+    ) -> dict[str, float]:
+        """Add the tick's team reward to each copy's return (the fitness of its member)."""
+        self._returns += result.team_reward
+        return {}
+
+    def end_episode(self) -> None:
+        """One ES step from the members' mean returns, then new perturbations."""
+        fitness = self._returns.reshape(2 * self.pairs, self.copies).mean(axis=1)
+        diff = fitness[: self.pairs] - fitness[self.pairs :]  # F+_j - F-_j, same streams
+        scale = diff.std()
+        grad = (diff / scale) @ self._eps / self.pairs if scale > 0 else np.zeros(N_FEATURES)
+        beta1, beta2 = ADAM_BETAS
+        self.steps += 1
+        self._adam_m = beta1 * self._adam_m + (1 - beta1) * grad
+        self._adam_v = beta2 * self._adam_v + (1 - beta2) * grad**2
+        m_hat = self._adam_m / (1 - beta1**self.steps)
+        v_hat = self._adam_v / (1 - beta2**self.steps)
+        self.theta = self.theta + self.lr * m_hat / (np.sqrt(v_hat) + ADAM_EPS)
+        self._draw()
+
+    def learning_space(self) -> dict[str, int]:
+        """The weights learned (no table: the policy has ``len(FEATURES)`` parameters)."""
+        return {"analytic": N_FEATURES, "visited": N_FEATURES}
+
+    # ------------------------------------------------------------------ persistence
+    def save(self, directory: Path) -> None:
+        """``reserve_es.npz``: the weights, Adam's moments, the step count and the features."""
+        directory.mkdir(parents=True, exist_ok=True)
+        np.savez(
+            directory / STATE_FILE,
+            theta=self.theta,
+            adam_m=self._adam_m,
+            adam_v=self._adam_v,
+            steps=np.int64(self.steps),
+            features=np.asarray(WEIGHT_NAMES),
+        )
+
+    def load(self, directory: Path) -> None:
+        """Restore :meth:`save`'s file; refuse one made for other features."""
+        path = directory / STATE_FILE
+        with np.load(path, allow_pickle=False) as saved:
+            if tuple(saved["features"].tolist()) != WEIGHT_NAMES:
+                names = saved["features"].tolist()
+                raise ValueError(f"{path}: weights {names} differ from {WEIGHT_NAMES}")
+            self.theta = saved["theta"].astype(float)
+            self._adam_m, self._adam_v = saved["adam_m"].astype(float), saved["adam_v"].astype(float)
+            self.steps = int(saved["steps"])
+
+    def checkpoint_state(self, directory: Path) -> dict[str, Any]:
+        """The generator before the current perturbations were drawn, so resuming redraws them."""
+        return {"rng": self._rng_before_draw, "steps": self.steps}
+
+    def restore_state(self, state: dict[str, Any], directory: Path) -> None:
+        """Restore the generator and redraw the perturbations of the next episode."""
+        super().restore_state({"rng": state["rng"]}, directory)
+        self._draw()
