@@ -38,6 +38,21 @@ def lowest_valid_bid(bid_mask: np.ndarray) -> np.ndarray:
     return actions
 
 
+def fewest_types_first(active: np.ndarray, robots: list[int] | range) -> np.ndarray:
+    """``robots`` in ``team_reserve``'s bidding order: fewest active types first, then index.
+
+    Versatile robots are asked last, so they stay free for the tasks only they can do.
+
+    Args:
+        active: ``[m, n]`` bool ``Lambda_i``.
+        robots: Robot indices.
+
+    Returns:
+        The indices, reordered, as int64.
+    """
+    return np.asarray(sorted(robots, key=lambda i: (active[i].sum(), i)), np.int64)
+
+
 class GreedyLearner(Learner):
     """Plain auction (spec "Fixed policies"): idle robots bid for their lowest-numbered valid slot.
 
@@ -200,7 +215,7 @@ class TeamReserveLearner(Learner):
         self._groups = []  # (robots in bidding preference order, T_g)
         for ids in groups:
             if order == "fewest_types":
-                ids = sorted(ids, key=lambda i: (active[i].sum(), i))
+                ids = fewest_types_first(active, ids)
             self._groups.append((np.asarray(ids, np.int64), active[ids].any(axis=0)))
         # the recency scope of each robot: its group's types T_g, or its own Lambda_i
         self._scope = active.copy()

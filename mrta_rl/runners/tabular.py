@@ -1,5 +1,4 @@
-"""Training loop of numpy learners (kinds "tabular" and "search"), and the no-training path of fixed
-policies.
+"""Training loop of numpy learners (kinds "tabular", "search"); no training for fixed policies.
 
 The loop is the one of ``mrta_rl.learners.base`` (shared interface 2): encode, act with
 exploration, step all ``B`` copies, encode again, update, the learner's calls fused into one

@@ -11,6 +11,7 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 from mrta_rl.runners import build_run
+from tests.conftest import SMOKE_OVERRIDES
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
 GROUP_FILES = sorted(
@@ -34,6 +35,8 @@ def test_group_file_builds(group, name, compose_cfg, tmp_path):
     overrides = [f"{group}={name}" if group in LISTED else f"+{group}={name}"]
     if group != "debug":
         overrides.append("debug=smoke")  # keeps envs small (horizon, batches)
+        if group == "learner":
+            overrides += SMOKE_OVERRIDES.get(name, [])
     cfg = compose_cfg(overrides)
     run = build_run(cfg)  # validates system, env params, partition and learner construction
     instantiate(cfg.logger)(run_dir=tmp_path).close()

@@ -15,12 +15,11 @@ from omegaconf import OmegaConf, open_dict
 from mrta_rl.learners import GreedyLearner, RandomLearner
 from mrta_rl.runners import TRAINING_LOOPS, train
 from mrta_rl.systems import SystemConfigError
+from tests.conftest import SMOKE_OVERRIDES
 
 ROOT = Path(__file__).resolve().parents[2]
 LEARNERS = sorted(path.stem for path in (ROOT / "conf" / "learner").glob("*.yaml"))
 SYSTEMS = {"system1": (6, 5), "system2": (10, 8)}  # robots, task types (paper Tables 1-2)
-# debug=smoke's 4 training copies hold 2 antithetic pairs of reserve_es (default 12 pairs)
-SMOKE_OVERRIDES = {"reserve_es": ["learner.pairs=2"]}
 EVAL_KEYS = {"episodes", "team_return", "ctr", "ctr_overall", "itr", "return_by_type"}
 
 

@@ -1,4 +1,4 @@
-"""reserve_es: its start is the team_reserve rule, its population shares task streams, its ES step."""
+"""reserve_es: its start is team_reserve, its members share task streams, its ES step by hand."""
 
 from __future__ import annotations
 
@@ -18,7 +18,9 @@ from tests.conftest import paper_system
 
 
 def make(system_name: str, batch: int = 8, pairs: int = 2, seed: int = 3, horizon: int = 200, **hp):
-    env = AuctionEnv(paper_system(system_name), AuctionParams(horizon=horizon), batch_size=batch, seed=seed)
+    env = AuctionEnv(
+        paper_system(system_name), AuctionParams(horizon=horizon), batch_size=batch, seed=seed
+    )
     return env, ReserveESLearner(env=env, rng=np.random.default_rng(seed), pairs=pairs, **hp)
 
 
@@ -30,7 +32,11 @@ def test_untrained_policy_is_team_reserve(system_name, reserve, hold_level):
     """Untrained, every action is team_reserve's (hold_scope=robot), tick by tick."""
     env, learner = make(system_name, reserve=reserve, hold_level=hold_level)
     rule = TeamReserveLearner(
-        env=env, rng=np.random.default_rng(0), reserve=reserve, hold_level=hold_level, hold_scope="robot"
+        env=env,
+        rng=np.random.default_rng(0),
+        reserve=reserve,
+        hold_level=hold_level,
+        hold_scope="robot",
     )
     greedy = GreedyLearner(env=env, rng=np.random.default_rng(0))
     differs = 0

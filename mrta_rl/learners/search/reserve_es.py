@@ -44,6 +44,7 @@ from mrta_rl.config import Range
 from mrta_rl.envs import AuctionEnv, StepResult
 from mrta_rl.envs.observations import N_RECENCY_LEVELS, free_level, queue_level, recency_level
 from mrta_rl.learners.base import Learner, LearnerKind
+from mrta_rl.learners.fixed import fewest_types_first
 
 # phi(i, k) for idle robot i and L slot k; levels in {0, 1, 2} enter divided by 2.
 FEATURES = (
@@ -140,7 +141,8 @@ class ReserveESLearner(Learner):
         if batch % (2 * pairs):
             raise ValueError(
                 f"train.batch_size {batch} must be a multiple of 2 * pairs = {2 * pairs} "
-                "(every perturbed policy plays the same number of copies)"
+                "(every perturbed policy plays the same number of copies): change learner.pairs "
+                "or train.batch_size"
             )
         self.pairs, self.sigma, self.lr = pairs, sigma, lr
         self.copies = batch // (2 * pairs)  # copies per perturbed policy
@@ -149,7 +151,7 @@ class ReserveESLearner(Learner):
         self._adam_v = np.zeros(N_FEATURES)
         self.steps = 0  # ES updates made
         active = self.env.active_tasks  # Lambda_i, [m, n]
-        self._order = np.asarray(sorted(range(self.n_robots), key=lambda i: (active[i].sum(), i)))
+        self._order = fewest_types_first(active, range(self.n_robots))  # the rule's order
         self._versatility = active.sum(axis=1) / self.env.n_task_types
         # common random numbers: copy b starts as a clone of copy b mod copies (seed and episode
         # count included), so every member plays the same task streams, episode after episode
@@ -159,9 +161,11 @@ class ReserveESLearner(Learner):
     # ------------------------------------------------------------------ policy
     def _draw(self) -> None:
         """New perturbations and the per-copy weights of the next training episode."""
-        self._rng_before_draw = self.rng.bit_generator.state  # a fresh dict: what resuming redraws from
+        self._rng_before_draw = self.rng.bit_generator.state  # a fresh dict: resuming redraws
         self._eps = self.rng.standard_normal((self.pairs, N_FEATURES))
-        members = np.concatenate([self.theta + self.sigma * self._eps, self.theta - self.sigma * self._eps])
+        members = np.concatenate(
+            [self.theta + self.sigma * self._eps, self.theta - self.sigma * self._eps]
+        )
         self._copy_theta = np.repeat(members, self.copies, axis=0)  # [B, P], member-major
         self._returns = np.zeros(self.env.batch_size)
 
@@ -169,8 +173,8 @@ class ReserveESLearner(Learner):
         """The features that do not change while a tick's bids are placed, and the slots.
 
         Returns:
-            ``static`` ``[B, m, len(FEATURES)]`` (the robot features of :data:`FEATURES`, zero where a
-            feature depends on the bids), ``slot_high`` ``[B, K]`` and ``idle`` ``[B, m]``.
+            ``static`` ``[B, m, len(FEATURES)]`` (the robot features of :data:`FEATURES`, zero
+            where a feature depends on the bids), ``slot_high`` ``[B, K]``, ``idle`` ``[B, m]``.
         """
         active = env.active_tasks
         batch = env.batch_size
@@ -294,7 +298,10 @@ class ReserveESLearner(Learner):
                 names = saved["features"].tolist()
                 raise ValueError(f"{path}: weights {names} differ from {WEIGHT_NAMES}")
             self.theta = saved["theta"].astype(float)
-            self._adam_m, self._adam_v = saved["adam_m"].astype(float), saved["adam_v"].astype(float)
+            self._adam_m, self._adam_v = (
+                saved["adam_m"].astype(float),
+                saved["adam_v"].astype(float),
+            )
             self.steps = int(saved["steps"])
 
     def checkpoint_state(self, directory: Path) -> dict[str, Any]:
