@@ -28,9 +28,11 @@ tick by tick), so the untrained policy is the best whole-team rule of
 ``experiment=team_reserve_grid`` (System-I: the defaults; System-II: ``reserve=1``), and every
 gain over it is learned from returns.
 
-Every feature is coarse and in the centralized observation with ``time_to_free``
+Every feature is a coarse function of what the robots' ``time_to_free`` views show together
 (``docs/neural.md``, "Inputs"): slot contents, idle flags, free levels, per-robot recency levels
-and queue levels. It reads neither the queue's order nor the durations.
+and queue levels over ``Lambda_i``, and the team's ``Lambda`` (fixed). The two team queue levels
+bucket the count over all types, where the views bucket it per robot. It reads neither the
+queue's order, nor durations, nor batteries.
 """
 
 from __future__ import annotations
