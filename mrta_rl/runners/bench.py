@@ -35,7 +35,8 @@ logger = logging.getLogger(__name__)
 
 TABULAR = ("subg_cql", "cql", "semi_cql", "dql")
 NEURAL = ("subg_dqn", "qmix", "vdn", "iql")
-LEARNERS = TABULAR + NEURAL
+SEARCH = ("reserve_es",)  # policy search (kind "search"), on the tabular learners' tick loop
+LEARNERS = TABULAR + NEURAL + SEARCH
 NEURAL_RATES = ("fps_collection", "fps_training", "gradient_steps")  # runners/torchrl.py info
 WARMUP_OVERRIDES = ("env.horizon=20", "train.episodes=1")  # loads compiled code, fills caches
 
@@ -135,6 +136,15 @@ def measure(
     return out
 
 
+def learners_in(root: Path, learners: list[str]) -> list[str]:
+    """The learners that the checkout ``root`` has (``conf/learner/<name>.yaml``), in order.
+
+    A ``--baseline`` older than a learner measures the others; the table shows no speed-up for
+    the learner it lacks.
+    """
+    return [name for name in learners if (root / "conf" / "learner" / f"{name}.yaml").is_file()]
+
+
 def run_worker(
     code_root: Path | None,
     learners: list[str],
@@ -167,7 +177,7 @@ def run_worker(
         out = Path(tmp) / "bench.json"
         # -c keeps this module's folder off sys.path (it holds a torchrl.py)
         argv = [str(out), system, str(episodes), str(seconds), str(horizon), experiment or "-"]
-        argv += learners
+        argv += learners_in(root, learners)
         code = f"import runpy, sys; sys.argv = ['bench', *{argv!r}]; "
         code += f"runpy.run_path({str(Path(__file__).resolve())!r}, run_name='__main__')"
         args = [sys.executable, "-c", code]
@@ -293,12 +303,13 @@ def format_table(rows: list[dict[str, Any]]) -> str:
             "cpu_ticks_per_s_min",
             "cpu_ticks_per_s_median",
         )
-        speedup = [r[k] / b[k] if b else np.nan for k in keys]
+        # "-": the first code did not measure this learner (a baseline older than it)
+        up = [f"{r[k] / b[k]:.1f}x" if b else "-" for k in keys]
         lines.append(
             f"| {r['learner']} | {r['code']} | {r['batch_size']} | {r['ticks_per_s_min']:,.0f} | "
             f"{r['ticks_per_s_median']:,.0f} | {r['vs_env_median']:.2f} | "
             f"{r['vs_plain_min']:.2f} / {r['vs_plain_median']:.2f} | "
-            f"{speedup[0]:.1f}x / {speedup[1]:.1f}x | {speedup[2]:.1f}x / {speedup[3]:.1f}x | "
+            f"{up[0]} / {up[1]} | {up[2]} / {up[3]} | "
             f"{r['learner_us_per_tick_median']:,.0f} |"
         )
     return "\n".join(lines)

@@ -1,0 +1,43 @@
+"""The learner benchmark's bookkeeping: which learners a checkout has, and its table."""
+
+from __future__ import annotations
+
+from mrta_rl.runners.bench import LEARNERS, format_table, learners_in
+from tests.conftest import ROOT
+
+
+def test_every_benchmarked_learner_has_its_yaml():
+    assert learners_in(ROOT, list(LEARNERS)) == list(LEARNERS)
+
+
+def test_a_checkout_without_a_learner_measures_the_others(tmp_path):
+    (tmp_path / "conf" / "learner").mkdir(parents=True)
+    (tmp_path / "conf" / "learner" / "dql.yaml").write_text("")
+    assert learners_in(tmp_path, ["reserve_es", "dql"]) == ["dql"]
+
+
+def row(code: str, learner: str, speed: float) -> dict:
+    keys = ("ticks_per_s", "cpu_ticks_per_s")
+    return {
+        "code": code,
+        "learner": learner,
+        "batch_size": 16,
+        **{f"{k}_{stat}": speed for k in keys for stat in ("min", "median")},
+        "vs_env_median": 0.5,
+        "vs_plain_min": 2.0,
+        "vs_plain_median": 2.5,
+        "learner_us_per_tick_median": 10.0,
+    }
+
+
+def test_table_speed_up_by_hand_and_dash_without_baseline():
+    rows = [
+        row("baseline", "dql", 100.0),
+        row("this", "dql", 250.0),
+        row("this", "reserve_es", 9.0),
+    ]
+    lines = format_table(rows).splitlines()
+    this_dql = next(line for line in lines if "| dql | this |" in line)
+    assert "| 2.5x / 2.5x | 2.5x / 2.5x |" in this_dql
+    es = next(line for line in lines if "| reserve_es | this |" in line)
+    assert "| - / - | - / - |" in es
