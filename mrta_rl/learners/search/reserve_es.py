@@ -77,8 +77,8 @@ HIGH_FEATURES = (
 )
 N_LOW = len(FEATURES)
 HIGH_COLUMNS = np.array([FEATURES.index(name) for name in HIGH_FEATURES])
-N_FEATURES = N_LOW + len(HIGH_FEATURES)  # theta = [theta_L, theta_H]
-WEIGHT_NAMES = FEATURES + tuple(f"H:{name}" for name in HIGH_FEATURES)  # theta's entries, saved
+WEIGHT_NAMES = FEATURES + tuple(f"H:{name}" for name in HIGH_FEATURES)  # theta = [theta_L, theta_H]
+N_FEATURES = len(WEIGHT_NAMES)
 DYNAMIC = ("no_other_idle", "one_other_idle", "slot_contested")  # depend on the bids placed so far
 START_WEIGHT = 2.0  # |theta_0| of a hold: any weight > 1 outweighs the bias of 1
 ADAM_BETAS = (0.9, 0.999)  # Adam's moment decays (Kingma and Ba 2015's defaults)
@@ -307,10 +307,13 @@ class ReserveESLearner(Learner):
             self.steps = int(saved["steps"])
 
     def checkpoint_state(self, directory: Path) -> dict[str, Any]:
-        """The generator before the current perturbations were drawn, so resuming redraws them."""
-        return {"rng": self._rng_before_draw, "steps": self.steps}
+        """The generator before the current perturbations were drawn, so resuming redraws them.
+
+        The weights, Adam's moments and the step count are in :meth:`save`'s file.
+        """
+        return {"rng": self._rng_before_draw}
 
     def restore_state(self, state: dict[str, Any], directory: Path) -> None:
         """Restore the generator and redraw the perturbations of the next episode."""
-        super().restore_state({"rng": state["rng"]}, directory)
+        super().restore_state(state, directory)
         self._draw()
