@@ -13,8 +13,11 @@ exactly where it stopped: the learner state (``save``), what ``save`` lacks
 (:meth:`Learner.checkpoint_state`: generators, counters; neural: optimizer, target networks,
 replay buffer), the training loop's counters and the curve so far. They are taken at episode
 boundaries, where every training copy starts a new episode, so the env is fully given by its
-seeds and the number of episodes played. A checkpoint is written to a temporary folder, then
-renamed over the previous one, so a crash never leaves a half-written checkpoint.
+seeds and the number of episodes played. Each checkpoint is a version folder
+``checkpoint/<episode>/``, written in full under a temporary name, synced to disk and renamed;
+then the pointer file ``checkpoint/latest`` is replaced (one atomic rename) to name it, and only
+then are older versions removed. A crash at any instant leaves the pointer naming a complete
+checkpoint: the newest one written completely (:func:`latest_checkpoint`).
 
 Import direction: ``train`` -> ``evaluate``, ``train`` -> ``checkpoint``; this module imports no
 other runner module.
@@ -45,7 +48,8 @@ logger = logging.getLogger(__name__)
 CONFIG_FILE = Path(".hydra") / "config.yaml"
 HYDRA_FILE = Path(".hydra") / "hydra.yaml"
 LEARNER_DIR = "learner"  # final learner state (Learner.save)
-CHECKPOINT_DIR = "checkpoint"  # latest training checkpoint
+CHECKPOINT_DIR = "checkpoint"  # training checkpoints: version folders and the pointer file
+POINTER_FILE = "latest"  # in CHECKPOINT_DIR: the name of the current version folder
 METRICS_FILE = "metrics.json"
 EVAL_METRICS_FILE = "eval_metrics.json"  # a re-evaluation (scripts/evaluate.py) beside metrics.json
 REFUSED_FILE = "refused.json"  # instead of metrics.json: the run was refused up front, and why
@@ -279,6 +283,59 @@ def load_learner(learner: Learner, directory: Path) -> None:
 
 
 # ---------------------------------------------------------------------------------- checkpoints
+def latest_checkpoint(run_dir: Path | str) -> Path | None:
+    """The run's current training checkpoint: the version folder the pointer file names.
+
+    Args:
+        run_dir: A run dir of ``scripts/train.py``.
+
+    Returns:
+        The checkpoint folder (holding ``training.json``, ``learner/`` and the loop's files),
+        or None if the run has no checkpoint.
+
+    Raises:
+        RunDirError: if the pointer file is damaged or names no complete checkpoint.
+    """
+    root = Path(run_dir) / CHECKPOINT_DIR
+    pointer = root / POINTER_FILE
+    if not pointer.is_file():  # a checkpoint written before versions existed has no pointer
+        return root if (root / STATE_FILE).is_file() else None
+    name = pointer.read_text().strip()
+    if not name.isdigit():
+        raise RunDirError(f"{pointer}: not a checkpoint version (got {name[:40]!r})")
+    version = root / name
+    if not (version / STATE_FILE).is_file():
+        raise RunDirError(f"{pointer}: names {version}, which holds no {STATE_FILE}")
+    return version
+
+
+def require_checkpoint(run_dir: Path | str) -> Path:
+    """The run's current training checkpoint (:func:`latest_checkpoint`), or refuse to resume.
+
+    Raises:
+        RunDirError: if the run has no checkpoint or its pointer is damaged.
+    """
+    version = latest_checkpoint(run_dir)
+    if version is None:
+        raise RunDirError(f"cannot resume: {run_dir} holds no training checkpoint")
+    return version
+
+
+def _sync(path: Path) -> None:
+    """Flush a file, or a folder's entries (the renames in it), to disk."""
+    fd = os.open(path, os.O_RDONLY | (os.O_DIRECTORY if path.is_dir() else 0))
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _sync_tree(folder: Path) -> None:
+    """Flush every file and folder under ``folder`` to disk (before it is renamed into place)."""
+    for path in [*sorted(folder.rglob("*"), reverse=True), folder]:
+        _sync(path)
+
+
 class TrainingInterrupted(Exception):  # noqa: N818 - an event, not an error of the program
     """Training stopped by the user (Ctrl-C) after saving a checkpoint.
 
@@ -301,7 +358,7 @@ class TrainingCheckpoint:
 
     Args:
         learner: The run's learner.
-        run_dir: The run dir; the checkpoint is ``<run_dir>/checkpoint``.
+        run_dir: The run dir; the checkpoints are in ``<run_dir>/checkpoint`` (module docstring).
         every: Episodes between checkpoints (0: only on Ctrl-C).
         resume: Continue from the run dir's checkpoint.
     """
@@ -309,7 +366,8 @@ class TrainingCheckpoint:
     def __init__(self, learner: Learner, run_dir: Path, every: int, resume: bool) -> None:
         self.learner = learner
         self.run_dir = Path(run_dir)
-        self.path = self.run_dir / CHECKPOINT_DIR
+        self.root = self.run_dir / CHECKPOINT_DIR
+        self.path: Path | None = None  # the current checkpoint: restored or last saved
         self.every = int(every)
         self.resume = resume
         self.stop_requested = False
@@ -326,50 +384,70 @@ class TrainingCheckpoint:
         """
         if not self.resume:
             return None
-        state_path = self.path / STATE_FILE
-        if not state_path.is_file():
-            raise RunDirError(f"cannot resume: no training checkpoint {state_path}")
+        version = require_checkpoint(self.run_dir)
+        self.path = version  # the loop reads its own files from here
+        state_path = version / STATE_FILE
         try:
             state = json.loads(state_path.read_text())
             loop, learner_state = state["loop"], state["learner"]
         except (ValueError, KeyError, TypeError) as err:
             raise RunDirError(f"{state_path}: not a training checkpoint ({err})") from err
-        load_learner(self.learner, self.path / LEARNER_DIR)
+        load_learner(self.learner, version / LEARNER_DIR)
         try:
-            self.learner.restore_state(learner_state, self.path)
+            self.learner.restore_state(learner_state, version)
         except (OSError, ValueError, KeyError, TypeError, RuntimeError) as err:
-            raise RunDirError(f"{self.path}: learner state refused ({err})") from err
-        logger.info("resuming from %s after episode %d", self.path, loop["episode"])
+            raise RunDirError(f"{version}: learner state refused ({err})") from err
+        logger.info("resuming from %s after episode %d", version, loop["episode"])
         self.saved_episode = loop["episode"]
         return loop
 
     def save(self, loop: dict[str, Any], files: Callable[[Path], None] | None = None) -> Path:
-        """Write the checkpoint atomically (temporary folder, then rename over the last one).
+        """Write a new checkpoint version, then point to it (atomic at every instant).
+
+        The version folder is written in full under a temporary name, synced and renamed; the
+        pointer file is replaced in one rename; older versions are removed last (module
+        docstring). Temporary names carry the pid.
 
         Args:
             loop: The training loop's state (JSON: counters, curve rows, ``episode``).
             files: Writes the loop's own files (replay buffer...) into the folder it is given.
 
         Returns:
-            The checkpoint folder.
+            The checkpoint folder (``<run dir>/checkpoint/<episode>``).
         """
-        tmp = self.run_dir / f".{CHECKPOINT_DIR}.tmp"
-        old = self.run_dir / f".{CHECKPOINT_DIR}.old"
-        for stale in (tmp, old):
-            shutil.rmtree(stale, ignore_errors=True)
+        name = str(int(loop["episode"]))
+        tmp = self.root / f".{name}.{os.getpid()}.tmp"
+        version = self.root / name
+        shutil.rmtree(tmp, ignore_errors=True)
         tmp.mkdir(parents=True)
         self.learner.save(tmp / LEARNER_DIR)
         state = {"loop": loop, "learner": self.learner.checkpoint_state(tmp)}
         if files is not None:
             files(tmp)
         write_json(tmp / STATE_FILE, state)
-        if self.path.exists():
-            os.replace(self.path, old)
-        os.replace(tmp, self.path)
-        shutil.rmtree(old, ignore_errors=True)
+        _sync_tree(tmp)
+        if version.exists():  # left by a crash before its pointer moved: never pointed to
+            shutil.rmtree(version)
+        os.rename(tmp, version)
+        _sync(self.root)
+        pointer_tmp = self.root / f".{POINTER_FILE}.{os.getpid()}.tmp"
+        with open(pointer_tmp, "w") as file:
+            file.write(name + "\n")
+            file.flush()
+            os.fsync(file.fileno())
+        os.replace(pointer_tmp, self.root / POINTER_FILE)  # the checkpoint is complete here
+        _sync(self.root)
+        self.path = version
         self.saved_episode = loop["episode"]
-        logger.debug("checkpoint after episode %d in %s", loop["episode"], self.path)
-        return self.path
+        for entry in self.root.iterdir():  # older versions and leftovers of crashed saves
+            if entry.name in (name, POINTER_FILE):
+                continue
+            if entry.is_dir():
+                shutil.rmtree(entry, ignore_errors=True)
+            else:
+                entry.unlink(missing_ok=True)
+        logger.info("checkpoint after episode %d in %s", loop["episode"], version)
+        return version
 
     def episode_end(
         self, loop: dict[str, Any], last: bool, files: Callable[[Path], None] | None = None
@@ -395,7 +473,7 @@ class TrainingCheckpoint:
 
     def finish(self) -> None:
         """Remove the checkpoint once the run has written its results (it is complete)."""
-        shutil.rmtree(self.path, ignore_errors=True)
+        shutil.rmtree(self.root, ignore_errors=True)
 
     @contextmanager
     def catch_interrupt(self) -> Iterator[None]:
@@ -413,7 +491,7 @@ class TrainingCheckpoint:
         try:
             yield
         except KeyboardInterrupt:
-            last = self.path if (self.path / STATE_FILE).is_file() else None
+            last = latest_checkpoint(self.run_dir)
             raise TrainingInterrupted(last) from None
         finally:
             signal.signal(signal.SIGINT, previous)

@@ -18,6 +18,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import OmegaConf, open_dict
 
 from mrta_rl.runners import build_run, evaluate_checkpoint, train
+from mrta_rl.runners.checkpoint import RunDirError, latest_checkpoint
 
 ROOT = Path(__file__).resolve().parents[2]
 TIMINGS = ("wall_s", "fps_collection", "fps_training", "fps_overall")
@@ -303,7 +304,7 @@ def interrupted_then_resumed(compose_cfg, tmp_path, monkeypatch, overrides, stop
         train(cfg, run_dir=cut_dir)
     monkeypatch.undo()
     assert not (cut_dir / "metrics.json").exists()
-    assert (cut_dir / "checkpoint" / "training.json").is_file()
+    assert (latest_checkpoint(cut_dir) / "training.json").is_file()
     resume = compose_cfg([f"resume={cut_dir}"])
     HydraConfig.instance().cfg = None  # as from the command line: no overrides but resume=
     resumed = train(resume)
@@ -377,7 +378,7 @@ def test_ctrl_c_saves_says_where_and_exits_130(tmp_path):
     assert "Traceback" not in err
     assert f"checkpoint saved in {run_dir / 'checkpoint'}" in err
     assert f"resume={run_dir}" in err
-    state = json.loads((run_dir / "checkpoint" / "training.json").read_text())
+    state = json.loads((latest_checkpoint(run_dir) / "training.json").read_text())
     assert state["loop"]["episode"] >= 2 and not (run_dir / "metrics.json").exists()
 
 
@@ -394,10 +395,14 @@ def test_sigkill_then_resume_ends_like_an_uninterrupted_run(tmp_path):
     full = script("scripts/train.py", *args, f"hydra.run.dir={full_dir}")
     assert full.wait(timeout=300) == 0
     cut = script("scripts/train.py", *args, f"hydra.run.dir={cut_dir}")
-    state = cut_dir / "checkpoint" / "training.json"
     deadline = time.monotonic() + 300
-    while not state.is_file():
+    while True:
         assert cut.poll() is None and time.monotonic() < deadline, "ended before a checkpoint"
+        try:
+            if latest_checkpoint(cut_dir) is not None:
+                break
+        except RunDirError:  # the older version removed after the pointer was read
+            pass
         time.sleep(0.02)
     cut.send_signal(signal.SIGKILL)
     cut.wait()
