@@ -16,6 +16,9 @@ Every script in ``scripts/`` is a thin entry point::
 * **Ctrl-C** prints ``interrupted`` and exits with :data:`EXIT_INTERRUPTED` (130, the shell's
   convention), without a traceback. A training loop that saves on Ctrl-C does so before the
   ``KeyboardInterrupt`` reaches this layer.
+* A single run told its dir (``hydra.run.dir=<dir>``, ``resume=<dir>``) claims it before Hydra
+  writes anything (``runners/run_dir.py``): a dir in use by another process, a finished run or a
+  dir that cannot be resumed is refused as a user error, and nothing is written or created.
 * Either way :func:`job` removes the run directory Hydra made for the failed job when it holds
   nothing but Hydra's own files (``.hydra/`` and the job log), then empty parent folders up to
   the working directory. A directory holding anything else (a checkpoint, an earlier run's
@@ -42,6 +45,7 @@ from hydra.types import RunMode
 from omegaconf.errors import OmegaConfBaseException
 
 from mrta_rl.config import UserError
+from mrta_rl.runners.run_dir import claim_from_args
 
 EXIT_USER_ERROR = 2  # bad input (as argparse); 1 stays Python's exit code for a crash
 EXIT_INTERRUPTED = 130  # 128 + SIGINT
@@ -85,7 +89,8 @@ def run(main: Callable[[], Any]) -> None:
     # Hydra then re-raises instead of printing its own stack trace; the handlers below decide
     os.environ["HYDRA_FULL_ERROR"] = "1"
     try:
-        main()
+        with claim_from_args(sys.argv[1:]):  # before Hydra writes into the run dir
+            main()
     except (*USER_ERRORS, KeyboardInterrupt) as err:
         _exit(err)
         raise

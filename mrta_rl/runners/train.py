@@ -30,12 +30,10 @@ from mrta_rl.learners.tabular.qtable import TableGrowthError, limit_growth
 from mrta_rl.metrics.resources import RunResources
 from mrta_rl.partition import Partition
 from mrta_rl.runners.checkpoint import (
-    CHECKPOINT_DIR,
     EVAL_METRICS_FILE,
     LEARNER_DIR,
     METRICS_FILE,
     REFUSED_FILE,
-    RunDirError,
     TrainingCheckpoint,
     TrainingInterrupted,
     load_learner,
@@ -44,6 +42,7 @@ from mrta_rl.runners.checkpoint import (
     write_json,
 )
 from mrta_rl.runners.evaluate import evaluate_run
+from mrta_rl.runners.run_dir import claim_run_dir, releases_run_dirs
 from mrta_rl.runners.validation import (
     SEED_STRIDE,
     ResourceRefusal,
@@ -137,6 +136,7 @@ def _write_refusal(run_dir: Path, cfg: DictConfig, reason: str) -> None:
     write_json(run_dir / REFUSED_FILE, record)
 
 
+@releases_run_dirs
 def train(cfg: DictConfig, run_dir: Path | str | None = None) -> dict[str, Any]:
     """Train the configured learner, evaluate it and greedy, write ``metrics.json``.
 
@@ -160,6 +160,7 @@ def train(cfg: DictConfig, run_dir: Path | str | None = None) -> dict[str, Any]:
     if resume:
         run_dir = Path(resume)
         _check_resume_overrides()
+        claim_run_dir(run_dir, resume=True)  # locked for this process (runners/run_dir.py)
         choices = run_choices(run_dir)
         progress = cfg.train.progress_bar
         cfg = read_run_config(run_dir)
@@ -176,16 +177,7 @@ def train(cfg: DictConfig, run_dir: Path | str | None = None) -> dict[str, Any]:
             _write_refusal(run_dir, cfg, str(refusal))
             raise
         system_name = hydra_choice("system", run.system.name)
-    if (run_dir / METRICS_FILE).exists():
-        raise RunDirError(
-            f"{run_dir} already holds the results of a finished run ({METRICS_FILE}); "
-            "choose another hydra.run.dir (the default is unique per run)"
-        )
-    if not resume and (run_dir / CHECKPOINT_DIR).exists():
-        raise RunDirError(
-            f"{run_dir} holds the checkpoint of an interrupted run: continue it with "
-            f"resume={run_dir}, or choose another hydra.run.dir"
-        )
+        claim_run_dir(run_dir, resume=False)
     # checked by validate_config; absent in runs written before checkpoints existed: none
     every = OmegaConf.select(cfg, "train.checkpoint_every", default=0)
     run_dir.mkdir(parents=True, exist_ok=True)

@@ -148,10 +148,10 @@ def test_ctrl_c_before_training_exits_130_and_leaves_nothing(tmp_path):
 def test_a_previous_runs_data_is_never_removed(tmp_path):
     run_dir = tmp_path / "run"
     run_dir.mkdir()
-    (run_dir / "metrics.json").write_text("{}")
+    (run_dir / "notes.txt").write_text("{}")  # a finished run's dir is refused up front
     code, _, err = train(run_dir, "learner.alpha=2")
     assert_user_error(code, err, "learner.alpha: must be a number in (0, 1], got 2")
-    assert (run_dir / "metrics.json").read_text() == "{}"
+    assert (run_dir / "notes.txt").read_text() == "{}"
 
 
 def test_bugs_and_full_error_keep_the_traceback(tmp_path):
