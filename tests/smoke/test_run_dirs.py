@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import json
 import os
+import random
+import re
 import signal
 import subprocess
 import sys
@@ -14,10 +16,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+import yaml
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import OmegaConf, open_dict
 
 from mrta_rl.runners import build_run, evaluate_checkpoint, train
+from mrta_rl.runners.validation import learner_class
+from tests.conftest import SMOKE_OVERRIDES
 
 ROOT = Path(__file__).resolve().parents[2]
 TIMINGS = ("wall_s", "fps_collection", "fps_training", "fps_overall")
@@ -275,41 +280,54 @@ def test_weights_of_another_shape_are_refused(compose_cfg, tmp_path):
 
 
 # ---------------------------------------------------------------------------------- defect 10
-class Killed(BaseException):
-    """Stands for SIGKILL right after a checkpoint: nothing after it runs."""
+# Kill and resume across processes: whatever a checkpoint lacks is lost with the killed process.
+CHECKPOINT_LINE = re.compile(r"checkpoint after episode (\d+) in ")  # TrainingCheckpoint.save
+RESUME_LINE = re.compile(r"resuming from .* after episode (\d+)")  # TrainingCheckpoint.restore
 
 
-def interrupted_then_resumed(compose_cfg, tmp_path, monkeypatch, overrides, stop_at):
-    """Uninterrupted metrics, and metrics of the same run stopped after the checkpoint of
-    episode ``stop_at`` and resumed with ``resume=<run dir>``."""
-    learner, system = overrides[0].split("=")[1], overrides[1].split("=")[1]
-    full_dir, cut_dir = tmp_path / "full", tmp_path / "cut"
-    full = train(compose_cfg(overrides), run_dir=full_dir)
+def learner_kind(name: str) -> str:
+    """The ``kind`` of the learner class ``conf/learner/<name>.yaml`` builds."""
+    return learner_class(
+        yaml.safe_load((ROOT / "conf" / "learner" / f"{name}.yaml").read_text())
+    ).kind
 
-    cfg = compose_cfg(overrides)
-    save_hydra_files(cfg, cut_dir, learner, system)
-    from mrta_rl.runners.checkpoint import TrainingCheckpoint
 
-    save = TrainingCheckpoint.save
+KINDS = {path.stem: learner_kind(path.stem) for path in (ROOT / "conf" / "learner").glob("*.yaml")}
+TRAINED = sorted(name for name, kind in KINDS.items() if kind != "fixed")
+# budgets per kind: long enough that a kill lands well before the end, short enough for seconds
+# (a smoke episode takes a few ms on the numpy loop, a few hundred ms on the TorchRL loop)
+BUDGETS = {
+    "tabular": ["train.episodes=300", "train.checkpoint_every=10"],
+    "search": ["train.episodes=150", "train.checkpoint_every=10"],
+    # gradient steps from the second episode on; small networks keep the steps quick
+    "neural": [
+        "train.episodes=6",
+        "train.checkpoint_every=1",
+        "learner.warmup_frames=200",
+        "learner.hidden=32",
+        "learner.batch_size=64",
+    ],
+}
 
-    def save_then_die(self, loop, files=None):
-        path = save(self, loop, files)
-        if loop["episode"] == stop_at:
-            raise Killed
-        return path
 
-    monkeypatch.setattr(TrainingCheckpoint, "save", save_then_die)
-    with pytest.raises(Killed):
-        train(cfg, run_dir=cut_dir)
-    monkeypatch.undo()
-    assert not (cut_dir / "metrics.json").exists()
-    assert (cut_dir / "checkpoint" / "training.json").is_file()
-    resume = compose_cfg([f"resume={cut_dir}"])
-    HydraConfig.instance().cfg = None  # as from the command line: no overrides but resume=
-    resumed = train(resume)
-    assert not (cut_dir / "checkpoint").exists()  # removed once the run is complete
-    assert (cut_dir / "curve.csv").read_text() == (full_dir / "curve.csv").read_text()
-    return full, resumed, full_dir, cut_dir
+def setting(args: list[str], key: str) -> int:
+    return int(next(a.split("=")[1] for a in args if a.startswith(f"{key}=")))
+
+
+def wait_for_checkpoint(run: subprocess.Popen, log: Path, episode: int) -> int:
+    """Poll the run's ``train.log`` until a checkpoint of ``episode`` or later is complete.
+
+    Returns:
+        The episode of the last complete checkpoint seen.
+    """
+    deadline = time.monotonic() + 120
+    while True:
+        done = [int(n) for n in CHECKPOINT_LINE.findall(log.read_text() if log.is_file() else "")]
+        if done and done[-1] >= episode:
+            return done[-1]
+        assert run.poll() is None, f"ended before the checkpoint of episode {episode}"
+        assert time.monotonic() < deadline, f"no checkpoint of episode {episode} in {log}"
+        time.sleep(0.005)
 
 
 def assert_same_learner_state(a: Path, b: Path) -> None:
@@ -329,28 +347,60 @@ def assert_same_learner_state(a: Path, b: Path) -> None:
             assert x.read_text() == y.read_text(), name
 
 
-@pytest.mark.parametrize(
-    "overrides",
-    [
-        ["learner=subg_cql", "system=system1", "train.episodes=5"],
-        # short budget that still reaches the gradient steps before the interruption
-        ["learner=qmix", "system=system1", "train.episodes=3", "learner.warmup_frames=100"],
-        # debug=smoke's 4 copies: 2 antithetic pairs of one copy each
-        ["learner=reserve_es", "system=system1", "train.episodes=5", "learner.pairs=2"],
-    ],
-    ids=["subg_cql", "qmix", "reserve_es"],
-)
-def test_interrupted_run_resumes_to_the_same_end(compose_cfg, tmp_path, monkeypatch, overrides):
-    overrides = [*overrides, "debug=smoke"]
-    full, resumed, full_dir, cut_dir = interrupted_then_resumed(
-        compose_cfg, tmp_path, monkeypatch, [*overrides, "train.checkpoint_every=1"], stop_at=2
-    )
-    assert full["train"].get("gradient_steps", 1) > 0
-    assert without_timings(resumed) == without_timings(full)
+def assert_same_run(full_dir: Path, cut_dir: Path) -> None:
+    """Same metrics.json (timings aside), curve.csv and saved tables or weights."""
+    a, b = (json.loads((d / "metrics.json").read_text()) for d in (full_dir, cut_dir))
+    assert without_timings(b) == without_timings(a)
+    assert (cut_dir / "curve.csv").read_text() == (full_dir / "curve.csv").read_text()
     assert_same_learner_state(full_dir, cut_dir)
+    assert not (cut_dir / "checkpoint").exists()  # removed once the run is complete
+
+
+def resume_in_a_new_process(cut_dir: Path) -> int:
+    """``train.py resume=<cut_dir>``; the episode it resumed after."""
+    resumed = script("scripts/train.py", f"resume={cut_dir}")
+    out, err = resumed.communicate(timeout=300)
+    assert resumed.returncode == 0, err + out
+    assert "Traceback" not in err + out
+    return int(RESUME_LINE.findall((cut_dir / "train.log").read_text())[-1])
+
+
+@pytest.mark.parametrize(
+    "learner",
+    # the TorchRL loop's cases take about 10 s each (two processes starting torch)
+    [pytest.param(n, marks=[pytest.mark.slow] * (KINDS[n] == "neural")) for n in TRAINED],
+)
+def test_sigkill_after_a_random_checkpoint_then_resume_ends_like_an_uninterrupted_run(
+    compose_cfg, tmp_path, learner
+):
+    """Every trained learner kind resumes exactly in a new process (issue 23, acceptance 2).
+
+    The uninterrupted run trains in this process while the killed one starts up beside it.
+    """
+    args = [
+        f"learner={learner}",
+        "system=system1",
+        "debug=smoke",
+        *SMOKE_OVERRIDES.get(learner, []),
+        *BUDGETS[KINDS[learner]],
+    ]
+    episodes, every = setting(args, "train.episodes"), setting(args, "train.checkpoint_every")
+    # the checkpoint to kill after, at random, seeded by the case: one in the first two thirds
+    target = random.Random(learner).randrange(every, 2 * episodes // 3, every)
+    full_dir, cut_dir = tmp_path / "full", tmp_path / "cut"
+    cut = script("scripts/train.py", *args, f"hydra.run.dir={cut_dir}")
+    train(compose_cfg(args), run_dir=full_dir)
+    killed_after = wait_for_checkpoint(cut, cut_dir / "train.log", target)
+    cut.send_signal(signal.SIGKILL)
+    cut.wait()
+    assert not (cut_dir / "metrics.json").exists()
+    resumed_after = resume_in_a_new_process(cut_dir)
+    assert killed_after <= resumed_after < episodes
+    assert_same_run(full_dir, cut_dir)
 
 
 def test_resume_refuses_other_overrides(compose_cfg, tmp_path):
+
     with pytest.raises(ValueError, match="train.episodes"):
         train(compose_cfg([f"resume={tmp_path}", "train.episodes=3"]))
 
@@ -379,35 +429,6 @@ def test_ctrl_c_saves_says_where_and_exits_130(tmp_path):
     assert f"resume={run_dir}" in err
     state = json.loads((run_dir / "checkpoint" / "training.json").read_text())
     assert state["loop"]["episode"] >= 2 and not (run_dir / "metrics.json").exists()
-
-
-@pytest.mark.slow  # the in-process interruption tests above check the same on every run
-def test_sigkill_then_resume_ends_like_an_uninterrupted_run(tmp_path):
-    args = [
-        "learner=subg_cql",
-        "system=system1",
-        "debug=smoke",
-        "train.episodes=12",
-        "train.checkpoint_every=3",
-    ]
-    full_dir, cut_dir = tmp_path / "full", tmp_path / "cut"
-    full = script("scripts/train.py", *args, f"hydra.run.dir={full_dir}")
-    assert full.wait(timeout=300) == 0
-    cut = script("scripts/train.py", *args, f"hydra.run.dir={cut_dir}")
-    state = cut_dir / "checkpoint" / "training.json"
-    deadline = time.monotonic() + 300
-    while not state.is_file():
-        assert cut.poll() is None and time.monotonic() < deadline, "ended before a checkpoint"
-        time.sleep(0.02)
-    cut.send_signal(signal.SIGKILL)
-    cut.wait()
-    assert not (cut_dir / "metrics.json").exists()
-    resumed = script("scripts/train.py", f"resume={cut_dir}")
-    _, err = resumed.communicate(timeout=300)
-    assert resumed.returncode == 0, err
-    a, b = (json.loads((d / "metrics.json").read_text()) for d in (full_dir, cut_dir))
-    assert without_timings(a) == without_timings(b)
-    assert_same_learner_state(full_dir, cut_dir)
 
 
 def test_a_reevaluation_on_more_copies_keeps_the_first_episodes(greedy_run):
