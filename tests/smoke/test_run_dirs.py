@@ -356,9 +356,8 @@ def assert_same_run(full_dir: Path, cut_dir: Path) -> None:
     assert not (cut_dir / "checkpoint").exists()  # removed once the run is complete
 
 
-def resume_in_a_new_process(cut_dir: Path) -> int:
-    """``train.py resume=<cut_dir>``; the episode it resumed after."""
-    resumed = script("scripts/train.py", f"resume={cut_dir}")
+def resumed_run(resumed: subprocess.Popen, cut_dir: Path) -> int:
+    """Wait for ``train.py resume=<cut_dir>`` to succeed; the episode it resumed after."""
     out, err = resumed.communicate(timeout=300)
     assert resumed.returncode == 0, err + out
     assert "Traceback" not in err + out
@@ -375,7 +374,7 @@ def test_sigkill_after_a_random_checkpoint_then_resume_ends_like_an_uninterrupte
 ):
     """Every trained learner kind resumes exactly in a new process (issue 23, acceptance 2).
 
-    The uninterrupted run trains in this process while the killed one starts up beside it.
+    The uninterrupted run trains in this process while the resumed one starts up beside it.
     """
     args = [
         f"learner={learner}",
@@ -389,12 +388,13 @@ def test_sigkill_after_a_random_checkpoint_then_resume_ends_like_an_uninterrupte
     target = random.Random(learner).randrange(every, 2 * episodes // 3, every)
     full_dir, cut_dir = tmp_path / "full", tmp_path / "cut"
     cut = script("scripts/train.py", *args, f"hydra.run.dir={cut_dir}")
-    train(compose_cfg(args), run_dir=full_dir)
     killed_after = wait_for_checkpoint(cut, cut_dir / "train.log", target)
     cut.send_signal(signal.SIGKILL)
     cut.wait()
     assert not (cut_dir / "metrics.json").exists()
-    resumed_after = resume_in_a_new_process(cut_dir)
+    resumed = script("scripts/train.py", f"resume={cut_dir}")
+    train(compose_cfg(args), run_dir=full_dir)
+    resumed_after = resumed_run(resumed, cut_dir)
     assert killed_after <= resumed_after < episodes
     assert_same_run(full_dir, cut_dir)
 
@@ -429,6 +429,32 @@ def test_ctrl_c_saves_says_where_and_exits_130(tmp_path):
     assert f"resume={run_dir}" in err
     state = json.loads((run_dir / "checkpoint" / "training.json").read_text())
     assert state["loop"]["episode"] >= 2 and not (run_dir / "metrics.json").exists()
+
+
+def test_sigterm_saves_says_where_exits_143_and_resumes_to_the_same_end(compose_cfg, tmp_path):
+    """SIGTERM (a scheduler preempting the job) is the first Ctrl-C: save, say where, stop."""
+    args = ["learner=subg_cql", "system=system1", "debug=smoke", "train.episodes=300"]
+    full_dir, cut_dir = tmp_path / "full", tmp_path / "cut"
+    # no periodic checkpoints: the one resumed from is the one SIGTERM asks for
+    cut = script("scripts/train.py", *args, "train.checkpoint_every=0", f"hydra.run.dir={cut_dir}")
+    curve = cut_dir / "curve.csv"
+    deadline = time.monotonic() + 120
+    while not (curve.is_file() and len(curve.read_text().splitlines()) > 2):
+        assert cut.poll() is None and time.monotonic() < deadline, cut.communicate()
+        time.sleep(0.005)
+    cut.send_signal(signal.SIGTERM)
+    out, err = cut.communicate(timeout=120)
+    err += out  # Hydra logs to stdout
+    assert cut.returncode == 143, err
+    assert "Traceback" not in err
+    assert f"checkpoint saved in {cut_dir / 'checkpoint'}" in err
+    assert f"resume={cut_dir}" in err
+    assert (cut_dir / "checkpoint" / "training.json").is_file()
+    assert not (cut_dir / "metrics.json").exists()
+    resumed = script("scripts/train.py", f"resume={cut_dir}")
+    train(compose_cfg(args), run_dir=full_dir)
+    assert resumed_run(resumed, cut_dir) < 300
+    assert_same_run(full_dir, cut_dir)
 
 
 def test_a_reevaluation_on_more_copies_keeps_the_first_episodes(greedy_run):
