@@ -7,9 +7,11 @@ import json
 import os
 import random
 import re
+import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -17,10 +19,14 @@ import numpy as np
 import pytest
 import torch
 import yaml
+from hydra.core.global_hydra import GlobalHydra
 from hydra.core.hydra_config import HydraConfig
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 from omegaconf import OmegaConf, open_dict
 
 from mrta_rl.runners import build_run, evaluate_checkpoint, train
+from mrta_rl.runners.checkpoint import RunDirError
 from mrta_rl.runners.validation import learner_class
 from tests.conftest import SMOKE_OVERRIDES
 
@@ -299,11 +305,13 @@ TRAINED = sorted(name for name, kind in KINDS.items() if kind != "fixed")
 BUDGETS = {
     "tabular": ["train.episodes=300", "train.checkpoint_every=10"],
     "search": ["train.episodes=150", "train.checkpoint_every=10"],
-    # gradient steps from the second episode on; small networks keep the steps quick
+    # gradient steps from the second episode on, epsilon decayed over the run (so a resumed run
+    # that restarts the schedule explores differently); small networks keep the steps quick
     "neural": [
         "train.episodes=6",
         "train.checkpoint_every=1",
         "learner.warmup_frames=200",
+        "learner.eps_decay_frames=1000",
         "learner.hidden=32",
         "learner.batch_size=64",
     ],
@@ -455,6 +463,139 @@ def test_sigterm_saves_says_where_exits_143_and_resumes_to_the_same_end(compose_
     train(compose_cfg(args), run_dir=full_dir)
     assert resumed_run(resumed, cut_dir) < 300
     assert_same_run(full_dir, cut_dir)
+
+
+# ---------------------------------------------------------------------------------- defect 6
+@pytest.fixture(scope="module")
+def killed_qmix(tmp_path_factory) -> tuple[Path, dict]:
+    """A qmix run killed after its checkpoint of episode 2 (which holds a replay.pt), and the
+    metrics of the same run uninterrupted."""
+    from tests.conftest import _compose
+
+    args = ["learner=qmix", "system=system1", "debug=smoke", *BUDGETS["neural"]]
+    cut_dir = tmp_path_factory.mktemp("qmix") / "cut"
+    cut = script("scripts/train.py", *args, f"hydra.run.dir={cut_dir}")
+    wait_for_checkpoint(cut, cut_dir / "train.log", 2)
+    cut.send_signal(signal.SIGKILL)
+    cut.wait()
+    full = train(_compose(args), run_dir=tmp_path_factory.mktemp("qmix") / "full")
+    GlobalHydra.instance().clear()
+    HydraConfig.instance().cfg = None
+    return cut_dir, full
+
+
+REPLAY_DAMAGES = ("none", "empty", "drop", "extra", "retype", "reshape", "nan", "cut", "garbage")
+
+
+def tensor_leaves(tree: dict, prefix: tuple[str, ...] = ()) -> list[tuple[str, ...]]:
+    keys = []
+    for name, value in tree.items():
+        if isinstance(value, dict):
+            keys += tensor_leaves(value, (*prefix, name))
+        else:
+            keys.append((*prefix, name))
+    return keys
+
+
+def damage_replay(path: Path, damage: str, data) -> str | None:
+    """Damage a checkpoint's replay.pt as drawn; the key the refusal must name (None: any)."""
+    if damage in ("cut", "garbage"):
+        content = path.read_bytes()
+        if damage == "cut":
+            content = content[: data.draw(st.integers(0, len(content) - 1), label="length")]
+        else:
+            content = data.draw(st.binary(max_size=2048), label="bytes")
+        path.write_bytes(content)
+        return None
+    payload = torch.load(path, weights_only=True)
+    leaves = [("transitions", *key) for key in tensor_leaves(payload["transitions"])]
+
+    def value(key: tuple[str, ...]):
+        node = payload
+        for name in key:
+            node = node[name]
+        return node
+
+    targets = {
+        "drop": [("torch_rng",), ("transitions",), *leaves],
+        "retype": [("torch_rng",), ("transitions",), *leaves],
+        "reshape": [("torch_rng",), *leaves],
+        "nan": [key for key in leaves if value(key).is_floating_point()],
+    }.get(damage, [("extra",)])
+    key = data.draw(st.sampled_from(targets), label="key")
+    *parents, name = key
+    node = value(parents)
+    if damage == "empty":
+        payload, key = {}, ("torch_rng",)  # the message lists the keys expected
+    elif damage == "drop":
+        del node[name]
+    elif damage == "extra":
+        node[name] = torch.zeros(3)
+    elif damage == "retype":
+        node[name] = data.draw(
+            st.sampled_from([3, "x", [1, 2], None, torch.zeros(2, dtype=torch.float64)]),
+            label="value",
+        )
+    elif damage == "reshape":
+        shape = data.draw(st.sampled_from(["a row fewer", "a trailing dim"]), label="shape")
+        node[name] = node[name][:-1] if shape == "a row fewer" else node[name][..., None]
+    elif damage == "nan":
+        flat = node[name].reshape(-1).clone()
+        flat[data.draw(st.integers(0, flat.numel() - 1), label="at")] = float("nan")
+        node[name] = flat.reshape(node[name].shape)
+    torch.save(payload, path)
+    return ".".join(key)
+
+
+def files_of(run_dir: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(run_dir)): p.read_bytes() for p in run_dir.rglob("*") if p.is_file()}
+
+
+@pytest.mark.slow  # about 10 s: the killed run, its reference, ten resumes
+@settings(
+    max_examples=10, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(data=st.data())
+def test_a_damaged_replay_file_is_refused_naming_it(killed_qmix, compose_cfg, data):
+    """``resume=`` on a checkpoint whose replay.pt is damaged: refused naming the file and key,
+    no file changed; an intact one is accepted and ends like the uninterrupted run."""
+    cut_dir, full = killed_qmix
+    damage = data.draw(st.sampled_from(REPLAY_DAMAGES), label="damage")
+    with tempfile.TemporaryDirectory() as tmp:
+        run_dir = Path(tmp) / "run"
+        shutil.copytree(cut_dir, run_dir)
+        path = run_dir / "checkpoint" / "replay.pt"
+        key = damage_replay(path, damage, data) if damage != "none" else None
+        before = files_of(run_dir)
+        cfg = compose_cfg([f"resume={run_dir}"])
+        HydraConfig.instance().cfg = None  # as from the command line: no overrides but resume=
+        try:
+            metrics = train(cfg)
+        except RunDirError as err:
+            assert damage != "none", err
+            assert str(path) in str(err)
+            assert key is None or key in str(err), (key, str(err))
+            assert files_of(run_dir) == before
+        else:
+            assert damage == "none", damage
+            assert without_timings(metrics) == without_timings(full)
+
+
+@pytest.mark.slow  # about 10 s with the killed run it copies
+def test_an_empty_replay_file_gets_one_line_and_exit_2(killed_qmix, tmp_path):
+    """The script's side of the refusal: ``error: ...`` naming the file, no traceback."""
+    run_dir = tmp_path / "run"
+    shutil.copytree(killed_qmix[0], run_dir)
+    path = run_dir / "checkpoint" / "replay.pt"
+    torch.save({}, path)
+    before = files_of(run_dir)
+    resumed = script("scripts/train.py", f"resume={run_dir}")
+    _, err = resumed.communicate(timeout=120)
+    assert resumed.returncode == 2, err
+    assert err.startswith("error: ") and str(path) in err and "Traceback" not in err
+    assert {k: v for k, v in files_of(run_dir).items() if k != "train.log"} == {
+        k: v for k, v in before.items() if k != "train.log"
+    }
 
 
 def test_a_reevaluation_on_more_copies_keeps_the_first_episodes(greedy_run):
