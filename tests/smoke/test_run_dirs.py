@@ -439,9 +439,17 @@ def test_ctrl_c_saves_says_where_and_exits_130(tmp_path):
     assert state["loop"]["episode"] >= 2 and not (run_dir / "metrics.json").exists()
 
 
-def test_sigterm_saves_says_where_exits_143_and_resumes_to_the_same_end(compose_cfg, tmp_path):
+@pytest.mark.parametrize(
+    "learner",
+    ["subg_cql", pytest.param("qmix", marks=pytest.mark.slow)],  # qmix: about 10 s
+)
+def test_sigterm_saves_says_where_exits_143_and_resumes_to_the_same_end(
+    compose_cfg, tmp_path, learner
+):
     """SIGTERM (a scheduler preempting the job) is the first Ctrl-C: save, say where, stop."""
-    args = ["learner=subg_cql", "system=system1", "debug=smoke", "train.episodes=300"]
+    budget = [a for a in BUDGETS[KINDS[learner]] if not a.startswith("train.checkpoint_every=")]
+    args = [f"learner={learner}", "system=system1", "debug=smoke", *budget]
+    episodes = setting(args, "train.episodes")
     full_dir, cut_dir = tmp_path / "full", tmp_path / "cut"
     # no periodic checkpoints: the one resumed from is the one SIGTERM asks for
     cut = script("scripts/train.py", *args, "train.checkpoint_every=0", f"hydra.run.dir={cut_dir}")
@@ -461,7 +469,7 @@ def test_sigterm_saves_says_where_exits_143_and_resumes_to_the_same_end(compose_
     assert not (cut_dir / "metrics.json").exists()
     resumed = script("scripts/train.py", f"resume={cut_dir}")
     train(compose_cfg(args), run_dir=full_dir)
-    assert resumed_run(resumed, cut_dir) < 300
+    assert resumed_run(resumed, cut_dir) < episodes
     assert_same_run(full_dir, cut_dir)
 
 
