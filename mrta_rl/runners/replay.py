@@ -75,7 +75,8 @@ def save_replay(buffer: TensorDictReplayBuffer, path: Path) -> None:
         buffer: The run's replay buffer.
         path: The checkpoint's ``replay.pt``.
     """
-    rows = buffer[: len(buffer)].exclude(INDEX_KEY) if len(buffer) else TensorDict()
+    # cloned: a slice is a view, and torch.save writes a view's whole storage (every row)
+    rows = buffer[: len(buffer)].exclude(INDEX_KEY).clone() if len(buffer) else TensorDict()
     payload = {"transitions": rows.to_dict(), "torch_rng": torch.get_rng_state()}
     torch.save(payload, path)
 
@@ -98,7 +99,9 @@ def _leaves(tree: Any, path: Path, prefix: tuple[str, ...] = ()) -> dict[tuple[s
     return leaves
 
 
-def read_replay(path: Path, layout: Layout, frames: int, capacity: int) -> tuple[TensorDict, Any]:
+def read_replay(
+    path: Path, layout: Layout, frames: int, capacity: int
+) -> tuple[TensorDict, torch.Tensor]:
     """Read and check a checkpoint's ``replay.pt`` against the run (module docstring).
 
     Args:
@@ -119,7 +122,7 @@ def read_replay(path: Path, layout: Layout, frames: int, capacity: int) -> tuple
         payload = read_tensors(path, torch.device("cpu"))
     except ValueError as err:
         raise RunDirError(f"cannot resume: {err}") from None
-    if not isinstance(payload, dict) or sorted(payload) != sorted(REPLAY_KEYS):
+    if not isinstance(payload, dict) or set(payload) != set(REPLAY_KEYS):
         held = sorted(map(str, payload)) if isinstance(payload, dict) else _describe(payload)
         raise RunDirError(
             f"{path}: holds {held}, expected the keys {list(REPLAY_KEYS)} (a replay buffer and "

@@ -145,11 +145,12 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     }
     frames, episodes, replayed = state["frames"], state["episode"], state["replayed"]
     rows: list[dict[str, Any]] = state["curve"]
-    replay = None
+    torch_rng = None  # the checkpoint's, set once the collector is built
     if frames:
         layout = replay_layout(env, learner)
-        replay = read_replay(ckpt.path / REPLAY_FILE, layout, frames, int(hp["buffer_size"]))
-        restore_replay(buffer, replay[0], frames)
+        path = ckpt.path / REPLAY_FILE
+        transitions, torch_rng = read_replay(path, layout, frames, int(hp["buffer_size"]))
+        restore_replay(buffer, transitions, frames)
     for _ in range(episodes):
         run.env.reset()
     seconds = {"collect": 0.0, "train": 0.0}
@@ -169,8 +170,8 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         storing_device=device,
         auto_register_policy_transforms=False,
     )
-    if replay is not None:  # after building the collector, which may draw from torch
-        torch.set_rng_state(replay[1])
+    if torch_rng is not None:  # after building the collector, which may draw from torch
+        torch.set_rng_state(torch_rng)
 
     def save_files(folder: Path) -> None:
         save_replay(buffer, folder / REPLAY_FILE)

@@ -486,6 +486,8 @@ def killed_qmix(tmp_path_factory) -> tuple[Path, dict]:
     wait_for_checkpoint(cut, cut_dir / "train.log", 2)
     cut.send_signal(signal.SIGKILL)
     cut.wait()
+    # the filled rows only (a few hundred transitions of ~4 kB), not the capacity's 50,000
+    assert (cut_dir / "checkpoint" / "replay.pt").stat().st_size < 20 * 2**20
     full = train(_compose(args), run_dir=tmp_path_factory.mktemp("qmix") / "full")
     GlobalHydra.instance().clear()
     HydraConfig.instance().cfg = None
