@@ -337,15 +337,17 @@ def _sync_tree(folder: Path) -> None:
 
 
 class TrainingInterrupted(Exception):  # noqa: N818 - an event, not an error of the program
-    """Training stopped by the user (Ctrl-C) after saving a checkpoint.
+    """Training stopped by a signal (Ctrl-C, or SIGTERM from a scheduler) after saving a checkpoint.
 
     Attributes:
         checkpoint: The checkpoint folder, or None if none could be written.
+        signum: The signal that stopped the run; the process exits with ``128 + signum``.
     """
 
-    def __init__(self, checkpoint: Path | None) -> None:
+    def __init__(self, checkpoint: Path | None, signum: int = signal.SIGINT) -> None:
         super().__init__(f"training interrupted; checkpoint: {checkpoint}")
         self.checkpoint = checkpoint
+        self.signum = int(signum)
 
 
 class TrainingCheckpoint:
@@ -353,13 +355,13 @@ class TrainingCheckpoint:
 
     A training loop creates one, asks :meth:`restore` for the loop state to continue from (None
     for a fresh run), and calls :meth:`episode_end` after every episode with its loop state; the
-    call saves every ``train.checkpoint_every`` episodes, and at once after a first Ctrl-C (see
-    :meth:`catch_interrupt`), then raises :class:`TrainingInterrupted`.
+    call saves every ``train.checkpoint_every`` episodes, and at once after a first Ctrl-C or
+    SIGTERM (see :meth:`catch_interrupt`), then raises :class:`TrainingInterrupted`.
 
     Args:
         learner: The run's learner.
         run_dir: The run dir; the checkpoints are in ``<run_dir>/checkpoint`` (module docstring).
-        every: Episodes between checkpoints (0: only on Ctrl-C).
+        every: Episodes between checkpoints (0: only on Ctrl-C or SIGTERM).
         resume: Continue from the run dir's checkpoint.
     """
 
@@ -371,6 +373,7 @@ class TrainingCheckpoint:
         self.every = int(every)
         self.resume = resume
         self.stop_requested = False
+        self.stop_signal: int = signal.SIGINT  # the signal that asked to stop (exit code)
         self.saved_episode = 0  # episode of the last checkpoint
 
     def restore(self) -> dict[str, Any] | None:
@@ -446,13 +449,14 @@ class TrainingCheckpoint:
                 shutil.rmtree(entry, ignore_errors=True)
             else:
                 entry.unlink(missing_ok=True)
+        # logged once the checkpoint is complete: tests and job scripts wait for this line
         logger.info("checkpoint after episode %d in %s", loop["episode"], version)
         return version
 
     def episode_end(
         self, loop: dict[str, Any], last: bool, files: Callable[[Path], None] | None = None
     ) -> None:
-        """Save when due (``every`` episodes since the last save), or after Ctrl-C (then raise).
+        """Save when due (every ``every`` episodes), or after a stop signal (then raise).
 
         Call it only where the loop can continue from: every training copy between episodes.
 
@@ -462,12 +466,12 @@ class TrainingCheckpoint:
             files: See :meth:`save`.
 
         Raises:
-            TrainingInterrupted: after saving, if Ctrl-C was pressed.
+            TrainingInterrupted: after saving, if Ctrl-C was pressed or SIGTERM received.
         """
         if last:
             return
         if self.stop_requested:
-            raise TrainingInterrupted(self.save(loop, files))
+            raise TrainingInterrupted(self.save(loop, files), self.stop_signal)
         if self.every > 0 and loop["episode"] - self.saved_episode >= self.every:
             self.save(loop, files)
 
@@ -477,14 +481,19 @@ class TrainingCheckpoint:
 
     @contextmanager
     def catch_interrupt(self) -> Iterator[None]:
-        """First Ctrl-C: finish the episode, save, stop; second Ctrl-C: stop at once.
+        """First Ctrl-C or SIGTERM: finish the episode, save, stop; a second one: stop at once.
+
+        SIGTERM is what schedulers (Slurm) send before killing a job, so a preempted run saves
+        its checkpoint and resumes like one stopped with Ctrl-C.
 
         Yields:
-            Nothing; the SIGINT handler is in place inside the block.
+            Nothing; the SIGINT and SIGTERM handlers are in place inside the block.
         """
+        stop_signals = (signal.SIGINT, signal.SIGTERM)
         try:
-            previous = signal.getsignal(signal.SIGINT)
-            signal.signal(signal.SIGINT, self._on_interrupt)
+            previous = {signum: signal.getsignal(signum) for signum in stop_signals}
+            for signum in stop_signals:
+                signal.signal(signum, self._on_interrupt)
         except ValueError:  # not the main thread: keep the default behaviour
             yield
             return
@@ -492,15 +501,20 @@ class TrainingCheckpoint:
             yield
         except KeyboardInterrupt:
             last = latest_checkpoint(self.run_dir)
-            raise TrainingInterrupted(last) from None
+            raise TrainingInterrupted(last, self.stop_signal) from None
         finally:
-            signal.signal(signal.SIGINT, previous)
+            for signum, handler in previous.items():
+                signal.signal(signum, handler)
 
     def _on_interrupt(self, signum: int, frame: Any) -> None:
         if self.stop_requested:
             raise KeyboardInterrupt
         self.stop_requested = True
+        self.stop_signal = signum
+        name = signal.Signals(signum).name
         logger.warning(
-            "interrupted: saving a checkpoint at the end of this episode (Ctrl-C again to stop "
-            "now, keeping the last checkpoint)"
+            "%s: saving a checkpoint at the end of this episode (%s again to stop now, keeping "
+            "the last checkpoint)",
+            "interrupted" if signum == signal.SIGINT else f"terminated ({name})",
+            "Ctrl-C" if signum == signal.SIGINT else name,
         )

@@ -31,9 +31,15 @@ from torchrl.record.loggers import CSVLogger as TorchRLCSVLogger
 from torchrl.record.loggers import Logger
 
 from mrta_rl.envs.torchrl_env import AuctionTorchRLEnv
-from mrta_rl.learners.neural.common import read_tensors
 from mrta_rl.metrics.logger import CSVLogger
 from mrta_rl.runners.progress import progress_bar
+from mrta_rl.runners.replay import (
+    REPLAY_FILE,
+    read_replay,
+    replay_layout,
+    restore_replay,
+    save_replay,
+)
 
 if TYPE_CHECKING:
     from mrta_rl.learners.neural import NeuralLearner
@@ -44,7 +50,6 @@ logger = logging.getLogger(__name__)
 # Small networks and a numpy env: one intra-op thread is fastest, and on a shared machine more
 # threads spin against each other (measured: 3.4 ms vs 1.2 ms per env step of 16 copies).
 TORCH_THREADS = 1
-REPLAY_FILE = "replay.pt"  # training checkpoints: replay buffer and torch's generator
 TORCHRL_LOG_DIR = "torchrl"  # TorchRL CSVLogger scalars: <run dir>/torchrl/train/scalars/*.csv
 
 
@@ -127,9 +132,10 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         batch_size=int(hp["batch_size"]),
     )
     # resuming (checkpoints are taken where every copy is between episodes): counters, curve,
-    # replay buffer and torch's generator from the checkpoint; the core env replays the resets
-    # of the episodes played, which fixes its task streams (auction.py "Counter-based
-    # randomness"); the collector's own first reset then starts the next episode
+    # replay buffer and torch's generator from the checkpoint, checked before anything is
+    # built or written (runners/replay.py); the core env replays the resets of the episodes
+    # played, which fixes its task streams (auction.py "Counter-based randomness"); the
+    # collector's own first reset then starts the next episode
     ckpt = run.checkpoint
     state = (ckpt.restore() if ckpt else None) or {
         "episode": 0,
@@ -139,9 +145,12 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     }
     frames, episodes, replayed = state["frames"], state["episode"], state["replayed"]
     rows: list[dict[str, Any]] = state["curve"]
-    replay = read_tensors(ckpt.path / REPLAY_FILE, device) if frames else None
-    if replay is not None:
-        buffer.load_state_dict(replay["buffer"])
+    torch_rng = None  # the checkpoint's, set once the collector is built
+    if frames:
+        layout = replay_layout(env, learner)
+        path = ckpt.path / REPLAY_FILE
+        transitions, torch_rng = read_replay(path, layout, frames, int(hp["buffer_size"]))
+        restore_replay(buffer, transitions, frames)
     for _ in range(episodes):
         run.env.reset()
     seconds = {"collect": 0.0, "train": 0.0}
@@ -161,12 +170,11 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         storing_device=device,
         auto_register_policy_transforms=False,
     )
-    if replay is not None:  # after building the collector, which may draw from torch
-        torch.set_rng_state(replay["torch_rng"])
+    if torch_rng is not None:  # after building the collector, which may draw from torch
+        torch.set_rng_state(torch_rng)
 
-    def save_replay(folder: Path) -> None:
-        payload = {"buffer": buffer.state_dict(), "torch_rng": torch.get_rng_state()}
-        torch.save(payload, folder / REPLAY_FILE)
+    def save_files(folder: Path) -> None:
+        save_replay(buffer, folder / REPLAY_FILE)
 
     with (
         instantiate(cfg.logger)(run_dir=run_dir) as curve,
@@ -235,7 +243,7 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
             )
             if ckpt and done[:, -1].all():  # the batch ends between episodes: resumable here
                 loop = {"episode": episodes, "frames": frames, "replayed": replayed, "curve": rows}
-                ckpt.episode_end(loop, last=frames >= total_frames, files=save_replay)
+                ckpt.episode_end(loop, last=frames >= total_frames, files=save_files)
             tick = time.perf_counter()
     collector.shutdown()
     wall = time.perf_counter() - start

@@ -153,7 +153,7 @@ def train(cfg: DictConfig, run_dir: Path | str | None = None) -> dict[str, Any]:
 
     Raises:
         ValueError: on an invalid config or run dir, before anything is written.
-        SystemExit: with code 130 after Ctrl-C (a checkpoint is saved first).
+        SystemExit: with code 130 after Ctrl-C, 143 after SIGTERM (a checkpoint is saved first).
     """
     resources = RunResources().start()  # wall time and peak memory of the whole run (build to eval)
     resume = cfg.get("resume")
@@ -203,7 +203,7 @@ def train(cfg: DictConfig, run_dir: Path | str | None = None) -> dict[str, Any]:
                 stop.checkpoint,
                 run_dir,
             )
-        raise SystemExit(130) from None
+        raise SystemExit(128 + stop.signum) from None  # the shell's code of the signal
     except (TableGrowthError, MemoryError) as err:  # the tables outgrew the machine mid-run
         where = f"{run.name} on system {system_name} ({run.system.n_robots} robots)"
         reason = (

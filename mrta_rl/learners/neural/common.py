@@ -449,7 +449,8 @@ class NeuralLearner(Learner):
         Returns:
             ``[B * T]`` transitions with the keys the loss reads.
         """
-        data = data.reshape(-1)
+        # the collector's trajectory ids are read by no loss, and restart on resume
+        data = data.reshape(-1).exclude("collector")
         scale = self.hp["reward_scale"]
         for group in self.group_map:
             for key in REWARD_KEYS:
@@ -598,6 +599,7 @@ class NeuralLearner(Learner):
         return {
             **super().checkpoint_state(directory),
             "gradient_steps": self.gradient_steps,
+            "frames_collected": self.frames_collected,
             "target_updaters": [u.state_dict() for u in self.target_updaters],
         }
 
@@ -611,6 +613,7 @@ class NeuralLearner(Learner):
         for module, saved in zip(self.egreedy, extra["egreedy"], strict=True):
             module.eps.copy_(saved["eps"])  # also EGreedyModule's state of older checkpoints
         self.gradient_steps = int(state["gradient_steps"])
+        self.frames_collected = int(state["frames_collected"])
         for updater, saved in zip(self.target_updaters, state["target_updaters"], strict=True):
             updater.load_state_dict(saved)
 
