@@ -136,6 +136,7 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
             epsilon = getattr(learner, "epsilon", None)
             if isinstance(epsilon, numbers.Real) and math.isfinite(epsilon):
                 postfix["eps"] = f"{float(epsilon):.3f}"
+                curve.torchrl_logger.log_scalar("train/epsilon", float(epsilon), step=env_ticks)
             bar.set_postfix(postfix, refresh=False)
             logger.debug("episode %d: team return %.1f", episode, team_return)
             if ckpt:

@@ -32,7 +32,6 @@ from torchrl.record.loggers import Logger
 
 from mrta_rl.envs.torchrl_env import AuctionTorchRLEnv
 from mrta_rl.learners.neural.common import read_tensors
-from mrta_rl.metrics.logger import CSVLogger
 from mrta_rl.runners.progress import progress_bar
 
 if TYPE_CHECKING:
@@ -46,38 +45,6 @@ logger = logging.getLogger(__name__)
 TORCH_THREADS = 1
 REPLAY_FILE = "replay.pt"  # training checkpoints: replay buffer and torch's generator
 TORCHRL_LOG_DIR = "torchrl"  # TorchRL CSVLogger scalars: <run dir>/torchrl/train/scalars/*.csv
-
-
-class TensorboardCurveLogger(CSVLogger):
-    """curve.csv as ``CSVLogger``, plus a TorchRL ``TensorboardLogger`` for every scalar.
-
-    Selected with ``logger=tensorboard`` (``conf/logger/tensorboard.yaml``). The neural runner
-    logs its training scalars to :attr:`torchrl_logger`; the tabular runner gets the curve.
-    """
-
-    def __init__(
-        self, *, run_dir: Path, filename: str = "curve.csv", log_dir: str = "tensorboard"
-    ) -> None:
-        """Open curve.csv and the TensorBoard event writer.
-
-        Args:
-            run_dir: The run's output directory.
-            filename: Curve file name inside ``run_dir``.
-            log_dir: TensorBoard folder inside ``run_dir``.
-        """
-        from torchrl.record.loggers import TensorboardLogger
-
-        super().__init__(run_dir=run_dir, filename=filename)
-        self.torchrl_logger: Logger = TensorboardLogger(
-            exp_name="train", log_dir=str(Path(run_dir) / log_dir)
-        )
-
-    def log(self, row: dict[str, float | int]) -> None:
-        """Write the curve row and its team return to TensorBoard (step = env ticks)."""
-        super().log(row)
-        self.torchrl_logger.log_scalar(
-            "train/team_return", float(row["team_return_mean"]), step=int(row["env_ticks"])
-        )
 
 
 def _scalar_logger(curve: Any, run_dir: Path) -> Logger:
@@ -207,7 +174,6 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
                     }
                     curve.log(row)
                     rows.append(row)
-                    scalars.log_scalar("train/team_return", team_return, step=frames)
                     running.zero_()
             buffer.extend(learner.transitions(data))
             learner.anneal(n_frames)

@@ -1,0 +1,106 @@
+"""logger=csv|tensorboard|wandb|mlflow: every tracker gets the curve, the training scalars and
+the final metrics, in files of the run dir and with no network."""
+
+from __future__ import annotations
+
+import csv
+import json
+import struct
+from pathlib import Path
+
+import pytest
+
+from mrta_rl.runners import train
+
+WANDB_BLOCK = 32768  # wandb's run file is a LevelDB log: 32 KiB blocks of chunked records
+
+
+def curve(run_dir: Path) -> list[tuple[int, float]]:
+    with (run_dir / "curve.csv").open() as f:
+        return [(int(r["env_ticks"]), float(r["team_return_mean"])) for r in csv.DictReader(f)]
+
+
+def wandb_records(path: Path) -> tuple[list[dict], dict]:
+    """History rows and the final summary of an offline wandb run file."""
+    from wandb.proto import wandb_internal_pb2
+
+    raw = path.read_bytes()
+    assert raw[:4] == b":W&B"
+    pos, chunks, records = 7, b"", []
+    while pos + 7 <= len(raw):
+        left = WANDB_BLOCK - pos % WANDB_BLOCK
+        _, length, kind = struct.unpack("<IHB", raw[pos : pos + 7])
+        if left < 7 or (length == 0 and kind == 0):  # block trailer or padding
+            pos += left
+            continue
+        chunks += raw[pos + 7 : pos + 7 + length]
+        pos += 7 + length
+        if kind in (1, 4):  # a full record, or the last chunk of one
+            records.append(chunks)
+            chunks = b""
+    history, summary = [], {}
+    for data in records:
+        record = wandb_internal_pb2.Record()
+        record.ParseFromString(data)
+        kind = record.WhichOneof("record_type")
+        if kind == "history":
+            history.append({_key(i): json.loads(i.value_json) for i in record.history.item})
+        elif kind == "summary":
+            summary.update({_key(i): json.loads(i.value_json) for i in record.summary.update})
+    return history, summary
+
+
+def _key(item) -> str:
+    return item.key or "/".join(item.nested_key)  # a key with "/" may come split
+
+
+def mlflow_metric(run: Path, name: str) -> list[tuple[int, float]]:
+    """``(step, value)`` of one metric in an MLflow file store run (lines: time value step)."""
+    lines = (run / "metrics" / name).read_text().split("\n")
+    return [(int(step), float(value)) for _, value, step in (ln.split() for ln in lines if ln)]
+
+
+def test_wandb_offline(compose_cfg, tmp_path):
+    cfg = compose_cfg(["learner=dql", "debug=smoke", "logger=wandb"])
+    metrics = train(cfg, run_dir=tmp_path)
+    (run_file,) = (tmp_path / "wandb").glob("offline-run-*/run-*.wandb")
+    history, summary = wandb_records(run_file)
+    logged = [
+        (h["train/step"], h["train/team_return"]) for h in history if "train/team_return" in h
+    ]
+    assert logged == curve(tmp_path) and len(logged) == cfg.train.episodes
+    assert [h["train/epsilon"] for h in history if "train/epsilon" in h]
+    assert summary["eval/team_return/mean"] == metrics["eval"]["team_return"]["mean"]
+    assert (
+        summary["baseline_greedy/team_return/mean"]
+        == (metrics["baseline_greedy"]["team_return"]["mean"])
+    )
+    assert summary["train/fps"] == pytest.approx(
+        metrics["train"]["env_ticks"] / metrics["train"]["wall_s"]
+    )
+
+
+def test_mlflow_file_store(compose_cfg, tmp_path):
+    cfg = compose_cfg(["learner=vdn", "debug=smoke", "logger=mlflow"])
+    metrics = train(cfg, run_dir=tmp_path)
+    (run,) = [p.parent for p in (tmp_path / "mlruns").glob("*/*/meta.yaml")]
+    assert mlflow_metric(run, "train/team_return") == curve(tmp_path)
+    for name in ("train/loss", "train/epsilon", "fps/collection", "fps/training"):
+        assert mlflow_metric(run, name), name  # the neural runner's scalars
+    (final,) = mlflow_metric(run, "eval/team_return/mean")
+    assert final == (metrics["train"]["env_ticks"], metrics["eval"]["team_return"]["mean"])
+
+
+@pytest.mark.parametrize("logger", ["csv", "tensorboard"])
+def test_csv_and_tensorboard(logger, compose_cfg, tmp_path):
+    cfg = compose_cfg(["learner=dql", "debug=smoke", f"logger={logger}"])
+    metrics = train(cfg, run_dir=tmp_path)
+    assert len(curve(tmp_path)) == cfg.train.episodes
+    if logger == "tensorboard":
+        assert list((tmp_path / "tensorboard").rglob("events.out.tfevents.*"))
+        return
+    scalars = tmp_path / "torchrl" / "train" / "scalars"
+    with (scalars / "train" / "team_return.csv").open() as f:
+        assert [(int(s), float(v)) for s, v in csv.reader(f)] == curve(tmp_path)
+    step, value = (scalars / "eval" / "team_return" / "mean.csv").read_text().split(",")
+    assert float(value) == metrics["eval"]["team_return"]["mean"]
