@@ -58,3 +58,35 @@ def test_two_team_files_of_one_name_are_refused(tmp_path):
         (tmp_path / folder / "team.yaml").write_text(TEAM)
     with pytest.raises(UserError, match="the file name 'team' is taken by .*a/team.yaml"):
         use_team_files([f"system={tmp_path / 'a' / 'team.yaml'},{tmp_path / 'b' / 'team.yaml'}"])
+
+
+@pytest.fixture
+def benchmarl_task(monkeypatch):
+    """``AuctionTask`` over a stand-in of BenchMARL's ``TaskClass`` (BenchMARL has its own venv)."""
+    import importlib
+    import sys
+    import types
+
+    class TaskClass:  # BenchMARL 1.5's constructor: name and config kept as attributes
+        def __init__(self, name, config):
+            self.name, self.config = name, config
+
+    for name in ("benchmarl", "benchmarl.environments", "benchmarl.environments.common"):
+        monkeypatch.setitem(sys.modules, name, types.ModuleType(name))
+    sys.modules["benchmarl.environments.common"].TaskClass = TaskClass
+    monkeypatch.delitem(sys.modules, "mrta_rl.envs.benchmarl_task", raising=False)
+    yield importlib.import_module("mrta_rl.envs.benchmarl_task").AuctionTask
+    sys.modules.pop("mrta_rl.envs.benchmarl_task", None)
+
+
+def test_benchmarl_task_takes_a_team_file(benchmarl_task, tmp_path):
+    team = tmp_path / "my_team.yaml"
+    team.write_text(TEAM)
+    task = benchmarl_task(config={"system": str(team), "horizon": 5})
+    env = task.get_env_fun(num_envs=2, continuous_actions=False, seed=0, device="cpu")()
+    assert env.group_map == {"agents": ["R1", "R2"]}
+    with pytest.raises(UserError, match="unknown system 'system9': no file .*known: "):
+        benchmarl_task(config={"system": "system9"})
+    (tmp_path / "bad.yaml").write_text("name: bad\nrobots:\n  R1: []\n")
+    with pytest.raises(UserError, match="robot R1 has no task type"):
+        benchmarl_task(config={"system": str(tmp_path / "bad.yaml")})
