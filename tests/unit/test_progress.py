@@ -77,3 +77,17 @@ def test_the_interval_is_checked(compose_cfg, tmp_path):
     cfg = compose_cfg(["debug=smoke", "train.log_every_s=0"])
     with pytest.raises(ValueError, match=r"train.log_every_s: must be a number > 0, got 0"):
         train(cfg, run_dir=tmp_path)
+
+
+def test_lines_keep_coming_during_a_run(compose_cfg, tmp_path, caplog):
+    """About a second of training with a 0.1 s interval: no silence longer than the interval."""
+    every_s, slack_s = 0.1, 0.3  # slack: the tick that crosses the interval, a busy machine
+    overrides = ["learner=dql", "debug=smoke", "env.horizon=1000", "train.episodes=20"]
+    overrides.append(f"train.log_every_s={every_s}")
+    caplog.set_level(logging.INFO, logger="mrta_rl.runners")
+    train(compose_cfg(overrides), run_dir=tmp_path)
+    lines = [r for r in caplog.records if LINE.match(r.getMessage())]
+    (end,) = [r for r in caplog.records if r.getMessage().startswith("trained 20 episodes")]
+    times = [r.created for r in [*lines, end]]
+    assert len(lines) >= 3
+    assert max(b - a for a, b in zip(times, times[1:], strict=False)) <= every_s + slack_s
