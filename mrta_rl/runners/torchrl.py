@@ -32,6 +32,7 @@ from torchrl.record.loggers import Logger
 
 from mrta_rl.envs.torchrl_env import AuctionTorchRLEnv
 from mrta_rl.learners.neural.common import read_tensors
+from mrta_rl.metrics.logger import CSVLogger
 from mrta_rl.runners.progress import progress_bar
 
 if TYPE_CHECKING:
@@ -45,6 +46,19 @@ logger = logging.getLogger(__name__)
 TORCH_THREADS = 1
 REPLAY_FILE = "replay.pt"  # training checkpoints: replay buffer and torch's generator
 TORCHRL_LOG_DIR = "torchrl"  # TorchRL CSVLogger scalars: <run dir>/torchrl/train/scalars/*.csv
+
+
+class TensorboardCurveLogger(CSVLogger):
+    """``logger=tensorboard`` as runs configured before ``conf/logger`` named a backend say it.
+
+    Their ``.hydra/config.yaml`` names this class: it is :class:`CSVLogger` on TensorBoard.
+    """
+
+    def __init__(
+        self, *, run_dir: Path, filename: str = "curve.csv", log_dir: str = "tensorboard"
+    ) -> None:
+        """Open curve.csv and the run's TensorBoard logger (see :class:`CSVLogger`)."""
+        super().__init__(run_dir=run_dir, filename=filename, backend="tensorboard", log_dir=log_dir)
 
 
 def _scalar_logger(curve: Any, run_dir: Path) -> Logger:
