@@ -25,6 +25,7 @@ down, so the evaluation lands in the same tracker run as the curve.
 from __future__ import annotations
 
 import csv
+import hashlib
 import math
 import numbers
 import os
@@ -149,7 +150,9 @@ def open_tracker(run_dir: Path, backend: Backend, log_dir: str, project: str) ->
 
         os.environ["WANDB_MODE"] = "offline"  # no network: `wandb sync` uploads the files later
         tracker = WandbLogger(
-            exp_name=key.name,
+            exp_name=run_name(key),
+            # one id per run dir: a resumed run continues its W&B run ("resume": "allow")
+            id=hashlib.sha1(str(key).encode()).hexdigest()[:16],
             offline=True,
             save_dir=str(folder),
             project=project,
@@ -162,13 +165,20 @@ def open_tracker(run_dir: Path, backend: Backend, log_dir: str, project: str) ->
 
         # MLflow 3 keeps the file store (no database, no server) behind this switch
         os.environ["MLFLOW_ALLOW_FILE_STORE"] = "true"
-        tracker = MLFlowLogger(exp_name=project, tracking_uri=folder.as_uri(), run_name=key.name)
+        tracker = MLFlowLogger(
+            exp_name=project, tracking_uri=folder.as_uri(), run_name=run_name(key)
+        )
     else:
         raise ValueError(
             f"logger.backend: must be csv, tensorboard, wandb or mlflow, got {backend}"
         )
     _TRACKERS[key] = tracker
     return tracker
+
+
+def run_name(run_dir: Path) -> str:
+    """The tracker run's name: the run dir's, with its sweep's for a sweep job (``<sweep>/3``)."""
+    return "/".join(run_dir.parts[-2:]) if run_dir.name.isdigit() else run_dir.name
 
 
 def final_scalars(metrics: Mapping[str, Any]) -> dict[str, float]:
