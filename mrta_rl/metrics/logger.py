@@ -121,6 +121,8 @@ class CSVLogger:
 def open_tracker(run_dir: Path, backend: Backend, log_dir: str, project: str) -> Any:
     """The TorchRL logger of ``run_dir``: the one open in this process, else a new one.
 
+    Opening the tracker of another run dir shuts down the one still open.
+
     Args:
         run_dir: The run's output directory.
         backend: ``csv``, ``tensorboard``, ``wandb`` or ``mlflow``.
@@ -136,6 +138,10 @@ def open_tracker(run_dir: Path, backend: Backend, log_dir: str, project: str) ->
     key = Path(run_dir).resolve()
     if key in _TRACKERS:
         return _TRACKERS[key]
+    # W&B and MLflow have one active run per process: a run dir left unfinished (a loop that
+    # failed, a benchmark's run, a test) is shut down before the next one starts
+    for other in list(_TRACKERS):
+        _shutdown(_TRACKERS.pop(other))
     folder = key / log_dir
     if backend == "csv":
         from torchrl.record.loggers import CSVLogger as TorchRLCSVLogger
@@ -165,9 +171,10 @@ def open_tracker(run_dir: Path, backend: Backend, log_dir: str, project: str) ->
 
         # MLflow 3 keeps the file store (no database, no server) behind this switch
         os.environ["MLFLOW_ALLOW_FILE_STORE"] = "true"
-        tracker = MLFlowLogger(
-            exp_name=project, tracking_uri=folder.as_uri(), run_name=run_name(key)
-        )
+        import mlflow
+
+        tracker = MLFlowLogger(exp_name=project, tracking_uri=folder.as_uri())
+        mlflow.set_tag("mlflow.runName", run_name(key))  # TorchRL starts the run unnamed
     else:
         raise ValueError(
             f"logger.backend: must be csv, tensorboard, wandb or mlflow, got {backend}"
@@ -221,4 +228,13 @@ def finish_run(run_dir: Path, metrics: Mapping[str, Any]) -> None:
     step = int(metrics.get("train", {}).get("env_ticks", 0))
     for name, value in final_scalars(metrics).items():
         tracker.log_scalar(name, value, step=step)
+    _shutdown(tracker)
+
+
+def _shutdown(tracker: Any) -> None:
+    """Flush and close a TorchRL logger, and end its MLflow run (TorchRL's shutdown does not)."""
     tracker.shutdown()
+    if type(tracker).__name__ == "MLFlowLogger":
+        import mlflow
+
+        mlflow.end_run()

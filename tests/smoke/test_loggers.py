@@ -10,6 +10,7 @@ import time
 from pathlib import Path
 
 import pytest
+from hydra.utils import instantiate
 from omegaconf import open_dict
 
 from mrta_rl.runners import train
@@ -128,3 +129,15 @@ def test_tensorboard_as_older_runs_name_it(compose_cfg, tmp_path):
     train(cfg, run_dir=tmp_path)
     assert len(curve(tmp_path)) == cfg.train.episodes
     assert list((tmp_path / "tensorboard").rglob("events.out.tfevents.*"))
+
+
+def test_a_run_left_open_does_not_block_the_next(compose_cfg, tmp_path):
+    """W&B and MLflow keep one active run per process: an unfinished one is ended first."""
+    cfg = compose_cfg(["learner=greedy", "debug=smoke", "logger=mlflow"])
+    hydra_logger = instantiate(cfg.logger)
+    hydra_logger(run_dir=tmp_path / "left_open").close()  # as a loop that failed leaves it
+    train(cfg, run_dir=tmp_path / "next")
+    for name in ("left_open", "next"):
+        (meta,) = (tmp_path / name / "mlruns").glob("*/*/meta.yaml")
+        assert "status: 3" in meta.read_text(), name  # MLflow's RunStatus.FINISHED
+        assert (meta.parent / "tags" / "mlflow.runName").read_text() == name  # the run dir's
