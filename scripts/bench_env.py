@@ -1,60 +1,8 @@
-"""Env-ticks per second of the auction env under greedy: step and play paths, plain-loop ratios.
-
-Usage: python scripts/bench_env.py [--batch-sizes 1 16 64 1024 8192] [--threads 1 2]
-       [--paths step play] [--repeats 3] [--seconds 1.0] [--systems system1 system2 random100]
-       [--clock wall|cpu] [--out FILE]
-"""
+"""``mrta-bench`` as a script: same code (mrta_rl/commands/bench.py), same arguments."""
 
 from __future__ import annotations
 
-import argparse
-import json
-from pathlib import Path
-
-import yaml
-from tqdm import tqdm
-
-from mrta_rl.envs.benchmark import bench_env, bench_plain_loop, format_table
-from mrta_rl.systems import build_system, random_system
-
-CONF = Path(__file__).resolve().parents[1] / "conf" / "system"
+from mrta_rl.commands.bench import main
 
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--batch-sizes", type=int, nargs="+", default=[1, 16, 64, 1024, 8192])
-    parser.add_argument("--threads", type=int, nargs="+", default=[1, 2], help="thread counts")
-    parser.add_argument("--paths", nargs="+", default=["step", "play"], choices=["step", "play"])
-    parser.add_argument("--repeats", type=int, default=3, help="side-by-side repeats (ratios)")
-    parser.add_argument("--seconds", type=float, default=1.0, help="least wall time per cell")
-    parser.add_argument("--systems", nargs="+", default=["system1", "system2", "random100"])
-    parser.add_argument("--clock", default="wall", choices=["wall", "cpu"], help="cpu: steadier")
-    parser.add_argument("--out", default="bench_env.json")
-    args = parser.parse_args()
-    systems = [
-        random_system(100, 20, 0.15, seed=0, name="random100")
-        if name == "random100"
-        else build_system(yaml.safe_load((CONF / f"{name}.yaml").read_text()))
-        for name in args.systems
-    ]
-    cells = [(s, None, 1, 1) for s in systems] + [
-        (s, path, b, n)
-        for s in systems
-        for path in args.paths
-        for n in args.threads
-        for b in args.batch_sizes
-        if b >= n
-    ]
-    results = []
-    with tqdm(total=args.repeats * len(cells), desc="bench_env", unit="cell") as bar:
-        for _ in range(args.repeats):  # one repeat = every cell, side by side
-            for system, path, b, n in cells:
-                if path is None:
-                    results.append(bench_plain_loop(system, args.seconds, args.clock))
-                else:
-                    results.append(
-                        bench_env(system, b, n, args.seconds, path=path, clock=args.clock)
-                    )
-                bar.update()
-    print(format_table(results))
-    Path(args.out).write_text(json.dumps([r.as_dict() for r in results], indent=2))
-    print(f"wrote {args.out}")
+    main()

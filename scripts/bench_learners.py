@@ -33,9 +33,7 @@ if __name__ == "__main__":
     parser.add_argument("--repeats", type=int, default=3, help="repeats (min and median)")
     parser.add_argument("--seconds", type=float, default=2.0, help="least wall time per yardstick")
     parser.add_argument("--baseline", type=Path, help="another checkout to measure in turns")
-    parser.add_argument(
-        "--experiment", default="", help="conf/experiment for this checkout's runs"
-    )
+    parser.add_argument("--experiment", default="", help="conf/experiment for this checkout's runs")
     parser.add_argument("--out", default="bench_learners.json")
     args = parser.parse_args()
     codes = {"baseline": args.baseline, "this": None} if args.baseline else {"this": None}

@@ -1,27 +1,8 @@
-"""Re-evaluate a finished training run and write eval_metrics.json in its run dir.
-
-Usage: ``python scripts/evaluate.py checkpoint=outputs/<date>/<time>_<learner>_<id> [episodes=50]
-[batch_size=50]``.
-The run dir is read as data (``mrta_rl/runners/checkpoint.py``): a tampered config or damaged
-tables are refused with a message naming the key or file.
-"""
+"""``mrta-evaluate`` as a script: same code (mrta_rl/commands/evaluate.py), same arguments."""
 
 from __future__ import annotations
 
-import hydra
-from omegaconf import DictConfig
-
-from mrta_rl.runners import cli, evaluate_checkpoint, format_summary
-
-
-@hydra.main(config_path="../conf", config_name="evaluate", version_base=None)
-@cli.job
-def main(cfg: DictConfig) -> None:
-    metrics = evaluate_checkpoint(
-        hydra.utils.to_absolute_path(cfg.checkpoint), cfg.episodes, cfg.batch_size
-    )
-    print(format_summary(metrics))
-
+from mrta_rl.commands.evaluate import main
 
 if __name__ == "__main__":
-    cli.run(main)
+    main()

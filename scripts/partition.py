@@ -1,33 +1,8 @@
-"""Print the subG-CQL partition (paper §4) of a system.
-
-Usage: ``python scripts/partition.py system=system1 [format=json] [partition.max_group_size=4]``.
-"""
+"""``mrta-partition`` as a script: same code (mrta_rl/commands/partition.py), same arguments."""
 
 from __future__ import annotations
 
-import json
-
-import hydra
-from omegaconf import DictConfig, OmegaConf
-
-from mrta_rl.config import ConfigError
-from mrta_rl.partition import format_partition, subg_partition
-from mrta_rl.runners import cli
-from mrta_rl.systems import build_system
-
-
-@hydra.main(config_path="../conf", config_name="partition", version_base=None)
-@cli.job
-def main(cfg: DictConfig) -> None:
-    system = build_system(OmegaConf.to_container(cfg.system, resolve=True))
-    partition = subg_partition(system, cfg.partition.max_group_size)
-    if cfg.format == "json":
-        print(json.dumps(partition.to_json()))
-    elif cfg.format == "table":
-        print(format_partition(partition))
-    else:
-        raise ConfigError(f"format: must be 'table' or 'json', got {cfg.format!r}")
-
+from mrta_rl.commands.partition import main
 
 if __name__ == "__main__":
-    cli.run(main)
+    main()

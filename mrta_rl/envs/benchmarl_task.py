@@ -15,36 +15,32 @@ needs BenchMARL; the env itself runs under the torchrl BenchMARL installs.
 from __future__ import annotations
 
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
-import yaml
 from benchmarl.environments.common import TaskClass
 from torchrl.data import Composite
 from torchrl.envs import EnvBase
 
+from mrta_rl.conf_files import system_file
 from mrta_rl.envs import AuctionEnv, AuctionParams
 from mrta_rl.envs.torchrl_env import AuctionTorchRLEnv
-from mrta_rl.systems import build_system
+from mrta_rl.envs.view_inputs import resolve_system
 
-SYSTEM_DIR = Path(__file__).resolve().parents[2] / "conf" / "system"
 GROUP = "agents"
 
 
 class AuctionTask(TaskClass):
     """The auction on one system; config ``{"system": "system2", "horizon": 1000}``.
 
-    ``system`` names a file of ``conf/system/`` (``system1``, ``system2``, ``random``);
+    ``system`` names a file of ``conf/system/`` (``system1``, ``system2``, ``random``) or is the
+    path of a team yaml (``/path/to/team.yaml``), checked as the Gymnasium view checks it;
     ``horizon`` is the episode length in ticks (also BenchMARL's evaluation ``max_steps``).
     """
 
     def __init__(self, name: str = "auction", config: dict[str, Any] | None = None) -> None:
         """Check the config (a clear error before BenchMARL builds anything)."""
         config = {"system": "system2", "horizon": 1000, **(config or {})}
-        path = SYSTEM_DIR / f"{config['system']}.yaml"
-        if not path.is_file():
-            known = sorted(p.stem for p in SYSTEM_DIR.glob("*.yaml"))
-            raise ValueError(f"unknown system {config['system']!r}; known: {known}")
+        resolve_system(config["system"])  # an unknown name, missing file or bad team: refused here
         if not (isinstance(config["horizon"], int) and config["horizon"] >= 1):
             raise ValueError(f"horizon must be an int >= 1, got {config['horizon']!r}")
         super().__init__(name, config)
@@ -53,11 +49,11 @@ class AuctionTask(TaskClass):
         self, num_envs: int, continuous_actions: bool, seed: int | None, device: Any
     ) -> Callable[[], EnvBase]:
         """A builder of ``num_envs`` copies (copy ``b`` seeded ``seed + b``), on cpu."""
-        path = SYSTEM_DIR / f"{self.config['system']}.yaml"
+        path = system_file(self.config["system"])
         horizon = self.config["horizon"]
 
         def make() -> EnvBase:
-            system = build_system(yaml.safe_load(path.read_text()))
+            system = resolve_system(path)
             core = AuctionEnv(system, AuctionParams(horizon=horizon), num_envs, seed=seed or 0)
             return AuctionTorchRLEnv(core, group_map={GROUP: list(system.robots)})
 

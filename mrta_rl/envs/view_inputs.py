@@ -1,8 +1,9 @@
 """What the Gymnasium and PettingZoo views accept, shared by both: systems, params, bad actions.
 
-* **Systems** by name (``"system1"``, ``"system2"``, ``"random"``: the files of the repository's
-  ``conf/system/``, which an editable install keeps next to the package), by yaml path, as a
-  system config mapping (the content of such a file) or as a :class:`RobotSystem`.
+* **Systems** by name (``"system1"``, ``"system2"``, ``"random"``: the files of ``conf/system/``,
+  shipped in the package), by the path of a team yaml anywhere
+  (:func:`mrta_rl.conf_files.system_file`), as a system config mapping (the content of such a
+  file) or as a :class:`RobotSystem`.
 * **Params** as :class:`AuctionParams` or as a mapping of overrides on top of the spec defaults
   and the system file's ``env:`` block (``{"horizon": 200}``).
 * **Invalid actions** (docs/spec/auction_env.md, step 4: the core rejects them with a
@@ -16,12 +17,12 @@ from __future__ import annotations
 
 import os
 from collections.abc import Mapping
-from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
 import yaml
 
+from mrta_rl.conf_files import system_file
 from mrta_rl.envs.auction import AuctionEnv
 from mrta_rl.envs.params import AuctionParams
 from mrta_rl.systems import RobotSystem, build_system
@@ -29,7 +30,6 @@ from mrta_rl.systems import RobotSystem, build_system
 InvalidAction = Literal["raise", "wait"]
 INVALID_ACTION_MODES: tuple[str, ...] = ("raise", "wait")
 DEFAULT_INVALID_ACTION: InvalidAction = "wait"
-SYSTEM_DIR = Path(__file__).resolve().parents[2] / "conf" / "system"  # the repository's systems
 
 SystemLike = RobotSystem | str | os.PathLike | Mapping[str, Any]
 
@@ -50,7 +50,8 @@ def resolve_system(system: SystemLike) -> RobotSystem:
     """The robot team named or described by ``system`` (see the module docstring).
 
     Raises:
-        ValueError: for an unknown name or a missing file, naming it and the known systems.
+        UserError: for an unknown name or a missing file, naming it and the known systems (a
+            ``ValueError``).
         SystemConfigError: for a malformed system description (naming the culprit).
     """
     if isinstance(system, RobotSystem):
@@ -58,13 +59,7 @@ def resolve_system(system: SystemLike) -> RobotSystem:
     if isinstance(system, Mapping):
         return build_system(system)
     if isinstance(system, str | os.PathLike):
-        path = Path(system)
-        if path.suffix not in (".yaml", ".yml"):
-            path = SYSTEM_DIR / f"{path}.yaml"
-        if not path.is_file():
-            known = sorted(p.stem for p in SYSTEM_DIR.glob("*.yaml"))
-            raise ValueError(f"unknown system {str(system)!r}: no file {path}; known: {known}")
-        return build_system(yaml.safe_load(path.read_text()))
+        return build_system(yaml.safe_load(system_file(system).read_text()))
     raise TypeError(
         f"system must be a RobotSystem, a name, a yaml path or a mapping, got {type(system)}"
     )

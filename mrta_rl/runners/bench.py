@@ -53,7 +53,9 @@ def _compose(overrides: list[str]) -> Any:
     from hydra.core.global_hydra import GlobalHydra
 
     GlobalHydra.instance().clear()
-    with initialize_config_dir(config_dir=str(_repo_root() / "conf"), version_base=None):
+    from mrta_rl.conf_files import conf_dir
+
+    with initialize_config_dir(config_dir=str(conf_dir()), version_base=None):
         return compose(config_name="config", overrides=overrides)
 
 

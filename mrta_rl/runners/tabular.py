@@ -46,6 +46,7 @@ def skip_training(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, An
     Returns:
         ``{"env_ticks": 0, "wall_s": 0.0, "episodes": 0}``.
     """
+    logger.info("train %s: a fixed policy, nothing to train", run.name)  # its progress line
     instantiate(cfg.logger)(run_dir=run_dir).close()
     return {"env_ticks": 0, "wall_s": 0.0, "episodes": 0}
 
@@ -109,6 +110,8 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
             unit="tick",
             desc=f"train {run.name}",
             enabled=cfg.train.progress_bar,
+            log_every_s=cfg.train.get("log_every_s"),
+            episode_units=horizon,
         ) as bar,
         ckpt.catch_interrupt() if ckpt else nullcontext(),
     ):
@@ -133,6 +136,7 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
             epsilon = getattr(learner, "epsilon", None)
             if isinstance(epsilon, numbers.Real) and math.isfinite(epsilon):
                 postfix["eps"] = f"{float(epsilon):.3f}"
+                curve.torchrl_logger.log_scalar("train/epsilon", float(epsilon), step=env_ticks)
             bar.set_postfix(postfix, refresh=False)
             logger.debug("episode %d: team return %.1f", episode, team_return)
             if ckpt:

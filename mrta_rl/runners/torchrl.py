@@ -54,35 +54,16 @@ TORCHRL_LOG_DIR = "torchrl"  # TorchRL CSVLogger scalars: <run dir>/torchrl/trai
 
 
 class TensorboardCurveLogger(CSVLogger):
-    """curve.csv as ``CSVLogger``, plus a TorchRL ``TensorboardLogger`` for every scalar.
+    """``logger=tensorboard`` as runs configured before ``conf/logger`` named a backend say it.
 
-    Selected with ``logger=tensorboard`` (``conf/logger/tensorboard.yaml``). The neural runner
-    logs its training scalars to :attr:`torchrl_logger`; the tabular runner gets the curve.
+    Their ``.hydra/config.yaml`` names this class: it is :class:`CSVLogger` on TensorBoard.
     """
 
     def __init__(
         self, *, run_dir: Path, filename: str = "curve.csv", log_dir: str = "tensorboard"
     ) -> None:
-        """Open curve.csv and the TensorBoard event writer.
-
-        Args:
-            run_dir: The run's output directory.
-            filename: Curve file name inside ``run_dir``.
-            log_dir: TensorBoard folder inside ``run_dir``.
-        """
-        from torchrl.record.loggers import TensorboardLogger
-
-        super().__init__(run_dir=run_dir, filename=filename)
-        self.torchrl_logger: Logger = TensorboardLogger(
-            exp_name="train", log_dir=str(Path(run_dir) / log_dir)
-        )
-
-    def log(self, row: dict[str, float | int]) -> None:
-        """Write the curve row and its team return to TensorBoard (step = env ticks)."""
-        super().log(row)
-        self.torchrl_logger.log_scalar(
-            "train/team_return", float(row["team_return_mean"]), step=int(row["env_ticks"])
-        )
+        """Open curve.csv and the run's TensorBoard logger (see :class:`CSVLogger`)."""
+        super().__init__(run_dir=run_dir, filename=filename, backend="tensorboard", log_dir=log_dir)
 
 
 def _scalar_logger(curve: Any, run_dir: Path) -> Logger:
@@ -185,6 +166,8 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
             unit_scale=True,
             desc=f"train {run.name}",
             enabled=cfg.train.progress_bar,
+            log_every_s=cfg.train.get("log_every_s"),
+            episode_units=horizon * batch,
         ) as bar,
         ckpt.catch_interrupt() if ckpt else nullcontext(),
     ):
@@ -213,7 +196,6 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
                     }
                     curve.log(row)
                     rows.append(row)
-                    scalars.log_scalar("train/team_return", team_return, step=frames)
                     running.zero_()
             buffer.extend(learner.transitions(data))
             learner.anneal(n_frames)

@@ -27,6 +27,7 @@ from mrta_rl.config import ConfigError
 from mrta_rl.envs import AuctionEnv, AuctionParams
 from mrta_rl.learners import Learner
 from mrta_rl.learners.tabular.qtable import TableGrowthError, limit_growth
+from mrta_rl.metrics.logger import finish_run
 from mrta_rl.metrics.resources import RunResources
 from mrta_rl.partition import Partition
 from mrta_rl.runners.checkpoint import (
@@ -229,6 +230,7 @@ def train(cfg: DictConfig, run_dir: Path | str | None = None) -> dict[str, Any]:
     if run.partition is not None:
         write_json(run_dir / "partition.json", run.partition.to_json())
     write_json(run_dir / METRICS_FILE, metrics, exclusive=True)
+    finish_run(run_dir, metrics)  # the final metrics to the run's tracker (logger=wandb...)
     run.checkpoint.finish()
     logger.info("wrote %s", run_dir / METRICS_FILE)
     return metrics

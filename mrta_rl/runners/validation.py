@@ -70,6 +70,9 @@ class TrainSettings:
     episodes: Annotated[int, Range(0)]  # training episodes of all copies
     batch_size: Annotated[int, Range(1)]  # B: copies played in parallel
     progress_bar: bool  # tqdm bar on stderr
+    # seconds between progress lines in the log when there is no bar; absent from the configs of
+    # runs written before it existed, which then log every runners/progress.py LOG_EVERY_S
+    log_every_s: Annotated[float, Range(0, low_open=True)] = 30.0
     # episodes between training checkpoints, 0 = only on Ctrl-C; absent from the configs of runs
     # written before checkpoints existed, which then have none
     checkpoint_every: Annotated[int, Range(0)] = 0

@@ -1,0 +1,72 @@
+"""The console commands (``[project.scripts]``: ``mrta-train``, ``mrta-evaluate``, ...).
+
+Each module is one command and is named as its script in ``scripts/`` (Hydra names the job,
+and so the run dir's log file, after the module: ``train.log``). The scripts are thin wrappers
+over these modules, so ``python scripts/train.py ARGS`` and ``mrta-train ARGS`` run the same code
+with the same overrides, from any directory.
+
+A team yaml from anywhere: ``system=/path/to/team.yaml`` (or ``system=team.yaml`` relative to the
+working directory; a comma-separated list in a sweep) is read before Hydra starts, checked as a
+shipped system is, and given to Hydra under its file name (``team``), which the run then
+reports as its system.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import yaml
+from hydra.core.config_store import ConfigStore
+
+from mrta_rl.conf_files import is_system_path, shipped_systems, system_file
+from mrta_rl.config import UserError
+from mrta_rl.systems import build_system
+
+SYSTEM_OVERRIDE = "system="
+
+
+def use_team_files(argv: list[str] | None = None) -> list[str]:
+    """Turn ``system=<team yaml>`` overrides into names of Hydra's ``system`` group.
+
+    Every yaml path of a ``system=`` override (several: a sweep) is read, checked with
+    :func:`~mrta_rl.systems.build_system` and stored in Hydra's config store under the file's
+    name; the override then names it. Names of shipped systems pass unchanged.
+
+    Args:
+        argv: The command line, changed in place; default ``sys.argv``.
+
+    Returns:
+        The command line.
+
+    Raises:
+        UserError: for a missing file, a malformed team (the message names the file and the
+            culprit) or a file named as a shipped system or as another team file.
+    """
+    argv = sys.argv if argv is None else argv
+    taken: dict[str, str] = {}
+    for i, arg in enumerate(argv):
+        if not arg.startswith(SYSTEM_OVERRIDE):
+            continue
+        names = []
+        for item in arg[len(SYSTEM_OVERRIDE) :].split(","):
+            if not is_system_path(item):
+                names.append(item)
+                continue
+            path = system_file(item).resolve()
+            name = path.stem
+            if name in shipped_systems() or taken.get(name, str(path)) != str(path):
+                raise UserError(
+                    f"system={item}: the file name {name!r} is taken by "
+                    f"{'a shipped system' if name in shipped_systems() else taken[name]}; "
+                    "rename the file"
+                )
+            taken[name] = str(path)
+            team = yaml.safe_load(path.read_text())
+            try:
+                build_system(team)
+            except (UserError, TypeError) as err:
+                raise UserError(f"{path}: {err}") from None
+            ConfigStore.instance().store(group="system", name=name, node=team)
+            names.append(name)
+        argv[i] = SYSTEM_OVERRIDE + ",".join(names)
+    return argv

@@ -1,0 +1,72 @@
+"""``mrta-bench``: env-ticks per second of the auction env under greedy, plain-loop ratios.
+
+Usage: ``mrta-bench [--batch-sizes 1 16 64 1024 8192] [--threads 1 2] [--paths step play]
+[--repeats 3] [--seconds 1.0] [--systems system1 system2 random100] [--clock wall|cpu]
+[--out FILE]`` (or ``python scripts/bench_env.py ...``; ``make bench``). A system is a shipped
+one, ``random100`` (100 random robots) or the path of a team yaml. The plain loop is the tests'
+reference (``tests/unit/reference_auction.py``): an installed package without the repository
+measures the env alone.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import yaml
+from tqdm import tqdm
+
+from mrta_rl.conf_files import system_file
+from mrta_rl.envs.benchmark import REFERENCE, bench_env, bench_plain_loop, format_table
+from mrta_rl.runners import cli
+from mrta_rl.systems import build_system, random_system
+
+
+def _task() -> None:
+    parser = argparse.ArgumentParser(prog="mrta-bench", description=__doc__.splitlines()[0])
+    parser.add_argument("--batch-sizes", type=int, nargs="+", default=[1, 16, 64, 1024, 8192])
+    parser.add_argument("--threads", type=int, nargs="+", default=[1, 2], help="thread counts")
+    parser.add_argument("--paths", nargs="+", default=["step", "play"], choices=["step", "play"])
+    parser.add_argument("--repeats", type=int, default=3, help="side-by-side repeats (ratios)")
+    parser.add_argument("--seconds", type=float, default=1.0, help="least wall time per cell")
+    parser.add_argument("--systems", nargs="+", default=["system1", "system2", "random100"])
+    parser.add_argument("--clock", default="wall", choices=["wall", "cpu"], help="cpu: steadier")
+    parser.add_argument("--out", default="bench_env.json")
+    args = parser.parse_args()
+    systems = [
+        random_system(100, 20, 0.15, seed=0, name="random100")
+        if name == "random100"
+        else build_system(yaml.safe_load(system_file(name).read_text()))
+        for name in args.systems
+    ]
+    if not REFERENCE.exists():
+        print(f"no plain loop: {REFERENCE} is not here (a clone of the repository has it)")
+    plain = [(s, None, 1, 1) for s in systems] if REFERENCE.exists() else []
+    cells = plain + [
+        (s, path, b, n)
+        for s in systems
+        for path in args.paths
+        for n in args.threads
+        for b in args.batch_sizes
+        if b >= n
+    ]
+    results = []
+    with tqdm(total=args.repeats * len(cells), desc="bench_env", unit="cell") as bar:
+        for _ in range(args.repeats):  # one repeat = every cell, side by side
+            for system, path, b, n in cells:
+                if path is None:
+                    results.append(bench_plain_loop(system, args.seconds, args.clock))
+                else:
+                    results.append(
+                        bench_env(system, b, n, args.seconds, path=path, clock=args.clock)
+                    )
+                bar.update()
+    print(format_table(results))
+    Path(args.out).write_text(json.dumps([r.as_dict() for r in results], indent=2))
+    print(f"wrote {args.out}")
+
+
+def main() -> None:
+    """Run the command with the arguments of the command line."""
+    cli.run(_task)
