@@ -38,6 +38,7 @@ from omegaconf import OmegaConf
 
 from mrta_rl.config import UserError, declared_keywords
 from mrta_rl.runners.checkpoint import METRICS_FILE, REFUSED_FILE, fill_settings_before
+from mrta_rl.runners.run_files import read_metrics
 
 logger = logging.getLogger(__name__)
 
@@ -156,14 +157,9 @@ def load_run(run_dir: Path) -> RunRecord:
         The record.
 
     Raises:
-        ValueError: if metrics.json lacks the keys every runner writes.
+        RunDirError: if metrics.json is damaged (naming the file and key).
     """
-    metrics = json.loads((run_dir / METRICS_FILE).read_text())
-    missing = {"learner", "system", "seed", "eval"} - set(metrics)
-    if missing:
-        raise ValueError(
-            f"{run_dir / METRICS_FILE}: not a run's metrics.json, no {sorted(missing)}"
-        )
+    metrics = read_metrics(run_dir / METRICS_FILE)
     config = _load_yaml(run_dir / ".hydra" / "config.yaml") or {}
     overrides = _load_yaml(run_dir / ".hydra" / "overrides.yaml") or []
     return RunRecord(
