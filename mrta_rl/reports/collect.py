@@ -48,6 +48,10 @@ BASIC_SWEEPER = "hydra._internal.core_plugins.basic_sweeper.BasicSweeper"
 NOT_CONFIGURATION = ("seed", "resume", "train.progress_bar", "train.checkpoint_every")
 
 
+class ReportInputError(UserError):
+    """The report's inputs hold nothing to report, or do not exist."""
+
+
 @dataclass(frozen=True)
 class RunRecord:
     """One finished run.
@@ -362,12 +366,12 @@ def collect_runs(inputs: Iterable[Path | str]) -> Collection:
         The collection (runs sorted by learner, system, seed).
 
     Raises:
-        FileNotFoundError: if an input does not exist.
+        ReportInputError: if an input does not exist.
     """
     paths = [Path(p) for p in inputs]
     for path in paths:
         if not path.exists():
-            raise FileNotFoundError(f"no such run or sweep dir: {path}")
+            raise ReportInputError(f"no such run or sweep dir: {path}")
     collection = Collection(inputs=paths)
     by_key: dict[tuple[str, str, int], RunRecord] = {}
     records = [load_run(d) for d in sorted({d.resolve() for p in paths for d in _find_run_dirs(p)})]

@@ -59,6 +59,18 @@ TRAINING_LOOPS: dict[str, str] = {
     "neural": "mrta_rl.runners.torchrl:train_loop",
     "search": "mrta_rl.runners.tabular:train_loop",  # policy search: the same numpy tick loop
 }
+# top-level keys of a run config besides RunSettings': conf/config.yaml's blocks and groups
+RUN_BLOCKS = (
+    "resume",
+    "train",
+    "eval",
+    "limits",
+    "env",
+    "system",
+    "learner",
+    "partition",
+    "logger",
+)
 SEED_STRIDE = 2**32  # training env seed = seed * SEED_STRIDE + copy; eval seeds stay below it
 MEMORY_FRACTION = 0.5  # default limits.memory_gb: this fraction of the machine's memory
 
@@ -109,6 +121,27 @@ class PartitionSettings:
 
     # g: at most g robots per sub-group (oversized ones are split); None = the paper's rule
     max_group_size: Annotated[int | None, Range(1)] = None
+
+
+@dataclass(frozen=True)
+class EvaluateSettings:
+    """``conf/evaluate.yaml``: the arguments of ``scripts/evaluate.py``."""
+
+    checkpoint: str  # run dir of scripts/train.py
+    episodes: Annotated[int | None, Range(1)] = None  # null: the run's eval.episodes
+    batch_size: Annotated[int | None, Range(1)] = None  # null: the run's eval.batch_size
+
+
+def check_evaluate_config(cfg: DictConfig) -> dict[str, Any]:
+    """The checked arguments of ``scripts/evaluate.py`` (:class:`EvaluateSettings`).
+
+    Raises:
+        ConfigError: naming the argument (``checkpoint: missing; ...``).
+    """
+    values = {k: _plain(cfg, k) for k in cfg if k != "hydra" and not OmegaConf.is_missing(cfg, k)}
+    if values.get("checkpoint") is None:  # conf/evaluate.yaml: ???
+        values.pop("checkpoint", None)
+    return check_fields(EvaluateSettings, values, "", require=True)
 
 
 class ResourceRefusal(ConfigError):
@@ -300,6 +333,11 @@ def validate_config(cfg: DictConfig) -> CheckedConfig:
     Raises:
         ConfigError: naming the key or culprit (``SystemConfigError`` for a system file).
     """
+    for key in cfg:  # a key added with +key=... that nothing reads is refused, not stored
+        _check(
+            key in RUN_BLOCKS or key in RunSettings.__dataclass_fields__ or key == "hydra",
+            f"{key}: unknown setting (known: {', '.join(['seed', *RUN_BLOCKS])})",
+        )
     check_fields(RunSettings, {"seed": _plain(cfg, "seed")}, "", require=True)
     train = _section(cfg, "train", TrainSettings)
     evaluation = _section(cfg, "eval", EvalSettings)

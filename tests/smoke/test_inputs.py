@@ -6,11 +6,21 @@ built, and leave no run dir (``mrta_rl/systems/files.py``, ``runners/validation.
 
 from __future__ import annotations
 
+import json
 import os
+import re
+import shutil
+from pathlib import Path
 
 import pytest
 
-from tests.smoke.test_cli import assert_user_error, train, write_system
+from mrta_rl.config import UserError
+from mrta_rl.reports import build_report
+from mrta_rl.runners import train as run_train
+from mrta_rl.runners.validation import check_evaluate_config
+from tests.conftest import _compose
+from tests.smoke.test_cli import assert_user_error, script, train, write_system
+from tests.smoke.test_run_dirs import save_hydra_files
 
 
 def billion_laughs() -> str:
@@ -64,3 +74,90 @@ def test_team_of_a_thousand_robots_is_not_refused(tmp_path):
     )
     assert code == 0, err
     assert (run_dir / "metrics.json").is_file()
+
+
+# ---------------------------------------------------------------------------------- arguments
+@pytest.mark.parametrize(
+    ("overrides", "named"),
+    [
+        ([], "checkpoint: missing"),
+        (["checkpoint=x", "episodes=abc"], "episodes: must be an integer >= 1 or null, got 'abc'"),
+        (["checkpoint=x", "episodes=1e400"], "episodes: must be an integer >= 1 or null, got inf"),
+        (["checkpoint=x", "episodes=1.7"], "episodes: must be an integer >= 1 or null, got 1.7"),
+        (["checkpoint=x", "episodes=true"], "episodes: must be an integer >= 1 or null, got True"),
+        (["checkpoint=x", "batch_size=0"], "batch_size: must be an integer >= 1 or null, got 0"),
+    ],
+)
+def test_evaluate_arguments_are_checked_like_train_settings(overrides, named, compose_cfg):
+    cfg = compose_cfg(overrides, config_name="evaluate")
+    with pytest.raises(UserError, match=re.escape(named)):
+        check_evaluate_config(cfg)
+
+
+def test_evaluate_without_checkpoint_is_one_message():
+    proc = script("evaluate.py")
+    _, err = proc.communicate(timeout=300)
+    assert_user_error(proc.returncode, err, "checkpoint: missing")
+
+
+def test_undeclared_key_is_refused_naming_it(tmp_path):
+    run_dir = tmp_path / "run"
+    code, _, err = train(run_dir, "learner=greedy", "+foo=1")
+    assert_user_error(code, err, "foo: unknown setting")
+    assert not run_dir.exists()
+
+
+# ---------------------------------------------------------------------------------- report.py
+@pytest.fixture(scope="module")
+def finished_run(tmp_path_factory) -> Path:
+    run_dir = tmp_path_factory.mktemp("finished") / "run"
+    cfg = _compose(["learner=greedy", "system=system1", "debug=smoke", "eval.episodes=1"])
+    save_hydra_files(cfg, run_dir, "greedy", "system1")
+    run_train(cfg, run_dir=run_dir)
+    return run_dir
+
+
+def copy_run(source: Path, target: Path) -> Path:
+    shutil.copytree(source, target)
+    return target
+
+
+def test_report_on_an_empty_dir_is_one_message(tmp_path):
+    proc = script("report.py", str(tmp_path))
+    _, err = proc.communicate(timeout=300)
+    assert_user_error(proc.returncode, err, "no finished run", str(tmp_path))
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_report_names_a_truncated_metrics_json(finished_run, tmp_path):
+    run_dir = copy_run(finished_run, tmp_path / "runs" / "a")
+    path = run_dir / "metrics.json"
+    path.write_text(path.read_text()[:100])
+    with pytest.raises(UserError, match=re.escape(f"{path}: not valid JSON")):
+        build_report([tmp_path / "runs"])
+    assert not (tmp_path / "runs" / "report").exists()
+
+
+def test_report_of_a_system_in_a_config_subfolder_is_whole(finished_run, tmp_path):
+    run_dir = copy_run(finished_run, tmp_path / "runs" / "a")
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    (run_dir / "metrics.json").write_text(json.dumps({**metrics, "system": "sub/nested"}))
+    files = build_report([tmp_path / "runs"])
+    assert files.report.is_file()
+    assert all(p.parent == files.out_dir and p.is_file() for p in files.figures.values())
+
+
+def test_report_names_the_duplicate_it_leaves_out(finished_run, tmp_path):
+    first = copy_run(finished_run, tmp_path / "runs" / "a")
+    again = copy_run(finished_run, tmp_path / "runs" / "b")
+    longer = copy_run(finished_run, tmp_path / "runs" / "c")
+    config = longer / ".hydra" / "config.yaml"
+    config.write_text(
+        config.read_text().replace("train:\n  episodes: 2\n", "train:\n  episodes: 1500\n")
+    )
+    files = build_report([tmp_path / "runs"])
+    report = files.report.read_text()
+    assert "## Duplicate runs left out" in report
+    assert f"`{again}` | `{first}`" in report  # left out, kept
+    assert len(files.collection.runs) == 2  # the 1,500-episode run is a configuration of its own
+    assert f"`{longer}`" not in report.split("## Duplicate runs left out")[1].split("##")[0]
