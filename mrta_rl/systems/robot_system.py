@@ -342,7 +342,7 @@ def system_shape(cfg: Mapping[str, Any]) -> tuple[int, int] | None:
     """
     if "robots" in cfg:
         robots = cfg["robots"]
-        if not isinstance(robots, Mapping):
+        if not isinstance(robots, Mapping) or not robots:
             return None
         names = set()
         for spec in robots.values():
