@@ -11,16 +11,21 @@ from __future__ import annotations
 import copy
 import hashlib
 import json
+import math
+import re
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
+import torch
 import yaml
 from hydra.core.hydra_config import HydraConfig
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from mrta_rl.config import UserError
+from mrta_rl.learners.neural.common import check_state_dict
 from mrta_rl.reports import build_report
 from mrta_rl.runners import evaluate_checkpoint, train
 from mrta_rl.runners.checkpoint import TrainingCheckpoint
@@ -282,3 +287,30 @@ def test_fuzz_hydra_config_through_evaluate_and_resume(data, which, pristine, tm
     refused_or_right(
         run_dir, call, None, any_of=(str(path), str(run_dir / "learner"), "checkpoint")
     )
+
+
+# ---------------------------------------------------------------------------------- tables, weights
+@pytest.mark.parametrize("value", [math.nan, math.inf])
+def test_q_tables_holding_nan_or_inf_are_refused_naming_the_file(value, pristine, tmp_path):
+    run_dir = damaged_copy(pristine, tmp_path, "full")
+    path = run_dir / "learner" / "q_tables.npz"
+    with np.load(path) as data:
+        arrays = {k: data[k] for k in data.files}
+    damaged = [k for k in arrays if k.endswith(".q")]
+    for k in damaged:
+        arrays[k] = np.full_like(arrays[k], value)
+    np.savez(path, **arrays)
+    message = refused_or_right(
+        run_dir, lambda: evaluate_checkpoint(run_dir), None, str(path), "NaN or infinite"
+    )
+    assert message and damaged[0] in message
+
+
+@pytest.mark.parametrize("value", [math.nan, -math.inf])
+def test_weights_holding_nan_or_inf_are_refused_naming_the_file(value, tmp_path):
+    path = tmp_path / "weights.pt"
+    expected = {"layer.weight": torch.zeros(2, 3), "layer.bias": torch.zeros(2)}
+    saved = {**expected, "layer.bias": torch.tensor([0.5, value])}
+    with pytest.raises(ValueError, match=re.escape(f"{path}: tensor layer.bias holds NaN")):
+        check_state_dict(saved, expected, path)
+    check_state_dict(expected, expected, path)  # finite weights pass
