@@ -38,6 +38,7 @@ from omegaconf import OmegaConf
 
 from mrta_rl.config import UserError, declared_keywords
 from mrta_rl.runners.checkpoint import METRICS_FILE, REFUSED_FILE, fill_settings_before
+from mrta_rl.runners.cli import REFUSED_JOBS_FILE
 from mrta_rl.runners.run_files import read_metrics
 
 logger = logging.getLogger(__name__)
@@ -292,6 +293,25 @@ def refusal_reason(run_dir: Path) -> str | None:
     return f"refused: {reason}"
 
 
+def refused_jobs(sweep_dir: Path) -> dict[frozenset[str], str]:
+    """``"refused: <reason>"`` of the sweep's jobs refused by validation, keyed by overrides.
+
+    Such a job leaves no run dir (``runners/cli.py`` removes it); the sweep dir keeps its
+    reason in ``refused_jobs.jsonl``. An unreadable line is skipped.
+    """
+    path = sweep_dir / REFUSED_JOBS_FILE
+    out: dict[frozenset[str], str] = {}
+    if not path.is_file():
+        return out
+    for line in path.read_text(errors="replace").splitlines():
+        try:
+            record = json.loads(line)
+            out[frozenset(str(o) for o in record["overrides"])] = f"refused: {record['reason']}"
+        except (ValueError, KeyError, TypeError):
+            continue
+    return out
+
+
 def expected_sweep_jobs(multirun_yaml: Path) -> list[list[str]] | None:
     """The job list Hydra's BasicSweeper built for a multirun, in job-number order.
 
@@ -405,13 +425,14 @@ def collect_runs(inputs: Iterable[Path | str]) -> Collection:
         collection.expected_jobs += len(jobs)
         cfg = OmegaConf.load(multirun_yaml)
         dirs = _job_dirs(multirun_yaml.parent)
+        refused = refused_jobs(multirun_yaml.parent)
         for job in jobs:
             job_dir = dirs.get(frozenset(job))
             if job_dir is not None and (job_dir / METRICS_FILE).is_file():
                 continue
             learner, system, seed = _job_identity(job, cfg)
             reason = (
-                "never started (no job dir)"
+                refused.get(frozenset(job), "never started (no job dir)")
                 if job_dir is None
                 else refusal_reason(job_dir)
                 or "failed or unfinished: no metrics.json (see train.log, sweep output)"

@@ -333,9 +333,14 @@ def validate_config(cfg: DictConfig) -> CheckedConfig:
     Raises:
         ConfigError: naming the key or culprit (``SystemConfigError`` for a system file).
     """
-    for key in cfg:  # a key added with +key=... that nothing reads is refused, not stored
+    # a key added with +key=... that nothing reads is refused, not stored; a config group
+    # composed into its own package (+budget=neural) is a group, not a setting
+    groups = set(HydraConfig.get().runtime.choices) if HydraConfig.initialized() else set()
+    for key in cfg:
         _check(
-            key in RUN_BLOCKS or key in RunSettings.__dataclass_fields__ or key == "hydra",
+            key in RUN_BLOCKS
+            or key in RunSettings.__dataclass_fields__
+            or key in {*groups, "hydra"},
             f"{key}: unknown setting (known: {', '.join(['seed', *RUN_BLOCKS])})",
         )
     check_fields(RunSettings, {"seed": _plain(cfg, "seed")}, "", require=True)

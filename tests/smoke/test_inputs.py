@@ -161,3 +161,30 @@ def test_report_names_the_duplicate_it_leaves_out(finished_run, tmp_path):
     assert f"`{again}` | `{first}`" in report  # left out, kept
     assert len(files.collection.runs) == 2  # the 1,500-episode run is a configuration of its own
     assert f"`{longer}`" not in report.split("## Duplicate runs left out")[1].split("##")[0]
+
+
+# ---------------------------------------------------------------------------------- sweeps
+def test_sweep_names_every_failed_job_and_the_report_calls_them_refused(tmp_path):
+    sweep_dir = tmp_path / "sweep"
+    proc = script(
+        "train.py",
+        "-m",
+        "debug=smoke",
+        "learner=greedy",
+        "system=system1",
+        "eval.episodes=0,-1,1",
+        f"hydra.sweep.dir={sweep_dir}",
+    )
+    _, err = proc.communicate(timeout=300)
+    assert proc.returncode == 2, err
+    assert "error: 2 jobs of the sweep failed" in err
+    assert "eval.episodes: must be an integer >= 1, got 0" in err
+    assert "eval.episodes: must be an integer >= 1, got -1" in err
+    assert "Traceback" not in err
+    files = build_report([sweep_dir])
+    reasons = sorted(m.reason for m in files.collection.missing)
+    assert reasons == [
+        "refused: eval.episodes: must be an integer >= 1, got -1",
+        "refused: eval.episodes: must be an integer >= 1, got 0",
+    ]
+    assert "refused: eval.episodes: must be an integer >= 1, got 0" in files.report.read_text()
