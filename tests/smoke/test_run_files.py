@@ -240,8 +240,8 @@ FUZZ = settings(
 )
 
 
-def fuzz_case(data, tree):
-    paths = paths_of(tree)
+def fuzz_case(data, tree, leave_out: str | None = None):
+    paths = [p for p in paths_of(tree) if leave_out is None or not p.startswith(leave_out)]
     path = data.draw(st.sampled_from(paths))
     how = data.draw(st.sampled_from(["delete", "replace"]))
     return path, mutate(tree, path, how, data.draw(JSON_VALUES))
@@ -277,7 +277,8 @@ def test_fuzz_hydra_config_through_evaluate_and_resume(data, which, pristine, tm
     name = "full" if which == "evaluate" else "cut"
     run_dir = damaged_copy(pristine, tmp_path_factory.mktemp("fuzz"), name)
     path = run_dir / ".hydra" / "config.yaml"
-    key, config = fuzz_case(data, yaml.safe_load(path.read_text()))
+    # the team is left out: see test_tables_of_another_team_are_refused
+    key, config = fuzz_case(data, yaml.safe_load(path.read_text()), leave_out="system.robots.")
     path.write_text(yaml.safe_dump(config))
     call = (
         (lambda: evaluate_checkpoint(run_dir)) if which == "evaluate" else (lambda: resume(run_dir))
@@ -314,3 +315,18 @@ def test_weights_holding_nan_or_inf_are_refused_naming_the_file(value, tmp_path)
     with pytest.raises(ValueError, match=re.escape(f"{path}: tensor layer.bias holds NaN")):
         check_state_dict(saved, expected, path)
     check_state_dict(expected, expected, path)  # finite weights pass
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="saved tables do not record the team they were trained on: a robot's task set "
+    "changed in .hydra/config.yaml keeps the table shapes, loads, and the env then refuses "
+    "an action mid-evaluation with a traceback",
+)
+def test_tables_of_another_team_are_refused(pristine, tmp_path):
+    run_dir = damaged_copy(pristine, tmp_path, "full")
+    path = run_dir / ".hydra" / "config.yaml"
+    config = yaml.safe_load(path.read_text())
+    del config["system"]["robots"]["R3"][1]
+    path.write_text(yaml.safe_dump(config))
+    refused_or_right(run_dir, lambda: evaluate_checkpoint(run_dir), None, any_of=("R3", "system"))
