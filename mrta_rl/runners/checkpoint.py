@@ -39,6 +39,7 @@ from omegaconf import DictConfig, OmegaConf
 from mrta_rl.config import UserError
 from mrta_rl.learners import Learner
 from mrta_rl.metrics.logger import CSVLogger
+from mrta_rl.systems.files import check_yaml_file
 
 logger = logging.getLogger(__name__)
 
@@ -214,6 +215,7 @@ def read_run_config(run_dir: Path | str) -> DictConfig:
     path = run_dir / CONFIG_FILE
     if not path.is_file():
         raise RunDirError(f"{run_dir} is not a run dir of scripts/train.py: no {path}")
+    check_yaml_file(path)  # size, encoding, depth, aliases: before OmegaConf expands anything
     try:
         cfg = OmegaConf.load(path)
     except Exception as err:  # YAML and OmegaConf raise several types

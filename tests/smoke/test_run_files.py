@@ -330,3 +330,16 @@ def test_tables_of_another_team_are_refused(pristine, tmp_path):
     del config["system"]["robots"]["R3"][1]
     path.write_text(yaml.safe_dump(config))
     refused_or_right(run_dir, lambda: evaluate_checkpoint(run_dir), None, any_of=("R3", "system"))
+
+
+def test_alias_bomb_in_the_run_config_is_refused_before_it_is_expanded(pristine, tmp_path):
+    run_dir = damaged_copy(pristine, tmp_path, "full")
+    path = run_dir / ".hydra" / "config.yaml"
+    lines = ['  a: &a ["lol", "lol", "lol", "lol", "lol", "lol", "lol", "lol", "lol"]']
+    for previous, name in zip("abcdefgh", "bcdefghi", strict=True):
+        lines.append(f"  {name}: &{name} [" + ", ".join([f"*{previous}"] * 9) + "]")
+    path.write_text(path.read_text() + "laughs:\n" + "\n".join(lines) + "\n")
+    message = refused_or_right(
+        run_dir, lambda: evaluate_checkpoint(run_dir), None, str(path), "YAML aliases"
+    )
+    assert message
