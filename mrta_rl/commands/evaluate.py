@@ -13,13 +13,15 @@ from omegaconf import DictConfig
 
 from mrta_rl.conf_files import conf_dir
 from mrta_rl.runners import cli, evaluate_checkpoint, format_summary
+from mrta_rl.runners.validation import check_evaluate_config
 
 
 @hydra.main(config_path=str(conf_dir()), config_name="evaluate", version_base=None)
 @cli.job
 def _task(cfg: DictConfig) -> None:
+    args = check_evaluate_config(cfg)
     metrics = evaluate_checkpoint(
-        hydra.utils.to_absolute_path(cfg.checkpoint), cfg.episodes, cfg.batch_size
+        hydra.utils.to_absolute_path(args["checkpoint"]), args["episodes"], args["batch_size"]
     )
     print(format_summary(metrics))
 

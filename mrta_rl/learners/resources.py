@@ -126,8 +126,40 @@ def probe_env(system: RobotSystem, params: AuctionParams, active_tasks: Any = No
 
 def env_copy_bytes(env: AuctionEnv, queue_capacity: int) -> int:
     """Bytes of one env copy: its task queue and the per-robot, per-type and per-slot state."""
-    m, n, K = env.n_robots, env.n_task_types, env.n_slots
+    return copy_bytes(env.n_robots, env.n_task_types, env.n_slots, queue_capacity)
+
+
+def copy_bytes(m: int, n: int, K: int, queue_capacity: int) -> int:
+    """Bytes of one env copy of ``m`` robots, ``n`` task types and ``K`` slots."""
     return 8 * (queue_capacity + 1) + 16 * m + 40 * n + 32 * K + 24 + (K + 1) * m
+
+
+# building a system of m robots and n task types: its random draw (float64), the bool table and
+# the willingness (float64) at once, per robot-task pair; per robot, its name and tuple slot
+SYSTEM_PAIR_BYTES = 8 + 1 + 8
+ROBOT_NAME_BYTES = 64
+
+
+def team_floor_bytes(n_robots: int, n_task_types: int, copies: int) -> dict[str, int]:
+    """The least memory any run on a team of this shape takes, from the shape alone.
+
+    Nothing is built: the system while it is built, and ``copies`` env copies as
+    :func:`env_copy_bytes` counts them with the fewest slots (one) and no queue. A team whose
+    floor passes the memory limit is refused before its system is built.
+
+    Args:
+        n_robots: Robots ``m``.
+        n_task_types: Task types ``n``.
+        copies: Env copies alive at once (training, evaluation and the greedy baseline's).
+
+    Returns:
+        ``{"system": bytes, "env copies": bytes}``.
+    """
+    m, n = int(n_robots), int(n_task_types)
+    return {
+        "system": SYSTEM_PAIR_BYTES * m * n + ROBOT_NAME_BYTES * m,
+        "env copies": int(copies) * copy_bytes(m, n, K=1, queue_capacity=0),
+    }
 
 
 def estimate_resources(

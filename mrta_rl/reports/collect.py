@@ -38,6 +38,8 @@ from omegaconf import OmegaConf
 
 from mrta_rl.config import UserError, declared_keywords
 from mrta_rl.runners.checkpoint import METRICS_FILE, REFUSED_FILE, fill_settings_before
+from mrta_rl.runners.cli import REFUSED_JOBS_FILE
+from mrta_rl.runners.run_files import read_metrics
 
 logger = logging.getLogger(__name__)
 
@@ -45,6 +47,10 @@ CURVE_FILE = "curve.csv"
 BASIC_SWEEPER = "hydra._internal.core_plugins.basic_sweeper.BasicSweeper"
 # settings that do not change what a run computes: never part of a configuration's name
 NOT_CONFIGURATION = ("seed", "resume", "train.progress_bar", "train.checkpoint_every")
+
+
+class ReportInputError(UserError):
+    """The report's inputs hold nothing to report, or do not exist."""
 
 
 @dataclass(frozen=True)
@@ -156,14 +162,9 @@ def load_run(run_dir: Path) -> RunRecord:
         The record.
 
     Raises:
-        ValueError: if metrics.json lacks the keys every runner writes.
+        RunDirError: if metrics.json is damaged (naming the file and key).
     """
-    metrics = json.loads((run_dir / METRICS_FILE).read_text())
-    missing = {"learner", "system", "seed", "eval"} - set(metrics)
-    if missing:
-        raise ValueError(
-            f"{run_dir / METRICS_FILE}: not a run's metrics.json, no {sorted(missing)}"
-        )
+    metrics = read_metrics(run_dir / METRICS_FILE)
     config = _load_yaml(run_dir / ".hydra" / "config.yaml") or {}
     overrides = _load_yaml(run_dir / ".hydra" / "overrides.yaml") or []
     return RunRecord(
@@ -292,6 +293,25 @@ def refusal_reason(run_dir: Path) -> str | None:
     return f"refused: {reason}"
 
 
+def refused_jobs(sweep_dir: Path) -> dict[frozenset[str], str]:
+    """``"refused: <reason>"`` of the sweep's jobs refused by validation, keyed by overrides.
+
+    Such a job leaves no run dir (``runners/cli.py`` removes it); the sweep dir keeps its
+    reason in ``refused_jobs.jsonl``. An unreadable line is skipped.
+    """
+    path = sweep_dir / REFUSED_JOBS_FILE
+    out: dict[frozenset[str], str] = {}
+    if not path.is_file():
+        return out
+    for line in path.read_text(errors="replace").splitlines():
+        try:
+            record = json.loads(line)
+            out[frozenset(str(o) for o in record["overrides"])] = f"refused: {record['reason']}"
+        except (ValueError, KeyError, TypeError):
+            continue
+    return out
+
+
 def expected_sweep_jobs(multirun_yaml: Path) -> list[list[str]] | None:
     """The job list Hydra's BasicSweeper built for a multirun, in job-number order.
 
@@ -366,12 +386,12 @@ def collect_runs(inputs: Iterable[Path | str]) -> Collection:
         The collection (runs sorted by learner, system, seed).
 
     Raises:
-        FileNotFoundError: if an input does not exist.
+        ReportInputError: if an input does not exist.
     """
     paths = [Path(p) for p in inputs]
     for path in paths:
         if not path.exists():
-            raise FileNotFoundError(f"no such run or sweep dir: {path}")
+            raise ReportInputError(f"no such run or sweep dir: {path}")
     collection = Collection(inputs=paths)
     by_key: dict[tuple[str, str, int], RunRecord] = {}
     records = [load_run(d) for d in sorted({d.resolve() for p in paths for d in _find_run_dirs(p)})]
@@ -405,13 +425,14 @@ def collect_runs(inputs: Iterable[Path | str]) -> Collection:
         collection.expected_jobs += len(jobs)
         cfg = OmegaConf.load(multirun_yaml)
         dirs = _job_dirs(multirun_yaml.parent)
+        refused = refused_jobs(multirun_yaml.parent)
         for job in jobs:
             job_dir = dirs.get(frozenset(job))
             if job_dir is not None and (job_dir / METRICS_FILE).is_file():
                 continue
             learner, system, seed = _job_identity(job, cfg)
             reason = (
-                "never started (no job dir)"
+                refused.get(frozenset(job), "never started (no job dir)")
                 if job_dir is None
                 else refusal_reason(job_dir)
                 or "failed or unfinished: no metrics.json (see train.log, sweep output)"

@@ -35,7 +35,7 @@ from mrta_rl.reports.aggregate import (
     system_label,
 )
 from mrta_rl.reports.claims import FAILS, HOLDS, NOT_EVALUABLE, check_claims
-from mrta_rl.reports.collect import Collection, RunRecord, collect_runs
+from mrta_rl.reports.collect import Collection, ReportInputError, RunRecord, collect_runs
 
 logger = logging.getLogger(__name__)
 
@@ -130,14 +130,14 @@ def build_report(inputs: Iterable[Path | str], out_dir: Path | str | None = None
         The files written.
 
     Raises:
-        FileNotFoundError: if an input does not exist.
-        ValueError: if no finished run is found.
+        ReportInputError: if an input does not exist or no finished run is found.
+        RunDirError: if a run's metrics.json is damaged.
     """
     inputs = [Path(p) for p in inputs]
     collection = collect_runs(inputs)
     if not collection.runs:
         missing = f"; {len(collection.missing)} expected jobs missing" if collection.missing else ""
-        raise ValueError(
+        raise ReportInputError(
             f"no finished run (metrics.json) under {[str(p) for p in inputs]}{missing}"
         )
     # the yardstick runs are checked (re-evaluations, same task streams) before anything is written
@@ -179,9 +179,9 @@ def build_report(inputs: Iterable[Path | str], out_dir: Path | str | None = None
     for system, system_cells in by_system.items():
         for p in ("L", "H"):
             stem = f"ctr_{system}_{p}"
-            files.figures[stem] = figures.ctr_figure(system_cells, p, out / f"{stem}.png", colors)
+            files.figures[stem] = figures.ctr_figure(system_cells, p, _png(out, stem), colors)
         files.figures[f"itr_{system}"] = figures.itr_figure(
-            system_cells, out / f"itr_{system}.png", colors
+            system_cells, _png(out, f"itr_{system}"), colors
         )
         curves = {
             c.learner: curve
@@ -195,7 +195,7 @@ def build_report(inputs: Iterable[Path | str], out_dir: Path | str | None = None
         if curves:
             greedy = next((c.greedy_return for c in system_cells if c.greedy_return.n), None)
             files.figures[f"curve_{system}"] = figures.curve_figure(
-                curves, greedy, system, out / f"curve_{system}.png", colors
+                curves, greedy, system, _png(out, f"curve_{system}"), colors
             )
     files.figures["team_return"] = figures.team_return_figure(
         by_system, out / "team_return.png", colors
@@ -219,6 +219,11 @@ def build_report(inputs: Iterable[Path | str], out_dir: Path | str | None = None
         len(collection.missing),
     )
     return files
+
+
+def _png(out: Path, stem: str) -> Path:
+    """The figure file of a stem; a system in a config subfolder (``sub/nested``) stays in out."""
+    return out / f"{stem.replace('/', '_')}.png"
 
 
 def _image(files: ReportFiles, stem: str, alt: str) -> str:
@@ -254,6 +259,22 @@ def _report_markdown(
         "Exact values: the CSV files next to this report (`runs.csv` holds every run).",
         "",
     ]
+    if collection.duplicates:
+        kept = {r.key: r.run_dir for r in runs}
+        md += [
+            "## Duplicate runs left out",
+            "",
+            "Each of these runs has the configuration and seed of a run the report keeps (a seed "
+            "counts once); only identical settings make a duplicate.",
+            "",
+            "| configuration | system | seed | left out | kept |",
+            "| :--- | :--- | ---: | :--- | :--- |",
+            *(
+                f"| {r.learner} | {r.system} | {r.seed} | `{r.run_dir}` | `{kept.get(r.key)}` |"
+                for r in collection.duplicates
+            ),
+            "",
+        ]
     if missing:
         md += [
             "## Missing jobs",

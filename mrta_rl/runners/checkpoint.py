@@ -42,6 +42,7 @@ from omegaconf import DictConfig, OmegaConf
 from mrta_rl.config import UserError
 from mrta_rl.learners import Learner
 from mrta_rl.metrics.logger import CSVLogger
+from mrta_rl.systems.files import check_yaml_file
 
 logger = logging.getLogger(__name__)
 
@@ -189,6 +190,9 @@ def check_run_config(config: dict[str, Any], source: Path) -> None:
     """
     if not isinstance(config, dict):
         raise RunDirError(f"{source}: not a mapping of settings")
+    for key in ("learner", "logger"):  # the rest is checked by validate_config
+        if key not in config:
+            raise RunDirError(f"{source}: {key}: missing")
     for key, value in config.items():
         if key == "learner":
             _check_component(value, "learner", Learner, source, flat=True)
@@ -208,18 +212,26 @@ def read_run_config(run_dir: Path | str) -> DictConfig:
         The config, safe to build the run from.
 
     Raises:
-        RunDirError: if the file is missing, unreadable or holds anything but plain data.
+        RunDirError: if the file is missing, unreadable, holds anything but plain data or a
+            setting ``validate_config`` refuses.
     """
     run_dir = Path(run_dir)
     path = run_dir / CONFIG_FILE
     if not path.is_file():
         raise RunDirError(f"{run_dir} is not a run dir of scripts/train.py: no {path}")
+    check_yaml_file(path)  # size, encoding, depth, aliases: before OmegaConf expands anything
     try:
         cfg = OmegaConf.load(path)
     except Exception as err:  # YAML and OmegaConf raise several types
         raise RunDirError(f"{path}: not a readable YAML config ({err})") from err
     check_run_config(OmegaConf.to_container(cfg, resolve=False), path)
     fill_settings_before(cfg)
+    from mrta_rl.runners.validation import validate_config  # imports the learners
+
+    try:  # every setting as train.py checks it, the file named
+        validate_config(cfg)  # type: ignore[arg-type]
+    except UserError as err:
+        raise RunDirError(f"{path}: {err}") from None
     return cfg  # type: ignore[return-value]
 
 
@@ -390,16 +402,15 @@ class TrainingCheckpoint:
         version = require_checkpoint(self.run_dir)
         self.path = version  # the loop reads its own files from here
         state_path = version / STATE_FILE
-        try:
-            state = json.loads(state_path.read_text())
-            loop, learner_state = state["loop"], state["learner"]
-        except (ValueError, KeyError, TypeError) as err:
-            raise RunDirError(f"{state_path}: not a training checkpoint ({err})") from err
+        from mrta_rl.runners.run_files import read_training_state  # it imports this module
+
+        episodes = int(read_run_config(self.run_dir).train.episodes)
+        loop, learner_state = read_training_state(state_path, self.learner.kind, episodes)
         load_learner(self.learner, version / LEARNER_DIR)
         try:
             self.learner.restore_state(learner_state, version)
-        except (OSError, ValueError, KeyError, TypeError, RuntimeError) as err:
-            raise RunDirError(f"{version}: learner state refused ({err})") from err
+        except Exception as err:  # the learner's own checks, or a state it cannot even read
+            raise RunDirError(f"{state_path}: learner: state refused ({err!r})") from err
         logger.info("resuming from %s after episode %d", version, loop["episode"])
         self.saved_episode = loop["episode"]
         return loop

@@ -30,6 +30,7 @@ Every script in ``scripts/`` is a thin entry point::
 from __future__ import annotations
 
 import functools
+import json
 import logging
 import os
 import shutil
@@ -63,6 +64,12 @@ def _message(err: BaseException) -> str:
     return text
 
 
+FAILED_JOBS: list[str] = []  # "job <n> (<overrides>): <message>" of this sweep's failed jobs
+# in a sweep dir: one JSON line {"overrides": [...], "reason": ...} per job refused by a user
+# error, whose run dir is removed (reports/collect.py shows the job as refused, with the reason)
+REFUSED_JOBS_FILE = "refused_jobs.jsonl"
+
+
 def _exit(err: BaseException) -> None:
     """Print the one message of a user error or Ctrl-C and exit, unless tracebacks are wanted."""
     if _FULL_ERROR:
@@ -70,6 +77,10 @@ def _exit(err: BaseException) -> None:
     if isinstance(err, KeyboardInterrupt):
         print("interrupted", file=sys.stderr)
         sys.exit(EXIT_INTERRUPTED)
+    if len(FAILED_JOBS) > 1:  # Hydra raises the first failure only: name them all
+        lines = "".join(f"\n  {failure}" for failure in FAILED_JOBS)
+        print(f"error: {len(FAILED_JOBS)} jobs of the sweep failed:{lines}", file=sys.stderr)
+        sys.exit(EXIT_USER_ERROR)
     print(f"error: {_message(err)}", file=sys.stderr)
     sys.exit(EXIT_USER_ERROR)
 
@@ -114,12 +125,28 @@ def job(task: Callable[[Any], Any]) -> Callable[[Any], Any]:
         try:
             return task(cfg)
         except (*USER_ERRORS, KeyboardInterrupt) as err:
+            sweep = HydraConfig.get().mode == RunMode.MULTIRUN
+            if sweep and not isinstance(err, KeyboardInterrupt):
+                hydra_job = HydraConfig.get().job
+                overrides = " ".join(hydra_job.override_dirname.split(",")) or "-"
+                FAILED_JOBS.append(f"job {hydra_job.num} ({overrides}): {_message(err)}")
+                _record_refusal(_message(err))  # first: the sweep dir then keeps it
             remove_unused_run_dir()
-            if HydraConfig.get().mode != RunMode.MULTIRUN:
+            if not sweep:
                 _exit(err)
             raise
 
     return wrapper
+
+
+def _record_refusal(reason: str) -> None:
+    """Append the current sweep job's refusal to :data:`REFUSED_JOBS_FILE` in the sweep dir."""
+    hydra_cfg = HydraConfig.get()
+    record = {"overrides": list(hydra_cfg.overrides.task), "reason": reason}
+    sweep_dir = Path(hydra_cfg.sweep.dir)
+    sweep_dir.mkdir(parents=True, exist_ok=True)
+    with (sweep_dir / REFUSED_JOBS_FILE).open("a") as handle:
+        handle.write(json.dumps(record) + "\n")
 
 
 def remove_unused_run_dir() -> Path | None:

@@ -37,9 +37,16 @@ from mrta_rl.learners.resources import (
     estimate_resources,
     format_bytes,
     machine_memory,
+    team_floor_bytes,
 )
 from mrta_rl.partition import Partition, subg_partition
-from mrta_rl.systems import RobotSystem, SystemConfigError, build_system
+from mrta_rl.systems import (
+    MAX_PAIRS,
+    RobotSystem,
+    SystemConfigError,
+    build_system,
+    system_shape,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -52,6 +59,18 @@ TRAINING_LOOPS: dict[str, str] = {
     "neural": "mrta_rl.runners.torchrl:train_loop",
     "search": "mrta_rl.runners.tabular:train_loop",  # policy search: the same numpy tick loop
 }
+# top-level keys of a run config besides RunSettings': conf/config.yaml's blocks and groups
+RUN_BLOCKS = (
+    "resume",
+    "train",
+    "eval",
+    "limits",
+    "env",
+    "system",
+    "learner",
+    "partition",
+    "logger",
+)
 SEED_STRIDE = 2**32  # training env seed = seed * SEED_STRIDE + copy; eval seeds stay below it
 MEMORY_FRACTION = 0.5  # default limits.memory_gb: this fraction of the machine's memory
 
@@ -105,6 +124,27 @@ class PartitionSettings:
 
     # g: at most g robots per sub-group (oversized ones are split); None = the paper's rule
     max_group_size: Annotated[int | None, Range(1)] = None
+
+
+@dataclass(frozen=True)
+class EvaluateSettings:
+    """``conf/evaluate.yaml``: the arguments of ``scripts/evaluate.py``."""
+
+    checkpoint: str  # run dir of scripts/train.py
+    episodes: Annotated[int | None, Range(1)] = None  # null: the run's eval.episodes
+    batch_size: Annotated[int | None, Range(1)] = None  # null: the run's eval.batch_size
+
+
+def check_evaluate_config(cfg: DictConfig) -> dict[str, Any]:
+    """The checked arguments of ``scripts/evaluate.py`` (:class:`EvaluateSettings`).
+
+    Raises:
+        ConfigError: naming the argument (``checkpoint: missing; ...``).
+    """
+    values = {k: _plain(cfg, k) for k in cfg if k != "hydra" and not OmegaConf.is_missing(cfg, k)}
+    if values.get("checkpoint") is None:  # conf/evaluate.yaml: ???
+        values.pop("checkpoint", None)
+    return check_fields(EvaluateSettings, values, "", require=True)
 
 
 class ResourceRefusal(ConfigError):
@@ -244,6 +284,46 @@ def memory_limit(limits: dict[str, Any]) -> int:
     return int(MEMORY_FRACTION * machine_memory())
 
 
+def check_team_size(
+    system_cfg: dict[str, Any],
+    file: str,
+    train: dict[str, Any],
+    eval_copies: int,
+    limit: int,
+) -> None:
+    """Refuse a team too big to run, from its shape alone, before it is built.
+
+    Refused: more than ``MAX_PAIRS`` robot-task pairs, or a memory floor above the limit.
+
+    A random team of 10^8 robots would take 28 GB to draw; the floor
+    (:func:`~mrta_rl.learners.resources.team_floor_bytes`) counts the system while it is built
+    and the env copies alive at once: training's and evaluation's, the learner's and the greedy
+    baseline's.
+
+    Raises:
+        SystemConfigError: naming the system, its shape, the floor and the limit.
+    """
+    shape = system_shape(system_cfg)
+    if shape is None:
+        return  # malformed: build_system names what is wrong
+    m, n = shape
+    if m * n > MAX_PAIRS:
+        raise SystemConfigError(
+            f"system {file}: {m:,} robots x {n:,} task types = {m * n:,} robot-task pairs, more "
+            f"than the limit of {MAX_PAIRS:,} (mrta_rl.systems.MAX_PAIRS); use a smaller team"
+        )
+    copies = training_copies(train["batch_size"], train.get("robot_copies"), m) + 2 * eval_copies
+    parts = team_floor_bytes(m, n, copies)
+    floor = sum(parts.values())
+    if floor > limit:
+        detail = ", ".join(f"{name} {format_bytes(b)}" for name, b in parts.items())
+        raise SystemConfigError(
+            f"system {file}: {m:,} robots x {n:,} task types need at least {format_bytes(floor)} "
+            f"before any learner ({detail} for {copies} copies), more than the limit of "
+            f"{format_bytes(limit)} (limits.memory_gb); use a smaller team"
+        )
+
+
 def validate_config(cfg: DictConfig) -> CheckedConfig:
     """Check a composed run config, build system, params and partition, estimate the memory.
 
@@ -256,6 +336,16 @@ def validate_config(cfg: DictConfig) -> CheckedConfig:
     Raises:
         ConfigError: naming the key or culprit (``SystemConfigError`` for a system file).
     """
+    # a key added with +key=... that nothing reads is refused, not stored; a config group
+    # composed into its own package (+budget=neural) is a group, not a setting
+    groups = set(HydraConfig.get().runtime.choices) if HydraConfig.initialized() else set()
+    for key in cfg:
+        _check(
+            key in RUN_BLOCKS
+            or key in RunSettings.__dataclass_fields__
+            or key in {*groups, "hydra"},
+            f"{key}: unknown setting (known: {', '.join(['seed', *RUN_BLOCKS])})",
+        )
     check_fields(RunSettings, {"seed": _plain(cfg, "seed")}, "", require=True)
     train = _section(cfg, "train", TrainSettings)
     evaluation = _section(cfg, "eval", EvalSettings)
@@ -273,6 +363,8 @@ def validate_config(cfg: DictConfig) -> CheckedConfig:
     system_cfg = _plain(cfg, "system")
     _check(isinstance(system_cfg, dict), f"system: must be a system file, got {system_cfg!r}")
     file = hydra_choice("system", str(system_cfg.get("name", "?")))
+    eval_copies = min(evaluation["batch_size"], evaluation["episodes"])
+    check_team_size(system_cfg, file, train, eval_copies, memory_limit(limits))
     try:
         system = build_system(system_cfg)
         params = AuctionParams.merged(

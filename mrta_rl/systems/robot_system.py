@@ -22,6 +22,7 @@ natural order of their names (digits compared as numbers: ``T2`` before ``T10``)
 
 from __future__ import annotations
 
+import inspect
 import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -34,6 +35,9 @@ from mrta_rl.config import ConfigError, Range, check_keywords
 from mrta_rl.types import RobotId, TaskType
 
 _DURATION_KEYS = ("duration_low", "duration_high")
+# robot-task pairs of the largest team: a team is built, checked and partitioned robot by robot
+# in Python, which takes minutes past this; 10^7 is 100,000 robots of 100 task types
+MAX_PAIRS = 10**7
 
 
 class SystemConfigError(ConfigError):
@@ -324,6 +328,32 @@ def auction_for_team(n_robots: int) -> dict[str, int]:
 
 _TABLE_KEYS = {"name", "robots", "task_types", "env"}
 _RANDOM_KEYS = {"name", "n_robots", "n_task_types", "density", "seed", "scale_auction", "env"}
+
+
+def system_shape(cfg: Mapping[str, Any]) -> tuple[int, int] | None:
+    """Robots and task types a system config describes, read without building anything.
+
+    Args:
+        cfg: The ``system`` config group content (table or random form).
+
+    Returns:
+        ``(m, n)``; for a table, ``n`` counts the distinct task type names. None when the config
+        is malformed (:func:`build_system` then names what is wrong).
+    """
+    if "robots" in cfg:
+        robots = cfg["robots"]
+        if not isinstance(robots, Mapping) or not robots:
+            return None
+        names = set()
+        for spec in robots.values():
+            if isinstance(spec, (Mapping, list, tuple)):
+                names.update(str(t) for t in spec)
+        return len(robots), len(names)
+    default = inspect.signature(random_system).parameters["n_task_types"].default
+    m, n = cfg.get("n_robots"), cfg.get("n_task_types", default)
+    if all(isinstance(v, int) and not isinstance(v, bool) and v >= 1 for v in (m, n)):
+        return int(m), int(n)  # type: ignore[arg-type]
+    return None
 
 
 def build_system(cfg: Mapping[str, Any]) -> RobotSystem:

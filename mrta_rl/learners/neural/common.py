@@ -655,6 +655,8 @@ def check_state_dict(state: Any, expected: dict[str, torch.Tensor], path: Path) 
             raise ValueError(
                 f"{path}: tensor {name} is {shape}, expected {tuple(want.shape)} {want.dtype}"
             )
+        if got.is_floating_point() and not torch.isfinite(got).all():
+            raise ValueError(f"{path}: tensor {name} holds NaN or infinite values")
 
 
 class MixedQLearner(NeuralLearner):

@@ -297,3 +297,8 @@ def check_arrays(
         if not fits:
             shape = ("rows", *want.shape[1:]) if grows else want.shape
             raise ValueError(f"{path}: array {name} has shape {got.shape}, expected {shape}")
+        # NaN is never a value; infinity only where the fresh learner holds one (a threshold)
+        if got.dtype.kind == "f" and (
+            np.isnan(got).any() or (np.isinf(got).any() and not np.isinf(want).any())
+        ):
+            raise ValueError(f"{path}: array {name} holds NaN or infinite values")

@@ -1,0 +1,244 @@
+"""One checked loader per run-dir file: schema and values, every refusal naming the file and key.
+
+A run dir is data that anyone may have edited, truncated or damaged. Its files are read here,
+checked against what the code that wrote them writes (types, ranges, finite numbers), and refused
+with a :class:`~mrta_rl.runners.checkpoint.RunDirError` naming the file and the key, so that a
+damaged file is never half-used and never ends in a traceback:
+
+* ``training.json`` of a training checkpoint (:func:`read_training_state`): the training loop's
+  ``loop`` block (``episode`` in ``[0, train.episodes]``, the counters of the learner's kind,
+  one curve row per episode played) and the learner's ``checkpoint_state`` (a mapping; the
+  learner checks its content in ``restore_state``);
+* ``metrics.json`` of a finished run (:func:`read_metrics`), as the reports read it;
+* ``.hydra/config.yaml`` is read by :func:`~mrta_rl.runners.checkpoint.read_run_config`.
+
+Every file is bounded in size before it is parsed (:data:`MAX_JSON_BYTES`).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import numbers
+from pathlib import Path
+from typing import Any
+
+from mrta_rl.runners.checkpoint import RunDirError
+
+MAX_JSON_BYTES = 256 * 2**20  # a training.json holds one curve row (~80 bytes) per episode
+# counters of the training loop of each learner kind, besides ``episode`` and ``curve``
+# (runners/tabular.py and runners/torchrl.py write them)
+LOOP_COUNTERS: dict[str, tuple[str, ...]] = {
+    "tabular": ("env_ticks",),
+    "search": ("env_ticks",),
+    "neural": ("frames", "replayed"),
+}
+CURVE_ROW = ("env_ticks", "episode", "team_return_mean")  # metrics.CURVE_COLUMNS
+# metrics.json as train() writes it (EpisodeSummary.to_json): "*" = any key; a key ending in
+# "?" may be absent; INT, NUMBER (finite), OPTIONAL (finite or null), STR, ANY are leaves
+INT, NUMBER, OPTIONAL, STR, ANY = "int", "number", "number or null", "string", "any"
+SUMMARY = {
+    "episodes": INT,
+    "team_return": {"mean": OPTIONAL, "std": OPTIONAL, "per_episode?": [OPTIONAL]},
+    "ctr": {"*": {"L": OPTIONAL, "H": OPTIONAL}},
+    "ctr_overall": {"L": OPTIONAL, "H": OPTIONAL},
+    "itr": {"*": OPTIONAL},
+    "return_by_type?": {"*": OPTIONAL},  # absent from runs made before it existed
+    "return_by_group?": {"*": {"types": [STR], "return": NUMBER}},
+}
+METRICS = {
+    "learner": STR,
+    "system": STR,
+    "seed": INT,
+    "eval": SUMMARY,
+    "baseline_greedy": SUMMARY,
+    "train?": {"*": NUMBER},
+    "learning_space?": {"*": INT},
+    "*": ANY,  # other blocks (resources, checkpoint) are not read as numbers
+}
+
+
+def read_json(path: Path) -> Any:
+    """A JSON file's content, or a :class:`RunDirError` naming the file.
+
+    Args:
+        path: The file.
+
+    Returns:
+        The parsed content (NaN and infinities refused).
+
+    Raises:
+        RunDirError: if the file is missing, too big, not UTF-8 or not JSON.
+    """
+    try:
+        size = path.stat().st_size
+        if size > MAX_JSON_BYTES:
+            raise RunDirError(f"{path}: {size:,} bytes, more than the limit of {MAX_JSON_BYTES:,}")
+        text = path.read_bytes().decode("utf-8")
+        return json.loads(text, parse_constant=_no_constant)
+    except RunDirError:
+        raise
+    except FileNotFoundError:
+        raise RunDirError(f"{path}: missing") from None
+    except OSError as err:
+        raise RunDirError(f"{path}: cannot be read ({err.strerror})") from None
+    except UnicodeDecodeError as err:
+        raise RunDirError(f"{path}: not UTF-8 text (byte {err.start})") from None
+    except (ValueError, RecursionError) as err:  # JSONDecodeError is a ValueError
+        raise RunDirError(f"{path}: not valid JSON ({str(err)[:120]})") from None
+
+
+def _no_constant(name: str) -> Any:
+    raise ValueError(f"{name} is not a finite number")
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _refuse(path: Path, key: str, what: str, value: Any) -> RunDirError:
+    shown = repr(value)
+    return RunDirError(f"{path}: {key}: must be {what}, got {shown[:80]}")
+
+
+def check_loop(loop: Any, path: Path, kind: str, episodes: int) -> dict[str, Any]:
+    """Check the ``loop`` block of a ``training.json``.
+
+    Args:
+        loop: The block.
+        path: The file, for messages.
+        kind: The learner's kind (its loop's counters: :data:`LOOP_COUNTERS`).
+        episodes: The run's ``train.episodes`` (the most episodes a checkpoint can follow).
+
+    Returns:
+        The block.
+
+    Raises:
+        RunDirError: naming the file and the key at fault.
+    """
+    if not isinstance(loop, dict):
+        raise _refuse(path, "loop", "a mapping", loop)
+    episode = loop.get("episode")
+    if not _is_int(episode) or not 0 <= episode <= episodes:
+        raise _refuse(
+            path, "loop.episode", f"an integer in [0, {episodes}] (train.episodes)", episode
+        )
+    for key in LOOP_COUNTERS.get(kind, ()):
+        if not _is_int(loop.get(key)) or loop[key] < 0:
+            raise _refuse(path, f"loop.{key}", "an integer >= 0", loop.get(key, "nothing"))
+    curve = loop.get("curve")
+    if not isinstance(curve, list) or len(curve) != episode:
+        raise _refuse(
+            path, "loop.curve", f"a list of {episode} rows (one per episode played)", curve
+        )
+    for i, row in enumerate(curve):
+        where = f"loop.curve[{i}]"
+        if not isinstance(row, dict) or set(row) != set(CURVE_ROW):
+            raise _refuse(path, where, f"a row of {', '.join(CURVE_ROW)}", row)
+        if row["episode"] != i + 1 or not _is_int(row["episode"]):
+            raise _refuse(path, f"{where}.episode", f"episode {i + 1}", row["episode"])
+        if not _is_int(row["env_ticks"]) or row["env_ticks"] < 0:
+            raise _refuse(path, f"{where}.env_ticks", "an integer >= 0", row["env_ticks"])
+        if not _is_number(row["team_return_mean"]):
+            raise _refuse(
+                path, f"{where}.team_return_mean", "a finite number", row["team_return_mean"]
+            )
+    return loop
+
+
+def read_training_state(path: Path, kind: str, episodes: int) -> tuple[dict[str, Any], dict]:
+    """Read and check a checkpoint's ``training.json``.
+
+    Args:
+        path: The file.
+        kind: The learner's kind.
+        episodes: The run's ``train.episodes``.
+
+    Returns:
+        ``(loop, learner_state)``: the checked loop block and the learner's checkpoint state (a
+        mapping; the learner's ``restore_state`` checks its content).
+
+    Raises:
+        RunDirError: naming the file and the key at fault.
+    """
+    state = read_json(path)
+    if not isinstance(state, dict):
+        raise _refuse(path, "(top level)", "a mapping with loop and learner", state)
+    for key in ("loop", "learner"):
+        if key not in state:
+            raise RunDirError(f"{path}: {key}: missing")
+    if not isinstance(state["learner"], dict):
+        raise _refuse(
+            path, "learner", "a mapping (the learner's checkpoint state)", state["learner"]
+        )
+    return check_loop(state["loop"], path, kind, episodes), state["learner"]
+
+
+def check_schema(value: Any, schema: Any, path: Path, key: str) -> None:
+    """Check a JSON value against a schema of the form of :data:`METRICS`.
+
+    Raises:
+        RunDirError: naming the file and the first key at fault.
+    """
+    if schema == ANY:
+        return
+    if isinstance(schema, str):
+        ok = {
+            INT: _is_int,
+            NUMBER: _is_number,
+            OPTIONAL: lambda v: v is None or _is_number(v),
+            STR: lambda v: isinstance(v, str),
+        }[schema](value)
+        if not ok:
+            raise _refuse(path, key, f"a{'n' if schema == INT else ''} {schema}", value)
+        return
+    if isinstance(schema, list):
+        if not isinstance(value, list):
+            raise _refuse(path, key, "a list", value)
+        for i, item in enumerate(value):
+            check_schema(item, schema[0], path, f"{key}[{i}]")
+        return
+    if not isinstance(value, dict):
+        raise _refuse(path, key, "a mapping", value)
+    prefix = f"{key}." if key else ""
+    for declared in schema:
+        name = declared.rstrip("?")
+        if name != "*" and name not in value and f"{name}?" not in schema:
+            raise RunDirError(f"{path}: {prefix}{name}: missing")
+    for name, item in value.items():
+        sub = schema.get(name, schema.get(f"{name}?", schema.get("*")))
+        if sub is None:
+            raise RunDirError(f"{path}: {prefix}{name}: unknown key")
+        check_schema(item, sub, path, f"{prefix}{name}")
+
+
+def read_metrics(path: Path) -> dict[str, Any]:
+    """Read and check a finished run's ``metrics.json`` (:data:`METRICS`).
+
+    The learner's and the greedy baseline's blocks must name the same task types and robots.
+
+    Args:
+        path: The file.
+
+    Returns:
+        The content.
+
+    Raises:
+        RunDirError: naming the file and the key at fault.
+    """
+    metrics = read_json(path)
+    check_schema(metrics, METRICS, path, "")
+    learned, greedy = metrics["eval"], metrics["baseline_greedy"]
+    for block in ("ctr", "itr", "return_by_type"):
+        if set(learned.get(block, ())) != set(greedy.get(block, ())):
+            raise RunDirError(
+                f"{path}: eval.{block}: names {sorted(learned.get(block, ()))}, but "
+                f"baseline_greedy.{block} names {sorted(greedy.get(block, ()))}"
+            )
+    if learned["episodes"] < 1:
+        raise _refuse(path, "eval.episodes", "an integer >= 1", learned["episodes"])
+    return metrics
