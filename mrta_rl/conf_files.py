@@ -18,6 +18,7 @@ import os
 from pathlib import Path
 
 from mrta_rl.config import UserError
+from mrta_rl.systems.files import check_yaml_file
 
 CONF_PACKAGE = "mrta_rl.conf"
 SYSTEM_SUFFIXES = (".yaml", ".yml")  # a system argument ending so is a path, anything else a name
@@ -66,7 +67,8 @@ def system_file(system: str | os.PathLike) -> Path:
         The file (absolute), which exists.
 
     Raises:
-        UserError: naming the system, the file looked for and the shipped systems.
+        UserError: naming the system, the file looked for and the shipped systems, or the file
+            and the bound it passes (size, encoding, nesting, aliases: ``systems/files.py``).
     """
     path = Path(system).expanduser() if is_system_path(system) else system_dir() / f"{system}.yaml"
     if not path.is_file():
@@ -74,4 +76,5 @@ def system_file(system: str | os.PathLike) -> Path:
             f"unknown system {str(system)!r}: no file {path}; known: {shipped_systems()} "
             "or the path of a team yaml"
         )
+    check_yaml_file(path)
     return path.resolve()

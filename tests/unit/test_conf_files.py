@@ -90,3 +90,20 @@ def test_benchmarl_task_takes_a_team_file(benchmarl_task, tmp_path):
     (tmp_path / "bad.yaml").write_text("name: bad\nrobots:\n  R1: []\n")
     with pytest.raises(UserError, match="robot R1 has no task type"):
         benchmarl_task(config={"system": str(tmp_path / "bad.yaml")})
+
+
+@pytest.mark.parametrize(
+    ("content", "message"),
+    [
+        ("name: b\na: &a [T1]\nrobots: {R1: *a}\n", "YAML aliases"),
+        ("name: n\nrobots: " + "[" * 100 + "]" * 100 + "\n", "nested deeper"),
+    ],
+)
+def test_a_hostile_team_file_is_refused_before_it_is_read(tmp_path, content, message):
+    """A team path goes through the same bounded reader as the shipped configs."""
+    path = tmp_path / "team.yaml"
+    path.write_text(content)
+    with pytest.raises(UserError, match=message):
+        system_file(path)
+    with pytest.raises(UserError, match=message):
+        resolve_system(str(path))
