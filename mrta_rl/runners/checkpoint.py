@@ -37,6 +37,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from mrta_rl.config import UserError
@@ -54,6 +55,7 @@ POINTER_FILE = "latest"  # in CHECKPOINT_DIR: the name of the current version fo
 METRICS_FILE = "metrics.json"
 EVAL_METRICS_FILE = "eval_metrics.json"  # a re-evaluation (scripts/evaluate.py) beside metrics.json
 REFUSED_FILE = "refused.json"  # instead of metrics.json: the run was refused up front, and why
+TEAM_FILE = "team.json"  # in a learner state folder: the team it was trained on (save_learner)
 STATE_FILE = "training.json"  # loop counters, curve so far, learner checkpoint_state
 PACKAGE = "mrta_rl."
 SCALARS = (str, int, float, bool, type(None))
@@ -270,21 +272,71 @@ def run_choices(run_dir: Path) -> dict[str, str]:
 
 
 # ---------------------------------------------------------------------------------- learner state
+def team_record(learner: Learner) -> dict[str, Any]:
+    """The team a learner state belongs to: robots, task types and willingness, in order.
+
+    Tables and weights are indexed by robot and task type, so a state of another team of the
+    same shape would load and then act for robots that cannot do what it chooses.
+    """
+    system = learner.env.system
+    return {
+        "robots": list(system.robots),
+        "task_types": list(system.task_types),
+        "willingness": np.asarray(system.willingness).tolist(),
+    }
+
+
+def save_learner(learner: Learner, directory: Path) -> None:
+    """``learner.save`` into ``directory``, with the team it was trained on (:data:`TEAM_FILE`)."""
+    learner.save(directory)
+    write_json(directory / TEAM_FILE, team_record(learner))
+
+
+def _check_team(learner: Learner, directory: Path) -> None:
+    """Refuse a learner state saved for another team, naming the first robot that differs."""
+    path = directory / TEAM_FILE
+    try:
+        saved = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise RunDirError(f"{path}: missing (the team the learner state was trained on)") from None
+    except (OSError, ValueError) as err:
+        raise RunDirError(f"{path}: not readable JSON ({err})") from None
+    expected = team_record(learner)
+    if not isinstance(saved, dict) or set(saved) != set(expected):
+        raise RunDirError(f"{path}: expected the keys {sorted(expected)}")
+    for key in ("robots", "task_types"):
+        if saved[key] != expected[key]:
+            raise RunDirError(
+                f"{path}: {key}: the learner state was trained on another team ({saved[key]!r}), "
+                f"not the run's system ({expected[key]!r})"
+            )
+    for robot, row, want in zip(
+        expected["robots"], saved["willingness"], expected["willingness"], strict=True
+    ):
+        if row != want:
+            raise RunDirError(
+                f"{path}: willingness.{robot}: the learner state was trained on another team "
+                f"({row!r}), not the run's system ({want!r})"
+            )
+
+
 def load_learner(learner: Learner, directory: Path) -> None:
     """Restore a saved learner state into the learner built for the run, or refuse it.
 
-    The learner's ``load`` checks the files against itself (keys, shapes, dtypes, consistency)
-    and names the file on any problem.
+    The state must have been saved for the run's team (:func:`save_learner`), and the learner's
+    ``load`` checks the files against itself (keys, shapes, dtypes, consistency); any problem
+    names the file.
 
     Args:
         learner: The learner built for the run.
-        directory: Folder written by ``learner.save``.
+        directory: Folder written by :func:`save_learner`.
 
     Raises:
         RunDirError: if the folder is missing or its content does not fit the learner.
     """
     if not directory.is_dir():
         raise RunDirError(f"no saved learner state: {directory} is missing")
+    _check_team(learner, directory)
     try:
         learner.load(directory)
     except (OSError, ValueError, KeyError, RuntimeError, EOFError) as err:
@@ -375,10 +427,14 @@ class TrainingCheckpoint:
         run_dir: The run dir; the checkpoints are in ``<run_dir>/checkpoint`` (module docstring).
         every: Episodes between checkpoints (0: only on Ctrl-C or SIGTERM).
         resume: Continue from the run dir's checkpoint.
+        episodes: The run's ``train.episodes``: a checkpoint follows at most that many.
     """
 
-    def __init__(self, learner: Learner, run_dir: Path, every: int, resume: bool) -> None:
+    def __init__(
+        self, learner: Learner, run_dir: Path, every: int, resume: bool, episodes: int
+    ) -> None:
         self.learner = learner
+        self.episodes = int(episodes)
         self.run_dir = Path(run_dir)
         self.root = self.run_dir / CHECKPOINT_DIR
         self.path: Path | None = None  # the current checkpoint: restored or last saved
@@ -404,8 +460,7 @@ class TrainingCheckpoint:
         state_path = version / STATE_FILE
         from mrta_rl.runners.run_files import read_training_state  # it imports this module
 
-        episodes = int(read_run_config(self.run_dir).train.episodes)
-        loop, learner_state = read_training_state(state_path, self.learner.kind, episodes)
+        loop, learner_state = read_training_state(state_path, self.learner.kind, self.episodes)
         load_learner(self.learner, version / LEARNER_DIR)
         try:
             self.learner.restore_state(learner_state, version)
@@ -434,7 +489,7 @@ class TrainingCheckpoint:
         version = self.root / name
         shutil.rmtree(tmp, ignore_errors=True)
         tmp.mkdir(parents=True)
-        self.learner.save(tmp / LEARNER_DIR)
+        save_learner(self.learner, tmp / LEARNER_DIR)
         state = {"loop": loop, "learner": self.learner.checkpoint_state(tmp)}
         if files is not None:
             files(tmp)

@@ -40,6 +40,7 @@ from mrta_rl.runners.checkpoint import (
     load_learner,
     read_run_config,
     run_choices,
+    save_learner,
     write_json,
 )
 from mrta_rl.runners.evaluate import evaluate_run
@@ -182,7 +183,9 @@ def train(cfg: DictConfig, run_dir: Path | str | None = None) -> dict[str, Any]:
     # checked by validate_config; absent in runs written before checkpoints existed: none
     every = OmegaConf.select(cfg, "train.checkpoint_every", default=0)
     run_dir.mkdir(parents=True, exist_ok=True)
-    run.checkpoint = TrainingCheckpoint(run.learner, run_dir, every, resume=bool(resume))
+    run.checkpoint = TrainingCheckpoint(
+        run.learner, run_dir, every, resume=bool(resume), episodes=cfg.train.episodes
+    )
     logger.info(
         "learner %s (%s) on %s, seed %d, run dir %s",
         run.name,
@@ -216,7 +219,7 @@ def train(cfg: DictConfig, run_dir: Path | str | None = None) -> dict[str, Any]:
         raise TableGrowthError(reason) from None
     train_info["wall_s"] = round(time.perf_counter() - start, 3)
     if run.learner.kind != "fixed":
-        run.learner.save(run_dir / LEARNER_DIR)
+        save_learner(run.learner, run_dir / LEARNER_DIR)
     results = evaluate_run(run, cfg)
     metrics = {
         "learner": run.name,

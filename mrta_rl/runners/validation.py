@@ -200,6 +200,22 @@ def hydra_choice(group: str, default: str) -> str:
     return default
 
 
+def _check_logger(settings: Any) -> None:
+    """The curve logger's settings: declared keywords, and file names that stay in the run dir."""
+    from mrta_rl.metrics.logger import CSVLogger  # every logger of a run is one (checkpoint.py)
+
+    if settings is None:
+        return
+    _check(isinstance(settings, dict), f"logger: must be a logger config, got {settings!r}")
+    checked = check_keywords(CSVLogger, settings, "logger")
+    for key in ("filename", "log_dir"):
+        name = checked.get(key)
+        _check(
+            name is None or (name not in ("", ".", "..") and "/" not in name and "\\" not in name),
+            f"logger.{key}: must be a plain name inside the run dir, got {name!r}",
+        )
+
+
 def _plain(cfg: DictConfig, key: str) -> Any:
     """The content of ``cfg.<key>`` as plain Python, interpolations resolved; None if absent."""
     try:
@@ -359,6 +375,7 @@ def validate_config(cfg: DictConfig) -> CheckedConfig:
     cls = learner_class(cfg.get("learner"))
     training_loop(cls.kind)  # fail now, not after building everything, if the loop is missing
     hyperparameters = check_keywords(cls, _plain(cfg, "learner"), "learner")
+    _check_logger(_plain(cfg, "logger"))
 
     system_cfg = _plain(cfg, "system")
     _check(isinstance(system_cfg, dict), f"system: must be a system file, got {system_cfg!r}")

@@ -193,26 +193,32 @@ def crash_at(monkeypatch, step: int) -> None:
         monkeypatch.setattr(module, name, failing)
 
 
+EPISODES = 10  # train.episodes of the checkpoints below
+
+
 def save(learner, run_dir: Path, episode: int) -> None:
     """A checkpoint whose loop state and loop file both say which episode it is."""
-    checkpoint = TrainingCheckpoint(learner, run_dir, every=1, resume=False)
+    checkpoint = TrainingCheckpoint(learner, run_dir, every=1, resume=False, episodes=EPISODES)
 
     def files(folder: Path) -> None:
         (folder / "loop_file.txt").write_text(f"episode {episode}")
 
-    checkpoint.save({"episode": episode, "curve": [[episode]]}, files)
+    curve = [{"episode": i + 1, "env_ticks": 0, "team_return_mean": 0.0} for i in range(episode)]
+    checkpoint.save({"episode": episode, "env_ticks": 0, "curve": curve}, files)
 
 
 def resumed_episode(cfg, run_dir: Path) -> int | None:
     """The episode a new process resumes from (None: no checkpoint), checked complete."""
     learner = build_run(cfg).learner
     try:
-        loop = TrainingCheckpoint(learner, run_dir, every=1, resume=True).restore()
+        loop = TrainingCheckpoint(
+            learner, run_dir, every=1, resume=True, episodes=EPISODES
+        ).restore()
     except RunDirError as err:
         assert "holds no training checkpoint" in str(err), err
         return None
     episode = loop["episode"]
-    assert loop["curve"] == [[episode]]
+    assert len(loop["curve"]) == episode
     assert (latest_checkpoint(run_dir) / "loop_file.txt").read_text() == f"episode {episode}"
     return episode
 

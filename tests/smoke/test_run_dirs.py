@@ -261,9 +261,9 @@ def test_tables_of_another_system_are_refused(trained, tmp_path):
 
     shutil.rmtree(run_dir / "learner")
     shutil.copytree(trained["system1"] / "learner", run_dir / "learner")
-    with pytest.raises(ValueError, match="another system") as err:
+    with pytest.raises(ValueError, match="another team") as err:
         evaluate_checkpoint(run_dir)
-    assert str(run_dir / "learner" / "q_tables.npz") in str(err.value)
+    assert str(run_dir / "learner" / "team.json") in str(err.value)
 
 
 @pytest.mark.parametrize("damage", [truncate, random_bytes])

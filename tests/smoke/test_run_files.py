@@ -317,19 +317,16 @@ def test_weights_holding_nan_or_inf_are_refused_naming_the_file(value, tmp_path)
     check_state_dict(expected, expected, path)  # finite weights pass
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="saved tables do not record the team they were trained on: a robot's task set "
-    "changed in .hydra/config.yaml keeps the table shapes, loads, and the env then refuses "
-    "an action mid-evaluation with a traceback",
-)
 def test_tables_of_another_team_are_refused(pristine, tmp_path):
     run_dir = damaged_copy(pristine, tmp_path, "full")
     path = run_dir / ".hydra" / "config.yaml"
     config = yaml.safe_load(path.read_text())
     del config["system"]["robots"]["R3"][1]
     path.write_text(yaml.safe_dump(config))
-    refused_or_right(run_dir, lambda: evaluate_checkpoint(run_dir), None, any_of=("R3", "system"))
+    message = refused_or_right(
+        run_dir, lambda: evaluate_checkpoint(run_dir), None, "team.json", "willingness.R3"
+    )
+    assert message  # refused, not evaluated
 
 
 def test_alias_bomb_in_the_run_config_is_refused_before_it_is_expanded(pristine, tmp_path):
@@ -342,4 +339,31 @@ def test_alias_bomb_in_the_run_config_is_refused_before_it_is_expanded(pristine,
     message = refused_or_right(
         run_dir, lambda: evaluate_checkpoint(run_dir), None, str(path), "YAML aliases"
     )
+    assert message
+
+
+@pytest.mark.parametrize(
+    ("key", "value"),
+    [("filename", "../../escaped.csv"), ("log_dir", "/tmp"), ("filename", None)],
+)
+def test_a_logger_writing_outside_the_run_dir_is_refused(pristine, tmp_path, key, value):
+    run_dir = damaged_copy(pristine, tmp_path, "cut")
+    path = run_dir / ".hydra" / "config.yaml"
+    config = yaml.safe_load(path.read_text())
+    config["logger"][key] = value
+    path.write_text(yaml.safe_dump(config))
+    message = refused_or_right(run_dir, lambda: resume(run_dir), None, f"logger.{key}")
+    assert message
+    assert not (tmp_path / "escaped.csv").exists()
+
+
+@pytest.mark.parametrize("damage", ["missing", "garbage"])
+def test_a_learner_state_without_its_team_is_refused(pristine, tmp_path, damage):
+    run_dir = damaged_copy(pristine, tmp_path, "full")
+    team = run_dir / "learner" / "team.json"
+    if damage == "missing":
+        team.unlink()
+    else:
+        team.write_text("{not json")
+    message = refused_or_right(run_dir, lambda: evaluate_checkpoint(run_dir), None, str(team))
     assert message
