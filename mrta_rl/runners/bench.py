@@ -53,9 +53,13 @@ def _compose(overrides: list[str]) -> Any:
     from hydra.core.global_hydra import GlobalHydra
 
     GlobalHydra.instance().clear()
-    from mrta_rl.conf_files import conf_dir
+    # a checkout's own conf/ first: a --baseline checkout may predate mrta_rl.conf_files
+    config_dir = _repo_root() / "conf"
+    if not (config_dir / "config.yaml").is_file():
+        from mrta_rl.conf_files import conf_dir
 
-    with initialize_config_dir(config_dir=str(conf_dir()), version_base=None):
+        config_dir = conf_dir()
+    with initialize_config_dir(config_dir=str(config_dir), version_base=None):
         return compose(config_name="config", overrides=overrides)
 
 
