@@ -263,6 +263,7 @@ def run_choices(run_dir: Path) -> dict[str, str]:
     path = Path(run_dir) / HYDRA_FILE
     if not path.is_file():
         return {}
+    check_yaml_file(path)  # a hostile file is refused; a merely damaged one loses the names
     try:
         choices = OmegaConf.select(OmegaConf.load(path), "hydra.runtime.choices", default={})
         return {str(k): str(v) for k, v in dict(choices).items() if isinstance(v, str | int)}

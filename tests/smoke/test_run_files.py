@@ -367,3 +367,22 @@ def test_a_learner_state_without_its_team_is_refused(pristine, tmp_path, damage)
         team.write_text("{not json")
     message = refused_or_right(run_dir, lambda: evaluate_checkpoint(run_dir), None, str(team))
     assert message
+
+
+@pytest.mark.parametrize("damage", ["alias_bomb", "garbage", "not_yaml"])
+def test_a_damaged_hydra_yaml_is_refused_or_loses_only_the_names(pristine, tmp_path, damage):
+    """``.hydra/hydra.yaml`` gives only the runs' names: a hostile file is refused before it is
+    expanded, a damaged one is evaluated under the class names."""
+    run_dir = damaged_copy(pristine, tmp_path, "full")
+    path = run_dir / ".hydra" / "hydra.yaml"
+    if damage == "alias_bomb":
+        lines = ['a: &a ["lol", "lol", "lol", "lol", "lol", "lol", "lol", "lol", "lol"]']
+        for previous, name in zip("abcdefgh", "bcdefghi", strict=True):
+            lines.append(f"{name}: &{name} [" + ", ".join([f"*{previous}"] * 9) + "]")
+        path.write_text("\n".join(lines) + "\n")
+    elif damage == "garbage":
+        path.write_bytes(bytes(range(256)))
+    else:
+        path.write_text("hydra: [unclosed\n")
+    message = refused_or_right(run_dir, lambda: evaluate_checkpoint(run_dir), None, str(path))
+    assert bool(message) == (damage != "not_yaml")
