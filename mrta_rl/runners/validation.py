@@ -208,10 +208,10 @@ def _check_logger(settings: Any) -> None:
         return
     _check(isinstance(settings, dict), f"logger: must be a logger config, got {settings!r}")
     checked = check_keywords(CSVLogger, settings, "logger")
-    for key in ("filename", "log_dir"):
-        name = checked.get(key)
+    for key, refused in (("filename", ("", ".", "..")), ("log_dir", ("", ".."))):
+        name = checked.get(key)  # log_dir "." is the run dir itself (wandb adds its wandb/)
         _check(
-            name is None or (name not in ("", ".", "..") and "/" not in name and "\\" not in name),
+            name is None or (name not in refused and "/" not in name and "\\" not in name),
             f"logger.{key}: must be a plain name inside the run dir, got {name!r}",
         )
 
