@@ -214,8 +214,8 @@ def read_run_config(run_dir: Path | str) -> DictConfig:
         The config, safe to build the run from.
 
     Raises:
-        RunDirError: if the file is missing, unreadable, holds anything but plain data or a
-            setting ``validate_config`` refuses.
+        RunDirError: if the file is missing, unreadable or holds anything but plain data (its
+            settings are checked when the run is built: ``train.build_saved_run``).
     """
     run_dir = Path(run_dir)
     path = run_dir / CONFIG_FILE
@@ -228,12 +228,6 @@ def read_run_config(run_dir: Path | str) -> DictConfig:
         raise RunDirError(f"{path}: not a readable YAML config ({err})") from err
     check_run_config(OmegaConf.to_container(cfg, resolve=False), path)
     fill_settings_before(cfg)
-    from mrta_rl.runners.validation import validate_config  # imports the learners
-
-    try:  # every setting as train.py checks it, the file named
-        validate_config(cfg)  # type: ignore[arg-type]
-    except UserError as err:
-        raise RunDirError(f"{path}: {err}") from None
     return cfg  # type: ignore[return-value]
 
 

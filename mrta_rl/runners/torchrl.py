@@ -27,8 +27,6 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig
 from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
-from torchrl.record.loggers import CSVLogger as TorchRLCSVLogger
-from torchrl.record.loggers import Logger
 
 from mrta_rl.envs.torchrl_env import AuctionTorchRLEnv
 from mrta_rl.metrics.logger import CSVLogger
@@ -50,7 +48,6 @@ logger = logging.getLogger(__name__)
 # Small networks and a numpy env: one intra-op thread is fastest, and on a shared machine more
 # threads spin against each other (measured: 3.4 ms vs 1.2 ms per env step of 16 copies).
 TORCH_THREADS = 1
-TORCHRL_LOG_DIR = "torchrl"  # TorchRL CSVLogger scalars: <run dir>/torchrl/train/scalars/*.csv
 
 
 class TensorboardCurveLogger(CSVLogger):
@@ -64,14 +61,6 @@ class TensorboardCurveLogger(CSVLogger):
     ) -> None:
         """Open curve.csv and the run's TensorBoard logger (see :class:`CSVLogger`)."""
         super().__init__(run_dir=run_dir, filename=filename, backend="tensorboard", log_dir=log_dir)
-
-
-def _scalar_logger(curve: Any, run_dir: Path) -> Logger:
-    """The TorchRL logger of the run: the curve logger's own (TensorBoard) or a TorchRL CSV."""
-    own = getattr(curve, "torchrl_logger", None)
-    if own is not None:
-        return own
-    return TorchRLCSVLogger(exp_name="train", log_dir=str(run_dir / TORCHRL_LOG_DIR))
 
 
 def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
@@ -173,7 +162,7 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     ):
         for row in rows:
             curve.log(row)
-        scalars = _scalar_logger(curve, run_dir)
+        scalars = curve.torchrl_logger  # the run's tracker (logger=csv|tensorboard|wandb|mlflow)
         recent = "-"  # last episode's mean team return, for the progress bar
         tick = time.perf_counter()
         for data in collector:  # [B, T]

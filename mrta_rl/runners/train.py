@@ -23,7 +23,7 @@ import numpy as np
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from mrta_rl.config import ConfigError
+from mrta_rl.config import ConfigError, UserError
 from mrta_rl.envs import AuctionEnv, AuctionParams
 from mrta_rl.learners import Learner
 from mrta_rl.learners.tabular.qtable import TableGrowthError, limit_growth
@@ -31,10 +31,12 @@ from mrta_rl.metrics.logger import finish_run
 from mrta_rl.metrics.resources import RunResources
 from mrta_rl.partition import Partition
 from mrta_rl.runners.checkpoint import (
+    CONFIG_FILE,
     EVAL_METRICS_FILE,
     LEARNER_DIR,
     METRICS_FILE,
     REFUSED_FILE,
+    RunDirError,
     TrainingCheckpoint,
     TrainingInterrupted,
     load_learner,
@@ -122,6 +124,18 @@ def build_run(cfg: DictConfig, name: str | None = None) -> RunSetup:
     )
 
 
+def build_saved_run(cfg: DictConfig, run_dir: Path, name: str | None) -> RunSetup:
+    """:func:`build_run` from a run dir's own config: a setting it refuses names the file.
+
+    Raises:
+        RunDirError: naming ``.hydra/config.yaml`` and the setting.
+    """
+    try:
+        return build_run(cfg, name=name)
+    except UserError as err:
+        raise RunDirError(f"{run_dir / CONFIG_FILE}: {err}") from None
+
+
 def _write_refusal(run_dir: Path, cfg: DictConfig, reason: str) -> None:
     """``refused.json`` (``reports/collect.py``): this run was refused, and why.
 
@@ -169,7 +183,7 @@ def train(cfg: DictConfig, run_dir: Path | str | None = None) -> dict[str, Any]:
         with open_dict(cfg):
             cfg.resume = str(run_dir)
             cfg.train.progress_bar = progress
-        run = build_run(cfg, name=choices.get("learner"))
+        run = build_saved_run(cfg, run_dir, name=choices.get("learner"))
         system_name = choices.get("system", run.system.name)
     else:
         run_dir = Path(run_dir if run_dir is not None else HydraConfig.get().runtime.output_dir)
@@ -179,10 +193,9 @@ def train(cfg: DictConfig, run_dir: Path | str | None = None) -> dict[str, Any]:
             _write_refusal(run_dir, cfg, str(refusal))
             raise
         system_name = hydra_choice("system", run.system.name)
-        claim_run_dir(run_dir, resume=False)
+        claim_run_dir(run_dir, resume=False)  # made and locked (runners/run_dir.py)
     # checked by validate_config; absent in runs written before checkpoints existed: none
     every = OmegaConf.select(cfg, "train.checkpoint_every", default=0)
-    run_dir.mkdir(parents=True, exist_ok=True)
     run.checkpoint = TrainingCheckpoint(
         run.learner, run_dir, every, resume=bool(resume), episodes=cfg.train.episodes
     )
@@ -283,7 +296,7 @@ def evaluate_checkpoint(
     if batch_size is not None:
         cfg.eval.batch_size = int(batch_size)
     choices = run_choices(run_dir)
-    run = build_run(cfg, name=choices.get("learner"))
+    run = build_saved_run(cfg, run_dir, name=choices.get("learner"))
     if run.learner.kind != "fixed":
         load_learner(run.learner, run_dir / LEARNER_DIR)
     metrics = {
