@@ -16,7 +16,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from mrta_rl.runners.bench import (
+from mrta_rl.bench.learners import (
     LEARNERS,
     format_neural_table,
     format_table,

@@ -14,8 +14,8 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
+from mrta_rl.bench.neural_profile import format_profile, profile_run
 from mrta_rl.runners import cli
-from mrta_rl.runners.neural_profile import format_profile, profile_run
 
 
 @hydra.main(config_path="../conf", config_name="config", version_base=None)

@@ -3,9 +3,8 @@
 Usage: ``mrta-bench [--batch-sizes 1 16 64 1024 8192] [--threads 1 2] [--paths step play]
 [--repeats 3] [--seconds 1.0] [--systems system1 system2 random100] [--clock wall|cpu]
 [--out FILE]`` (or ``python scripts/bench_env.py ...``; ``make bench``). A system is a shipped
-one, ``random100`` (100 random robots) or the path of a team yaml. The plain loop is the tests'
-reference (``tests/unit/reference_auction.py``): an installed package without the repository
-measures the env alone.
+one, ``random100`` (100 random robots) or the path of a team yaml. The plain loop is the
+spec's reference reading, :mod:`mrta_rl.envs.reference`.
 """
 
 from __future__ import annotations
@@ -17,8 +16,8 @@ from pathlib import Path
 import yaml
 from tqdm import tqdm
 
+from mrta_rl.bench.env import bench_env, bench_plain_loop, format_table
 from mrta_rl.conf_files import system_file
-from mrta_rl.envs.benchmark import REFERENCE, bench_env, bench_plain_loop, format_table
 from mrta_rl.runners import cli
 from mrta_rl.systems import build_system, random_system
 
@@ -40,9 +39,7 @@ def _task() -> None:
         else build_system(yaml.safe_load(system_file(name).read_text()))
         for name in args.systems
     ]
-    if not REFERENCE.exists():
-        print(f"no plain loop: {REFERENCE} is not here (a clone of the repository has it)")
-    plain = [(s, None, 1, 1) for s in systems] if REFERENCE.exists() else []
+    plain = [(s, None, 1, 1) for s in systems]
     cells = plain + [
         (s, path, b, n)
         for s in systems

@@ -144,7 +144,7 @@ class AuctionEnv:
 
     Observation Space:
         Raw state arrays (:attr:`slot_type`, :attr:`slot_high`, :attr:`idle`, :attr:`battery`,
-        :attr:`last_high_arrival`, :attr:`t`); ``mrta_rl.envs.observations`` encodes them.
+        :attr:`last_high_arrival`, :attr:`t`); ``mrta_rl.envs.encodings`` encodes them.
 
     Reward:
         Team reward ``[B]`` and individual rewards ``[B, m]`` (spec step 8); they sum to the team's.

@@ -3,7 +3,7 @@
 A draw is a hash of (copy seed, episode number, tick, draw index) (splitmix64 finaliser), never
 the next value of a shared generator. A copy's episode therefore depends only on its own seed and
 actions, not on the batch size or on when other copies reset, and any implementation that draws
-the same hashes reproduces it exactly (``tests/unit/reference_auction.py`` does).
+the same hashes reproduces it exactly (``mrta_rl/envs/reference.py`` does).
 uint64 arithmetic wraps by design. The hash primitives are compiled with numba and generic: the
 compiled kernel (``envs/kernel.py``) calls them on scalars, the functions below on arrays, so each
 formula is written once.

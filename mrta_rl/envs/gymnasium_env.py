@@ -14,7 +14,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from mrta_rl.envs import observations, view_inputs
+from mrta_rl.envs import encodings, view_inputs
 from mrta_rl.envs.params import AuctionParams
 from mrta_rl.envs.view_inputs import InvalidAction, SystemLike
 
@@ -44,7 +44,7 @@ class AuctionGymEnv(gym.Env):
 
     Observation Space:
         ``Box(0, 1, (G,), float32)``: global features
-        (:func:`~mrta_rl.envs.observations.global_features`).
+        (:func:`~mrta_rl.envs.encodings.global_features`).
 
     Reward:
         The team reward (spec step 8); ``info["robot_reward"]`` holds the individual ones.
@@ -85,12 +85,12 @@ class AuctionGymEnv(gym.Env):
         self.render_mode = render_mode
         m, n_actions = self.core.n_robots, self.core.n_actions
         self.observation_space = spaces.Box(
-            0.0, 1.0, (observations.global_feature_size(self.core),), np.float32
+            0.0, 1.0, (encodings.global_feature_size(self.core),), np.float32
         )
         self.action_space = spaces.MultiDiscrete([n_actions] * m)
 
     def _observe(self) -> tuple[np.ndarray, dict[str, Any]]:
-        obs = observations.global_features(self.core)[0]  # [G]
+        obs = encodings.global_features(self.core)[0]  # [G]
         return obs, {"action_mask": self.core.action_mask[0].astype(np.int8)}  # [m, K + 1]
 
     def action_masks(self) -> np.ndarray:

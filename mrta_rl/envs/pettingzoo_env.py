@@ -10,7 +10,7 @@ from gymnasium import spaces
 from gymnasium.utils import seeding
 from pettingzoo import ParallelEnv
 
-from mrta_rl.envs import observations, view_inputs
+from mrta_rl.envs import encodings, view_inputs
 from mrta_rl.envs.params import AuctionParams
 from mrta_rl.envs.view_inputs import InvalidAction, SystemLike
 from mrta_rl.types import RobotId
@@ -34,7 +34,7 @@ class AuctionParallelEnv(ParallelEnv):
 
     Observation Space:
         ``Box(0, 1, (F,), float32)``: the robot's local features
-        (:func:`~mrta_rl.envs.observations.local_features`), a NumPy array as PettingZoo's
+        (:func:`~mrta_rl.envs.encodings.local_features`), a NumPy array as PettingZoo's
         AEC tests expect.
 
     Reward:
@@ -78,13 +78,13 @@ class AuctionParallelEnv(ParallelEnv):
         self.render_mode = None
         self.possible_agents: list[RobotId] = list(self.core.system.robots)
         self.agents: list[RobotId] = []
-        n_features, n_actions = observations.local_feature_size(self.core), self.core.n_actions
+        n_features, n_actions = encodings.local_feature_size(self.core), self.core.n_actions
         self._observation_spaces = {
             agent: spaces.Box(0.0, 1.0, (n_features,), np.float32) for agent in self.possible_agents
         }
         self._action_spaces = {agent: spaces.Discrete(n_actions) for agent in self.possible_agents}
         self.state_space = spaces.Box(
-            0.0, 1.0, (observations.global_feature_size(self.core),), np.float32
+            0.0, 1.0, (encodings.global_feature_size(self.core),), np.float32
         )
         self._index = {agent: i for i, agent in enumerate(self.possible_agents)}
 
@@ -101,7 +101,7 @@ class AuctionParallelEnv(ParallelEnv):
         return self.core.action_mask[0, self._index[agent]].astype(np.int8)
 
     def _observe(self) -> tuple[dict[RobotId, np.ndarray], dict[RobotId, dict[str, Any]]]:
-        features = observations.local_features(self.core)[0]  # [m, F] float32
+        features = encodings.local_features(self.core)[0]  # [m, F] float32
         mask = self.core.action_mask[0].astype(np.int8)  # [m, K + 1]
         live = [(i, agent) for i, agent in enumerate(self.possible_agents) if agent in self.agents]
         obs = {agent: features[i] for i, agent in live}
@@ -158,12 +158,12 @@ class AuctionParallelEnv(ParallelEnv):
         return obs, rewards, terminations, truncations, infos
 
     def state(self) -> np.ndarray:
-        """Global features (:func:`~mrta_rl.envs.observations.global_features`), in ``state_space``.
+        """Global features (:func:`~mrta_rl.envs.encodings.global_features`), in ``state_space``.
 
         Returns:
             float32 ``[G]``.
         """
-        return observations.global_features(self.core)[0]
+        return encodings.global_features(self.core)[0]
 
     def render(self) -> None:
         """No rendering (``render_modes`` is empty)."""

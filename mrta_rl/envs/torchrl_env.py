@@ -16,7 +16,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Binary, Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase, MarlGroupMapType
 
-from mrta_rl.envs import observations
+from mrta_rl.envs import encodings
 from mrta_rl.envs.auction import AuctionEnv
 from mrta_rl.envs.view_inputs import (
     DEFAULT_INVALID_ACTION,
@@ -100,11 +100,11 @@ class AuctionTorchRLEnv(EnvBase):
 
     Observation Space:
         ``(group, "observation")``: float32 ``[B, n_g, F]`` local features
-        (:func:`~mrta_rl.envs.observations.local_features`); ``(group, "action_mask")``: bool
+        (:func:`~mrta_rl.envs.encodings.local_features`); ``(group, "action_mask")``: bool
         ``[B, n_g, K + 1]`` (the core's mask); root ``"state"``: float32 ``[B, G]`` global
-        features (:func:`~mrta_rl.envs.observations.global_features`) for mixers; both in the
+        features (:func:`~mrta_rl.envs.encodings.global_features`) for mixers; both in the
         encoding ``features`` (``"paper"`` by default, ``"time_to_free"`` adds free and queue
-        levels: ``observations`` module docstring, "Features"). With a
+        levels: ``encodings`` module docstring, "Features"). With a
         ``prior``, ``(group, "prior_action")`` bool ``[B, n_g, K + 1]`` is the one-hot of that
         policy's action of every robot in the current state (the neural learners' ``hold``
         prior: a rule that reads the whole team, computed here from the core). Two reward
@@ -132,7 +132,7 @@ class AuctionTorchRLEnv(EnvBase):
         invalid_action: ``"wait"`` or ``"raise"`` (see Action Space).
         prior: None, or a function of the core env giving ``[B, m]`` actions, written as the
             observation ``(group, "prior_action")`` (see Observation Space).
-        features: ``observations.FEATURES``: the encoding of ``observation`` and ``state``
+        features: ``encodings.FEATURES``: the encoding of ``observation`` and ``state``
             (a neural learner's ``features``).
     """
 
@@ -150,7 +150,7 @@ class AuctionTorchRLEnv(EnvBase):
         if torch.device(device).type != "cpu":
             raise ValueError("AuctionTorchRLEnv runs on cpu (the dynamics are numpy)")
         check_invalid_action(invalid_action)
-        self.features = observations.check_features(features)
+        self.features = encodings.check_features(features)
         self.invalid_action = invalid_action
         self.prior = prior
         super().__init__(device="cpu", batch_size=torch.Size([env.batch_size]))
@@ -176,8 +176,8 @@ class AuctionTorchRLEnv(EnvBase):
     def _make_specs(self) -> None:
         B, A = self.auction.batch_size, self.auction.n_actions
         F, G = (
-            observations.local_feature_size(self.auction, self.features),
-            observations.global_feature_size(self.auction, self.features),
+            encodings.local_feature_size(self.auction, self.features),
+            encodings.global_feature_size(self.auction, self.features),
         )
         obs, act, rew = {}, {}, {}
         for group, idx in self._group_index.items():
@@ -239,10 +239,10 @@ class AuctionTorchRLEnv(EnvBase):
         """
         core, cpu = self.auction, self.device
         B = core.batch_size
-        local = torch.from_numpy(observations.local_features(core, self.features))  # [B, m, F]
+        local = torch.from_numpy(encodings.local_features(core, self.features))  # [B, m, F]
         mask = torch.from_numpy(core.action_mask)  # [B, m, K + 1], a view of the core's buffer
         out = TensorDict(
-            {"state": torch.from_numpy(observations.global_features(core, self.features))},
+            {"state": torch.from_numpy(encodings.global_features(core, self.features))},
             batch_size=self.batch_size,
             device=cpu,
         )

@@ -16,7 +16,7 @@ import numpy as np
 
 from mrta_rl.config import Choices, Range
 from mrta_rl.envs import AuctionEnv
-from mrta_rl.envs.observations import N_RECENCY_LEVELS, recency_level
+from mrta_rl.envs.encodings import N_RECENCY_LEVELS, recency_level
 from mrta_rl.learners.base import Learner, LearnerKind
 from mrta_rl.partition import subg_partition
 

@@ -1,6 +1,6 @@
 """Learning space dimension of the tabular learners, paper §5.2 eqs. (10)-(16), as exact ints.
 
-The state counts come from the project's encodings (``mrta_rl.envs.observations``) and every
+The state counts come from the project's encodings (``mrta_rl.envs.encodings``) and every
 robot has ``|A_i| = K + 1`` actions (wait or bid for one of ``K`` slots, spec step 4):
 
 * DQL, eqs. (10)-(11): ``sum_i |S_i| |A_i|`` with ``S_i`` the local view of robot ``i``.
@@ -23,7 +23,7 @@ from collections.abc import Sequence
 from typing import Literal
 
 from mrta_rl.envs import AuctionEnv, AuctionParams
-from mrta_rl.envs.observations import group_state_count, local_state_count
+from mrta_rl.envs.encodings import group_state_count, local_state_count
 from mrta_rl.learners.tabular.encoding import subgroup_state_count, system_state_count
 from mrta_rl.partition import Partition, subg_partition
 from mrta_rl.systems import RobotSystem
@@ -90,7 +90,7 @@ def learning_space_dimension(
         env: The env the learner runs on (for subG-CQL: built with the partition's ``Lambda_i``).
         partition: The subG partition (required for ``"subg_cql"``).
         features: The learner's encoding, ``"paper"`` or ``"time_to_free"``
-            (``envs/observations.py``).
+            (``envs/encodings.py``).
         state: semi-CQL's shared state (``tabular.encoding.SYSTEM_STATES``); ``system`` for
             the others.
         group_state: subG-CQL's group state (``tabular.encoding.GROUP_STATES``); ``group``

@@ -37,9 +37,7 @@ from typing import Any
 from omegaconf import OmegaConf
 
 from mrta_rl.config import UserError, declared_keywords
-from mrta_rl.runners.checkpoint import METRICS_FILE, REFUSED_FILE, fill_settings_before
-from mrta_rl.runners.cli import REFUSED_JOBS_FILE
-from mrta_rl.runners.run_files import read_metrics
+from mrta_rl.run_files import METRICS_FILE, REFUSED_FILE, REFUSED_JOBS_FILE, read_metrics
 
 logger = logging.getLogger(__name__)
 
@@ -231,23 +229,15 @@ def configuration_variants(records: Sequence[RunRecord]) -> list[str]:
 
 
 def _as_ran(config: dict[str, Any]) -> dict[str, Any]:
-    """A copy of a run's config with the settings it ran with where a default has moved since.
-
-    See :func:`~mrta_rl.runners.checkpoint.fill_settings_before`, which evaluation and resume
-    apply to the same config.
-    """
-    config = copy.deepcopy(config)
-    fill_settings_before(config)
-    return config
+    """A copy of a run's config, to fill with declared defaults without touching the record."""
+    return copy.deepcopy(config)
 
 
 def _declared_defaults(config: dict[str, Any]) -> dict[str, Any]:
     """``{"learner.<name>": default}`` of the run's learner class, ``{}`` if it is unknown.
 
     A run made before a learner setting existed has no such key in its ``.hydra/config.yaml``
-    and ran with the setting's declared default, so it is compared with that default (where the
-    default has moved since, :func:`~mrta_rl.runners.checkpoint.fill_settings_before` has
-    already put in what the run ran with).
+    and ran with the setting's declared default, so it is compared with that default.
     """
     from mrta_rl.runners.validation import learner_class  # imports the learner (and its deps)
 

@@ -47,7 +47,7 @@ from mrta_rl.reports.aggregate import learner_label, system_label
 from mrta_rl.reports.collect import RunRecord, configuration_variants
 from mrta_rl.reports.stats import MeanCI, mean_ci
 from mrta_rl.reports.tables import markdown_table, write_csv
-from mrta_rl.runners.checkpoint import EVAL_METRICS_FILE
+from mrta_rl.run_files import EVAL_METRICS_FILE
 
 TITLE = "Learning against the rules"
 RULES = ("team_reserve", "rollout")  # the yardstick rules of issue 10 (fixed learners)

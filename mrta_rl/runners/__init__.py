@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from mrta_rl.runners.checkpoint import register_resolvers
 from mrta_rl.runners.evaluate import evaluate_policy, evaluate_run, format_summary
+from mrta_rl.runners.run_config import register_resolvers
 from mrta_rl.runners.train import RunSetup, build_run, evaluate_checkpoint, train
 from mrta_rl.runners.validation import TRAINING_LOOPS, validate_config
 from mrta_rl.systems.files import guard_config_files

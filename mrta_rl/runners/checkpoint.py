@@ -1,12 +1,4 @@
-"""Run directories as data: their config and learner state read safely; training checkpoints.
-
-A run dir may come from anyone (a shared drive, a download), so reading one never executes what
-it says. :func:`read_run_config` accepts a ``.hydra/config.yaml`` only if its learner is a
-:class:`~mrta_rl.learners.Learner` class of this package with plain scalar or list
-hyperparameters, its logger a curve logger of this package, and everything else plain data (no
-``_target_``, no interpolation); anything else is refused with a message naming the key.
-:func:`load_learner` restores saved tables or weights through the learner's own ``load``, which
-checks them against the learner built for the run; any failure names the file and what is wrong.
+"""Training checkpoints: versioned folders, a pointer file, and resuming from them.
 
 Training checkpoints (:class:`TrainingCheckpoint`) hold everything a run needs to continue
 exactly where it stopped: the learner state (``save``), what ``save`` lacks
@@ -19,17 +11,12 @@ then the pointer file ``checkpoint/latest`` is replaced (one atomic rename) to n
 then are older versions removed. A crash at any instant leaves the pointer naming a complete
 checkpoint: the newest one written completely (:func:`latest_checkpoint`).
 
-Import direction: ``train`` -> ``evaluate``, ``train`` -> ``checkpoint``; this module imports no
-other runner module.
 """
 
 from __future__ import annotations
 
-import importlib
-import json
 import logging
 import os
-import secrets
 import shutil
 import signal
 from collections.abc import Callable, Iterator
@@ -37,308 +24,18 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-from omegaconf import DictConfig, OmegaConf
-
-from mrta_rl.config import UserError
 from mrta_rl.learners import Learner
-from mrta_rl.metrics.logger import CSVLogger
-from mrta_rl.systems.files import check_yaml_file
+from mrta_rl.run_files import (
+    CHECKPOINT_DIR,
+    LEARNER_DIR,
+    POINTER_FILE,
+    STATE_FILE,
+    RunDirError,
+    write_json,
+)
+from mrta_rl.runners.learner_files import load_learner, save_learner
 
 logger = logging.getLogger(__name__)
-
-CONFIG_FILE = Path(".hydra") / "config.yaml"
-HYDRA_FILE = Path(".hydra") / "hydra.yaml"
-LEARNER_DIR = "learner"  # final learner state (Learner.save)
-CHECKPOINT_DIR = "checkpoint"  # training checkpoints: version folders and the pointer file
-POINTER_FILE = "latest"  # in CHECKPOINT_DIR: the name of the current version folder
-METRICS_FILE = "metrics.json"
-EVAL_METRICS_FILE = "eval_metrics.json"  # a re-evaluation (scripts/evaluate.py) beside metrics.json
-REFUSED_FILE = "refused.json"  # instead of metrics.json: the run was refused up front, and why
-TEAM_FILE = "team.json"  # in a learner state folder: the team it was trained on (save_learner)
-STATE_FILE = "training.json"  # loop counters, curve so far, learner checkpoint_state
-PACKAGE = "mrta_rl."
-SCALARS = (str, int, float, bool, type(None))
-
-
-class RunDirError(UserError):
-    """A run dir that cannot be used; the message names the file and what is wrong."""
-
-
-def write_json(path: Path, payload: dict[str, Any], *, exclusive: bool = False) -> None:
-    """Write JSON atomically (temporary file then rename), so a file is never half-written.
-
-    Args:
-        path: The file.
-        payload: JSON-serialisable content (no NaN).
-        exclusive: Never replace an existing file (the rename is a hard link that fails if
-            ``path`` exists): the results of a run are never overwritten by another run.
-
-    Raises:
-        RunDirError: if ``exclusive`` and ``path`` exists.
-    """
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(payload, indent=2, allow_nan=False) + "\n")
-    if not exclusive:
-        os.replace(tmp, path)
-        return
-    try:
-        os.link(tmp, path)
-    except FileExistsError:
-        raise RunDirError(
-            f"{path} was written by another run meanwhile; this run's results are kept in {tmp}"
-        ) from None
-    tmp.unlink()
-
-
-# ---------------------------------------------------------------------------------- run dirs
-RUN_ID = f"{os.getpid() % 0x10000:04x}{secrets.token_hex(2)}"  # this process's run dir suffix
-
-
-def register_resolvers() -> None:
-    """OmegaConf resolvers of the run dir pattern in ``conf/config.yaml`` (``hydra.run.dir``).
-
-    * ``${run_id:}``: a short id unique to this process (pid and random bits): runs started in
-      the same second get different dirs.
-    * ``${resume_or:<resume>,<default>}``: the ``resume`` dir if given, else ``default``.
-    * ``${unless_resume:<resume>,<value>}``: ``value``, or null when resuming (so a resumed run
-      does not overwrite its ``.hydra/`` snapshot with the resume command's config).
-    """
-    resolvers = {
-        "run_id": lambda: RUN_ID,
-        "resume_or": lambda resume, default: str(resume) if resume else default,
-        "unless_resume": lambda resume, value: None if resume else value,
-    }
-    for name, function in resolvers.items():
-        if not OmegaConf.has_resolver(name):
-            OmegaConf.register_new_resolver(name, function)
-
-
-# ---------------------------------------------------------------------------------- config
-def package_class(target: Any, base: type, what: str, where: str) -> type:
-    """The class ``target`` names, if it is a subclass of ``base`` defined in this package.
-
-    Only modules of ``mrta_rl`` are imported, so a tampered name runs no foreign code.
-
-    Args:
-        target: The ``_target_`` value.
-        base: The required base class.
-        what: What the class is for (in messages: ``learner``, ``logger``).
-        where: ``<file>: <key>`` for messages.
-
-    Returns:
-        The class.
-
-    Raises:
-        RunDirError: if the name is not a ``mrta_rl`` class derived from ``base``.
-    """
-    if not isinstance(target, str) or not target.startswith(PACKAGE) or "." not in target:
-        raise RunDirError(f"{where}: {target!r} is not a {what} class of {PACKAGE.rstrip('.')}")
-    module_name, _, name = target.rpartition(".")
-    try:
-        cls = getattr(importlib.import_module(module_name), name)
-    except (ImportError, AttributeError) as err:
-        raise RunDirError(f"{where}: unknown {what} class {target!r} ({err})") from err
-    if not (isinstance(cls, type) and issubclass(cls, base)):
-        raise RunDirError(f"{where}: {target!r} is not a {what} ({base.__name__} subclass)")
-    return cls
-
-
-def _check_data(value: Any, key: str, source: Path) -> None:
-    """Plain data only: mappings without special keys, lists, scalars without interpolation."""
-    if isinstance(value, dict):
-        for k, v in value.items():
-            if str(k).startswith("_"):
-                raise RunDirError(
-                    f"{source}: {key}.{k}: special key refused (a run dir is data, never code)"
-                )
-            _check_data(v, f"{key}.{k}" if key else str(k), source)
-    elif isinstance(value, list):
-        for i, item in enumerate(value):
-            _check_data(item, f"{key}[{i}]", source)
-    elif isinstance(value, str) and "${" in value:
-        raise RunDirError(f"{source}: {key}: interpolation {value!r} refused (plain values only)")
-    elif not isinstance(value, SCALARS):
-        raise RunDirError(f"{source}: {key}: unexpected value {value!r}")
-
-
-def _check_component(block: Any, key: str, base: type, source: Path, *, flat: bool) -> None:
-    """A ``_target_`` block: a package class, ``_partial_: true``, plain (scalar/list) settings."""
-    if not isinstance(block, dict):
-        raise RunDirError(f"{source}: {key}: expected a mapping with _target_, got {block!r}")
-    package_class(block.get("_target_"), base, key, f"{source}: {key}._target_")
-    if block.get("_partial_") is not True:
-        raise RunDirError(f"{source}: {key}._partial_: must be true")
-    for name, value in block.items():
-        if name in ("_target_", "_partial_"):
-            continue
-        if flat and isinstance(value, dict):
-            raise RunDirError(
-                f"{source}: {key}.{name}: a mapping is refused; hyperparameters are plain scalars "
-                f"or lists (got {value!r})"
-            )
-        _check_data({name: value}, key, source)
-
-
-def check_run_config(config: dict[str, Any], source: Path) -> None:
-    """Refuse anything in a run's config that is not plain data (module docstring).
-
-    Args:
-        config: The config as a plain container (``resolve=False``).
-        source: Its file, for messages.
-
-    Raises:
-        RunDirError: naming the first offending key.
-    """
-    if not isinstance(config, dict):
-        raise RunDirError(f"{source}: not a mapping of settings")
-    for key in ("learner", "logger"):  # the rest is checked by validate_config
-        if key not in config:
-            raise RunDirError(f"{source}: {key}: missing")
-    for key, value in config.items():
-        if key == "learner":
-            _check_component(value, "learner", Learner, source, flat=True)
-        elif key == "logger":
-            _check_component(value, "logger", CSVLogger, source, flat=True)
-        else:
-            _check_data({key: value}, "", source)
-
-
-def read_run_config(run_dir: Path | str) -> DictConfig:
-    """The run's ``.hydra/config.yaml``, checked to hold only plain data (module docstring).
-
-    Args:
-        run_dir: A run dir of ``scripts/train.py``.
-
-    Returns:
-        The config, safe to build the run from.
-
-    Raises:
-        RunDirError: if the file is missing, unreadable or holds anything but plain data (its
-            settings are checked when the run is built: ``train.build_saved_run``).
-    """
-    run_dir = Path(run_dir)
-    path = run_dir / CONFIG_FILE
-    if not path.is_file():
-        raise RunDirError(f"{run_dir} is not a run dir of scripts/train.py: no {path}")
-    check_yaml_file(path)  # size, encoding, depth, aliases: before OmegaConf expands anything
-    try:
-        cfg = OmegaConf.load(path)
-    except Exception as err:  # YAML and OmegaConf raise several types
-        raise RunDirError(f"{path}: not a readable YAML config ({err})") from err
-    check_run_config(OmegaConf.to_container(cfg, resolve=False), path)
-    fill_settings_before(cfg)
-    return cfg  # type: ignore[return-value]
-
-
-def fill_settings_before(config: DictConfig | dict[str, Any]) -> None:
-    """Give a run made before a learner setting existed the value it ran with (in place).
-
-    Such a run's config has no key for the setting, and building its learner from the config
-    would take today's declared default; where that default has moved since, the class's
-    ``settings_before`` names what the run used (semi-CQL's ``state: system``). Every reader of
-    a run's config goes through here: evaluation and resume (:func:`read_run_config`) and the
-    reports (``reports.collect``).
-    """
-    from mrta_rl.runners.validation import learner_class  # imports the learner (and its deps)
-
-    learner = config.get("learner")
-    try:
-        cls = learner_class(learner)
-    except UserError:  # not a learner config: the run's own checks name it when it is built
-        return
-    for key, value in getattr(cls, "settings_before", {}).items():
-        if key not in learner:
-            learner[key] = value
-
-
-def run_choices(run_dir: Path) -> dict[str, str]:
-    """Config-group choices recorded in ``.hydra/hydra.yaml`` (``learner`` -> ``greedy``)."""
-    path = Path(run_dir) / HYDRA_FILE
-    if not path.is_file():
-        return {}
-    check_yaml_file(path)  # a hostile file is refused; a merely damaged one loses the names
-    try:
-        choices = OmegaConf.select(OmegaConf.load(path), "hydra.runtime.choices", default={})
-        return {str(k): str(v) for k, v in dict(choices).items() if isinstance(v, str | int)}
-    except Exception as err:  # a damaged hydra.yaml only loses the names
-        logger.warning("%s: config-group choices unreadable (%s)", path, err)
-        return {}
-
-
-# ---------------------------------------------------------------------------------- learner state
-def team_record(learner: Learner) -> dict[str, Any]:
-    """The team a learner state belongs to: robots, task types and willingness, in order.
-
-    Tables and weights are indexed by robot and task type, so a state of another team of the
-    same shape would load and then act for robots that cannot do what it chooses.
-    """
-    system = learner.env.system
-    return {
-        "robots": list(system.robots),
-        "task_types": list(system.task_types),
-        "willingness": np.asarray(system.willingness).tolist(),
-    }
-
-
-def save_learner(learner: Learner, directory: Path) -> None:
-    """``learner.save`` into ``directory``, with the team it was trained on (:data:`TEAM_FILE`)."""
-    learner.save(directory)
-    write_json(directory / TEAM_FILE, team_record(learner))
-
-
-def _check_team(learner: Learner, directory: Path) -> None:
-    """Refuse a learner state saved for another team, naming the first robot that differs."""
-    path = directory / TEAM_FILE
-    try:
-        saved = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise RunDirError(f"{path}: missing (the team the learner state was trained on)") from None
-    except (OSError, ValueError) as err:
-        raise RunDirError(f"{path}: not readable JSON ({err})") from None
-    expected = team_record(learner)
-    if not isinstance(saved, dict) or set(saved) != set(expected):
-        raise RunDirError(f"{path}: expected the keys {sorted(expected)}")
-    for key in ("robots", "task_types"):
-        if saved[key] != expected[key]:
-            raise RunDirError(
-                f"{path}: {key}: the learner state was trained on another team ({saved[key]!r}), "
-                f"not the run's system ({expected[key]!r})"
-            )
-    for robot, row, want in zip(
-        expected["robots"], saved["willingness"], expected["willingness"], strict=True
-    ):
-        if row != want:
-            raise RunDirError(
-                f"{path}: willingness.{robot}: the learner state was trained on another team "
-                f"({row!r}), not the run's system ({want!r})"
-            )
-
-
-def load_learner(learner: Learner, directory: Path) -> None:
-    """Restore a saved learner state into the learner built for the run, or refuse it.
-
-    The state must have been saved for the run's team (:func:`save_learner`), and the learner's
-    ``load`` checks the files against itself (keys, shapes, dtypes, consistency); any problem
-    names the file.
-
-    Args:
-        learner: The learner built for the run.
-        directory: Folder written by :func:`save_learner`.
-
-    Raises:
-        RunDirError: if the folder is missing or its content does not fit the learner.
-    """
-    if not directory.is_dir():
-        raise RunDirError(f"no saved learner state: {directory} is missing")
-    _check_team(learner, directory)
-    try:
-        learner.load(directory)
-    except (OSError, ValueError, KeyError, RuntimeError, EOFError) as err:
-        message = str(err)
-        if str(directory) not in message:
-            message = f"{directory}: {message}"
-        raise RunDirError(f"saved learner state refused: {message}") from err
 
 
 # ---------------------------------------------------------------------------------- checkpoints
@@ -453,7 +150,7 @@ class TrainingCheckpoint:
         version = require_checkpoint(self.run_dir)
         self.path = version  # the loop reads its own files from here
         state_path = version / STATE_FILE
-        from mrta_rl.runners.run_files import read_training_state  # it imports this module
+        from mrta_rl.run_files import read_training_state  # it imports this module
 
         loop, learner_state = read_training_state(state_path, self.learner.kind, self.episodes)
         load_learner(self.learner, version / LEARNER_DIR)

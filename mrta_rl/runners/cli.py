@@ -46,6 +46,7 @@ from hydra.types import RunMode
 from omegaconf.errors import OmegaConfBaseException
 
 from mrta_rl.config import UserError
+from mrta_rl.run_files import REFUSED_JOBS_FILE
 from mrta_rl.runners.run_dir import claim_from_args
 
 EXIT_USER_ERROR = 2  # bad input (as argparse); 1 stays Python's exit code for a crash
@@ -67,7 +68,6 @@ def _message(err: BaseException) -> str:
 FAILED_JOBS: list[str] = []  # "job <n> (<overrides>): <message>" of this sweep's failed jobs
 # in a sweep dir: one JSON line {"overrides": [...], "reason": ...} per job refused by a user
 # error, whose run dir is removed (reports/collect.py shows the job as refused, with the reason)
-REFUSED_JOBS_FILE = "refused_jobs.jsonl"
 
 
 def _exit(err: BaseException) -> None:

@@ -28,7 +28,7 @@ from torchrl.data import TensorDictReplayBuffer
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from mrta_rl.learners.neural.common import read_tensors
-from mrta_rl.runners.checkpoint import RunDirError
+from mrta_rl.run_files import RunDirError
 
 if TYPE_CHECKING:
     from mrta_rl.envs.torchrl_env import AuctionTorchRLEnv

@@ -28,24 +28,21 @@ from mrta_rl.envs import AuctionEnv, AuctionParams
 from mrta_rl.learners import Learner
 from mrta_rl.learners.tabular.qtable import TableGrowthError, limit_growth
 from mrta_rl.metrics.logger import finish_run
-from mrta_rl.metrics.resources import RunResources
+from mrta_rl.metrics.usage import RunResources
 from mrta_rl.partition import Partition
-from mrta_rl.runners.checkpoint import (
+from mrta_rl.run_files import (
     CONFIG_FILE,
     EVAL_METRICS_FILE,
     LEARNER_DIR,
     METRICS_FILE,
     REFUSED_FILE,
     RunDirError,
-    TrainingCheckpoint,
-    TrainingInterrupted,
-    load_learner,
-    read_run_config,
-    run_choices,
-    save_learner,
     write_json,
 )
+from mrta_rl.runners.checkpoint import TrainingCheckpoint, TrainingInterrupted
 from mrta_rl.runners.evaluate import evaluate_run
+from mrta_rl.runners.learner_files import load_learner, save_learner
+from mrta_rl.runners.run_config import read_run_config, run_choices
 from mrta_rl.runners.run_dir import claim_run_dir, releases_run_dirs
 from mrta_rl.runners.validation import (
     SEED_STRIDE,

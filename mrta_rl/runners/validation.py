@@ -11,7 +11,7 @@ every setting against its single declaration (``mrta_rl.config``), namely
   the run's ``env.*`` (``AuctionParams``);
 
 then builds the system, parameters and partition and estimates what the learner will need
-(``mrta_rl.learners.resources``), refusing a learner that cannot run on the system or needs more
+(``mrta_rl.learners.memory``), refusing a learner that cannot run on the system or needs more
 memory than ``limits.memory_gb``. Every refusal is a :class:`~mrta_rl.config.ConfigError` whose
 message names the key or the culprit; nothing has been written when it is raised.
 """
@@ -32,7 +32,7 @@ from omegaconf.errors import OmegaConfBaseException
 from mrta_rl.config import ConfigError, Range, check_fields, check_keywords
 from mrta_rl.envs import AuctionParams
 from mrta_rl.learners import Learner
-from mrta_rl.learners.resources import (
+from mrta_rl.learners.memory import (
     ResourceEstimate,
     estimate_resources,
     format_bytes,
@@ -54,10 +54,10 @@ logger = logging.getLogger(__name__)
 # signature ``loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict`` and returns
 # ``{"env_ticks": int, "wall_s": float, "episodes": int}``; it writes curve.csv in ``run_dir``.
 TRAINING_LOOPS: dict[str, str] = {
-    "fixed": "mrta_rl.runners.tabular:skip_training",
-    "tabular": "mrta_rl.runners.tabular:train_loop",
+    "fixed": "mrta_rl.runners.tick_loop:skip_training",
+    "tabular": "mrta_rl.runners.tick_loop:train_loop",
     "neural": "mrta_rl.runners.torchrl:train_loop",
-    "search": "mrta_rl.runners.tabular:train_loop",  # policy search: the same numpy tick loop
+    "search": "mrta_rl.runners.tick_loop:train_loop",  # policy search: the same numpy tick loop
 }
 # top-level keys of a run config besides RunSettings': conf/config.yaml's blocks and groups
 RUN_BLOCKS = (
@@ -312,7 +312,7 @@ def check_team_size(
     Refused: more than ``MAX_PAIRS`` robot-task pairs, or a memory floor above the limit.
 
     A random team of 10^8 robots would take 28 GB to draw; the floor
-    (:func:`~mrta_rl.learners.resources.team_floor_bytes`) counts the system while it is built
+    (:func:`~mrta_rl.learners.memory.team_floor_bytes`) counts the system while it is built
     and the env copies alive at once: training's and evaluation's, the learner's and the greedy
     baseline's.
 

@@ -25,8 +25,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from omegaconf import OmegaConf, open_dict
 
+from mrta_rl.run_files import RunDirError
 from mrta_rl.runners import build_run, evaluate_checkpoint, train
-from mrta_rl.runners.checkpoint import RunDirError, latest_checkpoint
+from mrta_rl.runners.checkpoint import latest_checkpoint
 from mrta_rl.runners.validation import learner_class
 from tests.conftest import SMOKE_OVERRIDES
 
@@ -163,35 +164,6 @@ def test_runs_written_before_checkpoints_still_evaluate(greedy_run):
     OmegaConf.save(cfg, path)
     again = evaluate_checkpoint(greedy_run)
     assert again["eval"] == json.loads((greedy_run / "metrics.json").read_text())["eval"]
-
-
-@pytest.mark.parametrize(
-    ("learner", "ran", "missing"),
-    [
-        # semi-CQL's `state` came with its move to `slots`: a run of before has no such key and
-        # learned over the paper's whole-system state (SemiCQLLearner.settings_before)
-        ("semi_cql", {"state": "system"}, ("state",)),
-        # subG-CQL's defaults moved to `idle` with `time_to_free`: a run made before `features`
-        # and `state` existed learned over the paper's group state, one made before `state`
-        # over the paper's group view with its features (SubGCQLLearner.settings_before)
-        ("subg_cql", {"state": "group", "features": "paper"}, ("state", "features")),
-        ("subg_cql", {"state": "group", "features": "time_to_free"}, ("state",)),
-    ],
-)
-def test_a_run_made_before_a_moved_default_evaluates_with_what_it_ran(
-    learner, ran, missing, compose_cfg, tmp_path
-):
-    settings = [f"learner.{key}={value}" for key, value in ran.items()]
-    cfg = compose_cfg([f"learner={learner}", *settings, "debug=smoke"])
-    run_dir = tmp_path / "run"
-    save_hydra_files(cfg, run_dir, learner, "system2")
-    metrics = train(cfg, run_dir=run_dir)
-    path = run_dir / ".hydra" / "config.yaml"
-    old = OmegaConf.load(path)
-    for key in missing:
-        del old.learner[key]
-    OmegaConf.save(old, path)
-    assert evaluate_checkpoint(run_dir)["eval"] == metrics["eval"]
 
 
 # ---------------------------------------------------------------------------------- defect 9

@@ -27,9 +27,9 @@ from hypothesis import strategies as st
 from mrta_rl.config import UserError
 from mrta_rl.learners.neural.common import check_state_dict
 from mrta_rl.reports import build_report
+from mrta_rl.run_files import read_training_state
 from mrta_rl.runners import evaluate_checkpoint, train
 from mrta_rl.runners.checkpoint import TrainingCheckpoint
-from mrta_rl.runners.run_files import read_training_state
 from tests.conftest import _compose
 from tests.smoke.test_run_dirs import save_hydra_files, without_timings
 

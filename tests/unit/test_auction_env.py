@@ -9,9 +9,9 @@ import pytest
 from mrta_rl.envs import kernel
 from mrta_rl.envs.auction import AuctionEnv
 from mrta_rl.envs.params import AuctionParams
+from mrta_rl.envs.reference import ReferenceAuction
 from mrta_rl.envs.tasks import pack_tasks, task_high, task_type
 from mrta_rl.systems import RobotSystem, build_system
-from tests.unit.reference_auction import ReferenceAuction
 
 SYSTEM1 = {
     "name": "system1",

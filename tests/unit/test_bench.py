@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from mrta_rl.runners.bench import LEARNERS, format_table, learners_in
+from mrta_rl.bench.learners import LEARNERS, format_table, learners_in
 from tests.conftest import ROOT
 
 

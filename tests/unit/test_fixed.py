@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from mrta_rl.envs import AuctionEnv, AuctionParams
-from mrta_rl.envs.observations import recency_level
+from mrta_rl.envs.encodings import recency_level
 from mrta_rl.learners import (
     GreedyLearner,
     HighOnlyLearner,

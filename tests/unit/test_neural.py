@@ -12,7 +12,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import EGreedyModule, MultiAgentMLP, QValueModule
 
 from mrta_rl.envs import AuctionEnv, AuctionParams
-from mrta_rl.envs import observations as ob
+from mrta_rl.envs import encodings as ob
 from mrta_rl.envs.torchrl_env import AuctionTorchRLEnv
 from mrta_rl.learners import SubGReserveLearner, TeamReserveLearner
 from mrta_rl.learners.neural import IQLLearner, QMIXLearner, SubGDQNLearner, VDNLearner

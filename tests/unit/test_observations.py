@@ -1,4 +1,4 @@
-"""Tests of the observation encodings (mrta_rl/envs/observations.py)."""
+"""Tests of the observation encodings (mrta_rl/envs/encodings.py)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 import yaml
 
 from mrta_rl.envs import AuctionEnv, AuctionParams
-from mrta_rl.envs import observations as ob
+from mrta_rl.envs import encodings as ob
 from mrta_rl.systems import RobotSystem, build_system, random_system
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -310,31 +310,3 @@ def test_a_learner_setting_absent_from_an_older_run_is_its_declared_default():
         "eval.episodes=null features=time_to_free",
     ]
     assert configuration_variants(records[:2]) == ["eval.episodes=20", "eval.episodes=null"]
-
-
-def test_an_older_run_compares_with_the_setting_it_ran_where_the_default_has_moved():
-    """semi-CQL's ``state`` defaults to ``slots`` since it exists, but older runs ran the paper's
-    whole-system state (``SemiCQLLearner.settings_before``): they are not ``slots`` runs."""
-    learner = {"_target_": "mrta_rl.learners.tabular.semi_cql.SemiCQLLearner", "_partial_": True}
-    configs = ({"learner": learner}, {"learner": {**learner, "state": "slots"}})
-    records = [
-        RunRecord(Path(f"/x/{i}"), "semi_cql", "system2", 0, {}, (), config, ())
-        for i, config in enumerate(configs)
-    ]
-    assert configuration_variants(records) == ["state=system", "state=slots"]
-    # subG-CQL's runs of before `state` and `features` ran the paper's group state
-    learner = {"_target_": "mrta_rl.learners.tabular.subg_cql.SubGCQLLearner", "_partial_": True}
-    configs = (
-        {"learner": learner},
-        {"learner": {**learner, "features": "time_to_free"}},
-        {"learner": {**learner, "state": "idle", "features": "time_to_free"}},
-    )
-    records = [
-        RunRecord(Path(f"/x/{i}"), "subg_cql", "system2", 0, {}, (), config, ())
-        for i, config in enumerate(configs)
-    ]
-    assert configuration_variants(records) == [
-        "state=group features=paper",
-        "state=group features=time_to_free",
-        "state=idle features=time_to_free",
-    ]

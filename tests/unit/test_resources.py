@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from mrta_rl.envs import AuctionEnv, AuctionParams
-from mrta_rl.learners.resources import (
+from mrta_rl.learners.memory import (
     BYTES_PER_WEIGHT,
     conflict_free_joint_actions,
     estimate_resources,

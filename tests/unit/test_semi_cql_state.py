@@ -7,8 +7,8 @@ import pytest
 
 from mrta_rl.config import ConfigError
 from mrta_rl.envs import AuctionEnv, AuctionParams
-from mrta_rl.envs import observations as ob
-from mrta_rl.learners.resources import (
+from mrta_rl.envs import encodings as ob
+from mrta_rl.learners.memory import (
     GROWTH,
     JOINT_ROW_BYTES,
     TABLE_ENTRY_BYTES,

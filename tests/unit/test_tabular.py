@@ -5,7 +5,7 @@ import pytest
 
 from mrta_rl.config import ConfigError
 from mrta_rl.envs import AuctionEnv
-from mrta_rl.envs import observations as ob
+from mrta_rl.envs import encodings as ob
 from mrta_rl.learners.fixed import TeamReserveLearner
 from mrta_rl.learners.tabular import group_kernels, robot_kernels
 from mrta_rl.learners.tabular.base import Uniforms
@@ -783,7 +783,7 @@ def test_subg_cql_time_to_free_learning_space(tiny_params):
 
 
 def test_dql_time_to_free_local_state_by_hand(trio, tiny_params):
-    """Hand-computed local states with ``features=time_to_free`` (observations, "Features").
+    """Hand-computed local states with ``features=time_to_free`` (encodings, "Features").
 
     Copy 0 queues an H task of T1 and L tasks of T2, T2, T2, T1: the slots hold H T1, L T2, L T2.
     R1 is idle, R2 busy until t + 1 (idle again in 2 ticks: free level 1), R3 busy until t + 10

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from mrta_rl.bench.threaded import ThreadedAuctionEnv
 from mrta_rl.envs import AuctionEnv, AuctionParams
-from mrta_rl.envs.threaded import ThreadedAuctionEnv
 from mrta_rl.systems import build_system
 from tests.unit.test_auction_env import SYSTEM1, random_valid_actions
 

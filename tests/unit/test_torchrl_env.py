@@ -14,7 +14,7 @@ from torchrl.envs import ActionMask, ParallelEnv, RewardSum, SerialEnv, Transfor
 from torchrl.envs.utils import check_env_specs
 
 from mrta_rl.envs import AuctionEnv, AuctionParams
-from mrta_rl.envs import observations as ob
+from mrta_rl.envs import encodings as ob
 from mrta_rl.envs.torchrl_env import AuctionTorchRLEnv, resolve_group_map
 from mrta_rl.learners.fixed import lowest_valid_bid
 from mrta_rl.partition import subg_partition

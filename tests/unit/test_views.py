@@ -19,7 +19,7 @@ from sb3_contrib.common.maskable.utils import get_action_masks, is_masking_suppo
 from stable_baselines3.common.env_checker import check_env as sb3_check_env
 
 from mrta_rl.envs import AuctionEnv, AuctionParams
-from mrta_rl.envs import observations as ob
+from mrta_rl.envs import encodings as ob
 from mrta_rl.envs.gymnasium_env import GYM_IDS, AuctionGymEnv
 from mrta_rl.envs.pettingzoo_env import AuctionParallelEnv
 from mrta_rl.envs.view_inputs import resolve_params, resolve_system, sanitize_actions

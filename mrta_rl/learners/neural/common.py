@@ -2,7 +2,7 @@
 
 The neural learners (``subg_dqn``, ``vdn``, ``qmix``, ``iql``) are built from TorchRL parts on the
 keys of :class:`~mrta_rl.envs.torchrl_env.AuctionTorchRLEnv`: per group ``(group,
-"observation")`` ``[*, n_g, F]`` (:func:`~mrta_rl.envs.observations.local_features`), ``(group,
+"observation")`` ``[*, n_g, F]`` (:func:`~mrta_rl.envs.encodings.local_features`), ``(group,
 "action_mask")`` ``[*, n_g, K + 1]`` and ``(group, "action")`` ``[*, n_g]``, root ``"state"``
 (global features), and the rewards ``(group, "reward")`` (team reward, TorchRL's reward key),
 ``(group, "robot_reward")`` and ``(group, "group_reward")``, all ``[*, n_g, 1]``. The same
@@ -35,8 +35,8 @@ reaches the Q-network as the observation ``(group, "prior_action")``, a one-hot 
 in the replay buffer with the other observations so the target network sees the rule's action of
 the next state. ``prior_in_state`` also feeds that one-hot to the network as an input.
 
-Inputs (``features``, :data:`~mrta_rl.envs.observations.FEATURES`): ``paper`` (default) or
-``time_to_free`` (free levels and queue levels added, ``observations`` module docstring,
+Inputs (``features``, :data:`~mrta_rl.envs.encodings.FEATURES`): ``paper`` (default) or
+``time_to_free`` (free levels and queue levels added, ``encodings`` module docstring,
 "Features"). The networks are built for that encoding's sizes; the training runner builds the
 TorchRL view with it and :meth:`NeuralLearner.encode` uses it in evaluation, and checkpoints
 record it (``learner.json``), so a re-evaluation rebuilds the same inputs.
@@ -59,7 +59,7 @@ from torchrl.modules import QValueModule
 from torchrl.objectives import HardUpdate, LossModule, SoftUpdate
 
 from mrta_rl.config import Choices, Range
-from mrta_rl.envs import AuctionEnv, observations
+from mrta_rl.envs import AuctionEnv, encodings
 from mrta_rl.envs.torchrl_env import PRIOR_KEY, prior_one_hot
 from mrta_rl.learners.base import Learner
 from mrta_rl.learners.fixed import HOLD_SCOPES, HoldLevel, Reserve
@@ -116,16 +116,16 @@ def observation_td(
         group_map: ``{group: [robot ids]}``.
         mask: ``[B, m, K + 1]`` bool valid actions (copied, the core reuses its buffer).
         prior: The rule prior, or None (plain auction: no ``prior_action`` key).
-        features: ``observations.FEATURES``: the encoding of ``observation`` and ``state``.
+        features: ``encodings.FEATURES``: the encoding of ``observation`` and ``state``.
 
     Returns:
         TensorDict of batch ``[B]``: ``state`` ``[B, G]`` and per group ``observation``
         ``[B, n_g, F]``, ``action_mask`` ``[B, n_g, K + 1]`` [and ``prior_action``, same shape].
     """
-    local = torch.from_numpy(observations.local_features(env, features))  # [B, m, F]
+    local = torch.from_numpy(encodings.local_features(env, features))  # [B, m, F]
     mask_t = torch.from_numpy(np.ascontiguousarray(mask, dtype=bool))  # [B, m, K + 1]
     B = mask_t.shape[0]
-    out: dict[str, Any] = {"state": torch.from_numpy(observations.global_features(env, features))}
+    out: dict[str, Any] = {"state": torch.from_numpy(encodings.global_features(env, features))}
     prior_t = None if prior is None else prior_one_hot(prior(env, mask), env.n_actions)
     robots = env.system.robots
     for group, ids in group_map.items():
@@ -225,7 +225,7 @@ class NeuralLearner(Learner):
         prior_hold_level: HoldLevel = 1,
         prior_hold_scope: Annotated[str, Choices(*HOLD_SCOPES)] = "robot",
         prior_in_state: bool = False,
-        features: Annotated[str, Choices(*observations.FEATURES)] = "paper",
+        features: Annotated[str, Choices(*encodings.FEATURES)] = "paper",
         eps_start: Annotated[float, Range(0, 1)] = 0.3,
         eps_end: Annotated[float, Range(0, 1)] = 0.02,
         eps_decay_frames: Annotated[int, Range(1)] = 200_000,
@@ -261,7 +261,7 @@ class NeuralLearner(Learner):
             prior_hold_level: ``prior="hold"``: the rule's ``hold_level``.
             prior_hold_scope: ``prior="hold"``: the rule's ``hold_scope``.
             prior_in_state: ``prior="hold"``: the rule's action (one-hot) is also a network input.
-            features: The inputs' encoding (``observations.FEATURES``): ``paper`` (the paper-era
+            features: The inputs' encoding (``encodings.FEATURES``): ``paper`` (the paper-era
                 local and global features) or ``time_to_free`` (+ free levels and queue levels).
             eps_start: Initial exploration rate (random valid actions).
             eps_end: Final exploration rate.
@@ -329,8 +329,8 @@ class NeuralLearner(Learner):
             "max_grad_norm": max_grad_norm,
             "features": features,  # saved with the weights: load() checks it
         }
-        self.n_features = observations.local_feature_size(env, features)
-        self.state_size = observations.global_feature_size(env, features)
+        self.n_features = encodings.local_feature_size(env, features)
+        self.state_size = encodings.global_feature_size(env, features)
         self.group_map: GroupMap = self._group_map()
         self.networks = nn.ModuleDict()
         self.losses: dict[str, LossModule] = {}

@@ -43,7 +43,7 @@ def spread_wait_bid(
     robots'), then idle robots, asked in ``order``, bid for distinct slots in slot order.
 
     Args:
-        observation: ``[*, n_g, F]`` local features (``observations.local_feature_layout``).
+        observation: ``[*, n_g, F]`` local features (``encodings.local_feature_layout``).
         mask: ``[*, n_g, K + 1]`` bool valid actions.
         order: ``[n_g]`` int64 robot positions in the order they are asked.
         slots: Feature slice of the ``K`` slot one-hots (code ``1 + 2 type + high``).
@@ -270,7 +270,7 @@ class JointQ(nn.Module):
             prior: The rule an untrained network plays: ``"greedy"`` (:func:`greedy_bid`, the
                 plain auction) or ``"spread_wait"`` (:func:`spread_wait_bid`).
             order: ``spread_wait``: robot positions in the order they are asked.
-            layout: ``spread_wait``: ``observations.local_feature_layout`` of the features.
+            layout: ``spread_wait``: ``encodings.local_feature_layout`` of the features.
 
         Raises:
             ValueError: on an unknown prior, or ``spread_wait`` without order and layout.

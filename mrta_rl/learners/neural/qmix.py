@@ -14,7 +14,7 @@ from mrta_rl.learners.neural.common import MixedQLearner
 class QMIXLearner(MixedQLearner):
     """Monotonic mixing: ``Q_team = f_s(Q_1, ..., Q_m)`` with ``df/dQ_i >= 0``, hypernetworks on s.
 
-    The mixer reads the global ``state`` (:func:`~mrta_rl.envs.observations.global_features`);
+    The mixer reads the global ``state`` (:func:`~mrta_rl.envs.encodings.global_features`);
     everything else is :class:`~mrta_rl.learners.neural.common.MixedQLearner`.
     """
 

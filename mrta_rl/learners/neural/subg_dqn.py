@@ -10,7 +10,7 @@ from torchrl.modules import QValueModule
 from torchrl.objectives import DQNLoss
 
 from mrta_rl.config import Choices
-from mrta_rl.envs.observations import local_feature_layout
+from mrta_rl.envs.encodings import local_feature_layout
 from mrta_rl.learners.neural.common import JOINT, NeuralLearner
 from mrta_rl.learners.neural.networks import JOINT_PRIORS, JointDecode, JointQ
 from mrta_rl.learners.tabular.priors import PRIOR_ORDERS, spread_order

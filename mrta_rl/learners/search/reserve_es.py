@@ -44,7 +44,7 @@ import numpy as np
 
 from mrta_rl.config import Range
 from mrta_rl.envs import AuctionEnv, StepResult
-from mrta_rl.envs.observations import N_RECENCY_LEVELS, free_level, queue_level, recency_level
+from mrta_rl.envs.encodings import N_RECENCY_LEVELS, free_level, queue_level, recency_level
 from mrta_rl.learners.base import Learner, LearnerKind
 from mrta_rl.learners.fixed import fewest_types_first
 
@@ -53,7 +53,7 @@ FEATURES = (
     "bias",  # 1
     "h_within_3",  # an H task of one of Lambda_i's types arrived within 3 ticks (recency level 0)
     "h_within_10",  # ... within 4-10 ticks (recency level 1)
-    "queued_h",  # queued H tasks of Lambda_i's types, level 0-2 (observations.QUEUE_THRESHOLDS)
+    "queued_h",  # queued H tasks of Lambda_i's types, level 0-2 (encodings.QUEUE_THRESHOLDS)
     "queued_l",  # queued L tasks of Lambda_i's types, level 0-2
     "sole_idle",  # i is the only idle robot for one of its types
     "sole_soon",  # no other robot is idle or free within 3 ticks for one of its types

@@ -13,7 +13,7 @@ import numpy as np
 
 from mrta_rl.config import Choices
 from mrta_rl.envs import StepResult
-from mrta_rl.envs.observations import FEATURES
+from mrta_rl.envs.encodings import FEATURES
 from mrta_rl.learners.tabular.subg_cql import GroupQLearner
 
 
@@ -31,7 +31,7 @@ class CQLLearner(GroupQLearner):
         prior: Tie-break joint action of untried states (``priors.PRIORS``, docs/learners.md).
         min_visits: Updates an entry needs before it competes with the prior.
         prior_order: Which idle robot the spread priors ask first (default ``index``).
-        features: The whole-system state's encoding (``observations.FEATURES``): ``paper`` or
+        features: The whole-system state's encoding (``encodings.FEATURES``): ``paper`` or
             ``time_to_free`` (robot state 3 = busy, free soon; queued H and L levels; coarse,
             docs/learners.md).
         **hyperparameters: See :class:`~mrta_rl.learners.tabular.base.TabularLearner`.

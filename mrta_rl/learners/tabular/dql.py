@@ -16,7 +16,7 @@ import numpy as np
 
 from mrta_rl.config import Choices, Range
 from mrta_rl.envs import AuctionEnv, StepResult
-from mrta_rl.envs.observations import FEATURES
+from mrta_rl.envs.encodings import FEATURES
 from mrta_rl.learners.fixed import HOLD_SCOPES, HoldLevel, Reserve
 from mrta_rl.learners.tabular import robot_kernels as kernels
 from mrta_rl.learners.tabular.base import NO_UNIFORMS, TabularLearner
@@ -50,7 +50,7 @@ class RobotQLearner(TabularLearner):
     space_name: ClassVar[str]
     q: np.ndarray
     visits: np.ndarray
-    features: str = "paper"  # the state encoding (observations.FEATURES), set by the subclass
+    features: str = "paper"  # the state encoding (encodings.FEATURES), set by the subclass
     team_reward: bool = False  # learn from the team reward (spec step 8) instead of the robot's
     min_visits: int = 0  # updates an entry needs before it competes with the prior (0: always)
 
@@ -243,7 +243,7 @@ class DQLLearner(RobotQLearner):
             credited when a teammate does it).
         min_visits: Updates an entry needs before it competes with the prior's action, in the
             greedy choice and in eq. (3)'s max (0: every valid action competes).
-        features: The local view's encoding (``observations.FEATURES``): ``paper`` or
+        features: The local view's encoding (``encodings.FEATURES``): ``paper`` or
             ``time_to_free`` (the free level instead of the idle flag, queued H and L levels
             over ``Lambda_i``; coarse, docs/learners.md).
         **hyperparameters: Env, rng, partition (unused) and those of

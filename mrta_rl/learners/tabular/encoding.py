@@ -1,17 +1,17 @@
-"""Compiled state encodings of the tabular learners, code for code those of ``envs/observations``.
+"""Compiled state encodings of the tabular learners, code for code those of ``envs/encodings``.
 
-:class:`GroupEncoder` computes ``observations.group_state_index`` of several groups at once and
-:class:`LocalEncoder` ``observations.local_state_index``, in per-copy loops, from the same env
+:class:`GroupEncoder` computes ``encodings.group_state_index`` of several groups at once and
+:class:`LocalEncoder` ``encodings.local_state_index``, in per-copy loops, from the same env
 arrays (slots, idle flags, battery levels, H arrivals) and with the tables (slot codes, place
-values) of ``observations.GroupView`` / ``observations.LocalView``, so the codes are the same
-(tested). The battery rule (:func:`battery_low`) reads ``observations.battery_margin``, the
-recency rule (:func:`recency`) ``observations.RECENCY_THRESHOLDS``.
+values) of ``encodings.GroupView`` / ``encodings.LocalView``, so the codes are the same
+(tested). The battery rule (:func:`battery_low`) reads ``encodings.battery_margin``, the
+recency rule (:func:`recency`) ``encodings.RECENCY_THRESHOLDS``.
 
-A new digit of an encoding plugs in as one more place value: ``observations`` adds it to the
+A new digit of an encoding plugs in as one more place value: ``encodings`` adds it to the
 view's radices (and its count), computes the digit for all copies, and the encoder adds
 ``digit * place`` in its loop (one more input array).
 
-The group encoder takes the view's ``features`` (``observations.FEATURES``): with
+The group encoder takes the view's ``features`` (``encodings.FEATURES``): with
 ``time_to_free``, :meth:`GroupEncoder.offset` computes the extra digits (a busy robot free
 within ``FREE_SOON`` ticks reads robot state 3; queued H and L levels over ``T_g``) in its
 own compiled loop (:func:`group_offsets`) and adds them as ``[G, B]`` offsets to the paper-era
@@ -31,7 +31,7 @@ from numba import njit
 
 from mrta_rl.config import ConfigError
 from mrta_rl.envs import AuctionEnv
-from mrta_rl.envs.observations import (
+from mrta_rl.envs.encodings import (
     FREE_SOON,
     N_QUEUE_LEVELS,
     N_RECENCY_LEVELS,
@@ -49,7 +49,7 @@ _QUEUE_THRESHOLDS = np.array([QUEUE_THRESHOLDS["H"], QUEUE_THRESHOLDS["L"]], np.
 
 @njit(cache=True)
 def recency(last_high: np.ndarray, t: int, types: np.ndarray, thresholds: np.ndarray) -> int:
-    """Recency level (``observations.recency_level``) of one copy over the types ``types``."""
+    """Recency level (``encodings.recency_level``) of one copy over the types ``types``."""
     last, found = 0, False
     for j in range(types.size):
         if types[j] and (not found or last_high[j] > last):
@@ -62,7 +62,7 @@ def recency(last_high: np.ndarray, t: int, types: np.ndarray, thresholds: np.nda
 
 @njit(cache=True)
 def battery_low(battery: float, margin: float, threshold: float) -> int:
-    """Battery level (``observations.battery_level``) of one robot: 1 low, 0 ok."""
+    """Battery level (``encodings.battery_level``) of one robot: 1 low, 0 ok."""
     return int(battery - margin < threshold)
 
 
@@ -98,13 +98,13 @@ def encode_groups(
 
 @njit(cache=True)
 def _level(count: int, thresholds: np.ndarray) -> int:
-    """Queue level of a count (``observations.queue_level``): 0, 1 or 2 over two thresholds."""
+    """Queue level of a count (``encodings.queue_level``): 0, 1 or 2 over two thresholds."""
     return int(count > thresholds[0]) + int(count > thresholds[1])
 
 
 @njit(cache=True)
 def _queued(queue: np.ndarray, length: int, counts: np.ndarray) -> None:
-    """Queued tasks of one copy per type and priority (``observations.queue_counts``), written."""
+    """Queued tasks of one copy per type and priority (``encodings.queue_counts``), written."""
     counts[:] = 0
     for w in range(length):  # places past the length are EMPTY (envs/kernel.py)
         if queue[w] != EMPTY:
@@ -113,7 +113,7 @@ def _queued(queue: np.ndarray, length: int, counts: np.ndarray) -> None:
 
 @njit(cache=True)
 def _free_level(busy_until: int, t: int, free_soon: int) -> int:
-    """Free level (``observations.free_level``): 0 idle, 1 free within ``free_soon``, 2 later."""
+    """Free level (``encodings.free_level``): 0 idle, 1 free within ``free_soon``, 2 later."""
     ticks = busy_until - t + 1  # idle again at busy_until + 1; <= 0 when idle
     return int(ticks > 0) + int(ticks > free_soon)
 
@@ -138,7 +138,7 @@ def group_offsets(
 
     A busy robot free within ``free_soon`` ticks reads robot state 3 (the busy state 0 plus
     ``3 x`` its place), and the queued H and L levels over ``T_g`` follow the recency digit
-    (``observations.GroupView``, "Features"). The first four arguments are
+    (``encodings.GroupView``, "Features"). The first four arguments are
     :meth:`LocalEncoder.state_arrays`'s and ``env.t``.
     """
     counts = np.zeros((types.shape[1], 2), np.int64)  # [n, (L, H)]
@@ -166,7 +166,7 @@ def encode_local(
     :meth:`LocalEncoder.state_arrays`, the next ten a ``LocalEncoder``'s
     :attr:`~LocalEncoder.tables`. With ``time_to_free`` the first digit is the free level
     (instead of the idle flag) and the H and L queue levels over ``Lambda_i`` follow the recency
-    digit (``observations`` module docstring, "Features").
+    digit (``encodings`` module docstring, "Features").
     """
     n_slots = slot_type.shape[1]
     counts = np.zeros((active.shape[1] if time_to_free else 0, 2), np.int64)  # [n, (L, H)]
@@ -207,7 +207,7 @@ class GroupEncoder:
     Args:
         env: The env (its slots, types and active tasks fix the tables).
         groups: Robot indices of each group, in the order of its digits.
-        features: ``paper`` or ``time_to_free`` (``observations.FEATURES``).
+        features: ``paper`` or ``time_to_free`` (``encodings.FEATURES``).
 
     Raises:
         OverflowError: if a group's state count does not fit in int64.
@@ -237,7 +237,7 @@ class GroupEncoder:
         self.types = np.stack([v.types_mask for v in views])  # T_g, [G, n]
         if features == "time_to_free":
             # robot state 3 (busy, free soon) is the busy state 0 plus 3 places; queue places
-            # (H, L) follow the recency digit (observations.GroupView)
+            # (H, L) follow the recency digit (encodings.GroupView)
             self._offset_tables = (
                 self.robots, self.size, 3 * self._robot_places,  # 0 on padding
                 self.types, np.stack([v._queue_places for v in views]),  # [G, 2]
@@ -278,7 +278,7 @@ class LocalEncoder:
 
     Args:
         env: The env (its slots, types and active tasks fix the tables).
-        features: ``paper`` or ``time_to_free`` (``observations.FEATURES``).
+        features: ``paper`` or ``time_to_free`` (``encodings.FEATURES``).
     """
 
     def __init__(self, env: AuctionEnv, features: str = "paper") -> None:
@@ -333,7 +333,7 @@ class SystemEncoder(GroupEncoder):
     Args:
         env: The env.
         state: One of :data:`SYSTEM_STATES`.
-        features: ``observations.FEATURES``; only ``paper`` with a coarser ``state``.
+        features: ``encodings.FEATURES``; only ``paper`` with a coarser ``state``.
 
     Raises:
         ConfigError: on an unknown ``state``, or ``features`` other than ``paper`` with a
@@ -447,7 +447,7 @@ class SubGroupEncoder(GroupEncoder):
         env: The env.
         groups: Robot indices of each group, in the order of its digits.
         state: One of :data:`GROUP_STATES`.
-        features: ``observations.FEATURES``.
+        features: ``encodings.FEATURES``.
 
     Raises:
         ConfigError: on an unknown ``state``.

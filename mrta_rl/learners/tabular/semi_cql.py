@@ -16,7 +16,7 @@ import numpy as np
 
 from mrta_rl.config import Choices, Range
 from mrta_rl.envs import AuctionEnv, StepResult
-from mrta_rl.envs.observations import FEATURES
+from mrta_rl.envs.encodings import FEATURES
 from mrta_rl.learners.tabular import robot_kernels as kernels
 from mrta_rl.learners.tabular.dql import RobotObservation, RobotQLearner
 from mrta_rl.learners.tabular.encoding import SYSTEM_STATES, SystemEncoder, env_arrays
@@ -33,7 +33,7 @@ class SemiCQLLearner(RobotQLearner):
         partition: Unused.
         min_visits: Updates an entry needs before it competes with the prior's action (the plain
             auction's bid), in the greedy choice and in eq. (3)'s max (0: every valid action).
-        features: The whole-system state's encoding (``observations.FEATURES``): ``paper`` or
+        features: The whole-system state's encoding (``encodings.FEATURES``): ``paper`` or
             ``time_to_free`` (robot state 3 = busy, free soon; queued H and L levels; coarse,
             docs/learners.md).
         state: The shared state (``encoding.SYSTEM_STATES``): ``system``, the paper's group view
@@ -45,9 +45,6 @@ class SemiCQLLearner(RobotQLearner):
     """
 
     space_name: ClassVar[str] = "semi_cql"
-    # what runs made before `state` existed ran with (reports compare them with it, not with
-    # today's default)
-    settings_before: ClassVar[dict[str, object]] = {"state": "system"}
 
     def __init__(
         self,

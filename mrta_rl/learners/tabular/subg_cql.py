@@ -18,7 +18,7 @@ import numpy as np
 
 from mrta_rl.config import Choices, Range
 from mrta_rl.envs import AuctionEnv, StepResult
-from mrta_rl.envs.observations import FEATURES
+from mrta_rl.envs.encodings import FEATURES
 from mrta_rl.learners.tabular import group_kernels as kernels
 from mrta_rl.learners.tabular.base import NO_UNIFORMS, TabularLearner
 from mrta_rl.learners.tabular.encoding import GROUP_STATES, SubGroupEncoder, env_arrays
@@ -358,7 +358,7 @@ class SubGCQLLearner(GroupQLearner):
         reward: What each sub-group learns from (:data:`SUBG_REWARDS`): ``group``, the sum of
             its robots' individual rewards (the paper's); ``team``, the team reward of the tick
             (a sub-group is credited with what its choice does to the others' rewards too).
-        features: The group state's encoding (``observations.FEATURES``): ``paper`` (the
+        features: The group state's encoding (``encodings.FEATURES``): ``paper`` (the
             paper's) or ``time_to_free`` (the default: adds when busy robots become free and the
             queued H and L counts over ``T_g``, coarsely; docs/learners.md).
         state: The group state (``encoding.GROUP_STATES``): ``group``, the paper's
@@ -375,9 +375,6 @@ class SubGCQLLearner(GroupQLearner):
     default_prior: ClassVar[str] = "spread_wait"
     # a sub-group keeps its versatile robots free for the types only they can do (docs/learners.md)
     default_prior_order: ClassVar[str] = "fewest_types"
-    # what runs made before `features` and `state` existed ran with: the paper's group state
-    # (evaluation, resume and the reports rebuild them with it, not with today's defaults)
-    settings_before: ClassVar[dict[str, object]] = {"state": "group", "features": "paper"}
 
     def __init__(
         self,

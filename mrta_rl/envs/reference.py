@@ -1,4 +1,4 @@
-"""A plain, one-copy Python reading of auction_env.md, written from the spec, not from auction.py.
+"""A plain, one-copy Python reading of the auction spec, written from the spec, not from auction.py.
 
 It is the oracle for the batched dynamics: tasks are dicts in a list, every rule is a few lines in
 the spec's order. It shares only the random draws with ``AuctionEnv`` (the same counter-based
@@ -28,6 +28,7 @@ class ReferenceAuction:
         self.reset()
 
     def reset(self):
+        """Start the copy's next episode (spec steps 1-3 of its first tick)."""
         self.episode_key = rng.episode_keys(self.seed_key, np.array([self.episode]))
         self.episode += 1
         self.t, self.next_id, self.queue = 0, 0, []
@@ -54,6 +55,7 @@ class ReferenceAuction:
         return tasks
 
     def duration_range(self, ttype, high):
+        """Shortest and longest duration of a task of this type and priority."""
         key = "duration_high" if high else "duration_low"
         override = self.system.durations.get(self.system.task_types[ttype], {}).get(key)
         return (override.lo, override.hi) if override else getattr(self.p, key)
@@ -72,6 +74,7 @@ class ReferenceAuction:
         self.slots = [x for x in self.queue if x["due"] <= self.t][: self.p.slots]  # step 3
 
     def valid_actions(self, i):
+        """Robot ``i``'s valid actions: wait, and a bid for each slot of an active type if idle."""
         if not self.t > self.busy_until[i]:
             return [0]
         return [0] + [k + 1 for k, x in enumerate(self.slots) if self.active[i, x["type"]]]

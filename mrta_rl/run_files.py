@@ -2,7 +2,7 @@
 
 A run dir is data that anyone may have edited, truncated or damaged. Its files are read here,
 checked against what the code that wrote them writes (types, ranges, finite numbers), and refused
-with a :class:`~mrta_rl.runners.checkpoint.RunDirError` naming the file and the key, so that a
+with a :class:`RunDirError` naming the file and the key, so that a
 damaged file is never half-used and never ends in a traceback:
 
 * ``training.json`` of a training checkpoint (:func:`read_training_state`): the training loop's
@@ -10,7 +10,7 @@ damaged file is never half-used and never ends in a traceback:
   one curve row per episode played) and the learner's ``checkpoint_state`` (a mapping; the
   learner checks its content in ``restore_state``);
 * ``metrics.json`` of a finished run (:func:`read_metrics`), as the reports read it;
-* ``.hydra/config.yaml`` is read by :func:`~mrta_rl.runners.checkpoint.read_run_config`.
+* ``.hydra/config.yaml`` is read by :func:`~mrta_rl.runners.run_config.read_run_config`.
 
 Every file is bounded in size before it is parsed (:data:`MAX_JSON_BYTES`).
 """
@@ -20,10 +20,55 @@ from __future__ import annotations
 import json
 import math
 import numbers
+import os
 from pathlib import Path
 from typing import Any
 
-from mrta_rl.runners.checkpoint import RunDirError
+from mrta_rl.config import UserError
+
+# the files of a run dir, written by the runners and read by the runners and the reports
+CONFIG_FILE = Path(".hydra") / "config.yaml"
+HYDRA_FILE = Path(".hydra") / "hydra.yaml"
+LEARNER_DIR = "learner"  # final learner state (Learner.save)
+CHECKPOINT_DIR = "checkpoint"  # training checkpoints: version folders and the pointer file
+POINTER_FILE = "latest"  # in CHECKPOINT_DIR: the name of the current version folder
+METRICS_FILE = "metrics.json"
+EVAL_METRICS_FILE = "eval_metrics.json"  # a re-evaluation (scripts/evaluate.py) beside metrics.json
+REFUSED_FILE = "refused.json"  # instead of metrics.json: the run was refused up front, and why
+TEAM_FILE = "team.json"  # in a learner state folder: the team it was trained on (save_learner)
+STATE_FILE = "training.json"  # loop counters, curve so far, learner checkpoint_state
+REFUSED_JOBS_FILE = "refused_jobs.jsonl"  # in a sweep dir: the jobs refused before they started
+
+
+class RunDirError(UserError):
+    """A run dir that cannot be used; the message names the file and what is wrong."""
+
+
+def write_json(path: Path, payload: dict[str, Any], *, exclusive: bool = False) -> None:
+    """Write JSON atomically (temporary file then rename), so a file is never half-written.
+
+    Args:
+        path: The file.
+        payload: JSON-serialisable content (no NaN).
+        exclusive: Never replace an existing file (the rename is a hard link that fails if
+            ``path`` exists): the results of a run are never overwritten by another run.
+
+    Raises:
+        RunDirError: if ``exclusive`` and ``path`` exists.
+    """
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(json.dumps(payload, indent=2, allow_nan=False) + "\n")
+    if not exclusive:
+        os.replace(tmp, path)
+        return
+    try:
+        os.link(tmp, path)
+    except FileExistsError:
+        raise RunDirError(
+            f"{path} was written by another run meanwhile; this run's results are kept in {tmp}"
+        ) from None
+    tmp.unlink()
+
 
 MAX_JSON_BYTES = 256 * 2**20  # a training.json holds one curve row (~80 bytes) per episode
 # counters of the training loop of each learner kind, besides ``episode`` and ``curve``

@@ -41,13 +41,13 @@ PARTS: list[tuple[str, str, str, str | None]] = [
     ),
     (
         "env: observation features",
-        "mrta_rl.envs.observations",
+        "mrta_rl.envs.encodings",
         "local_features",
         "env: TorchRL view step/reset",
     ),
     (
         "env: observation features",
-        "mrta_rl.envs.observations",
+        "mrta_rl.envs.encodings",
         "global_features",
         "env: TorchRL view step/reset",
     ),

@@ -7,7 +7,7 @@ For each learner of ``conf/learner`` the benchmark composes the default run conf
 times two yardsticks:
 
 * the bare env at the same batch size under the greedy policy (``envs/benchmark.py``);
-* a plain per-copy Python loop of the dynamics, ``tests/unit/reference_auction.py`` (the spec
+* a plain per-copy Python loop of the dynamics, ``mrta_rl/envs/reference.py`` (the spec
   read as one copy with tasks in a list) under greedy.
 
 Absolute figures on a shared machine are noisy; the ratios to the yardsticks measured in the same

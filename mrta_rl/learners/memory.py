@@ -29,7 +29,7 @@ from typing import Any
 
 from mrta_rl.config import declared_keywords
 from mrta_rl.envs import AuctionEnv, AuctionParams
-from mrta_rl.envs.observations import (
+from mrta_rl.envs.encodings import (
     global_feature_size,
     group_state_count,
     local_feature_size,
@@ -235,7 +235,7 @@ def _tabular(
     cls: type, env: AuctionEnv, partition: Partition | None, hp: dict[str, Any], decisions: int
 ) -> ResourceEstimate:
     name, space = cls.__name__, getattr(cls, "space_name", None)
-    features = hp.get("features", "paper")  # the state's encoding (observations.FEATURES)
+    features = hp.get("features", "paper")  # the state's encoding (encodings.FEATURES)
     A, K = env.n_actions, env.n_slots
     parts: dict[str, int] = {}
     if space in ("cql", "subg_cql"):
@@ -292,7 +292,7 @@ def _neural(
 
     name = cls.__name__
     m, A = env.n_robots, env.n_actions
-    features = hp.get("features", "paper")  # the observation's encoding (observations.FEATURES)
+    features = hp.get("features", "paper")  # the observation's encoding (encodings.FEATURES)
     F, S = local_feature_size(env, features), global_feature_size(env, features)
     depth, hidden = int(hp["depth"]), int(hp["hidden"])
     advice = "lower learner.buffer_size or learner.hidden, or use a smaller system"

@@ -7,29 +7,26 @@ included, in one process:
   (``greedy``, compiled; the same actions as
   :class:`~mrta_rl.learners.fixed.GreedyLearner`'s numpy policy), one call per tick as a learner
   drives it (one thread, or the copies split over threads by
-  :class:`~mrta_rl.envs.threaded.ThreadedAuctionEnv`);
+  :class:`~mrta_rl.bench.threaded.ThreadedAuctionEnv`);
 - ``play``: :meth:`AuctionEnv.play`, many ticks in one compiled call with the policy compiled in
   (one thread, or the copies split over threads);
-- ``plain``: the plain per-copy Python loop of the spec, ``tests/unit/reference_auction.py``
+- ``plain``: the plain per-copy Python loop of the spec, ``mrta_rl/envs/reference.py``
   under greedy, the yardstick the ratios are taken against.
 """
 
 from __future__ import annotations
 
-import importlib.util
 import time
 from dataclasses import asdict, dataclass
-from pathlib import Path
 from statistics import median
 
 import numpy as np
 
+from mrta_rl.bench.threaded import ThreadedAuctionEnv
 from mrta_rl.envs.auction import AuctionEnv
 from mrta_rl.envs.params import AuctionParams
-from mrta_rl.envs.threaded import ThreadedAuctionEnv
+from mrta_rl.envs.reference import ReferenceAuction
 from mrta_rl.systems import RobotSystem
-
-REFERENCE = Path(__file__).resolve().parents[2] / "tests" / "unit" / "reference_auction.py"
 
 
 @dataclass(frozen=True)
@@ -144,18 +141,9 @@ def bench_env(
 def bench_plain_loop(
     system: RobotSystem, min_seconds: float = 1.0, clock: str = "wall"
 ) -> BenchResult:
-    """Ticks per second of the plain per-copy Python loop (the tests' reference) under greedy.
-
-    Raises:
-        ValueError: outside a clone of the repository (no ``tests/unit/reference_auction.py``).
-    """
-    if not REFERENCE.exists():
-        raise ValueError(f"the plain loop is the repository's {REFERENCE}, not found")
-    spec = importlib.util.spec_from_file_location("reference_auction", REFERENCE)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    """Ticks per second of the plain one-copy loop (:mod:`mrta_rl.envs.reference`) under greedy."""
     params = AuctionParams.merged(system.env_overrides).resolve(system.n_robots)
-    copy = module.ReferenceAuction(system, params, copy_seed=0)
+    copy = ReferenceAuction(system, params, copy_seed=0)
 
     def run_chunk() -> int:
         # greedy: every idle robot bids for its lowest-numbered valid slot

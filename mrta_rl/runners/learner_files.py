@@ -1,0 +1,91 @@
+"""A learner's saved state in a run dir: written with its team, restored only for that team.
+
+:func:`load_learner` restores saved tables or weights through the learner's own ``load``, which
+checks them against the learner built for the run; any failure names the file and what is wrong.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mrta_rl.learners import Learner
+from mrta_rl.run_files import TEAM_FILE, RunDirError, write_json
+
+
+# ---------------------------------------------------------------------------------- learner state
+def team_record(learner: Learner) -> dict[str, Any]:
+    """The team a learner state belongs to: robots, task types and willingness, in order.
+
+    Tables and weights are indexed by robot and task type, so a state of another team of the
+    same shape would load and then act for robots that cannot do what it chooses.
+    """
+    system = learner.env.system
+    return {
+        "robots": list(system.robots),
+        "task_types": list(system.task_types),
+        "willingness": np.asarray(system.willingness).tolist(),
+    }
+
+
+def save_learner(learner: Learner, directory: Path) -> None:
+    """``learner.save`` into ``directory``, with the team it was trained on (:data:`TEAM_FILE`)."""
+    learner.save(directory)
+    write_json(directory / TEAM_FILE, team_record(learner))
+
+
+def _check_team(learner: Learner, directory: Path) -> None:
+    """Refuse a learner state saved for another team, naming the first robot that differs."""
+    path = directory / TEAM_FILE
+    try:
+        saved = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise RunDirError(f"{path}: missing (the team the learner state was trained on)") from None
+    except (OSError, ValueError) as err:
+        raise RunDirError(f"{path}: not readable JSON ({err})") from None
+    expected = team_record(learner)
+    if not isinstance(saved, dict) or set(saved) != set(expected):
+        raise RunDirError(f"{path}: expected the keys {sorted(expected)}")
+    for key in ("robots", "task_types"):
+        if saved[key] != expected[key]:
+            raise RunDirError(
+                f"{path}: {key}: the learner state was trained on another team ({saved[key]!r}), "
+                f"not the run's system ({expected[key]!r})"
+            )
+    for robot, row, want in zip(
+        expected["robots"], saved["willingness"], expected["willingness"], strict=True
+    ):
+        if row != want:
+            raise RunDirError(
+                f"{path}: willingness.{robot}: the learner state was trained on another team "
+                f"({row!r}), not the run's system ({want!r})"
+            )
+
+
+def load_learner(learner: Learner, directory: Path) -> None:
+    """Restore a saved learner state into the learner built for the run, or refuse it.
+
+    The state must have been saved for the run's team (:func:`save_learner`), and the learner's
+    ``load`` checks the files against itself (keys, shapes, dtypes, consistency); any problem
+    names the file.
+
+    Args:
+        learner: The learner built for the run.
+        directory: Folder written by :func:`save_learner`.
+
+    Raises:
+        RunDirError: if the folder is missing or its content does not fit the learner.
+    """
+    if not directory.is_dir():
+        raise RunDirError(f"no saved learner state: {directory} is missing")
+    _check_team(learner, directory)
+    try:
+        learner.load(directory)
+    except (OSError, ValueError, KeyError, RuntimeError, EOFError) as err:
+        message = str(err)
+        if str(directory) not in message:
+            message = f"{directory}: {message}"
+        raise RunDirError(f"saved learner state refused: {message}") from err
