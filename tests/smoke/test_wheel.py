@@ -96,8 +96,11 @@ def wheel_env(tmp_path_factory):
 def test_wheel_ships_every_package_and_config(wheel_env):
     wheel = wheel_env[0]
     names = set(zipfile.ZipFile(wheel).namelist())
+    # every folder of modules, with or without an __init__.py (a folder without one is not shipped)
     packages = {
-        str(p.parent.relative_to(ROOT)) for p in (ROOT / "mrta_rl").rglob("__init__.py")
+        str(p.parent.relative_to(ROOT))
+        for p in (ROOT / "mrta_rl").rglob("*.py")
+        if "__pycache__" not in p.parts
     } | {"mrta_rl/conf"}
     shipped = {str(Path(n).parent) for n in names if n.endswith("/__init__.py")}
     assert packages <= shipped, f"not in the wheel (pyproject.toml packages): {packages - shipped}"
