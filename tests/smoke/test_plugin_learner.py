@@ -2,7 +2,8 @@
 
 The module is ``tests/plugins/toy_learner.py``; the yaml is written here into a temporary config
 dir. Nothing else names the learner: it is trained through ``scripts/train.py --config-dir``,
-estimated, labelled in a report and listed by ``scripts/bench_learners.py``.
+estimated, labelled in a report and listed by ``scripts/bench_learners.py``; its run dir is
+evaluated again only by a process that imported the class itself.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from mrta_rl.conf_files import learner_files, learner_named
 from mrta_rl.envs import AuctionParams
 from mrta_rl.learners.memory import estimate_resources
 from mrta_rl.reports import build_report
+from mrta_rl.runners import evaluate_checkpoint
 from tests.conftest import paper_system
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -80,3 +82,12 @@ def test_a_learner_from_a_user_module_and_yaml_is_trained_estimated_labelled_and
     listed = script("bench_learners.py", "--list", "--config-dir", str(config_dir))
     assert listed.returncode == 0, listed.stderr[-3000:]
     assert "toy" in listed.stdout.split()
+
+    # the run dir is data: a process that has not imported the class refuses it, naming the key
+    refused = script("evaluate.py", f"checkpoint={run_dir}")
+    assert refused.returncode != 0 and "Traceback" not in refused.stderr
+    assert "learner._target_: 'tests.plugins.toy_learner.ToyLearner' is not" in refused.stderr
+    assert not (run_dir / "eval_metrics.json").exists()
+    # the user's code imported it (learner_named above): then it is evaluated, weights and all
+    again = evaluate_checkpoint(run_dir)
+    assert again["learner"] == TOY and again["eval"] == metrics["eval"]
