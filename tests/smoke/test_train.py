@@ -16,7 +16,6 @@ from mrta_rl.learners import GreedyLearner, RandomLearner
 from mrta_rl.learners.base import TICK_LOOP
 from mrta_rl.runners import train
 from mrta_rl.systems import SystemConfigError
-from tests.conftest import SMOKE_OVERRIDES
 
 ROOT = Path(__file__).resolve().parents[2]
 LEARNERS = sorted(path.stem for path in (ROOT / "conf" / "learner").glob("*.yaml"))
@@ -100,7 +99,7 @@ def check_metrics(metrics: dict, run_dir: Path, system: str, learner: str) -> No
 @pytest.mark.parametrize("learner", LEARNERS)
 def test_learner_runs(learner, system, compose_cfg, tmp_path):
     overrides = [f"learner={learner}", f"system={system}", "debug=smoke"]
-    cfg = compose_cfg([*overrides, *SMOKE_OVERRIDES.get(learner, [])])
+    cfg = compose_cfg(overrides)
     metrics = train(cfg, run_dir=tmp_path)
     check_metrics(metrics, tmp_path, system, learner)
     with (tmp_path / "curve.csv").open() as f:
