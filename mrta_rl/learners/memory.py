@@ -17,6 +17,11 @@ does (the bound is loose: a run visits far fewer states). The counts follow the 
 ``tabular.qtable`` (per state, the conflict-free joint actions; int64 code, float64 Q, int64
 visits), the neural networks of ``learners/neural`` (float32; checked against built learners in
 ``tests/unit/test_resources.py``) and the transitions their TorchRL replay buffer keeps.
+
+Each learner class counts its own state (its ``estimate_memory`` classmethod, see
+``learners/base.py``) with the helpers here (:func:`group_table_estimate`,
+:func:`neural_estimate`...); :func:`estimate_resources` adds the env copies. A learner that
+cannot run at all raises :class:`Unfit`.
 """
 
 from __future__ import annotations

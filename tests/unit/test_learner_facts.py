@@ -64,3 +64,12 @@ def test_an_abstract_base_leaves_the_facts_to_its_subclasses():
 
         class Child(Base):
             label: ClassVar[str] = "child"
+
+
+def test_a_neural_learner_without_its_network_count_fails_when_created():
+    from mrta_rl.learners.neural.common import NeuralLearner
+
+    with pytest.raises(TypeError, match=r"Uncounted does not declare network_weights"):
+
+        class Uncounted(NeuralLearner):
+            label: ClassVar[str] = "uncounted"
