@@ -9,16 +9,27 @@ A system is named by a file of ``conf/system/`` (``system2``) or given as the pa
 yaml anywhere (``/path/to/team.yaml``); :func:`system_file` turns both into the file, with one
 message for a name or path that has none. The commands, the Gymnasium and PettingZoo views and
 the BenchMARL task all go through it.
+
+The learners are the yaml files of the ``learner/`` config group: the shipped ones and those of
+any user config dir (Hydra's ``--config-dir`` or ``hydra.searchpath``), each naming its class
+with ``_target_``; :func:`learner_files` lists them and :func:`learner_named` imports a class.
 """
 
 from __future__ import annotations
 
 import importlib.util
 import os
+from collections.abc import Iterable
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import yaml
 
 from mrta_rl.config import UserError
 from mrta_rl.systems.files import check_yaml_file
+
+if TYPE_CHECKING:
+    from mrta_rl.learners.base import Learner
 
 CONF_PACKAGE = "mrta_rl.conf"
 SYSTEM_SUFFIXES = (".yaml", ".yml")  # a system argument ending so is a path, anything else a name
@@ -78,3 +89,53 @@ def system_file(system: str | os.PathLike) -> Path:
         )
     check_yaml_file(path)
     return path.resolve()
+
+
+def learner_files(config_dirs: Iterable[str | os.PathLike] = ()) -> dict[str, Path]:
+    """The learners of the config search path: name (the yaml stem) -> its file.
+
+    Args:
+        config_dirs: User config dirs (``--config-dir``, ``hydra.searchpath``) after the
+            shipped ``conf/``; a learner's name is its file's stem in any ``learner/`` of them.
+
+    Returns:
+        Every learner, sorted by name; where two dirs hold one name, the shipped or the first
+        given file.
+
+    Raises:
+        UserError: if a given config dir does not exist.
+    """
+    files: dict[str, Path] = {}
+    for folder in (conf_dir(), *(Path(d).expanduser() for d in config_dirs)):
+        if not folder.is_dir():
+            raise UserError(f"config dir {str(folder)!r}: no such directory")
+        for path in sorted((folder / "learner").glob("*.yaml")):
+            files.setdefault(path.stem, path.resolve())
+    return dict(sorted(files.items()))
+
+
+def learner_named(name: str, config_dirs: Iterable[str | os.PathLike] = ()) -> type[Learner]:
+    """The learner class of ``learner/<name>.yaml`` in the config search path, imported.
+
+    The configs are the user's own (like the code they run), so their ``_target_`` is imported.
+
+    Args:
+        name: The learner's name (``subg_cql``).
+        config_dirs: User config dirs after the shipped ``conf/`` (:func:`learner_files`).
+
+    Returns:
+        The :class:`~mrta_rl.learners.base.Learner` subclass.
+
+    Raises:
+        UserError: naming the learner or the file and key.
+    """
+    from mrta_rl.learners.base import learner_from_target
+
+    files = learner_files(config_dirs)
+    if name not in files:
+        raise UserError(f"unknown learner {name!r}; known: {sorted(files)}")
+    path = files[name]
+    check_yaml_file(path)
+    block: Any = yaml.safe_load(path.read_text())
+    target = block.get("_target_") if isinstance(block, dict) else None
+    return learner_from_target(target, f"{path}: _target_")

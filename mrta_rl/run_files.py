@@ -91,8 +91,9 @@ SUMMARY = {
     "return_by_type?": {"*": OPTIONAL},  # absent from runs made before it existed
     "return_by_group?": {"*": {"types": [STR], "return": NUMBER}},
 }
+LEARNER = {"name": STR, "label": STR, "kind": STR}  # runners/train.py learner_record
 METRICS = {
-    "learner": STR,
+    "learner": LEARNER,
     "system": STR,
     "seed": INT,
     "eval": SUMMARY,

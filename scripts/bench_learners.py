@@ -2,10 +2,12 @@
 
 Usage: python scripts/bench_learners.py [--learners subg_cql dql ...] [--episodes 2] [--repeats 3]
        [--horizon 200] [--baseline /path/to/other/checkout] [--experiment NAME]
-       [--out bench_learners.json]
+       [--config-dir DIR ...] [--list] [--out bench_learners.json]
 
-With ``--baseline`` the same measurements run, in turns, on another checkout of mrta_rl (e.g.
-today's main) and the table shows the speed-up over it.
+The learners are the ``learner/`` yaml files of the shipped ``conf/`` and of each
+``--config-dir`` (as ``scripts/train.py --config-dir``); by default every one that trains.
+``--list`` prints them and exits. With ``--baseline`` the same measurements run, in turns, on
+another checkout of mrta_rl (e.g. today's main) and the table shows the speed-up over it.
 """
 
 from __future__ import annotations
@@ -17,16 +19,21 @@ from pathlib import Path
 from tqdm import tqdm
 
 from mrta_rl.bench.learners import (
-    LEARNERS,
     format_neural_table,
     format_table,
     run_worker,
     summarize,
+    trained_learners,
 )
+from mrta_rl.conf_files import learner_files
 
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--learners", nargs="+", default=list(LEARNERS), choices=LEARNERS)
+    parser.add_argument("--learners", nargs="+", help="learner names (default: all that train)")
+    parser.add_argument(
+        "--config-dir", action="append", default=[], help="a user config dir with learner/*.yaml"
+    )
+    parser.add_argument("--list", action="store_true", help="print the learners and exit")
     parser.add_argument("--system", default="system2", help="conf/system name")
     parser.add_argument("--episodes", type=int, default=2, help="training episodes per learner")
     parser.add_argument("--horizon", type=int, default=0, help="ticks per episode (0: config's)")
@@ -36,6 +43,14 @@ if __name__ == "__main__":
     parser.add_argument("--experiment", default="", help="conf/experiment for this checkout's runs")
     parser.add_argument("--out", default="bench_learners.json")
     args = parser.parse_args()
+    known = learner_files(args.config_dir)
+    unknown = sorted(set(args.learners or ()) - set(known))
+    if unknown:
+        parser.error(f"unknown learners {unknown}; known: {sorted(known)}")
+    learners = args.learners or trained_learners(args.config_dir)
+    if args.list:
+        print("\n".join(learners))
+        raise SystemExit(0)
     codes = {"baseline": args.baseline, "this": None} if args.baseline else {"this": None}
     runs: dict[str, list] = {code: [] for code in codes}
     for _ in tqdm(range(args.repeats), desc="bench_learners", unit="repeat"):
@@ -43,12 +58,13 @@ if __name__ == "__main__":
             runs[code].append(
                 run_worker(
                     root,
-                    args.learners,
+                    learners,
                     args.system,
                     args.episodes,
                     args.seconds,
                     args.horizon,
                     args.experiment if root is None else "",  # the baseline keeps its defaults
+                    args.config_dir,
                 )
             )
     rows = summarize(runs)

@@ -19,10 +19,6 @@ from mrta_rl.systems import RobotSystem, build_system
 
 ROOT = Path(__file__).resolve().parents[1]
 CONF = ROOT / "conf"
-# learner settings that debug=smoke's 4 training copies need: reserve_es plays 2 x pairs perturbed
-# policies on the same number of copies each (its default 12 pairs need a multiple of 24 copies)
-SMOKE_OVERRIDES = {"reserve_es": ["learner.pairs=2"]}
-
 # The Ctrl-C tests send SIGINT to a script as a terminal would to a foreground process. A suite
 # started in the background (`pytest &`, nohup, some CI runners) inherits SIGINT *ignored*, and so
 # would every script it starts: Python then never raises KeyboardInterrupt and those tests hang.

@@ -1,12 +1,13 @@
-"""Learner throughput benchmark (issue 13): training copy-ticks/s next to the env and a plain loop.
+"""Learner throughput benchmark: training copy-ticks/s next to the env and a plain loop.
 
-For each learner of ``conf/learner`` the benchmark composes the default run config
-(``conf/config.yaml``, so ``train.batch_size`` and the learner's own defaults), builds the run as
-``scripts/train.py`` does and times its normal training loop (``runners/tabular.py`` or
-``runners/torchrl.py``) over a short fixed budget of ``episodes`` episodes. In the same process it
-times two yardsticks:
+For each learner that trains (:func:`trained_learners`: the ``learner/`` yaml files of the
+config search path, the shipped ``conf/`` and any ``--config-dir``, whose class has a training
+loop) the benchmark composes the default run config (``conf/config.yaml``, so ``train.batch_size``
+and the learner's own defaults), builds the run as ``scripts/train.py`` does and times the
+training loop its class declares over a short fixed budget of ``episodes`` episodes. In the same
+process it times two yardsticks:
 
-* the bare env at the same batch size under the greedy policy (``envs/benchmark.py``);
+* the bare env at the same batch size under the greedy policy (``bench/env.py``);
 * a plain per-copy Python loop of the dynamics, ``mrta_rl/envs/reference.py`` (the spec
   read as one copy with tasks in a list) under greedy.
 
@@ -26,6 +27,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -33,10 +35,6 @@ import numpy as np
 
 logger = logging.getLogger(__name__)
 
-TABULAR = ("subg_cql", "cql", "semi_cql", "dql")
-NEURAL = ("subg_dqn", "qmix", "vdn", "iql")
-SEARCH = ("reserve_es",)  # policy search (kind "search"), on the tabular learners' tick loop
-LEARNERS = TABULAR + NEURAL + SEARCH
 NEURAL_RATES = ("fps_collection", "fps_training", "gradient_steps")  # runners/torchrl.py info
 WARMUP_OVERRIDES = ("env.horizon=20", "train.episodes=1")  # loads compiled code, fills caches
 
@@ -45,6 +43,30 @@ def _repo_root() -> Path:
     import mrta_rl
 
     return Path(mrta_rl.__file__).resolve().parents[1]
+
+
+def trained_learners(config_dirs: Sequence[str | os.PathLike] = ()) -> list[str]:
+    """The learners of the config search path that train (a fixed policy has nothing to time).
+
+    Args:
+        config_dirs: User config dirs after the shipped ``conf/`` (``--config-dir``).
+
+    Returns:
+        Their names, sorted.
+    """
+    from mrta_rl.conf_files import learner_files, learner_named
+
+    return [
+        name for name in learner_files(config_dirs) if learner_named(name, config_dirs).trains()
+    ]
+
+
+def search_path(config_dirs: Sequence[str | os.PathLike]) -> list[str]:
+    """The Hydra override that adds the user config dirs to the search path (none: [])."""
+    if not config_dirs:
+        return []
+    dirs = ",".join(f"file://{Path(d).resolve()}" for d in config_dirs)
+    return [f"hydra.searchpath=[{dirs}]"]
 
 
 def _compose(overrides: list[str]) -> Any:
@@ -76,9 +98,12 @@ def _train_once(
 
     cfg = _compose([f"learner={name}", f"system={system}", "train.progress_bar=false", *overrides])
     run = build_run(cfg, name)
+    cls = type(run.learner)
+    # a --baseline older than the learners' own training_loop looks it up by kind
+    loop = training_loop(cls if isinstance(getattr(cls, "training_loop", None), str) else cls.kind)
     with tempfile.TemporaryDirectory() as run_dir:
         start, cpu = time.perf_counter(), time.process_time()
-        info = training_loop(run.learner.kind)(run, cfg, Path(run_dir))
+        info = loop(run, cfg, Path(run_dir))
         wall, cpu = time.perf_counter() - start, time.process_time() - cpu
     return int(info["env_ticks"]), wall, cpu, int(run.env.batch_size), info
 
@@ -90,21 +115,26 @@ def measure(
     seconds: float,
     horizon: int = 0,
     experiment: str = "",
+    config_dirs: Sequence[str] = (),
 ) -> dict[str, Any]:
     """One worker's measurements: the two yardsticks and every learner's training speed.
 
     Args:
-        learners: ``conf/learner`` names.
+        learners: Learner names (``learner/`` yaml files of the config search path).
         system: ``conf/system`` name.
         episodes: Training episodes per learner (the fixed short budget).
         seconds: Least wall time of each yardstick.
         horizon: Ticks per training episode (0: the config's, ``env.horizon``).
         experiment: ``conf/experiment`` file applied to every learner run ("" for none).
+        config_dirs: User config dirs added to the search path (``--config-dir``).
 
     Returns:
         ``{"plain": ticks/s, "env": {batch: ticks/s}, "learners": {name: {...}}}``.
     """
-    from mrta_rl.envs import benchmark
+    try:
+        from mrta_rl.bench import env as benchmark
+    except ImportError:  # a --baseline from before the benchmarks moved to mrta_rl/bench
+        from mrta_rl.envs import benchmark  # type: ignore[no-redef]
     from mrta_rl.systems import build_system
 
     cfg = _compose([f"system={system}"])
@@ -119,6 +149,7 @@ def measure(
     for name in learners:
         warm_start = time.perf_counter()
         pinned = [f"experiment={experiment}"] if experiment else []
+        pinned += search_path(config_dirs)
         _train_once(name, system, [*pinned, *WARMUP_OVERRIDES])
         warmup = time.perf_counter() - warm_start
         budget = [*pinned, f"train.episodes={episodes}"]
@@ -142,13 +173,20 @@ def measure(
     return out
 
 
-def learners_in(root: Path, learners: list[str]) -> list[str]:
+def learners_in(
+    root: Path, learners: list[str], config_dirs: Sequence[str | os.PathLike] = ()
+) -> list[str]:
     """The learners that the checkout ``root`` has (``conf/learner/<name>.yaml``), in order.
 
     A ``--baseline`` older than a learner measures the others; the table shows no speed-up for
-    the learner it lacks.
+    the learner it lacks. A learner of a user config dir counts for every checkout.
     """
-    return [name for name in learners if (root / "conf" / "learner" / f"{name}.yaml").is_file()]
+    folders = [root / "conf", *(Path(d) for d in config_dirs)]
+    return [
+        name
+        for name in learners
+        if any((folder / "learner" / f"{name}.yaml").is_file() for folder in folders)
+    ]
 
 
 def run_worker(
@@ -159,17 +197,19 @@ def run_worker(
     seconds: float,
     horizon: int = 0,
     experiment: str = "",
+    config_dirs: Sequence[str | os.PathLike] = (),
 ) -> dict[str, Any]:
     """Run :func:`measure` in a fresh process importing ``mrta_rl`` from ``code_root``.
 
     Args:
         code_root: Checkout whose ``mrta_rl`` is measured (None: this one).
-        learners: ``conf/learner`` names.
+        learners: Learner names (``learner/`` yaml files of the config search path).
         system: ``conf/system`` name.
         episodes: Training episodes per learner.
         seconds: Least wall time of each yardstick.
         horizon: Ticks per training episode (0: the config's).
         experiment: ``conf/experiment`` file applied to every learner run ("" for none).
+        config_dirs: User config dirs added to the search path (``--config-dir``).
 
     Returns:
         The worker's :func:`measure` output.
@@ -182,8 +222,9 @@ def run_worker(
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "bench.json"
         # -c keeps this module's folder off sys.path (it holds a torchrl.py)
+        dirs = os.pathsep.join(str(Path(d).resolve()) for d in config_dirs) or "-"
         argv = [str(out), system, str(episodes), str(seconds), str(horizon), experiment or "-"]
-        argv += learners_in(root, learners)
+        argv += [dirs, *learners_in(root, learners, config_dirs)]
         code = f"import runpy, sys; sys.argv = ['bench', *{argv!r}]; "
         code += f"runpy.run_path({str(Path(__file__).resolve())!r}, run_name='__main__')"
         args = [sys.executable, "-c", code]
@@ -321,11 +362,12 @@ def format_table(rows: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
-if __name__ == "__main__":  # worker entry: out system episodes seconds horizon experiment learners
-    out_path, system_name, n_episodes, min_s, n_ticks, pinned, *names = sys.argv[1:]
+if __name__ == "__main__":  # worker: out system episodes seconds horizon experiment dirs learners
+    out_path, system_name, n_episodes, min_s, n_ticks, pinned, dir_list, *names = sys.argv[1:]
     logging.basicConfig(level=logging.WARNING)
     experiment_name = "" if pinned == "-" else pinned
+    user_dirs = [] if dir_list == "-" else dir_list.split(os.pathsep)
     result = measure(
-        names, system_name, int(n_episodes), float(min_s), int(n_ticks), experiment_name
+        names, system_name, int(n_episodes), float(min_s), int(n_ticks), experiment_name, user_dirs
     )
     Path(out_path).write_text(json.dumps(result, indent=2))

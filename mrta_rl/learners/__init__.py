@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from mrta_rl.learners.base import Learner, LearnerKind
+from mrta_rl.learners.base import FixedLearner, Learner, LearnerKind
 from mrta_rl.learners.fixed import (
     GreedyLearner,
     HighOnlyLearner,
@@ -12,6 +12,7 @@ from mrta_rl.learners.fixed import (
 )
 
 __all__ = [
+    "FixedLearner",
     "GreedyLearner",
     "HighOnlyLearner",
     "Learner",

@@ -22,15 +22,28 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from pathlib import Path
-from typing import Any, ClassVar, Literal
+from typing import TYPE_CHECKING, Any, ClassVar, Literal
 
 import numpy as np
 
-from mrta_rl.config import RUNNER_ARGUMENTS, check_keywords
+from mrta_rl.config import RUNNER_ARGUMENTS, ConfigError, check_keywords
 from mrta_rl.envs import AuctionEnv, StepResult
 from mrta_rl.partition import Partition
 
+if TYPE_CHECKING:  # memory.py imports the encodings, which import the learners package
+    from mrta_rl.learners.memory import ResourceEstimate
+
 LearnerKind = Literal["fixed", "tabular", "neural", "search"]
+
+# The training loops of ``mrta_rl.runners`` as ``"module:function"``: a learner names its loop
+# without importing the runners (they import the learners); the runner imports it when used. A
+# loop has the signature ``loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict`` and
+# returns ``{"env_ticks": int, "wall_s": float, "episodes": int}``; it writes curve.csv.
+TICK_LOOP = "mrta_rl.runners.tick_loop:train_loop"  # numpy learners: one update per tick
+TORCHRL_LOOP = "mrta_rl.runners.torchrl:train_loop"  # TorchRL Collector, replay, target nets
+NO_TRAINING = "mrta_rl.runners.tick_loop:skip_training"  # fixed policies: evaluated as they are
+# what every concrete learner class answers for (besides its own ``label``, see Learner)
+FACTS = ("kind", "training_loop", "estimate_memory", "learning_space_dimension")
 
 
 class Learner(ABC):
@@ -42,9 +55,29 @@ class Learner(ABC):
     epsilon-greedy exploration exposes its current value as a float attribute ``epsilon``; the
     runner shows it when present.
 
+    Every concrete learner class answers for its own facts, so that the runner, the memory
+    check, the reports and the benchmarks ask the class and keep no list of learners (as
+    BenchMARL's algorithm configs answer ``on_policy()``). A class that lacks one fails when it
+    is created (:meth:`__init_subclass__`); a base class that leaves them to its subclasses is
+    declared with ``class MyBase(Learner, abstract=True)``. The facts:
+
+    * ``label``: the display name in reports (``subG-CQL``), declared by the class itself (a
+      subclass is another learner, never silently labelled as its parent);
+    * ``kind``: the family, ``"fixed"``, ``"tabular"``, ``"neural"`` or ``"search"``, recorded
+      in metrics.json;
+    * ``training_loop``: the runner's loop that trains it (:data:`TICK_LOOP`,
+      :data:`TORCHRL_LOOP`, :data:`NO_TRAINING` or ``"module:function"`` of one's own);
+    * ``estimate_memory(env, partition, settings, *, decisions, copies)``: a classmethod
+      returning the :class:`~mrta_rl.learners.memory.ResourceEstimate` of its own state
+      (tables, networks, buffers) before it is built; the env copies are counted by
+      :func:`~mrta_rl.learners.memory.estimate_resources`, which calls it;
+    * ``learning_space_dimension(env, partition, settings)``: a classmethod returning the
+      analytic learning space dimension (paper eqs. 10-16), or None where there is none.
+
     Attributes:
-        kind: Selects the runner: ``"fixed"`` (no training), ``"tabular"``, ``"neural"`` or
-            ``"search"`` (policy search; the numpy loop of ``"tabular"``).
+        label: Display name in reports.
+        kind: The learner's family (see above).
+        training_loop: ``"module:function"`` of the loop that trains it.
         requires_partition: True if the learner needs the subG partition (paper §4); the runner
             then builds the env with ``Lambda_i = partition.active_tasks(system)``.
         env: The env the learner acts in (built by the runner).
@@ -54,8 +87,37 @@ class Learner(ABC):
         n_actions: Actions per robot, ``K + 1`` (0 = wait, k = bid for slot k).
     """
 
+    label: ClassVar[str]
     kind: ClassVar[LearnerKind]
+    training_loop: ClassVar[str]
     requires_partition: ClassVar[bool] = False
+    facts: ClassVar[tuple[str, ...]] = FACTS  # a base class may require more of its subclasses
+
+    def __init_subclass__(cls, *, abstract: bool = False, **kwargs: Any) -> None:
+        """Refuse a concrete learner class that lacks one of its facts (see the class docstring).
+
+        Args:
+            abstract: True for a base class whose subclasses declare the facts.
+            **kwargs: Passed on to ``object.__init_subclass__``.
+
+        Raises:
+            TypeError: naming the class and the facts it lacks.
+        """
+        super().__init_subclass__(**kwargs)
+        if abstract:
+            return
+        missing = [] if "label" in cls.__dict__ else ["label"]
+        missing += [fact for fact in cls.facts if getattr(cls, fact, None) is None]
+        if missing:
+            raise TypeError(
+                f"learner class {cls.__module__}.{cls.__qualname__} does not declare "
+                f"{', '.join(missing)} (see mrta_rl.learners.base.Learner)"
+            )
+
+    @classmethod
+    def trains(cls) -> bool:
+        """True if the learner has a training loop (and so a learned state to save)."""
+        return cls.training_loop != NO_TRAINING
 
     def __new__(cls, *args: Any, **hyperparameters: Any) -> Learner:
         """Check the hyperparameters against their declarations before ``__init__`` runs.
@@ -196,3 +258,62 @@ class Learner(ABC):
         if saved.get("bit_generator") != self.rng.bit_generator.state["bit_generator"]:
             raise ValueError(f"generator {saved.get('bit_generator')!r} differs from this run's")
         self.rng.bit_generator.state = saved
+
+
+class FixedLearner(Learner, abstract=True):
+    """Base of the policies that do not learn: no training, no state beyond the env copies.
+
+    The runner evaluates them as they are (:data:`NO_TRAINING`); subclasses declare their
+    ``label`` and implement :meth:`Learner.act`.
+    """
+
+    kind: ClassVar[LearnerKind] = "fixed"
+    training_loop: ClassVar[str] = NO_TRAINING
+
+    @classmethod
+    def estimate_memory(
+        cls,
+        env: AuctionEnv,
+        partition: Partition | None,
+        settings: dict[str, Any],
+        *,
+        decisions: int,
+        copies: int,
+    ) -> ResourceEstimate:
+        """Nothing beyond the env copies (counted by ``estimate_resources``)."""
+        from mrta_rl.learners.memory import ResourceEstimate
+
+        return ResourceEstimate(cls.__name__)
+
+    @classmethod
+    def learning_space_dimension(
+        cls, env: AuctionEnv, partition: Partition | None, settings: dict[str, Any]
+    ) -> int | None:
+        """None: a fixed policy learns nothing."""
+        return None
+
+
+def learner_from_target(target: Any, where: str) -> type[Learner]:
+    """The :class:`Learner` class a config's ``_target_`` names, imported.
+
+    Args:
+        target: The ``_target_`` value (``mrta_rl.learners.tabular.dql.DQLLearner``).
+        where: ``<file or key>`` for messages.
+
+    Returns:
+        The class.
+
+    Raises:
+        ConfigError: if the name is missing, cannot be imported or is not a Learner.
+    """
+    from hydra.utils import get_class
+
+    if not isinstance(target, str) or not target:
+        raise ConfigError(f"{where}: missing (the learner class)")
+    try:
+        cls = get_class(target)
+    except Exception as err:  # Hydra wraps import errors in several exception types
+        raise ConfigError(f"{where}: cannot import learner class {target!r}") from err
+    if not (isinstance(cls, type) and issubclass(cls, Learner)):
+        raise ConfigError(f"{where}: {target} is not a mrta_rl Learner")
+    return cls

@@ -17,7 +17,7 @@ import numpy as np
 from mrta_rl.config import Choices, Range
 from mrta_rl.envs import AuctionEnv
 from mrta_rl.envs.encodings import N_RECENCY_LEVELS, recency_level
-from mrta_rl.learners.base import Learner, LearnerKind
+from mrta_rl.learners.base import FixedLearner
 from mrta_rl.partition import subg_partition
 
 
@@ -53,14 +53,14 @@ def fewest_types_first(active: np.ndarray, robots: list[int] | range) -> np.ndar
     return np.asarray(sorted(robots, key=lambda i: (active[i].sum(), i)), np.int64)
 
 
-class GreedyLearner(Learner):
+class GreedyLearner(FixedLearner):
     """Plain auction (spec "Fixed policies"): idle robots bid for their lowest-numbered valid slot.
 
     Slot 1 holds the most urgent task (spec step 3), so greedy bids for the most urgent task the
     robot may do. A busy robot has only action 0 in the mask, so it waits.
     """
 
-    kind: ClassVar[LearnerKind] = "fixed"
+    label: ClassVar[str] = "greedy"
 
     def act(self, view: None, mask: np.ndarray, *, explore: bool) -> np.ndarray:
         """Bid for the lowest-numbered valid slot, else wait.
@@ -83,17 +83,18 @@ class SubGGreedyLearner(GreedyLearner):
     specialization can only pay when switching task types costs time (``env.switch_ticks``).
     """
 
+    label: ClassVar[str] = "subG-greedy"
     requires_partition: ClassVar[bool] = True
 
 
-class RandomLearner(Learner):
+class RandomLearner(FixedLearner):
     """Random bidding (spec "Fixed policies"): uniform over the ``v`` valid bids plus waiting.
 
     A robot with ``v`` valid bids picks each of its ``v + 1`` choices with probability
     ``1 / (v + 1)``; a busy robot (``v = 0``) waits.
     """
 
-    kind: ClassVar[LearnerKind] = "fixed"
+    label: ClassVar[str] = "random"
 
     def act(self, view: None, mask: np.ndarray, *, explore: bool) -> np.ndarray:
         """Draw one valid action per robot uniformly from ``self.rng``.
@@ -112,13 +113,13 @@ class RandomLearner(Learner):
         return (running <= choice[:, :, None]).sum(axis=2).astype(np.int64)
 
 
-class HighOnlyLearner(Learner):
+class HighOnlyLearner(FixedLearner):
     """Wait for high priority (spec "Fixed policies"): bid only for H tasks.
 
     Every idle robot bids for its lowest-numbered valid slot holding an H task, else waits.
     """
 
-    kind: ClassVar[LearnerKind] = "fixed"
+    label: ClassVar[str] = "high-only"
 
     def encode(self, env: AuctionEnv) -> np.ndarray:
         """The slot priorities, the only part of the state this policy reads.
@@ -153,7 +154,7 @@ HOLD_SCOPES = ("group", "robot")  # whose recency level holds an L bid back
 ORDERS = ("fewest_types", "index")  # which idle robot of a group is asked first
 
 
-class TeamReserveLearner(Learner):
+class TeamReserveLearner(FixedLearner):
     """A hand-written reserve rule over any grouping of the robots: a yardstick for the learners.
 
     It reads no more than a centralized learner's group view (spec "Observations": slot contents,
@@ -188,7 +189,7 @@ class TeamReserveLearner(Learner):
             ``hold_scope``, ``grouping`` or ``order`` (the declarations of the signature).
     """
 
-    kind: ClassVar[LearnerKind] = "fixed"
+    label: ClassVar[str] = "team_reserve"
     _rule_name: ClassVar[str] = "team_reserve"  # in error messages
 
     def __init__(
@@ -284,6 +285,7 @@ class SubGReserveLearner(TeamReserveLearner):
         **kwargs: Env, generator and partition of :class:`~mrta_rl.learners.base.Learner`.
     """
 
+    label: ClassVar[str] = "subG-reserve"
     requires_partition: ClassVar[bool] = True
     _rule_name: ClassVar[str] = "subg_reserve"
 

@@ -17,6 +17,11 @@ does (the bound is loose: a run visits far fewer states). The counts follow the 
 ``tabular.qtable`` (per state, the conflict-free joint actions; int64 code, float64 Q, int64
 visits), the neural networks of ``learners/neural`` (float32; checked against built learners in
 ``tests/unit/test_resources.py``) and the transitions their TorchRL replay buffer keeps.
+
+Each learner class counts its own state (its ``estimate_memory`` classmethod, see
+``learners/base.py``) with the helpers here (:func:`group_table_estimate`,
+:func:`neural_estimate`...); :func:`estimate_resources` adds the env copies. A learner that
+cannot run at all raises :class:`Unfit`.
 """
 
 from __future__ import annotations
@@ -29,13 +34,7 @@ from typing import Any
 
 from mrta_rl.config import declared_keywords
 from mrta_rl.envs import AuctionEnv, AuctionParams
-from mrta_rl.envs.encodings import (
-    global_feature_size,
-    group_state_count,
-    local_feature_size,
-    local_state_count,
-)
-from mrta_rl.learners.tabular.encoding import subgroup_state_count, system_state_count
+from mrta_rl.envs.encodings import global_feature_size, local_feature_size
 from mrta_rl.partition import Partition, subg_partition
 from mrta_rl.systems import RobotSystem
 
@@ -162,6 +161,22 @@ def team_floor_bytes(n_robots: int, n_task_types: int, copies: int) -> dict[str,
     }
 
 
+class Unfit(Exception):
+    """A learner cannot run on a system at all (e.g. joint actions beyond int64).
+
+    Raised by a learner's ``estimate_memory``; :func:`estimate_resources` turns it into the
+    estimate's ``reason`` and ``advice``.
+
+    Args:
+        reason: Why, for the messages.
+        advice: What to change.
+    """
+
+    def __init__(self, reason: str, advice: str) -> None:
+        super().__init__(reason)
+        self.reason, self.advice = reason, advice
+
+
 def estimate_resources(
     cls: type,
     system: RobotSystem,
@@ -174,6 +189,10 @@ def estimate_resources(
     eval_batch_size: int = 0,
 ) -> ResourceEstimate:
     """Estimate what a learner class needs on a system, without building it.
+
+    The learner's own state is the class's answer (``cls.estimate_memory``, see
+    :class:`~mrta_rl.learners.base.Learner`); the env copies of training and evaluation are
+    counted here.
 
     Args:
         cls: The learner class (``conf/learner/*.yaml`` ``_target_``).
@@ -194,18 +213,15 @@ def estimate_resources(
     hp = {k: d.default for k, d in declared_keywords(cls).items() if not d.required}
     hp.update(hyperparameters or {})
     active = None
-    if getattr(cls, "requires_partition", False):
+    if cls.requires_partition:
         partition = partition if partition is not None else subg_partition(system)
         active = partition.active_tasks(system)
     env = probe_env(system, params, active)
     decisions = max(1, episodes * batch_size * env.params.horizon)
-    kind = getattr(cls, "kind", "fixed")
-    if kind == "tabular":
-        estimate = _tabular(cls, env, partition, hp, decisions)
-    elif kind == "neural":
-        estimate = _neural(cls, env, partition, hp, batch_size)
-    else:
-        estimate = ResourceEstimate(cls.__name__)
+    try:
+        estimate = cls.estimate_memory(env, partition, hp, decisions=decisions, copies=batch_size)
+    except Unfit as unfit:
+        estimate = ResourceEstimate(cls.__name__, reason=unfit.reason, advice=unfit.advice)
     copies = (batch_size + eval_batch_size) * env_copy_bytes(env, params.queue_capacity)
     return dataclasses.replace(
         estimate,
@@ -216,114 +232,115 @@ def estimate_resources(
     )
 
 
-def _groups(env: AuctionEnv, partition: Partition | None, space: str) -> dict[str, list[int]]:
+def robot_groups(env: AuctionEnv, partition: Partition | None) -> dict[str, list[int]]:
+    """Robot indices of each sub-group of the partition, or of the whole team without one."""
     robots = env.system.robots
-    if space == "subg_cql" and partition is not None:
+    if partition is not None:
         return {g: [robots.index(r) for r in ids] for g, ids in partition.group_map().items()}
     return {"team": list(range(env.n_robots))}
 
 
-def _too_many_joint_actions(group: str, size: int, n_actions: int) -> str:
-    where = "the team" if group == "team" else f"sub-group {group}"
-    return f"{where} has {size} robots: {n_actions}^{size} joint actions do not fit in int64"
+def check_joint_actions(group: str, size: int, n_actions: int) -> None:
+    """Refuse a group whose ``n_actions^size`` joint actions pass the int64 codes.
+
+    Raises:
+        Unfit: naming the group (``GROUP_ADVICE``).
+    """
+    if n_actions**size >= INT64_CODES:
+        where = "the team" if group == "team" else f"sub-group {group}"
+        reason = f"{where} has {size} robots: {n_actions}^{size} joint actions do not fit in int64"
+        raise Unfit(reason, GROUP_ADVICE)
 
 
 GROUP_ADVICE = "use fewer robots per group (smaller sub-groups) or a smaller system"
+NEURAL_ADVICE = "lower learner.buffer_size or learner.hidden, or use a smaller system"
 
 
-def _tabular(
-    cls: type, env: AuctionEnv, partition: Partition | None, hp: dict[str, Any], decisions: int
+def neural_estimate(
+    name: str, env: AuctionEnv, settings: dict[str, Any], weights: int, copies: int, advice: str
 ) -> ResourceEstimate:
-    name, space = cls.__name__, getattr(cls, "space_name", None)
-    features = hp.get("features", "paper")  # the state's encoding (encodings.FEATURES)
-    A, K = env.n_actions, env.n_slots
-    parts: dict[str, int] = {}
-    if space in ("cql", "subg_cql"):
-        # One full row per group counts up front: every episode starts with all robots idle, and
-        # a state is enumerated whole on its first visit (a 50-robot random team's 11-robot
-        # sub-group with 15 slots asked numpy for 537 TiB in the middle of a run instead)
-        full_rows = 0
-        for group, robots in _groups(env, partition, space).items():
-            if A ** len(robots) >= INT64_CODES:
-                reason = _too_many_joint_actions(group, len(robots), A)
-                return ResourceEstimate(name, reason=reason, advice=GROUP_ADVICE)
-            states = (
-                subgroup_state_count(env, robots, hp.get("state", "group"), features)
-                if space == "subg_cql"
-                else group_state_count(env, robots, features)
-            )
-            if states >= INT64_CODES:
-                reason = f"{group}: {states:.3g} group states do not fit in int64"
-                return ResourceEstimate(name, reason=reason, advice=GROUP_ADVICE)
-            per_row = (
-                conflict_free_joint_actions(len(robots), K)
-                if hp.get("prune_conflicts", True)
-                else A ** len(robots)
-            )
-            rows = min(states, decisions)
-            row = per_row * JOINT_ENTRY_BYTES + JOINT_ROW_BYTES
-            parts[f"{group} table"] = GROWTH * rows * row
-            full_rows += row
-        worst = max(full_rows, sum(parts.values()))
-        return ResourceEstimate(name, full_rows, worst, parts, advice=GROUP_ADVICE)
-    if space == "semi_cql":
-        states = system_state_count(env, hp["state"], features)  # its shared state
-        if states >= INT64_CODES:
-            reason = f"{states:.3g} whole-system states do not fit in int64"
-            return ResourceEstimate(name, reason=reason, advice="use a smaller system")
-        row = env.n_robots * A * TABLE_ENTRY_BYTES + JOINT_ROW_BYTES
-        parts["table"] = GROWTH * min(states, decisions) * row
-        return ResourceEstimate(name, 0, parts["table"], parts)
-    if space == "dql":
-        try:
-            stride = max(local_state_count(env, features))
-        except OverflowError as err:
-            return ResourceEstimate(name, reason=str(err), advice="use fewer task types or slots")
-        parts["tables"] = env.n_robots * stride * A * TABLE_ENTRY_BYTES  # dense, allocated
-        return ResourceEstimate(name, parts["tables"], parts["tables"], parts)
-    return ResourceEstimate(name)  # a tabular learner this module does not know: no estimate
+    """A TorchRL learner's networks, replay buffer and collector batch (float32 weights).
 
+    Args:
+        name: The learner class's name.
+        env: The probe env (sizes).
+        settings: The learner's settings, declared defaults filled in (``buffer_size``,
+            ``collect_ticks``, ``features``).
+        weights: Its trainable weights (the class counts them).
+        copies: Training copies (``train.batch_size``).
+        advice: What to change when it does not fit.
 
-def _neural(
-    cls: type, env: AuctionEnv, partition: Partition | None, hp: dict[str, Any], copies: int
-) -> ResourceEstimate:
-    # the neural classes import torch: only when a neural learner is estimated
-    from mrta_rl.learners.neural import IQLLearner, QMIXLearner, SubGDQNLearner
-
-    name = cls.__name__
+    Returns:
+        The estimate, all of it up front.
+    """
     m, A = env.n_robots, env.n_actions
-    features = hp.get("features", "paper")  # the observation's encoding (encodings.FEATURES)
-    F, S = local_feature_size(env, features), global_feature_size(env, features)
-    depth, hidden = int(hp["depth"]), int(hp["hidden"])
-    advice = "lower learner.buffer_size or learner.hidden, or use a smaller system"
-    if issubclass(cls, SubGDQNLearner):
-        weights = 0
-        for group, robots in _groups(env, partition, "subg_cql").items():
-            size = len(robots)
-            if A**size >= INT64_CODES:
-                reason = _too_many_joint_actions(group, size, A)
-                return ResourceEstimate(name, reason=reason, advice=GROUP_ADVICE)
-            weights += mlp_weights(size * F, A**size, depth, hidden)
-        advice = f"{GROUP_ADVICE}, or {advice}"
-    elif issubclass(cls, IQLLearner):
-        weights = m * mlp_weights(F, A, depth, hidden)  # one network per robot
-    else:
-        weights = mlp_weights(F, A, depth, hidden)  # one network shared by the robots
-        if issubclass(cls, QMIXLearner):
-            E = int(hp["mixing_embed_dim"])
-            # TorchRL QMixer: hypernetworks W1 (S -> E m), W_final and b1 (S -> E), V (S -> E -> 1)
-            weights += (S * E * m + E * m) + 3 * (S * E + E) + (E + 1)
+    F, S = feature_sizes(env, settings)
     # one transition: observation, mask (and their next), state and next state; per robot the
     # action (int64), robot and group rewards (and their next), the invalid-action flags, the
     # next team reward; flags (measured on the buffer, tests/unit/test_resources.py)
     transition = 2 * (m * F * 4 + S * 4 + m * A) + m * (8 + 16 + 2 + 4) + 32
     parts = {
         "networks": weights * BYTES_PER_WEIGHT,
-        "replay buffer": int(hp["buffer_size"]) * transition,
-        "collector batch": int(hp["collect_ticks"]) * copies * transition,
+        "replay buffer": int(settings["buffer_size"]) * transition,
+        "collector batch": int(settings["collect_ticks"]) * copies * transition,
     }
     total = sum(parts.values())
     return ResourceEstimate(name, total, total, parts, advice=advice)
+
+
+def feature_sizes(env: AuctionEnv, settings: dict[str, Any]) -> tuple[int, int]:
+    """``(F, S)``: local observation and global state widths of the learner's ``features``."""
+    features = settings.get("features", "paper")  # the observation's encoding (FEATURES)
+    return local_feature_size(env, features), global_feature_size(env, features)
+
+
+def group_table_estimate(
+    name: str,
+    env: AuctionEnv,
+    groups: dict[str, list[int]],
+    state_counts: Any,
+    settings: dict[str, Any],
+    decisions: int,
+) -> ResourceEstimate:
+    """Joint Q-tables of visited states, one per group (CQL, subG-CQL; ``tabular.qtable``).
+
+    One full row per group counts up front: every episode starts with all robots idle, and a
+    state is enumerated whole on its first visit (a 50-robot random team's 11-robot sub-group
+    with 15 slots asked numpy for 537 TiB in the middle of a run instead).
+
+    Args:
+        name: The learner class's name.
+        env: The probe env.
+        groups: Robot indices of each group (:func:`robot_groups`).
+        state_counts: ``state_counts(robots) -> |S_g|`` of the learner's group state.
+        settings: The learner's settings (``prune_conflicts``).
+        decisions: Copy-ticks of training, the most states met.
+
+    Returns:
+        The estimate.
+
+    Raises:
+        Unfit: if a group's joint actions or states pass the int64 codes.
+    """
+    A, K = env.n_actions, env.n_slots
+    parts: dict[str, int] = {}
+    full_rows = 0
+    for group, robots in groups.items():
+        check_joint_actions(group, len(robots), A)
+        states = state_counts(robots)
+        if states >= INT64_CODES:
+            raise Unfit(f"{group}: {states:.3g} group states do not fit in int64", GROUP_ADVICE)
+        per_row = (
+            conflict_free_joint_actions(len(robots), K)
+            if settings.get("prune_conflicts", True)
+            else A ** len(robots)
+        )
+        rows = min(states, decisions)
+        row = per_row * JOINT_ENTRY_BYTES + JOINT_ROW_BYTES
+        parts[f"{group} table"] = GROWTH * rows * row
+        full_rows += row
+    worst = max(full_rows, sum(parts.values()))
+    return ResourceEstimate(name, full_rows, worst, parts, advice=GROUP_ADVICE)
 
 
 def machine_memory() -> int:

@@ -1,7 +1,9 @@
 """Learning space dimension of the tabular learners, paper §5.2 eqs. (10)-(16), as exact ints.
 
-The state counts come from the project's encodings (``mrta_rl.envs.encodings``) and every
-robot has ``|A_i| = K + 1`` actions (wait or bid for one of ``K`` slots, spec step 4):
+Each tabular learner class answers for its own dimension (``learning_space_dimension``, a
+classmethod built on the formulas here); :func:`learning_space_dimension` asks the class of a
+learner name. The state counts come from the project's encodings (``mrta_rl.envs.encodings``)
+and every robot has ``|A_i| = K + 1`` actions (wait or bid for one of ``K`` slots, spec step 4):
 
 * DQL, eqs. (10)-(11): ``sum_i |S_i| |A_i|`` with ``S_i`` the local view of robot ``i``.
 * semi-CQL, eq. (11) with each robot's state the whole-system state: ``sum_i |S| |A_i|``; with
@@ -10,7 +12,7 @@ robot has ``|A_i| = K + 1`` actions (wait or bid for one of ``K`` slots, spec st
   paper bounds ``|S|`` by the sum of the individual spaces (eq. 13); here ``|S|`` is the exact
   count of the encoding, which holds every robot's idle and battery state.
 * subG-CQL (§5.2, last paragraph): ``sum_g |S_g| prod_{i in g} |A_i|`` over the sub-groups, each
-  with its own group view over its kept task types; with ``group_state=idle`` each robot's idle
+  with its own group view over its kept task types; with ``state=idle`` each robot's idle
   flag instead of its three states (``tabular.encoding.subgroup_state_count``).
 
 Python ints never overflow, which matters for CQL on System-II.
@@ -20,15 +22,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import Literal
+from typing import Any, Literal
 
 from mrta_rl.envs import AuctionEnv, AuctionParams
-from mrta_rl.envs.encodings import group_state_count, local_state_count
-from mrta_rl.learners.tabular.encoding import subgroup_state_count, system_state_count
 from mrta_rl.partition import Partition, subg_partition
 from mrta_rl.systems import RobotSystem
 
 TabularLearnerName = Literal["cql", "semi_cql", "dql", "subg_cql"]
+# the rows of the paper's Table 9, in its order (each learner's formula is its class's)
 TABULAR_LEARNERS: tuple[TabularLearnerName, ...] = ("cql", "semi_cql", "dql", "subg_cql")
 
 
@@ -76,50 +77,40 @@ def subgroup_dimension(groups: Sequence[tuple[int, Sequence[int]]]) -> int:
 
 
 def learning_space_dimension(
-    learner: TabularLearnerName,
+    learner: str,
     env: AuctionEnv,
     partition: Partition | None = None,
     features: str = "paper",
-    state: str = "system",
-    group_state: str = "group",
+    **settings: Any,
 ) -> int:
-    """Analytic learning space dimension of one tabular learner on ``env``'s encodings.
+    """Analytic learning space dimension of one learner of ``conf/learner`` on ``env``.
+
+    The formula is the learner class's own (``learning_space_dimension``, see
+    :class:`~mrta_rl.learners.base.Learner`); settings it does not pass take the paper's
+    values (semi-CQL's ``state="system"``, subG-CQL's ``state="group"``).
 
     Args:
-        learner: ``"cql"``, ``"semi_cql"``, ``"dql"`` or ``"subg_cql"``.
+        learner: The learner's name (``"cql"``, ``"semi_cql"``, ``"dql"``, ``"subg_cql"``...).
         env: The env the learner runs on (for subG-CQL: built with the partition's ``Lambda_i``).
         partition: The subG partition (required for ``"subg_cql"``).
         features: The learner's encoding, ``"paper"`` or ``"time_to_free"``
             (``envs/encodings.py``).
-        state: semi-CQL's shared state (``tabular.encoding.SYSTEM_STATES``); ``system`` for
-            the others.
-        group_state: subG-CQL's group state (``tabular.encoding.GROUP_STATES``); ``group``
-            for the others.
+        **settings: Further settings of the learner's state (``state``).
 
     Returns:
         The exact dimension.
 
     Raises:
-        ValueError: on an unknown learner, or ``"subg_cql"`` without a partition.
+        ValueError: on a learner without a learning space, or ``"subg_cql"`` without a
+            partition.
     """
-    m = env.n_robots
-    actions = [env.n_actions] * m  # |A_i| = K + 1
-    if learner == "dql":
-        return decentralized_dimension(local_state_count(env, features), actions)
-    if learner == "semi_cql":
-        whole = system_state_count(env, state, features)
-        return decentralized_dimension([whole] * m, actions)
-    if learner == "cql":
-        return centralized_dimension(group_state_count(env, list(range(m)), features), actions)
-    if learner == "subg_cql":
-        if partition is None:
-            raise ValueError("subg_cql needs the partition")
-        groups = []
-        for robots in partition.group_map().values():
-            count = subgroup_state_count(env, robots, group_state, features)
-            groups.append((count, [env.n_actions] * len(robots)))
-        return subgroup_dimension(groups)
-    raise ValueError(f"unknown tabular learner {learner!r}; expected one of {TABULAR_LEARNERS}")
+    from mrta_rl.conf_files import learner_named  # the learners import this module
+
+    cls = learner_named(learner)
+    dimension = cls.learning_space_dimension(env, partition, {"features": features, **settings})
+    if dimension is None:
+        raise ValueError(f"learner {learner!r} ({cls.__name__}) has no learning space dimension")
+    return dimension
 
 
 def learning_space_table(

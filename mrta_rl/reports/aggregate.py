@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from mrta_rl.reports.collect import RunRecord, natural_key
+from mrta_rl.reports.collect import RECORDED_LABELS, RunRecord, natural_key
 from mrta_rl.reports.stats import MeanCI, mean_ci
 from mrta_rl.types import PRIORITIES
 
@@ -41,13 +41,15 @@ PRIORITY_LABELS: dict[str, str] = {"L": "low-priority", "H": "high-priority"}
 
 
 def learner_label(name: str) -> str:
-    """Paper name of a learner (``subg_cql`` -> ``subG-CQL``); unknown names unchanged.
+    """Label of a learner (``subg_cql`` -> ``subG-CQL``); unknown names unchanged.
+
+    The label its runs recorded (metrics.json ``learner.label``) comes first, then the paper's.
 
     A configuration name keeps what sets it apart: ``subg_reserve reserve=1`` ->
     ``subG-reserve reserve=1`` (``reports/collect.py``).
     """
     base, _, variant = name.partition(" ")
-    label = LEARNER_LABELS.get(base, base)
+    label = RECORDED_LABELS.get(base) or LEARNER_LABELS.get(base, base)
     return f"{label} {variant}" if variant else label
 
 

@@ -150,6 +150,10 @@ def _load_yaml(path: Path) -> Any:
     return OmegaConf.to_container(OmegaConf.load(path), resolve=False) if path.is_file() else None
 
 
+# each learner's label as its runs recorded it (metrics.json ``learner.label``, the class's own)
+RECORDED_LABELS: dict[str, str] = {}
+
+
 def load_run(run_dir: Path) -> RunRecord:
     """Read one run dir.
 
@@ -165,9 +169,10 @@ def load_run(run_dir: Path) -> RunRecord:
     metrics = read_metrics(run_dir / METRICS_FILE)
     config = _load_yaml(run_dir / ".hydra" / "config.yaml") or {}
     overrides = _load_yaml(run_dir / ".hydra" / "overrides.yaml") or []
+    RECORDED_LABELS[metrics["learner"]["name"]] = metrics["learner"]["label"]
     return RunRecord(
         run_dir=run_dir,
-        learner=str(metrics["learner"]),
+        learner=str(metrics["learner"]["name"]),
         system=str(metrics["system"]),
         seed=int(metrics["seed"]),
         metrics=metrics,

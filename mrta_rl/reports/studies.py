@@ -172,7 +172,7 @@ def refused_points(inputs: Sequence[Path]) -> list[StudyPoint]:
 
 def base_learner(run: RunRecord) -> str:
     """The learner's yaml stem (``RunRecord.learner`` also names the settings that differ)."""
-    return str(run.metrics.get("learner", run.learner))
+    return str(run.metrics["learner"]["name"])
 
 
 def study_points(runs: Sequence[RunRecord], inputs: Sequence[Path]) -> list[StudyPoint]:

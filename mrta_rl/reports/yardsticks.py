@@ -151,7 +151,7 @@ def _kind(run: RunRecord) -> str:
 
 def _base(run: RunRecord) -> str:
     """The learner's yaml stem (``run.learner`` also names what sets its configuration apart)."""
-    return str(run.metrics.get("learner", run.learner))
+    return str(run.metrics["learner"]["name"])
 
 
 def _features(run: RunRecord) -> str:

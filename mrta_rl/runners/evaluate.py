@@ -124,7 +124,7 @@ def format_summary(metrics: dict[str, Any]) -> str:
         Plain aligned text (``-`` where a CTR is undefined).
     """
     learned, greedy = metrics["eval"], metrics["baseline_greedy"]
-    name = metrics["learner"]
+    name = metrics["learner"]["name"]
     width = max(len(name), 6)
     lines = [
         f"{name} on {metrics['system']} (seed {metrics['seed']}), {learned['episodes']} evaluation "

@@ -2,14 +2,17 @@
 
 A run dir may come from anyone (a shared drive, a download), so reading one never executes what
 it says. :func:`read_run_config` accepts a ``.hydra/config.yaml`` only if its learner is a
-:class:`~mrta_rl.learners.Learner` class of this package with plain scalar or list
-hyperparameters, its logger a curve logger of this package, and everything else plain data (no
-``_target_``, no interpolation); anything else is refused with a message naming the key.
+:class:`~mrta_rl.learners.Learner` class of this package or one the user made known
+(:func:`known_learner`: imported by their own code, or declared by an installed distribution in
+the ``mrta_rl.learners`` entry-point group) with plain scalar or list hyperparameters, its logger
+a curve logger of this package, and everything else plain data (no ``_target_``, no
+interpolation); anything else is refused with a message naming the key.
 """
 
 from __future__ import annotations
 
 import importlib
+import importlib.metadata
 import logging
 import os
 import secrets
@@ -26,6 +29,7 @@ from mrta_rl.systems.files import check_yaml_file
 logger = logging.getLogger(__name__)
 
 PACKAGE = "mrta_rl."
+LEARNER_ENTRY_POINTS = "mrta_rl.learners"  # group of the learner classes of other distributions
 SCALARS = (str, int, float, bool, type(None))
 
 
@@ -82,6 +86,33 @@ def package_class(target: Any, base: type, what: str, where: str) -> type:
     return cls
 
 
+def known_learner(target: str) -> type[Learner] | None:
+    """A learner class outside this package that the user made known, or None.
+
+    Known: a :class:`~mrta_rl.learners.Learner` subclass already imported in this process (the
+    user's own code, imported before the run dir is read), or one an installed distribution
+    declares in the ``mrta_rl.learners`` entry-point group (``name = "module:Class"``). No other
+    module is imported.
+
+    Args:
+        target: The ``_target_`` value (``my_pkg.my_learner.MyLearner``).
+
+    Returns:
+        The class, or None.
+    """
+    pending = list(Learner.__subclasses__())
+    while pending:
+        cls = pending.pop()
+        if f"{cls.__module__}.{cls.__qualname__}" == target:
+            return cls
+        pending.extend(cls.__subclasses__())
+    for entry in importlib.metadata.entry_points(group=LEARNER_ENTRY_POINTS):
+        if entry.value.replace(":", ".") == target:
+            cls = entry.load()
+            return cls if isinstance(cls, type) and issubclass(cls, Learner) else None
+    return None
+
+
 def _check_data(value: Any, key: str, source: Path) -> None:
     """Plain data only: mappings without special keys, lists, scalars without interpolation."""
     if isinstance(value, dict):
@@ -100,11 +131,26 @@ def _check_data(value: Any, key: str, source: Path) -> None:
         raise RunDirError(f"{source}: {key}: unexpected value {value!r}")
 
 
-def _check_component(block: Any, key: str, base: type, source: Path, *, flat: bool) -> None:
-    """A ``_target_`` block: a package class, ``_partial_: true``, plain (scalar/list) settings."""
+def _check_component(
+    block: Any, key: str, base: type, source: Path, *, flat: bool, known: bool = False
+) -> None:
+    """A ``_target_`` block: a package class, ``_partial_: true``, plain (scalar/list) settings.
+
+    With ``known``, a class outside the package is accepted if the user made it known
+    (:func:`known_learner`).
+    """
     if not isinstance(block, dict):
         raise RunDirError(f"{source}: {key}: expected a mapping with _target_, got {block!r}")
-    package_class(block.get("_target_"), base, key, f"{source}: {key}._target_")
+    target, where = block.get("_target_"), f"{source}: {key}._target_"
+    if known and isinstance(target, str) and not target.startswith(PACKAGE):
+        if known_learner(target) is None:
+            raise RunDirError(
+                f"{where}: {target!r} is not a learner class of mrta_rl, nor one your code "
+                f"imported or a distribution declares (entry points {LEARNER_ENTRY_POINTS}); "
+                "a run dir is data, its classes are never imported"
+            )
+    else:
+        package_class(target, base, key, where)
     if block.get("_partial_") is not True:
         raise RunDirError(f"{source}: {key}._partial_: must be true")
     for name, value in block.items():
@@ -135,7 +181,7 @@ def check_run_config(config: dict[str, Any], source: Path) -> None:
             raise RunDirError(f"{source}: {key}: missing")
     for key, value in config.items():
         if key == "learner":
-            _check_component(value, "learner", Learner, source, flat=True)
+            _check_component(value, "learner", Learner, source, flat=True, known=True)
         elif key == "logger":
             _check_component(value, "logger", CSVLogger, source, flat=True)
         else:

@@ -2,7 +2,7 @@
 
 ``train(cfg)`` is the single entry point of ``scripts/train.py``. It validates and builds
 everything first (:func:`build_run`), so a bad config fails before any file is written; then the
-training loop of the learner's ``kind`` runs (:data:`TRAINING_LOOPS`), and the shared evaluation
+training loop the learner class declares runs (``training_loop``), and the shared evaluation
 (``runners/evaluate.py``) scores the learner and the greedy baseline on the same task streams.
 
 Seeds: the learner's generator is ``default_rng(seed)``; training copy ``b`` uses env seed
@@ -206,7 +206,7 @@ def train(cfg: DictConfig, run_dir: Path | str | None = None) -> dict[str, Any]:
     )
     start = time.perf_counter()
     try:
-        train_info = training_loop(run.learner.kind)(run, cfg, run_dir)
+        train_info = training_loop(type(run.learner))(run, cfg, run_dir)
     except TrainingInterrupted as stop:
         if stop.checkpoint is None:
             logger.error("interrupted before the first checkpoint: nothing to resume from")
@@ -228,11 +228,11 @@ def train(cfg: DictConfig, run_dir: Path | str | None = None) -> dict[str, Any]:
         _write_refusal(run_dir, cfg, reason)  # kept as data: a sweep's report shows the reason
         raise TableGrowthError(reason) from None
     train_info["wall_s"] = round(time.perf_counter() - start, 3)
-    if run.learner.kind != "fixed":
+    if run.learner.trains():
         save_learner(run.learner, run_dir / LEARNER_DIR)
     results = evaluate_run(run, cfg)
     metrics = {
-        "learner": run.name,
+        "learner": learner_record(run),
         "system": system_name,
         "seed": int(cfg.seed),
         **results,
@@ -247,6 +247,15 @@ def train(cfg: DictConfig, run_dir: Path | str | None = None) -> dict[str, Any]:
     run.checkpoint.finish()
     logger.info("wrote %s", run_dir / METRICS_FILE)
     return metrics
+
+
+def learner_record(run: RunSetup) -> dict[str, str]:
+    """metrics.json's ``learner`` block: the config's name, the class's label and kind.
+
+    Reports label a run from it without importing the learner.
+    """
+    cls = type(run.learner)
+    return {"name": run.name, "label": cls.label, "kind": cls.kind}
 
 
 RESUME_KEEPS = ("resume", "train.progress_bar")  # overrides allowed with resume=
@@ -294,10 +303,10 @@ def evaluate_checkpoint(
         cfg.eval.batch_size = int(batch_size)
     choices = run_choices(run_dir)
     run = build_saved_run(cfg, run_dir, name=choices.get("learner"))
-    if run.learner.kind != "fixed":
+    if run.learner.trains():
         load_learner(run.learner, run_dir / LEARNER_DIR)
     metrics = {
-        "learner": run.name,
+        "learner": learner_record(run),
         "system": choices.get("system", run.system.name),
         "seed": int(cfg.seed),
         "checkpoint": str(run_dir),

@@ -25,13 +25,13 @@ from typing import Annotated, Any
 
 import numpy as np
 from hydra.core.hydra_config import HydraConfig
-from hydra.utils import get_class
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from mrta_rl.config import ConfigError, Range, check_fields, check_keywords
 from mrta_rl.envs import AuctionParams
 from mrta_rl.learners import Learner
+from mrta_rl.learners.base import learner_from_target
 from mrta_rl.learners.memory import (
     ResourceEstimate,
     estimate_resources,
@@ -50,15 +50,6 @@ from mrta_rl.systems import (
 
 logger = logging.getLogger(__name__)
 
-# Learner kind -> "module:function" of its training loop, imported only when used. A loop has the
-# signature ``loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict`` and returns
-# ``{"env_ticks": int, "wall_s": float, "episodes": int}``; it writes curve.csv in ``run_dir``.
-TRAINING_LOOPS: dict[str, str] = {
-    "fixed": "mrta_rl.runners.tick_loop:skip_training",
-    "tabular": "mrta_rl.runners.tick_loop:train_loop",
-    "neural": "mrta_rl.runners.torchrl:train_loop",
-    "search": "mrta_rl.runners.tick_loop:train_loop",  # policy search: the same numpy tick loop
-}
 # top-level keys of a run config besides RunSettings': conf/config.yaml's blocks and groups
 RUN_BLOCKS = (
     "resume",
@@ -241,8 +232,8 @@ def learner_class(cfg_learner: Any) -> type[Learner]:
         The :class:`Learner` subclass.
 
     Raises:
-        ConfigError: if ``_target_``/``_partial_`` are missing, the class cannot be imported, is
-            not a :class:`Learner`, or its ``kind`` has no training loop.
+        ConfigError: if ``_target_``/``_partial_`` are missing, the class cannot be imported or
+            is not a :class:`Learner`.
     """
     _check(
         OmegaConf.is_dict(cfg_learner) or isinstance(cfg_learner, dict),
@@ -251,35 +242,23 @@ def learner_class(cfg_learner: Any) -> type[Learner]:
     target = cfg_learner.get("_target_")
     _check(target is not None, "learner: the learner config has no _target_")
     _check(cfg_learner.get("_partial_") is True, f"learner {target}: set `_partial_: true`")
-    try:
-        cls = get_class(str(target))
-    except Exception as err:  # Hydra wraps import errors in several exception types
-        raise ConfigError(f"learner._target_: cannot import learner class {target!r}") from err
-    _check(
-        isinstance(cls, type) and issubclass(cls, Learner),
-        f"learner._target_: {target} is not a mrta_rl Learner",
-    )
-    kind = getattr(cls, "kind", None)
-    _check(
-        kind in TRAINING_LOOPS, f"{target}: unknown kind {kind!r} (known: {sorted(TRAINING_LOOPS)})"
-    )
-    return cls
+    return learner_from_target(str(target), "learner._target_")
 
 
-def training_loop(kind: str) -> Any:
-    """Import the training loop of a learner kind (see :data:`TRAINING_LOOPS`).
+def training_loop(cls: type[Learner]) -> Any:
+    """Import the training loop a learner class declares (``training_loop``, ``learners/base.py``).
 
     Raises:
-        ConfigError: if the loop's module is missing (e.g. no neural runner installed yet).
+        ConfigError: if the loop's module or function is missing.
     """
-    module_name, function = TRAINING_LOOPS[kind].split(":")
+    module_name, _, function = cls.training_loop.partition(":")
     try:
-        module = importlib.import_module(module_name)
-    except ModuleNotFoundError as err:
+        loop = getattr(importlib.import_module(module_name), function)
+    except (ModuleNotFoundError, AttributeError) as err:
         raise ConfigError(
-            f"no training loop for learner kind {kind!r}: {module_name} is missing"
+            f"no training loop {cls.training_loop!r} for learner {cls.__name__}: {err}"
         ) from err
-    return getattr(module, function)
+    return loop
 
 
 def training_copies(batch_size: int, robot_copies: int | None, n_robots: int) -> int:
@@ -373,7 +352,7 @@ def validate_config(cfg: DictConfig) -> CheckedConfig:
     bound = check_fields(PartitionSettings, _plain(cfg, "partition") or {}, "partition")
 
     cls = learner_class(cfg.get("learner"))
-    training_loop(cls.kind)  # fail now, not after building everything, if the loop is missing
+    training_loop(cls)  # fail now, not after building everything, if the loop is missing
     hyperparameters = check_keywords(cls, _plain(cfg, "learner"), "learner")
     _check_logger(_plain(cfg, "logger"))
 

@@ -29,6 +29,8 @@ HERE = "tests.smoke.test_cli"  # this module, as the subprocess imports it
 class SleepyLearner(GreedyLearner):
     """Signals that the run got as far as building the learner, then waits (for Ctrl-C)."""
 
+    label = "sleepy"
+
     def __init__(self, **kwargs) -> None:
         super().__init__(**kwargs)
         Path(os.environ[MARKER]).write_text("building")
@@ -37,6 +39,8 @@ class SleepyLearner(GreedyLearner):
 
 class BuggyLearner(GreedyLearner):
     """A learner with a bug: a real traceback must survive."""
+
+    label = "buggy"
 
     def act(self, view, mask, *, explore):
         raise ZeroDivisionError("a bug, not a user error")

@@ -28,7 +28,8 @@ def sweep_and_report(sweep_dir: Path, *overrides: str) -> str:
     )  # fmt: skip
     assert result.returncode == 0, result.stderr[-3000:]
     assert sorted(p.parent.name for p in sweep_dir.glob("*/metrics.json")) == ["0", "1"]
-    learners = {json.loads(p.read_text())["learner"] for p in sweep_dir.glob("*/metrics.json")}
+    metrics = [json.loads(p.read_text()) for p in sweep_dir.glob("*/metrics.json")]
+    learners = {m["learner"]["name"] for m in metrics}
     assert learners == {"greedy", "random"}
     done = subprocess.run(
         [sys.executable, str(REPORT), str(sweep_dir)],

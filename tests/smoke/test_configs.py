@@ -11,7 +11,6 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 from mrta_rl.runners import build_run
-from tests.conftest import SMOKE_OVERRIDES
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
 GROUP_FILES = sorted(
@@ -35,8 +34,6 @@ def test_group_file_builds(group, name, compose_cfg, tmp_path):
     overrides = [f"{group}={name}" if group in LISTED else f"+{group}={name}"]
     if group != "debug":
         overrides.append("debug=smoke")  # keeps envs small (horizon, batches)
-        if group == "learner":
-            overrides += SMOKE_OVERRIDES.get(name, [])
     cfg = compose_cfg(overrides)
     run = build_run(cfg)  # validates system, env params, partition and learner construction
     instantiate(cfg.logger)(run_dir=tmp_path).close()
@@ -62,6 +59,23 @@ def test_unknown_learner_is_named(compose_cfg):
 SPECIALIZED = sorted(
     (path.parent.name, path.stem) for path in (CONF / "experiment_learner").glob("*/*.yaml")
 )
+
+
+DEBUG_SPECIALIZED = sorted(
+    (path.parent.name, path.stem) for path in (CONF / "debug_learner").glob("*/*.yaml")
+)
+
+
+@pytest.mark.parametrize(("debug", "learner"), DEBUG_SPECIALIZED)
+def test_a_debug_files_own_learner_settings_name_both_and_apply(debug, learner, compose_cfg):
+    # a misspelt folder or file would be skipped silently by the `optional` defaults entry
+    assert (CONF / "debug" / f"{debug}.yaml").exists()
+    assert (CONF / "learner" / f"{learner}.yaml").exists()
+    own = OmegaConf.load(CONF / "debug_learner" / debug / f"{learner}.yaml")
+    cfg = compose_cfg([f"debug={debug}", f"learner={learner}"])
+    assert {key: cfg.learner[key] for key in own} == dict(own)
+    plain = compose_cfg([f"learner={learner}"])  # without the debug file: the learner's own
+    assert {key: plain.learner[key] for key in own} != dict(own)
 
 
 @pytest.mark.parametrize(("experiment", "learner"), SPECIALIZED)

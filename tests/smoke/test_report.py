@@ -102,7 +102,7 @@ def test_report_files_and_numbers(sweep, tmp_path):
     metrics = [json.loads(p.read_text()) for p in sorted(sweep_dir.glob("*/metrics.json"))]
     by_cell: dict[tuple[str, str], list[dict]] = {}
     for m in metrics:
-        by_cell.setdefault((m["system"], m["learner"]), []).append(m)
+        by_cell.setdefault((m["system"], m["learner"]["name"]), []).append(m)
     assert all(len(runs) == 2 for runs in by_cell.values()) and len(by_cell) == 4
 
     ctr = {

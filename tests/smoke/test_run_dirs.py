@@ -29,7 +29,6 @@ from mrta_rl.run_files import RunDirError
 from mrta_rl.runners import build_run, evaluate_checkpoint, train
 from mrta_rl.runners.checkpoint import latest_checkpoint
 from mrta_rl.runners.validation import learner_class
-from tests.conftest import SMOKE_OVERRIDES
 
 ROOT = Path(__file__).resolve().parents[2]
 TIMINGS = ("wall_s", "fps_collection", "fps_training", "fps_overall")
@@ -360,7 +359,6 @@ def test_sigkill_after_a_random_checkpoint_then_resume_ends_like_an_uninterrupte
         f"learner={learner}",
         "system=system1",
         "debug=smoke",
-        *SMOKE_OVERRIDES.get(learner, []),
         *BUDGETS[KINDS[learner]],
     ]
     episodes, every = setting(args, "train.episodes"), setting(args, "train.checkpoint_every")

@@ -13,9 +13,9 @@ import pytest
 from omegaconf import OmegaConf, open_dict
 
 from mrta_rl.learners import GreedyLearner, RandomLearner
-from mrta_rl.runners import TRAINING_LOOPS, train
+from mrta_rl.learners.base import TICK_LOOP
+from mrta_rl.runners import train
 from mrta_rl.systems import SystemConfigError
-from tests.conftest import SMOKE_OVERRIDES
 
 ROOT = Path(__file__).resolve().parents[2]
 LEARNERS = sorted(path.stem for path in (ROOT / "conf" / "learner").glob("*.yaml"))
@@ -26,13 +26,16 @@ EVAL_KEYS = {"episodes", "team_return", "ctr", "ctr_overall", "itr", "return_by_
 class PartitionedGreedy(GreedyLearner):
     """Greedy on the subG partition's task sets (exercises requires_partition)."""
 
+    label = "partitioned greedy"
     requires_partition = True
 
 
 class CountingLearner(RandomLearner):
     """A 'tabular' learner that counts its calls (exercises the training loop)."""
 
+    label = "counting"
     kind = "tabular"
+    training_loop = TICK_LOOP
 
     def __init__(self, *, env, rng, partition=None, epsilon_start: float = 1.0) -> None:
         super().__init__(env=env, rng=rng, partition=partition)
@@ -73,7 +76,7 @@ def check_metrics(metrics: dict, run_dir: Path, system: str, learner: str) -> No
         "train",
         "learning_space",
     }
-    assert metrics["learner"] == learner and metrics["system"] == system
+    assert metrics["learner"]["name"] == learner and metrics["system"] == system
     m, n = SYSTEMS[system]
     partitioned = (run_dir / "partition.json").is_file()
     for block in (metrics["eval"], metrics["baseline_greedy"]):
@@ -96,7 +99,7 @@ def check_metrics(metrics: dict, run_dir: Path, system: str, learner: str) -> No
 @pytest.mark.parametrize("learner", LEARNERS)
 def test_learner_runs(learner, system, compose_cfg, tmp_path):
     overrides = [f"learner={learner}", f"system={system}", "debug=smoke"]
-    cfg = compose_cfg([*overrides, *SMOKE_OVERRIDES.get(learner, [])])
+    cfg = compose_cfg(overrides)
     metrics = train(cfg, run_dir=tmp_path)
     check_metrics(metrics, tmp_path, system, learner)
     with (tmp_path / "curve.csv").open() as f:
@@ -179,10 +182,16 @@ def test_invalid_settings_fail_before_work(override, message, compose_cfg, tmp_p
     assert not (tmp_path / "metrics.json").exists()
 
 
-def test_missing_training_loop_is_named(compose_cfg, tmp_path, monkeypatch):
-    monkeypatch.setitem(TRAINING_LOOPS, "tabular", "mrta_rl.runners.no_such_runner:train_loop")
+class LooplessLearner(CountingLearner):
+    """A learner whose training loop does not exist."""
+
+    label = "loopless"
+    training_loop = "mrta_rl.runners.no_such_runner:train_loop"
+
+
+def test_missing_training_loop_is_named(compose_cfg, tmp_path):
     cfg = compose_cfg(["system=system1", "debug=smoke"])
-    set_target(cfg, CountingLearner)
+    set_target(cfg, LooplessLearner)
     with pytest.raises(ValueError, match="no_such_runner"):
         train(cfg, run_dir=tmp_path)
     assert not any(tmp_path.iterdir())
@@ -215,7 +224,8 @@ def test_scripts_train_then_evaluate(tmp_path):
     assert done.returncode == 0, done.stderr
     assert "CTR %" in done.stdout and "ITR %" in done.stdout
     metrics = json.loads((run_dir / "metrics.json").read_text())
-    assert metrics["learner"] == "greedy" and metrics["system"] == "system1"
+    assert metrics["learner"] == {"name": "greedy", "label": "greedy", "kind": "fixed"}
+    assert metrics["system"] == "system1"
     assert (run_dir / ".hydra" / "config.yaml").is_file() and (run_dir / "curve.csv").is_file()
 
     again = subprocess.run(

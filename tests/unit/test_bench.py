@@ -2,12 +2,28 @@
 
 from __future__ import annotations
 
-from mrta_rl.bench.learners import LEARNERS, format_table, learners_in
+from mrta_rl.bench.learners import format_table, learners_in, search_path, trained_learners
 from tests.conftest import ROOT
 
 
-def test_every_benchmarked_learner_has_its_yaml():
-    assert learners_in(ROOT, list(LEARNERS)) == list(LEARNERS)
+def test_the_benchmarked_learners_are_the_shipped_ones_that_train():
+    trained = trained_learners()
+    tabular, neural = ["cql", "dql", "semi_cql", "subg_cql"], ["iql", "qmix", "subg_dqn", "vdn"]
+    assert trained == sorted([*tabular, *neural, "reserve_es"])  # no fixed policy
+    assert learners_in(ROOT, trained) == trained
+
+
+def test_a_user_config_dirs_learner_is_composed_and_counted_for_every_checkout(
+    tmp_path, compose_cfg
+):
+    (tmp_path / "mine" / "learner").mkdir(parents=True)
+    (tmp_path / "mine" / "learner" / "mine.yaml").write_text(
+        "_target_: mrta_rl.learners.fixed.RandomLearner\n_partial_: true\n"
+    )
+    cfg = compose_cfg(["learner=mine", *search_path([tmp_path / "mine"])])
+    assert cfg.learner._target_ == "mrta_rl.learners.fixed.RandomLearner"
+    assert learners_in(tmp_path, ["mine", "dql"], [tmp_path / "mine"]) == ["mine"]
+    assert trained_learners([tmp_path / "mine"]) == trained_learners()  # a fixed policy
 
 
 def test_a_checkout_without_a_learner_measures_the_others(tmp_path):

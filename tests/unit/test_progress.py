@@ -9,7 +9,6 @@ import pytest
 
 from mrta_rl.runners import train
 from mrta_rl.runners.progress import ProgressLog, progress_bar
-from tests.conftest import SMOKE_OVERRIDES
 
 LINE = re.compile(
     r"train (\w+): episode (\d+)/(\d+), return (\S+), .*?(\d+) (tick|frame)/s, (\S+) left$"
@@ -59,7 +58,7 @@ def test_no_lines_under_a_bar():
 @pytest.mark.parametrize("learner", ["dql", "reserve_es", "vdn", "greedy"])
 def test_every_training_loop_logs_progress(learner, compose_cfg, tmp_path, caplog):
     overrides = [f"learner={learner}", "debug=smoke", "train.log_every_s=1e-9"]
-    cfg = compose_cfg(overrides + SMOKE_OVERRIDES.get(learner, []))
+    cfg = compose_cfg(overrides)
     caplog.set_level(logging.INFO, logger="mrta_rl.runners")
     train(cfg, run_dir=tmp_path)
     lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith("train ")]

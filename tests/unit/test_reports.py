@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 from omegaconf import OmegaConf
 
+from mrta_rl.conf_files import learner_files, learner_named
 from mrta_rl.reports import (
     build_report,
     check_claims,
@@ -23,6 +24,11 @@ from mrta_rl.reports.collect import RunRecord, configuration_variants, expected_
 
 TYPES, ROBOTS = ("T1", "T2", "T3"), ("R1", "R2")
 ROBOT_TABLE = {"R1": ["T1", "T2", "T3"], "R2": ["T1"]}  # T1: 2 robots, T2/T3: 1
+
+
+def label_of(learner: str) -> str:
+    """The label a run of ``learner`` records (its class's), or the name of a made-up one."""
+    return learner_named(learner).label if learner in learner_files() else learner
 
 
 def write_run(
@@ -57,7 +63,7 @@ def write_run(
 
     run_dir.mkdir(parents=True)
     metrics = {
-        "learner": learner,
+        "learner": {"name": learner, "label": label_of(learner), "kind": "tabular"},
         "system": system,
         "seed": seed,
         "eval": block(team_return, ctr_l, ctr_h, itr),

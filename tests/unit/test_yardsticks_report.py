@@ -27,7 +27,7 @@ def record(learner, seed, returns, *, episodes=0, space=None, learner_cfg=None):
     block = {"team_return": {"mean": float(np.mean(returns)), "per_episode": list(returns)}}
     greedy = {"team_return": {"mean": float(np.mean(GREEDY)), "per_episode": GREEDY}}
     metrics = {
-        "learner": learner,
+        "learner": {"name": learner, "label": learner, "kind": "fixed"},
         "system": "system2",
         "seed": seed,
         "eval": block,

@@ -47,7 +47,7 @@ from __future__ import annotations
 import json
 import logging
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, ClassVar, Literal
 
 import numpy as np
 import torch
@@ -61,8 +61,15 @@ from torchrl.objectives import HardUpdate, LossModule, SoftUpdate
 from mrta_rl.config import Choices, Range
 from mrta_rl.envs import AuctionEnv, encodings
 from mrta_rl.envs.torchrl_env import PRIOR_KEY, prior_one_hot
-from mrta_rl.learners.base import Learner
+from mrta_rl.learners.base import FACTS, TORCHRL_LOOP, Learner, LearnerKind
 from mrta_rl.learners.fixed import HOLD_SCOPES, HoldLevel, Reserve
+from mrta_rl.learners.memory import (
+    NEURAL_ADVICE,
+    ResourceEstimate,
+    feature_sizes,
+    mlp_weights,
+    neural_estimate,
+)
 from mrta_rl.learners.neural.networks import PerRobotQ, joint_decode, joint_encode
 from mrta_rl.learners.tabular.priors import HOLD_PRIORS, HoldRule
 from mrta_rl.partition import Partition
@@ -195,17 +202,47 @@ class EpsilonGreedy(nn.Module):
 
 
 # ---------------------------------------------------------------------------------- learner
-class NeuralLearner(Learner):
+class NeuralLearner(Learner, abstract=True):
     """Base of the TorchRL learners: policies, masked epsilon-greedy, optimiser, target updates.
 
     Subclasses set :attr:`group_map` and build, in :meth:`_build`, ``self.networks`` (an
     ``nn.ModuleDict``, everything that is saved), ``self.policy`` (greedy, writes ``(group,
     "action")``), ``self.explore_policy`` (with :class:`EpsilonGreedy`) and ``self.losses`` (TorchRL
     loss modules). They may override :meth:`transitions` to add the keys their loss reads.
-    Training runs in ``mrta_rl.runners.torchrl``; :meth:`update` stays the base no-op.
+    Training runs in ``mrta_rl.runners.torchrl``; :meth:`update` stays the base no-op. Besides
+    the facts of every learner, a subclass counts its trainable weights (``network_weights``,
+    a classmethod ``(env, partition, settings) -> int``) for the memory estimate.
     """
 
-    kind = "neural"
+    kind: ClassVar[LearnerKind] = "neural"
+    training_loop: ClassVar[str] = TORCHRL_LOOP
+    facts: ClassVar[tuple[str, ...]] = (*FACTS, "network_weights")
+    memory_advice: ClassVar[str] = NEURAL_ADVICE  # what to change when it does not fit
+
+    @classmethod
+    def estimate_memory(
+        cls,
+        env: AuctionEnv,
+        partition: Partition | None,
+        settings: dict[str, Any],
+        *,
+        decisions: int,
+        copies: int,
+    ) -> ResourceEstimate:
+        """Networks (with target copies, gradients, Adam), replay buffer and collector batch.
+
+        Raises:
+            Unfit: if the networks cannot be built on the system (``network_weights``).
+        """
+        weights = cls.network_weights(env, partition, settings)
+        return neural_estimate(cls.__name__, env, settings, weights, copies, cls.memory_advice)
+
+    @classmethod
+    def learning_space_dimension(
+        cls, env: AuctionEnv, partition: Partition | None, settings: dict[str, Any]
+    ) -> int | None:
+        """None: no table; :meth:`learning_space` counts the trained parameters instead."""
+        return None
 
     def __init__(
         self,
@@ -659,13 +696,21 @@ def check_state_dict(state: Any, expected: dict[str, torch.Tensor], path: Path) 
             raise ValueError(f"{path}: tensor {name} holds NaN or infinite values")
 
 
-class MixedQLearner(NeuralLearner):
+class MixedQLearner(NeuralLearner, abstract=True):
     """Per-robot Q-network (shared parameters, robot-id input) mixed into a team Q (VDN, QMIX).
 
     One TorchRL group ``"agents"`` holds every robot; their chosen Q-values are mixed by
     :meth:`_mixer` and trained on the team reward (spec step 8) with TorchRL's ``QMixerLoss``.
     Subclasses differ only in the mixer (``vdn.py``: ``VDNMixer``, ``qmix.py``: ``QMixer``).
     """
+
+    @classmethod
+    def network_weights(
+        cls, env: AuctionEnv, partition: Partition | None, settings: dict[str, Any]
+    ) -> int:
+        """One network shared by the robots (a mixer with weights adds its own)."""
+        n_in, _ = feature_sizes(env, settings)
+        return mlp_weights(n_in, env.n_actions, int(settings["depth"]), int(settings["hidden"]))
 
     def _mixer(self) -> TensorDictModule:
         """The mixer module.

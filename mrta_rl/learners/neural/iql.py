@@ -2,10 +2,15 @@
 
 from __future__ import annotations
 
+from typing import Any, ClassVar
+
 from tensordict import TensorDictBase
 from torchrl.objectives import DQNLoss
 
+from mrta_rl.envs import AuctionEnv
+from mrta_rl.learners.memory import feature_sizes, mlp_weights
 from mrta_rl.learners.neural.common import NeuralLearner
+from mrta_rl.partition import Partition
 
 GROUP = "agents"
 
@@ -18,6 +23,17 @@ class IQLLearner(NeuralLearner):
     TorchRL's ``DQNLoss`` on the per-robot reward ``(agents, "robot_reward")`` (spec step 8)
     with the episode flags repeated per robot.
     """
+
+    label: ClassVar[str] = "IQL"
+
+    @classmethod
+    def network_weights(
+        cls, env: AuctionEnv, partition: Partition | None, settings: dict[str, Any]
+    ) -> int:
+        """One network per robot."""
+        n_in, _ = feature_sizes(env, settings)
+        depth, hidden = int(settings["depth"]), int(settings["hidden"])
+        return env.n_robots * mlp_weights(n_in, env.n_actions, depth, hidden)
 
     def _build(self) -> None:
         self.policy, self.explore_policy = self._per_robot_policy(GROUP, share_params=False)

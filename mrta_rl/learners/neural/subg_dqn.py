@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, Any, ClassVar
 
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictSequential
@@ -10,10 +10,20 @@ from torchrl.modules import QValueModule
 from torchrl.objectives import DQNLoss
 
 from mrta_rl.config import Choices
+from mrta_rl.envs import AuctionEnv
 from mrta_rl.envs.encodings import local_feature_layout
+from mrta_rl.learners.memory import (
+    GROUP_ADVICE,
+    NEURAL_ADVICE,
+    check_joint_actions,
+    feature_sizes,
+    mlp_weights,
+    robot_groups,
+)
 from mrta_rl.learners.neural.common import JOINT, NeuralLearner
 from mrta_rl.learners.neural.networks import JOINT_PRIORS, JointDecode, JointQ
 from mrta_rl.learners.tabular.priors import PRIOR_ORDERS, spread_order
+from mrta_rl.partition import Partition
 from mrta_rl.types import GroupMap
 
 
@@ -32,7 +42,26 @@ class SubGDQNLearner(NeuralLearner):
     sub-group. Joint keys live under the root ``("joint", group)`` (batch ``[*]``).
     """
 
-    requires_partition = True
+    label: ClassVar[str] = "subG-DQN"
+    requires_partition: ClassVar[bool] = True
+    memory_advice: ClassVar[str] = f"{GROUP_ADVICE}, or {NEURAL_ADVICE}"
+
+    @classmethod
+    def network_weights(
+        cls, env: AuctionEnv, partition: Partition | None, settings: dict[str, Any]
+    ) -> int:
+        """One network per sub-group, from its robots' features to its joint actions.
+
+        Raises:
+            Unfit: if a sub-group's joint actions pass the int64 codes.
+        """
+        n_in, _ = feature_sizes(env, settings)
+        depth, hidden = int(settings["depth"]), int(settings["hidden"])
+        weights = 0
+        for group, robots in robot_groups(env, partition).items():
+            check_joint_actions(group, len(robots), env.n_actions)
+            weights += mlp_weights(len(robots) * n_in, env.n_actions ** len(robots), depth, hidden)
+        return weights
 
     def __init__(
         self,

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 from tensordict.nn import TensorDictModule
 from torchrl.modules import VDNMixer
 
@@ -13,6 +15,8 @@ class VDNLearner(MixedQLearner):
 
     Everything but the mixer is :class:`~mrta_rl.learners.neural.common.MixedQLearner`.
     """
+
+    label: ClassVar[str] = "VDN"  # its mixer, a sum, has no weights
 
     def _mixer(self) -> TensorDictModule:
         """TorchRL ``VDNMixer``: the sum of the robots' chosen Q-values (no state input)."""

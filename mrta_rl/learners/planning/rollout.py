@@ -26,7 +26,7 @@ import numpy as np
 
 from mrta_rl.config import Choices, Range
 from mrta_rl.envs import AuctionEnv
-from mrta_rl.learners.base import Learner, LearnerKind
+from mrta_rl.learners.base import FixedLearner, Learner
 from mrta_rl.learners.fixed import GreedyLearner, TeamReserveLearner
 
 logger = logging.getLogger(__name__)
@@ -58,7 +58,7 @@ def restore(env: AuctionEnv, state: dict[str, np.ndarray], rows: np.ndarray) -> 
     env.set_state({name: array[rows] for name, array in state.items()})
 
 
-class RolloutPlanner(Learner):
+class RolloutPlanner(FixedLearner):
     """Online rollout planner over candidate rules (module docstring).
 
     Args:
@@ -73,7 +73,7 @@ class RolloutPlanner(Learner):
         ConfigError: on a setting outside its declaration (an unknown rule name included).
     """
 
-    kind: ClassVar[LearnerKind] = "fixed"
+    label: ClassVar[str] = "rollout"
     # the candidates' grouping (team_reserve's): one group of all robots, or the subG sub-groups
     grouping: ClassVar[str] = "team"
 
@@ -213,6 +213,7 @@ class SubGRolloutPlanner(RolloutPlanner):
         **kwargs: The other settings of :class:`RolloutPlanner`.
     """
 
+    label: ClassVar[str] = "subg_rollout"
     requires_partition: ClassVar[bool] = True
     grouping: ClassVar[str] = "subg"
 

@@ -45,8 +45,10 @@ import numpy as np
 from mrta_rl.config import Range
 from mrta_rl.envs import AuctionEnv, StepResult
 from mrta_rl.envs.encodings import N_RECENCY_LEVELS, free_level, queue_level, recency_level
-from mrta_rl.learners.base import Learner, LearnerKind
+from mrta_rl.learners.base import TICK_LOOP, Learner, LearnerKind
 from mrta_rl.learners.fixed import fewest_types_first
+from mrta_rl.learners.memory import ResourceEstimate
+from mrta_rl.partition import Partition
 
 # phi(i, k) for idle robot i and L slot k; levels in {0, 1, 2} enter divided by 2.
 FEATURES = (
@@ -126,7 +128,29 @@ class ReserveESLearner(Learner):
         ValueError: if the training batch is not a multiple of ``2 * pairs``.
     """
 
+    label: ClassVar[str] = "reserve-ES"
     kind: ClassVar[LearnerKind] = "search"
+    training_loop: ClassVar[str] = TICK_LOOP  # policy search on the numpy tick loop
+
+    @classmethod
+    def estimate_memory(
+        cls,
+        env: AuctionEnv,
+        partition: Partition | None,
+        settings: dict[str, Any],
+        *,
+        decisions: int,
+        copies: int,
+    ) -> ResourceEstimate:
+        """Nothing beyond the env copies: a few weights and their Adam moments."""
+        return ResourceEstimate(cls.__name__)
+
+    @classmethod
+    def learning_space_dimension(
+        cls, env: AuctionEnv, partition: Partition | None, settings: dict[str, Any]
+    ) -> int:
+        """The weights of the rule (no table)."""
+        return N_FEATURES
 
     def __init__(
         self,

@@ -18,7 +18,7 @@ import numpy as np
 
 from mrta_rl.config import Choices, Range
 from mrta_rl.envs import AuctionEnv, StepResult
-from mrta_rl.learners.base import Learner
+from mrta_rl.learners.base import TICK_LOOP, Learner, LearnerKind
 from mrta_rl.learners.tabular.schedules import LinearSchedule
 from mrta_rl.partition import Partition
 
@@ -79,7 +79,7 @@ class Uniforms:
         self._drawn, self._next = NO_UNIFORMS, 0
 
 
-class TabularLearner(Learner):
+class TabularLearner(Learner, abstract=True):
     """Q-learning (paper eq. 3) with epsilon-greedy over valid actions; shared plumbing.
 
     Subclasses implement :meth:`encode`, :meth:`act`, :meth:`update`, their fusion
@@ -104,7 +104,8 @@ class TabularLearner(Learner):
             improvement over the prior.
     """
 
-    kind: ClassVar = "tabular"
+    kind: ClassVar[LearnerKind] = "tabular"
+    training_loop: ClassVar[str] = TICK_LOOP
 
     def __init__(
         self,

@@ -7,14 +7,17 @@ valid conflict-free joint actions (``qtable.JointQStorage``).
 
 from __future__ import annotations
 
-from typing import Annotated, ClassVar
+from typing import Annotated, Any, ClassVar
 
 import numpy as np
 
 from mrta_rl.config import Choices
-from mrta_rl.envs import StepResult
-from mrta_rl.envs.encodings import FEATURES
+from mrta_rl.envs import AuctionEnv, StepResult
+from mrta_rl.envs.encodings import FEATURES, group_state_count
+from mrta_rl.learners.memory import ResourceEstimate, group_table_estimate
 from mrta_rl.learners.tabular.subg_cql import GroupQLearner
+from mrta_rl.metrics.learning_space import centralized_dimension
+from mrta_rl.partition import Partition
 
 
 class CQLLearner(GroupQLearner):
@@ -37,7 +40,39 @@ class CQLLearner(GroupQLearner):
         **hyperparameters: See :class:`~mrta_rl.learners.tabular.base.TabularLearner`.
     """
 
-    space_name: ClassVar[str] = "cql"
+    label: ClassVar[str] = "CQL"
+
+    @classmethod
+    def estimate_memory(
+        cls,
+        env: AuctionEnv,
+        partition: Partition | None,
+        settings: dict[str, Any],
+        *,
+        decisions: int,
+        copies: int,
+    ) -> ResourceEstimate:
+        """One joint Q-table of the whole-system states met (:mod:`~.memory`).
+
+        Raises:
+            Unfit: if the team's joint actions or states pass the int64 codes.
+        """
+        features = settings.get("features", "paper")
+
+        def states(robots: list[int]) -> int:
+            return group_state_count(env, robots, features)
+
+        groups = {"team": list(range(env.n_robots))}
+        return group_table_estimate(cls.__name__, env, groups, states, settings, decisions)
+
+    @classmethod
+    def learning_space_dimension(
+        cls, env: AuctionEnv, partition: Partition | None, settings: dict[str, Any]
+    ) -> int:
+        """Eqs. (13), (15), (16): ``|S| prod_i |A_i|`` over the whole-system group view."""
+        robots = list(range(env.n_robots))
+        states = group_state_count(env, robots, settings.get("features", "paper"))
+        return centralized_dimension(states, [env.n_actions] * env.n_robots)
 
     def __init__(
         self, *, features: Annotated[str, Choices(*FEATURES)] = "paper", **hyperparameters

@@ -10,19 +10,21 @@ The per-tick work runs in the compiled loops of :mod:`~mrta_rl.learners.tabular.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Annotated, ClassVar
+from typing import Annotated, Any, ClassVar
 
 import numpy as np
 
 from mrta_rl.config import Choices, Range
 from mrta_rl.envs import AuctionEnv, StepResult
-from mrta_rl.envs.encodings import FEATURES
+from mrta_rl.envs.encodings import FEATURES, local_state_count
 from mrta_rl.learners.fixed import HOLD_SCOPES, HoldLevel, Reserve
+from mrta_rl.learners.memory import TABLE_ENTRY_BYTES, ResourceEstimate, Unfit
 from mrta_rl.learners.tabular import robot_kernels as kernels
 from mrta_rl.learners.tabular.base import NO_UNIFORMS, TabularLearner
 from mrta_rl.learners.tabular.encoding import LocalEncoder, env_arrays
 from mrta_rl.learners.tabular.priors import HOLD_PRIORS, HoldRule, greedy_actions
-from mrta_rl.metrics.learning_space import learning_space_dimension
+from mrta_rl.metrics.learning_space import decentralized_dimension
+from mrta_rl.partition import Partition
 
 
 @dataclass
@@ -40,14 +42,13 @@ class RobotObservation:
     prior: np.ndarray | None = None
 
 
-class RobotQLearner(TabularLearner):
+class RobotQLearner(TabularLearner, abstract=True):
     """Q-learning per robot (eq. 3) on its own action and individual reward (spec step 8).
 
     Subclasses map a view to ``[B, m]`` flat offsets ``base`` with ``Q_i(s, a) = q[base + a]``
     (:meth:`_bases`) and own the flat arrays :attr:`q` and :attr:`visits`.
     """
 
-    space_name: ClassVar[str]
     q: np.ndarray
     visits: np.ndarray
     features: str = "paper"  # the state encoding (encodings.FEATURES), set by the subclass
@@ -206,9 +207,8 @@ class RobotQLearner(TabularLearner):
 
     def learning_space(self) -> dict[str, int]:
         """Analytic dimension (eq. 11) and the table entries updated at least once."""
-        analytic = learning_space_dimension(
-            self.space_name, self.env, self.partition, self.features
-        )
+        settings = {"features": self.features}
+        analytic = self.learning_space_dimension(self.env, self.partition, settings)
         return {"analytic": analytic, "visited": int(np.count_nonzero(self.visits))}
 
 
@@ -253,7 +253,37 @@ class DQLLearner(RobotQLearner):
         ConfigError: on a setting outside its declaration (the annotations, ``mrta_rl.config``).
     """
 
-    space_name: ClassVar[str] = "dql"
+    label: ClassVar[str] = "DQL"
+
+    @classmethod
+    def estimate_memory(
+        cls,
+        env: AuctionEnv,
+        partition: Partition | None,
+        settings: dict[str, Any],
+        *,
+        decisions: int,
+        copies: int,
+    ) -> ResourceEstimate:
+        """Dense tables ``[m, max_i |S_i|, K + 1]`` of Q and visits, allocated when built.
+
+        Raises:
+            Unfit: if a local state index passes int64.
+        """
+        try:
+            stride = max(local_state_count(env, settings.get("features", "paper")))
+        except OverflowError as err:
+            raise Unfit(str(err), "use fewer task types or slots") from None
+        tables = env.n_robots * stride * env.n_actions * TABLE_ENTRY_BYTES  # dense, allocated
+        return ResourceEstimate(cls.__name__, tables, tables, {"tables": tables})
+
+    @classmethod
+    def learning_space_dimension(
+        cls, env: AuctionEnv, partition: Partition | None, settings: dict[str, Any]
+    ) -> int:
+        """Eqs. (10)-(11): ``sum_i |S_i| |A_i|`` over the local views of ``features``."""
+        states = local_state_count(env, settings.get("features", "paper"))
+        return decentralized_dimension(states, [env.n_actions] * env.n_robots)
 
     def __init__(
         self,

@@ -10,18 +10,32 @@ states on System-II, each too rarely for any robot's action to leave the prior.
 
 from __future__ import annotations
 
-from typing import Annotated, ClassVar
+from typing import Annotated, Any, ClassVar
 
 import numpy as np
 
 from mrta_rl.config import Choices, Range
 from mrta_rl.envs import AuctionEnv, StepResult
 from mrta_rl.envs.encodings import FEATURES
+from mrta_rl.learners.memory import (
+    GROWTH,
+    INT64_CODES,
+    JOINT_ROW_BYTES,
+    TABLE_ENTRY_BYTES,
+    ResourceEstimate,
+    Unfit,
+)
 from mrta_rl.learners.tabular import robot_kernels as kernels
 from mrta_rl.learners.tabular.dql import RobotObservation, RobotQLearner
-from mrta_rl.learners.tabular.encoding import SYSTEM_STATES, SystemEncoder, env_arrays
+from mrta_rl.learners.tabular.encoding import (
+    SYSTEM_STATES,
+    SystemEncoder,
+    env_arrays,
+    system_state_count,
+)
 from mrta_rl.learners.tabular.qtable import ROW_STATE, JointQStorage
-from mrta_rl.metrics.learning_space import learning_space_dimension
+from mrta_rl.metrics.learning_space import decentralized_dimension
+from mrta_rl.partition import Partition
 
 
 class SemiCQLLearner(RobotQLearner):
@@ -44,7 +58,43 @@ class SemiCQLLearner(RobotQLearner):
         **hyperparameters: See :class:`~mrta_rl.learners.tabular.base.TabularLearner`.
     """
 
-    space_name: ClassVar[str] = "semi_cql"
+    label: ClassVar[str] = "semi-CQL"
+
+    @classmethod
+    def estimate_memory(
+        cls,
+        env: AuctionEnv,
+        partition: Partition | None,
+        settings: dict[str, Any],
+        *,
+        decisions: int,
+        copies: int,
+    ) -> ResourceEstimate:
+        """Rows of the shared states met, ``m (K + 1)`` Q and visits each, in a growable table.
+
+        Raises:
+            Unfit: if the shared state's index passes int64.
+        """
+        states = system_state_count(env, settings["state"], settings.get("features", "paper"))
+        if states >= INT64_CODES:
+            reason = f"{states:.3g} whole-system states do not fit in int64"
+            raise Unfit(reason, "use a smaller system")
+        row = env.n_robots * env.n_actions * TABLE_ENTRY_BYTES + JOINT_ROW_BYTES
+        table = GROWTH * min(states, decisions) * row
+        return ResourceEstimate(cls.__name__, 0, table, {"table": table})
+
+    @classmethod
+    def learning_space_dimension(
+        cls, env: AuctionEnv, partition: Partition | None, settings: dict[str, Any]
+    ) -> int:
+        """Eq. (11) with each robot's state the shared one: ``sum_i |S| |A_i|``.
+
+        ``settings["state"]`` is the shared state (default ``system``, the paper's).
+        """
+        whole = system_state_count(
+            env, settings.get("state", "system"), settings.get("features", "paper")
+        )
+        return decentralized_dimension([whole] * env.n_robots, [env.n_actions] * env.n_robots)
 
     def __init__(
         self,
@@ -129,9 +179,8 @@ class SemiCQLLearner(RobotQLearner):
 
     def learning_space(self) -> dict[str, int]:
         """Analytic dimension (eq. 11 over the shared ``state``) and the entries updated."""
-        analytic = learning_space_dimension(
-            self.space_name, self.env, features=self.features, state=self.state
-        )
+        settings = {"features": self.features, "state": self.state}
+        analytic = self.learning_space_dimension(self.env, None, settings)
         return {**super().learning_space(), "analytic": analytic}
 
     def _table_arrays(self) -> dict[str, np.ndarray]:

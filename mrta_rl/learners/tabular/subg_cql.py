@@ -12,20 +12,27 @@ in the compiled loops of :mod:`~mrta_rl.learners.tabular.group_kernels`.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Annotated, ClassVar
+from typing import Annotated, Any, ClassVar
 
 import numpy as np
 
 from mrta_rl.config import Choices, Range
 from mrta_rl.envs import AuctionEnv, StepResult
 from mrta_rl.envs.encodings import FEATURES
+from mrta_rl.learners.memory import ResourceEstimate, group_table_estimate, robot_groups
 from mrta_rl.learners.tabular import group_kernels as kernels
 from mrta_rl.learners.tabular.base import NO_UNIFORMS, TabularLearner
-from mrta_rl.learners.tabular.encoding import GROUP_STATES, SubGroupEncoder, env_arrays
+from mrta_rl.learners.tabular.encoding import (
+    GROUP_STATES,
+    SubGroupEncoder,
+    env_arrays,
+    subgroup_state_count,
+)
 from mrta_rl.learners.tabular.joint_actions import JointActions, max_valid_joint_actions
 from mrta_rl.learners.tabular.priors import PRIOR_CODES, PRIOR_ORDERS, PRIORS, spread_order
 from mrta_rl.learners.tabular.qtable import TABLE_KEYS, JointQStorage
-from mrta_rl.metrics.learning_space import learning_space_dimension
+from mrta_rl.metrics.learning_space import subgroup_dimension
+from mrta_rl.partition import Partition
 
 # what each sub-group's eq. (3) learns from (docs/learners.md, "Credit"): ``group``, the sum of
 # its robots' rewards (spec step 8, the paper's); ``team``, the team reward of the tick
@@ -58,11 +65,12 @@ class GroupObservation:
     actions: np.ndarray | None = None
 
 
-class GroupQLearner(TabularLearner):
+class GroupQLearner(TabularLearner, abstract=True):
     """Centralized Q-learning per robot group (paper eq. 3 over joint actions).
 
     Subclasses set the groups in ``__init__`` via :meth:`_set_groups` and define
-    :meth:`_group_rewards` and :attr:`space_name`.
+    :meth:`_group_rewards`, and declare their ``label``, ``estimate_memory`` and
+    ``learning_space_dimension`` (``learners/base.py``).
 
     Args:
         prune_conflicts: Keep only conflict-free joint actions (``joint_actions``).
@@ -78,7 +86,6 @@ class GroupQLearner(TabularLearner):
             :class:`~mrta_rl.learners.tabular.base.TabularLearner`.
     """
 
-    space_name: ClassVar[str]
     default_prior: ClassVar[str] = "spread"
     default_prior_order: ClassVar[str] = "index"
 
@@ -310,9 +317,8 @@ class GroupQLearner(TabularLearner):
 
     def learning_space(self) -> dict[str, int]:
         """Analytic dimension (eqs. 13-16) and the table entries updated at least once."""
-        analytic = learning_space_dimension(
-            self.space_name, self.env, self.partition, self.features, group_state=self.state
-        )
+        settings = {"features": self.features, "state": self.state}
+        analytic = self.learning_space_dimension(self.env, self.partition, settings)
         return {"analytic": analytic, "visited": self.storage.n_visited()}
 
     def _table_arrays(self) -> dict[str, np.ndarray]:
@@ -371,10 +377,53 @@ class SubGCQLLearner(GroupQLearner):
     """
 
     requires_partition: ClassVar[bool] = True
-    space_name: ClassVar[str] = "subg_cql"
+    label: ClassVar[str] = "subG-CQL"
     default_prior: ClassVar[str] = "spread_wait"
     # a sub-group keeps its versatile robots free for the types only they can do (docs/learners.md)
     default_prior_order: ClassVar[str] = "fewest_types"
+
+    @classmethod
+    def estimate_memory(
+        cls,
+        env: AuctionEnv,
+        partition: Partition | None,
+        settings: dict[str, Any],
+        *,
+        decisions: int,
+        copies: int,
+    ) -> ResourceEstimate:
+        """A joint Q-table of the group states met per sub-group (:mod:`~.memory`).
+
+        Raises:
+            Unfit: if a sub-group's joint actions or states pass the int64 codes.
+        """
+        features, state = settings.get("features", "paper"), settings.get("state", "group")
+
+        def states(robots: list[int]) -> int:
+            return subgroup_state_count(env, robots, state, features)
+
+        groups = robot_groups(env, partition)
+        return group_table_estimate(cls.__name__, env, groups, states, settings, decisions)
+
+    @classmethod
+    def learning_space_dimension(
+        cls, env: AuctionEnv, partition: Partition | None, settings: dict[str, Any]
+    ) -> int:
+        """``sum_g |S_g| prod_(i in g) |A_i|`` over the sub-groups (§5.2, last paragraph).
+
+        ``settings["state"]`` is the group state (default ``group``, the paper's).
+
+        Raises:
+            ValueError: without the partition.
+        """
+        if partition is None:
+            raise ValueError("subg_cql needs the partition")
+        features, state = settings.get("features", "paper"), settings.get("state", "group")
+        groups = []
+        for robots in partition.group_map().values():
+            count = subgroup_state_count(env, robots, state, features)
+            groups.append((count, [env.n_actions] * len(robots)))
+        return subgroup_dimension(groups)
 
     def __init__(
         self,
