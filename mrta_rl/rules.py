@@ -12,6 +12,9 @@ other compiled code, or from Python with numpy arrays of the stated dtypes.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
+import numpy as np
 from numba import njit
 
 
@@ -212,3 +215,102 @@ def reserve(mask, slot_high, idle, may_take_low, order, kept, out):
                     out[r] = k
                     idle_left -= 1
                     break
+
+
+# ------------------------------------------------------------------------------ batches
+@njit(cache=True, nogil=True)
+def greedy_actions(mask):
+    """:func:`greedy` of every copy: ``[B, m, K + 1]`` bool valid actions -> ``[B, m]`` int64."""
+    out = np.zeros(mask.shape[:2], np.int64)
+    for b in range(mask.shape[0]):
+        greedy(mask[b], out[b])
+    return out
+
+
+@njit(cache=True, nogil=True)
+def high_only_actions(mask, slot_high):
+    """:func:`high_only` of every copy: ``[B, m, K + 1]`` mask and ``[B, K]`` priorities."""
+    out = np.zeros(mask.shape[:2], np.int64)
+    for b in range(mask.shape[0]):
+        high_only(mask[b], slot_high[b], out[b])
+    return out
+
+
+@njit(cache=True, nogil=True)
+def actions_of_rank(mask, rank):
+    """:func:`valid_action_of_rank` of every robot: ``[B, m, A]`` mask, ``[B, m]`` ranks."""
+    out = np.zeros(rank.shape, np.int64)
+    for b in range(mask.shape[0]):
+        for r in range(mask.shape[1]):
+            out[b, r] = valid_action_of_rank(mask[b, r], rank[b, r])
+    return out
+
+
+@njit(cache=True, nogil=True)
+def random_valid_actions(mask, u):
+    """:func:`random_valid` of every row: ``[N, A]`` bool valid actions, ``[N]`` uniforms."""
+    out = np.zeros(u.shape[0], np.int64)
+    for j in range(u.shape[0]):
+        out[j] = random_valid(mask[j], u[j])
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _spread_batch(mask, order):
+    out = np.zeros(mask.shape[:2], np.int64)
+    for b in range(mask.shape[0]):
+        spread(mask[b], order, out[b])
+    return out
+
+
+def spread_actions(mask: np.ndarray, order: Sequence[int] | None = None) -> np.ndarray:
+    """:func:`spread` of every copy: ``[B, m_g, K + 1]`` valid actions -> ``[B, m_g]``.
+
+    Args:
+        mask: Valid actions of a group.
+        order: Robot positions in the order they are asked; default: lowest index first.
+    """
+    mask = np.ascontiguousarray(mask, bool)  # one array type: _spread_batch compiles once
+    order = np.arange(mask.shape[1]) if order is None else np.asarray(order, np.int64)
+    return _spread_batch(mask, order)
+
+
+@njit(cache=True, nogil=True)
+def reserve_actions(mask, slot_high, idle, may_take_low, order, kept, out):
+    """:func:`reserve` of every copy for one group (``[B, ...]`` arrays; ``out`` ``[B, m]``)."""
+    for b in range(mask.shape[0]):
+        reserve(mask[b], slot_high[b], idle[b], may_take_low[b], order, kept, out[b])
+
+
+@njit(cache=True, nogil=True)
+def _deconflict_batch(actions, weight):
+    out = actions.copy()
+    for b in range(out.shape[0]):
+        deconflict(out[b], weight[b])
+    return out
+
+
+def deconflict_actions(actions: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    """:func:`deconflict` of every copy: ``[B, m_g]`` actions -> conflict-free actions.
+
+    Args:
+        actions: Actions of a group.
+        weight: ``[B, m_g, K]`` willingness of each robot for each slot's type.
+    """
+    return _deconflict_batch(np.asarray(actions, np.int64), np.asarray(weight, np.float64))
+
+
+def fewest_types_first(active_tasks: np.ndarray) -> np.ndarray:
+    """The reserve and spread rules' preferred order: fewest active types first, then index.
+
+    Versatile robots are asked last, so they stay free for the types only they can do.
+
+    Args:
+        active_tasks: ``[m_g, n]`` bool ``Lambda_i`` of a group's robots.
+
+    Returns:
+        ``[m_g]`` int64 permutation of the rows.
+    """
+    active_tasks = np.asarray(active_tasks, bool)
+    positions = np.arange(len(active_tasks))
+    return np.lexsort((positions, active_tasks.sum(axis=1)))

@@ -19,12 +19,7 @@ from numba import njit
 
 from mrta_rl.learners.tabular.encoding import encode_groups
 from mrta_rl.learners.tabular.joint_actions import enumerate_row
-from mrta_rl.learners.tabular.priors import (
-    PRIOR_CODES,
-    deconflict_row,
-    lowest_bid_row,
-    spread_row,
-)
+from mrta_rl.learners.tabular.priors import PRIOR_CODES
 from mrta_rl.learners.tabular.qtable import (
     ENTRY_CODE,
     ENTRY_VISITS,
@@ -40,6 +35,9 @@ from mrta_rl.learners.tabular.qtable import (
     random_entry,
 )
 from mrta_rl.learners.tabular.schedules import alpha_of_visits
+from mrta_rl.rules import deconflict as deconflict_row
+from mrta_rl.rules import greedy as lowest_bid_row
+from mrta_rl.rules import spread as spread_row
 
 GREEDY, SPREAD_WAIT = PRIOR_CODES["greedy"], PRIOR_CODES["spread_wait"]  # compile-time constants
 
