@@ -387,11 +387,12 @@ def test_marl_eval_json_loads_back_with_every_run(tmp_path):
 
 
 def test_reports_import_no_runner_learner_or_torch(tmp_path):
-    """Making a report reads run dirs only: in a fresh process, building one loads no torch, no
-    mrta_rl.runners and no mrta_rl.learners."""
+    """Making a report reads run dirs only: in a fresh process, the report command and building
+    a report load no torch, no mrta_rl.runners and no mrta_rl.learners."""
     write_run(tmp_path / "runs" / "a", "cql", 0, curve=[(10, 1.0), (20, 2.0)])
     code = (
         "import sys\n"
+        "import mrta_rl.commands.report\n"
         "from mrta_rl.reports import build_report\n"
         f"build_report([{str(tmp_path / 'runs')!r}])\n"
         "bad = sorted(m for m in sys.modules if m.split('.')[0] == 'torch'"
