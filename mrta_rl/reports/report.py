@@ -196,6 +196,11 @@ def _image(files: ReportFiles, stem: str, alt: str) -> str:
     return f"![{alt}]({path.name})" if path else f"_No figure: {alt.lower()} (nothing to draw)._"
 
 
+def _section(title: str, text: str, *blocks: str) -> list[str]:
+    """Markdown lines: a heading, then its text and blocks, each followed by a blank line."""
+    return [title, "", *(line for block in (text, *blocks) if block for line in (block, ""))]
+
+
 def _report_markdown(
     collection: Collection,
     frame: pd.DataFrame,
@@ -207,11 +212,9 @@ def _report_markdown(
     runs, missing, duplicates = collection.runs, collection.missing, collection.duplicates
     verdicts = [c.verdict for c in claims]
     systems = {s: rows for s, rows in summary.groupby("system", sort=False)}
-    md = [
+    md = _section(
         "# Experiment report",
-        "",
         "Inputs: " + ", ".join(f"`{p}`" for p in collection.inputs),
-        "",
         f"**{len(runs)} finished runs** of {collection.expected_jobs} expected "
         f"(expected grid from {collection.sweep_source}); **{len(missing)} missing**"
         + (f"; {len(duplicates)} duplicate runs ignored" if duplicates else "")
@@ -219,23 +222,20 @@ def _report_markdown(
         "confidence interval (no interval with one seed); CTR and ITR are in percent, evaluated "
         "with exploration off on the same evaluation task streams for every learner and seed. "
         "Exact values: the CSV files next to this report (`runs.csv` holds every run).",
-        "",
-    ]
+    )
     if duplicates:
         kept = {r.key: r.run_dir for r in runs}
         rows = [
             [r.learner, r.system, r.seed, f"`{r.run_dir}`", f"`{kept.get(r.key)}`"]
             for r in duplicates
         ]
-        md += [
+        header = ["configuration", "system", "seed", "left out", "kept"]
+        md += _section(
             "## Duplicate runs left out",
-            "",
             "Each of these runs has the configuration and seed of a run the report keeps (a seed "
             "counts once); only identical settings make a duplicate.",
-            "",
-            tables.markdown_table(["configuration", "system", "seed", "left out", "kept"], rows),
-            "",
-        ]
+            tables.markdown_table(header, rows),
+        )
     if missing:
         rows = [
             [
@@ -248,86 +248,69 @@ def _report_markdown(
             ]
             for m in missing
         ]
-        md += [
+        header = ["learner", "system", "seed", "reason", "job dir", "overrides"]
+        md += _section(
             "## Missing jobs",
-            "",
             "These jobs of the expected grid left no `metrics.json`; their cells below average "
             "fewer seeds (or are absent).",
-            "",
-            tables.markdown_table(
-                ["learner", "system", "seed", "reason", "job dir", "overrides"], rows
-            ),
-            "",
-        ]
-    md += [
-        "## Setup",
-        "",
-        _setup_markdown(runs, summary),
-        "",
+            tables.markdown_table(header, rows),
+        )
+    md += _section("## Setup", _setup_markdown(runs, summary))
+    md += _section(
         "## Team return against the greedy auction",
-        "",
         "Evaluation team return per episode; `greedy` is the plain auction on the full task "
         "sets, evaluated on the same task streams (paired per seed for the difference).",
-        "",
         tables.team_return_markdown(summary, tables.csv_tables(frame, summary)["team_return"]),
-        "",
         _image(files, "team_return", "Team return"),
-        "",
-    ]
+    )
     groups = {s: t for s, rows in systems.items() if (t := tables.group_return_markdown(rows))}
     if groups:
-        md += [
+        md += _section(
             "### Team return by subG sub-group",
-            "",
             "Every reward is a task's and each task type belongs to one sub-group, so the team "
             "return splits exactly into the parts its sub-groups' task types earn; the last row "
             "is what the same types earn under the plain auction on the full team.",
-            "",
-        ]
-        for system, table in groups.items():
-            md += [f"{system_label(system)}:", "", table, ""]
+            *(block for s, t in groups.items() for block in (f"{system_label(s)}:", t)),
+        )
     if rules_md:
         md += [rules_md, ""]
-    md += [
+    md += _section(
         "## Completed task ratio (paper Tables 5-6, Figures 1-4)",
-        "",
         "CTR (%) = assigned / (assigned + dropped) per task type and priority; `all` pools the "
         "counts over types.",
-        "",
-    ]
-    for system, rows in systems.items():
-        for p, word in (("L", "low"), ("H", "high")):
-            label = system_label(system)
-            md += [f"### {label}: {word}-priority tasks", "", tables.ctr_markdown(rows, p), ""]
-            md += [_image(files, f"ctr_{system}_{p}", f"{label} CTR {word}-priority"), ""]
-    md += [
-        "## Idle time ratio (paper Tables 7-8, Figures 5-6)",
-        "",
-        "ITR (%) = (horizon - busy ticks) / horizon per robot (paper eq. 9); lower is better.",
-        "",
-    ]
+    )
     for system, rows in systems.items():
         label = system_label(system)
-        md += [f"### {label}", "", tables.itr_markdown(rows), ""]
-        md += [_image(files, f"itr_{system}", f"{label} ITR"), ""]
-    md += [
+        for p, word in (("L", "low"), ("H", "high")):
+            image = _image(files, f"ctr_{system}_{p}", f"{label} CTR {word}-priority")
+            md += _section(
+                f"### {label}: {word}-priority tasks", tables.ctr_markdown(rows, p), image
+            )
+    md += _section(
+        "## Idle time ratio (paper Tables 7-8, Figures 5-6)",
+        "ITR (%) = (horizon - busy ticks) / horizon per robot (paper eq. 9); lower is better.",
+    )
+    for system, rows in systems.items():
+        label = system_label(system)
+        md += _section(
+            f"### {label}",
+            tables.itr_markdown(rows),
+            _image(files, f"itr_{system}", f"{label} ITR"),
+        )
+    md += _section(
         "## Learning space (paper Table 9)",
-        "",
         "`analytic`: learning space dimension of the learner's encoding (paper eqs. 10-16, exact "
         "integer in `learning_space.csv`); `visited`: table entries updated at least once "
         "(mean ± CI over seeds); `parameters`: weights of a network learner.",
-        "",
         tables.learning_space_markdown(frame, summary),
-        "",
+    )
+    md += _section(
         "## Learning curves",
-        "",
         "Training team return per episode (with exploration) against training env ticks "
         "(ticks x parallel copies); line = mean over seeds, band = 95 % CI. The dashed line is "
         "the greedy auction's evaluation return.",
-        "",
-    ]
-    for system in systems:
-        md += [_image(files, f"curve_{system}", f"{system_label(system)} learning curves"), ""]
+        *(_image(files, f"curve_{s}", f"{system_label(s)} learning curves") for s in systems),
+    )
     claim_rows = [
         [
             r.statement,
@@ -338,25 +321,21 @@ def _report_markdown(
         ]
         for r in claims
     ]
-    total_wall = sum((r.metrics.get("train") or {}).get("wall_s", 0.0) for r in runs)
-    md += [
+    md += _section(
         "## Claims of the paper (Section 6)",
-        "",
         f"{verdicts.count(HOLDS)} hold, {verdicts.count(FAILS)} do not hold, "
         f"{verdicts.count(NOT_EVALUABLE)} not evaluable (a learner they compare is missing). "
         "Verdicts compare means over seeds; `clear` = the compared 95 % intervals are "
         "disjoint, `CIs overlap` = the ordering may be noise.",
-        "",
         tables.markdown_table(
             ["claim (paper)", "system", "verdict", "95% CIs", "numbers"], claim_rows
         ),
-        "",
+    )
+    total_wall = sum((r.metrics.get("train") or {}).get("wall_s", 0.0) for r in runs)
+    md += _section(
         "## Training time",
-        "",
         tables.training_time_markdown(summary),
-        "",
         f"Sum of the training wall times of all runs: {total_wall:.1f} s "
         "(evaluation not included).",
-        "",
-    ]
+    )
     return "\n".join(md)
