@@ -165,6 +165,11 @@ def _load_yaml(path: Path) -> Any:
     return OmegaConf.to_container(OmegaConf.load(path), resolve=False) if path.is_file() else None
 
 
+def config_value(config: dict[str, Any], dotted: str) -> Any:
+    """A run config's value at a dotted key (``system.n_robots``), None if absent."""
+    return OmegaConf.select(OmegaConf.create(config), dotted, default=None) if config else None
+
+
 def load_run(run_dir: Path) -> RunRecord:
     """Read one run dir.
 

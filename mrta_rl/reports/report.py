@@ -23,14 +23,18 @@ import os
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import pandas as pd
-from omegaconf import OmegaConf
 
 from mrta_rl.reports import figures, marl_eval, studies, tables, yardsticks
 from mrta_rl.reports.claims import FAILS, HOLDS, NOT_EVALUABLE, check_claims, claims_table
-from mrta_rl.reports.collect import Collection, ReportInputError, RunRecord, collect_runs
+from mrta_rl.reports.collect import (
+    Collection,
+    ReportInputError,
+    RunRecord,
+    collect_runs,
+    config_value,
+)
 from mrta_rl.reports.frame import long_table, summarize, summarize_curve, system_label
 
 logger = logging.getLogger(__name__)
@@ -69,15 +73,11 @@ def default_out_dir(inputs: Sequence[Path | str]) -> Path:
     return Path(os.path.commonpath([str(p) for p in paths])) / "report"
 
 
-def _config_value(config: dict[str, Any], dotted: str) -> Any:
-    return OmegaConf.select(OmegaConf.create(config), dotted, default=None) if config else None
-
-
 def _setup_markdown(runs: Sequence[RunRecord], summary: pd.DataFrame) -> str:
     """Run settings (distinct values over runs) and each learner's hyperparameters."""
     rows = []
     for key in SETUP_KEYS:
-        values = sorted({str(_config_value(r.config, key)) for r in runs})
+        values = sorted({str(config_value(r.config, key)) for r in runs})
         note = "" if len(values) == 1 else " (differs between runs!)"
         rows.append(
             [f"`{key}`", ", ".join(v.replace("None", "spec default") for v in values) + note]
@@ -191,11 +191,6 @@ def _png(out: Path, stem: str) -> Path:
     return out / f"{stem.replace('/', '_')}.png"
 
 
-def _image(files: ReportFiles, stem: str, alt: str) -> str:
-    path = files.figures.get(stem)
-    return f"![{alt}]({path.name})" if path else f"_No figure: {alt.lower()} (nothing to draw)._"
-
-
 def _section(title: str, text: str, *blocks: str) -> list[str]:
     """Markdown lines: a heading, then its text and blocks, each followed by a blank line."""
     return [title, "", *(line for block in (text, *blocks) if block for line in (block, ""))]
@@ -261,7 +256,7 @@ def _report_markdown(
         "Evaluation team return per episode; `greedy` is the plain auction on the full task "
         "sets, evaluated on the same task streams (paired per seed for the difference).",
         tables.team_return_markdown(summary, tables.csv_tables(frame, summary)["team_return"]),
-        _image(files, "team_return", "Team return"),
+        tables.image(files.figures.get("team_return"), "Team return"),
     )
     groups = {s: t for s, rows in systems.items() if (t := tables.group_return_markdown(rows))}
     if groups:
@@ -282,7 +277,9 @@ def _report_markdown(
     for system, rows in systems.items():
         label = system_label(system)
         for p, word in (("L", "low"), ("H", "high")):
-            image = _image(files, f"ctr_{system}_{p}", f"{label} CTR {word}-priority")
+            image = tables.image(
+                files.figures.get(f"ctr_{system}_{p}"), f"{label} CTR {word}-priority"
+            )
             md += _section(
                 f"### {label}: {word}-priority tasks", tables.ctr_markdown(rows, p), image
             )
@@ -295,7 +292,7 @@ def _report_markdown(
         md += _section(
             f"### {label}",
             tables.itr_markdown(rows),
-            _image(files, f"itr_{system}", f"{label} ITR"),
+            tables.image(files.figures.get(f"itr_{system}"), f"{label} ITR"),
         )
     md += _section(
         "## Learning space (paper Table 9)",
@@ -309,7 +306,10 @@ def _report_markdown(
         "Training team return per episode (with exploration) against training env ticks "
         "(ticks x parallel copies); line = mean over seeds, band = 95 % CI. The dashed line is "
         "the greedy auction's evaluation return.",
-        *(_image(files, f"curve_{s}", f"{system_label(s)} learning curves") for s in systems),
+        *(
+            tables.image(files.figures.get(f"curve_{s}"), f"{system_label(s)} learning curves")
+            for s in systems
+        ),
     )
     claim_rows = [
         [

@@ -33,7 +33,13 @@ from omegaconf import OmegaConf
 
 from mrta_rl.reports import figures
 from mrta_rl.reports.claims import claims_along
-from mrta_rl.reports.collect import METRICS_FILE, REFUSED_FILE, RunRecord, refusal_reason
+from mrta_rl.reports.collect import (
+    METRICS_FILE,
+    REFUSED_FILE,
+    RunRecord,
+    config_value,
+    refusal_reason,
+)
 from mrta_rl.reports.frame import long_table, order_learners, summarize, system_label
 from mrta_rl.reports.stats import (
     BOOTSTRAP_REPS,
@@ -42,7 +48,7 @@ from mrta_rl.reports.stats import (
     performance_profile,
     probability_of_improvement,
 )
-from mrta_rl.reports.tables import markdown_table, write_csv
+from mrta_rl.reports.tables import image, markdown_table, write_csv
 
 # swept setting (dotted config key) -> (axis label, file stem, log-scale x axis)
 DIMENSIONS: dict[str, tuple[str, str, bool]] = {
@@ -56,11 +62,6 @@ STUDY_COLUMNS = ["series", "learner", "system", *DIMENSIONS, "team_seed", "seed"
 STUDY_COLUMNS += ["return_vs_greedy", "team_return", "space_analytic", "space_visited"]
 STUDY_COLUMNS += ["parameters", "wall_s", "peak_rss_mb", "refused"]
 FIELD_STATS_HEADER = ["statistic", "x", "y", "value", "ci_low", "ci_high", "n_runs"]
-
-
-def config_value(config: dict[str, Any], dotted: str) -> Any:
-    """A run config's value at a dotted key (``system.n_robots``), None if absent."""
-    return OmegaConf.select(OmegaConf.create(config), dotted, default=None) if config else None
 
 
 def _point(
@@ -321,10 +322,6 @@ def profile_figure(points: pd.DataFrame, path: Path, colors: dict) -> Path | Non
     return figures.profile_figure(profiles, path, colors)
 
 
-def _image(path: Path | None, alt: str) -> str:
-    return f"![{alt}]({path.name})" if path else f"_No figure: {alt.lower()} (nothing to draw)._"
-
-
 def study_sections(
     runs: Sequence[RunRecord], inputs: Sequence[Path], out: Path
 ) -> tuple[str, dict[str, Path]]:
@@ -357,7 +354,7 @@ def study_sections(
         "Exact values: `field_stats.csv`.",
         "",
         field_statistics_markdown(stats, points),
-        _image(profile, "Performance profiles"),
+        image(profile, "Performance profiles"),
         "",
     ]
     dims = swept_dimensions(points)
@@ -376,15 +373,15 @@ def study_sections(
         ]
         for system in dict.fromkeys(points["system"]):
             md += [f"{system_label(system)}:", "", dimension_table(points, dim, system), ""]
-        md += [_image(written.get(f"{stem}_return"), f"Team return against the {label}"), ""]
+        md += [image(written.get(f"{stem}_return"), f"Team return against the {label}"), ""]
         if f"{stem}_space" in written:
             md += [
                 "Learning space (log scale; solid: analytic dimension, dashed: entries visited, "
                 "dotted: network parameters), wall time and peak memory (RSS) per run:",
                 "",
-                _image(written[f"{stem}_space"], "Learning space against the team size"),
+                image(written[f"{stem}_space"], "Learning space against the team size"),
                 "",
-                _image(written[f"{stem}_cost"], "Wall time and memory against the team size"),
+                image(written[f"{stem}_cost"], "Wall time and memory against the team size"),
                 "",
             ]
         md += [
