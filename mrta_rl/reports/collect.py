@@ -40,7 +40,13 @@ from typing import Any
 from omegaconf import OmegaConf
 
 from mrta_rl.config import UserError
-from mrta_rl.run_files import METRICS_FILE, REFUSED_FILE, REFUSED_JOBS_FILE, read_metrics
+from mrta_rl.run_files import (
+    CONFIG_FILE,
+    METRICS_FILE,
+    REFUSED_FILE,
+    REFUSED_JOBS_FILE,
+    read_metrics,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -183,8 +189,8 @@ def load_run(run_dir: Path) -> RunRecord:
         RunDirError: if metrics.json is damaged (naming the file and key).
     """
     metrics = read_metrics(run_dir / METRICS_FILE)
-    config = _load_yaml(run_dir / ".hydra" / "config.yaml") or {}
-    overrides = _load_yaml(run_dir / ".hydra" / "overrides.yaml") or []
+    config = _load_yaml(run_dir / CONFIG_FILE) or {}
+    overrides = _load_yaml(run_dir / CONFIG_FILE.with_name("overrides.yaml")) or []
     return RunRecord(
         run_dir=run_dir,
         learner=str(

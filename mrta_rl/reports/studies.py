@@ -21,7 +21,6 @@ is negative, as on large random teams where greedy's robots collide on the same 
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 from collections.abc import Sequence
 from pathlib import Path
@@ -49,6 +48,7 @@ from mrta_rl.reports.stats import (
     probability_of_improvement,
 )
 from mrta_rl.reports.tables import image, markdown_table, write_csv
+from mrta_rl.run_files import CONFIG_FILE, read_json
 
 # swept setting (dotted config key) -> (axis label, file stem, log-scale x axis)
 DIMENSIONS: dict[str, tuple[str, str, bool]] = {
@@ -120,8 +120,8 @@ def study_points(runs: Sequence[RunRecord], inputs: Sequence[Path]) -> pd.DataFr
     for run_dir in sorted(found):
         if (run_dir / METRICS_FILE).is_file():
             continue
-        record = json.loads((run_dir / REFUSED_FILE).read_text())
-        path = run_dir / ".hydra" / "config.yaml"
+        record = read_json(run_dir / REFUSED_FILE)
+        path = run_dir / CONFIG_FILE
         config = OmegaConf.to_container(OmegaConf.load(path)) if path.is_file() else {}
         learner, seed = (
             str(record.get("learner", "?")),

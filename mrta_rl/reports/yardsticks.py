@@ -25,7 +25,6 @@ and over the training seeds, with the verdict (``yes``: the paired interval is a
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 from collections import defaultdict
 from collections.abc import Sequence
@@ -42,7 +41,7 @@ from mrta_rl.reports.collect import RunRecord, configuration_variants
 from mrta_rl.reports.frame import system_label
 from mrta_rl.reports.stats import MeanCI, mean_ci
 from mrta_rl.reports.tables import markdown_table, signed, write_csv
-from mrta_rl.run_files import EVAL_METRICS_FILE
+from mrta_rl.run_files import EVAL_METRICS_FILE, read_json
 
 TITLE = "Learning against the rules"
 RULES = ("team_reserve", "rollout")  # the yardstick rules (fixed learners)
@@ -111,8 +110,8 @@ def with_reevaluation(run: RunRecord) -> RunRecord:
     path = Path(run.run_dir) / EVAL_METRICS_FILE
     if not path.is_file():
         return run
-    again = json.loads(path.read_text())
-    missing = [k for k in EVALUATION_BLOCKS if k not in again]
+    again = read_json(path)
+    missing = [k for k in EVALUATION_BLOCKS if not isinstance(again, dict) or k not in again]
     if missing:
         raise ValueError(f"{path}: not a re-evaluation of scripts/evaluate.py, no {missing}")
     return dataclasses.replace(
