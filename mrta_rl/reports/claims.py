@@ -1,4 +1,4 @@
-"""Check the claims of paper Section 6 against our aggregated results, one verdict per system.
+"""The claims of paper Section 6 as data, checked on the summary: one verdict per system.
 
 Each claim is a statement of §6.1 (CTR), §6.2 (ITR) or §6.3 (learning space) turned into a test
 on the means over seeds; the verdict is ``holds``, ``does not hold`` or ``not evaluable`` (a
@@ -16,29 +16,20 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+import pandas as pd
 
-from mrta_rl.reports.aggregate import CellSummary, learner_label, system_label
+from mrta_rl.reports.frame import stat, system_label
 from mrta_rl.reports.stats import MeanCI
 
 TABULAR = ("cql", "semi_cql", "dql", "subg_cql")  # the four methods the paper compares
 A_BIT_PP = 10.0  # "a bit lower" (§6.1): at most this many percentage points lower
 HOLDS, FAILS, NOT_EVALUABLE = "holds", "does not hold", "not evaluable"
-
-Cells = dict[str, CellSummary]  # learner -> summary, one system
+CLAIMS_HEADER = ["claim", "system", "verdict", "separation", "statement", "evidence"]
 
 
 @dataclass(frozen=True)
 class ClaimResult:
-    """Verdict of one claim on one system.
-
-    Attributes:
-        claim: Short id (``cql_best_ctr``...).
-        statement: The paper's claim and where it is made.
-        system: System name, or ``"all"`` for claims across systems.
-        verdict: ``holds``, ``does not hold`` or ``not evaluable``.
-        separation: ``clear``, ``CIs overlap`` or ``""`` (not applicable).
-        evidence: The numbers the verdict rests on.
-    """
+    """Verdict of one claim on one system (``system`` is ``"all"`` for claims across systems)."""
 
     claim: str
     statement: str
@@ -46,6 +37,45 @@ class ClaimResult:
     verdict: str
     separation: str
     evidence: str
+
+
+class Cells:
+    """The summary of one system, read by learner name (the yaml stem of a plain configuration)."""
+
+    def __init__(self, summary: pd.DataFrame) -> None:
+        """Keep the cells of the summary (of one system) by learner."""
+        self.by_learner = {n: rows for n, rows in summary.groupby("learner", sort=False)}
+        self.labels = dict(zip(summary["learner"], summary["label"], strict=True))
+
+    def __contains__(self, name: str) -> bool:
+        return name in self.by_learner
+
+    def label(self, name: str) -> str:
+        """The learner's label in this report (its name if it has no run here)."""
+        return self.labels.get(name, name)
+
+    def get(self, name: str, metric: str, item: str = "", priority: str = "") -> MeanCI:
+        """A learner's aggregate of one metric value."""
+        return stat(self.by_learner[name], metric, item, priority)
+
+    def items(self, name: str, metric: str) -> list[str]:
+        """Task types (``ctr``, ``capable_robots``) or robots (``itr``) of a cell, not ``all``."""
+        rows = self.by_learner[name]
+        items = rows[rows["metric"] == metric]["item"]
+        return [i for i in dict.fromkeys(items) if i not in ("all", "mean")]
+
+    def analytic(self, name: str) -> int | None:
+        """The exact analytic learning space of a learner (None if it reports none)."""
+        rows = self.by_learner.get(name)
+        if rows is None:
+            return None
+        rows = rows[(rows["metric"] == "learning_space") & (rows["item"] == "analytic")]
+        return int(rows["first"].iloc[0]) if len(rows) else None
+
+    def missing(self, needed: Sequence[str]) -> str:
+        """``"missing: CQL, DQL"`` for the needed learners without a cell, else ``""``."""
+        gone = [self.label(n) for n in needed if n not in self]
+        return f"missing: {', '.join(gone)}" if gone else ""
 
 
 def _fmt(value: MeanCI) -> str:
@@ -63,76 +93,63 @@ def _separation(pairs: Sequence[tuple[MeanCI, MeanCI]]) -> str:
     return "clear" if all(_separated(a, b) for a, b in pairs) else "CIs overlap"
 
 
-def _missing(cells: Cells, needed: Sequence[str]) -> list[str]:
-    return [learner_label(n) for n in needed if n not in cells]
-
-
 def _verdict(ok: bool) -> str:
     return HOLDS if ok else FAILS
 
 
-def _extreme(
-    cells: Cells, value: Callable[[CellSummary], MeanCI], target: str, lowest: bool
-) -> tuple[bool, str, str]:
+def _sci(value: int) -> str:
+    return f"{value:.3e}" if value >= 10**6 else f"{value:,}"
+
+
+def _extreme(cells: Cells, value: Callable[[str], MeanCI], target: str, lowest: bool) -> tuple:
     """Is ``target`` the lowest/highest of the four methods? -> (ok, separation, evidence)."""
-    values = {n: value(cells[n]) for n in TABULAR}
-    sign = 1.0 if lowest else -1.0
-    ranked = sorted(values, key=lambda n: sign * values[n].mean)
-    ok = ranked[0] == target
+    values = {n: value(n) for n in TABULAR}
+    ranked = sorted(values, key=lambda n: (1.0 if lowest else -1.0) * values[n].mean)
     others = [values[n] for n in TABULAR if n != target]
-    evidence = ", ".join(f"{learner_label(n)} {_fmt(values[n])}" for n in ranked)
-    return ok, _separation([(values[target], o) for o in others]), evidence
+    evidence = ", ".join(f"{cells.label(n)} {_fmt(values[n])}" for n in ranked)
+    return ranked[0] == target, _separation([(values[target], o) for o in others]), evidence
 
 
-def _claim_h_above_l(cells: Cells) -> tuple[str, str, str]:
+def _h_above_l(cells: Cells) -> tuple[str, str, str]:
     present = [n for n in TABULAR if n in cells]
     if not present:
         return NOT_EVALUABLE, "", "no tabular learner"
-    pairs = [(cells[n].ctr[("all", "H")], cells[n].ctr[("all", "L")]) for n in present]
-    ok = all(h.mean > low.mean for h, low in pairs)
+    pairs = [(cells.get(n, "ctr", "all", "H"), cells.get(n, "ctr", "all", "L")) for n in present]
     evidence = "; ".join(
-        f"{learner_label(n)} H {_fmt(h)} vs L {_fmt(low)}"
+        f"{cells.label(n)} H {_fmt(h)} vs L {_fmt(low)}"
         for n, (h, low) in zip(present, pairs, strict=True)
     )
-    return _verdict(ok), _separation(pairs), evidence
+    return _verdict(all(h.mean > low.mean for h, low in pairs)), _separation(pairs), evidence
 
 
-def _claim_cql_best_overall(cells: Cells) -> tuple[str, str, str]:
-    if _missing(cells, TABULAR):
-        return NOT_EVALUABLE, "", f"missing: {', '.join(_missing(cells, TABULAR))}"
+def _cql_best_overall(cells: Cells) -> tuple[str, str, str]:
     results = [
-        _extreme(cells, lambda c, p=p: c.ctr[("all", p)], "cql", lowest=False) for p in ("L", "H")
+        _extreme(cells, lambda n, p=p: cells.get(n, "ctr", "all", p), "cql", lowest=False)
+        for p in ("L", "H")
     ]
-    ok = all(r[0] for r in results)
     sep = "clear" if all(r[1] == "clear" for r in results) else "CIs overlap"
-    return _verdict(ok), sep, f"overall CTR L: {results[0][2]} | H: {results[1][2]}"
+    evidence = f"overall CTR L: {results[0][2]} | H: {results[1][2]}"
+    return _verdict(all(r[0] for r in results)), sep, evidence
 
 
-def _claim_cql_best_each_type(cells: Cells) -> tuple[str, str, str]:
-    if _missing(cells, TABULAR):
-        return NOT_EVALUABLE, "", f"missing: {', '.join(_missing(cells, TABULAR))}"
-    cql = cells["cql"]
-    keys = [(t, p) for t in cql.task_types for p in ("L", "H")]
+def _cql_best_each_type(cells: Cells) -> tuple[str, str, str]:
+    keys = [(t, p) for t in cells.items("cql", "ctr") for p in ("L", "H")]
     lost = []
-    for key in keys:
-        best = max(TABULAR, key=lambda n: cells[n].ctr[key].mean)
-        if best != "cql" and not math.isnan(cells[best].ctr[key].mean):
+    for t, p in keys:
+        best = max(TABULAR, key=lambda n: cells.get(n, "ctr", t, p).mean)
+        if best != "cql" and not math.isnan(cells.get(best, "ctr", t, p).mean):
             lost.append(
-                f"{key[0]}{key[1]} ({learner_label(best)} {_fmt(cells[best].ctr[key])} vs "
-                f"CQL {_fmt(cql.ctr[key])})"
+                f"{t}{p} ({cells.label(best)} {_fmt(cells.get(best, 'ctr', t, p))} vs "
+                f"CQL {_fmt(cells.get('cql', 'ctr', t, p))})"
             )
     evidence = f"CQL highest in {len(keys) - len(lost)}/{len(keys)} task type x priority cells"
-    if lost:
-        evidence += "; not in: " + ", ".join(lost)
-    return _verdict(not lost), "", evidence
+    return _verdict(not lost), "", evidence + ("; not in: " + ", ".join(lost) if lost else "")
 
 
-def _claim_subg_bit_lower(cells: Cells) -> tuple[str, str, str]:
-    if _missing(cells, ("cql", "subg_cql")):
-        return NOT_EVALUABLE, "", f"missing: {', '.join(_missing(cells, ('cql', 'subg_cql')))}"
+def _subg_bit_lower(cells: Cells) -> tuple[str, str, str]:
     parts, ok, pairs = [], True, []
     for p in ("L", "H"):
-        cql, subg = cells["cql"].ctr[("all", p)], cells["subg_cql"].ctr[("all", p)]
+        cql, subg = cells.get("cql", "ctr", "all", p), cells.get("subg_cql", "ctr", "all", p)
         gap = cql.mean - subg.mean
         ok = ok and 0.0 < gap <= A_BIT_PP
         pairs.append((cql, subg))
@@ -140,110 +157,81 @@ def _claim_subg_bit_lower(cells: Cells) -> tuple[str, str, str]:
     return _verdict(ok), _separation(pairs), "; ".join(parts) + f"; 'a bit' = (0, {A_BIT_PP:g}] pp"
 
 
-def _claim_dql_lowest_low_ctr(cells: Cells) -> tuple[str, str, str]:
-    if _missing(cells, TABULAR):
-        return NOT_EVALUABLE, "", f"missing: {', '.join(_missing(cells, TABULAR))}"
-    ok, sep, evidence = _extreme(cells, lambda c: c.ctr[("all", "L")], "dql", lowest=True)
+def _dql_lowest_low_ctr(cells: Cells) -> tuple[str, str, str]:
+    ok, sep, evidence = _extreme(cells, lambda n: cells.get(n, "ctr", "all", "L"), "dql", True)
     return _verdict(ok), sep, f"overall CTR L, ascending: {evidence}"
 
 
-def _claim_semi_vs_dql_ctr(cells: Cells) -> tuple[str, str, str]:
-    if _missing(cells, ("semi_cql", "dql")):
-        return NOT_EVALUABLE, "", f"missing: {', '.join(_missing(cells, ('semi_cql', 'dql')))}"
-    semi, dql = cells["semi_cql"].ctr, cells["dql"].ctr
-    ok = semi[("all", "L")].mean > dql[("all", "L")].mean and (
-        semi[("all", "H")].mean < dql[("all", "H")].mean
-    )
-    pairs = [(semi[("all", p)], dql[("all", p)]) for p in ("L", "H")]
-    evidence = "; ".join(
-        f"{p}: semi-CQL {_fmt(semi[('all', p)])} vs DQL {_fmt(dql[('all', p)])}" for p in ("L", "H")
-    )
-    return _verdict(ok), _separation(pairs), evidence
+def _semi_vs_dql_ctr(cells: Cells) -> tuple[str, str, str]:
+    semi, dql = ({p: cells.get(n, "ctr", "all", p) for p in "LH"} for n in ("semi_cql", "dql"))
+    ok = semi["L"].mean > dql["L"].mean and semi["H"].mean < dql["H"].mean
+    evidence = "; ".join(f"{p}: semi-CQL {_fmt(semi[p])} vs DQL {_fmt(dql[p])}" for p in "LH")
+    return _verdict(ok), _separation([(semi[p], dql[p]) for p in "LH"]), evidence
 
 
-def _claim_itr_extreme(target: str, lowest: bool) -> Callable[[Cells], tuple[str, str, str]]:
+def _itr_extreme(target: str, lowest: bool) -> Callable[[Cells], tuple[str, str, str]]:
     def check(cells: Cells) -> tuple[str, str, str]:
-        if _missing(cells, TABULAR):
-            return NOT_EVALUABLE, "", f"missing: {', '.join(_missing(cells, TABULAR))}"
-        ok, sep, evidence = _extreme(cells, lambda c: c.overall_itr, target, lowest)
-        robots = cells[target].robots
+        ok, sep, evidence = _extreme(cells, lambda n: cells.get(n, "itr", "mean"), target, lowest)
+        robots = cells.items(target, "itr")
         sign = 1.0 if lowest else -1.0
         per_robot = sum(
-            min(TABULAR, key=lambda n: sign * cells[n].itr[r].mean) == target for r in robots
+            min(TABULAR, key=lambda n: sign * cells.get(n, "itr", r).mean) == target for r in robots
         )
-        word = "lowest" if lowest else "highest"
+        order, word = ("ascending", "lowest") if lowest else ("descending", "highest")
         return (
             _verdict(ok),
             sep,
             (
-                f"mean ITR over robots, {'ascending' if lowest else 'descending'}: {evidence}; "
-                f"{learner_label(target)} {word} for {per_robot}/{len(robots)} robots"
+                f"mean ITR over robots, {order}: {evidence}; "
+                f"{cells.label(target)} {word} for {per_robot}/{len(robots)} robots"
             ),
         )
 
     return check
 
 
-def _claim_semi_itr_between(cells: Cells) -> tuple[str, str, str]:
-    needed = ("cql", "semi_cql", "dql")
-    if _missing(cells, needed):
-        return NOT_EVALUABLE, "", f"missing: {', '.join(_missing(cells, needed))}"
-    cql, semi, dql = (cells[n].overall_itr for n in needed)
-    ok = cql.mean < semi.mean < dql.mean
+def _semi_itr_between(cells: Cells) -> tuple[str, str, str]:
+    cql, semi, dql = (cells.get(n, "itr", "mean") for n in ("cql", "semi_cql", "dql"))
     return (
-        _verdict(ok),
+        _verdict(cql.mean < semi.mean < dql.mean),
         _separation([(cql, semi), (semi, dql)]),
-        (f"mean ITR: CQL {_fmt(cql)} < semi-CQL {_fmt(semi)} < DQL {_fmt(dql)} expected"),
+        f"mean ITR: CQL {_fmt(cql)} < semi-CQL {_fmt(semi)} < DQL {_fmt(dql)} expected",
     )
 
 
-def _analytic(cell: CellSummary) -> int | None:
-    values = cell.learning_space.get("analytic")
-    return int(values[0]) if values else None
-
-
-def _sci(value: int) -> str:
-    return f"{value:.3e}" if value >= 10**6 else f"{value:,}"
-
-
-def _claim_space_order(cells: Cells) -> tuple[str, str, str]:
-    if _missing(cells, TABULAR):
-        return NOT_EVALUABLE, "", f"missing: {', '.join(_missing(cells, TABULAR))}"
-    dims = {n: _analytic(cells[n]) for n in TABULAR}
+def _space_order(cells: Cells) -> tuple[str, str, str]:
+    dims = {n: cells.analytic(n) for n in TABULAR}
     if any(v is None for v in dims.values()):
         return NOT_EVALUABLE, "", "a learner reports no analytic learning space"
     ok = dims["cql"] > dims["subg_cql"] > max(dims["semi_cql"], dims["dql"])
-    evidence = ", ".join(f"{learner_label(n)} {_sci(dims[n])}" for n in TABULAR)
-    return _verdict(ok), "", evidence
+    return _verdict(ok), "", ", ".join(f"{cells.label(n)} {_sci(dims[n])}" for n in TABULAR)
 
 
-def _claim_space_semi_eq_dql(cells: Cells) -> tuple[str, str, str]:
-    if _missing(cells, ("semi_cql", "dql")):
-        return NOT_EVALUABLE, "", f"missing: {', '.join(_missing(cells, ('semi_cql', 'dql')))}"
-    semi, dql = _analytic(cells["semi_cql"]), _analytic(cells["dql"])
+def _space_semi_eq_dql(cells: Cells) -> tuple[str, str, str]:
+    semi, dql = cells.analytic("semi_cql"), cells.analytic("dql")
     if semi is None or dql is None:
         return NOT_EVALUABLE, "", "a learner reports no analytic learning space"
     return _verdict(semi == dql), "", f"semi-CQL {_sci(semi)}, DQL {_sci(dql)}"
 
 
-def _claim_more_robots_higher_ctr(cells: Cells) -> tuple[str, str, str]:
-    present = [n for n in TABULAR if n in cells and cells[n].capable_robots]
+def _more_robots_higher_ctr(cells: Cells) -> tuple[str, str, str]:
+    present = [n for n in TABULAR if n in cells and cells.items(n, "capable_robots")]
     if not present:
         return NOT_EVALUABLE, "", "no tabular learner with a known system table"
     parts, ok = [], True
     for name in present:
-        cell = cells[name]
-        counts = np.array([cell.capable_robots.get(t, 0) for t in cell.task_types], dtype=float)
+        types = cells.items(name, "ctr")
+        counts = np.array([cells.get(name, "capable_robots", t).mean for t in types])
         ctr = np.array(
-            [np.nanmean([cell.ctr[(t, p)].mean for p in ("L", "H")]) for t in cell.task_types]
+            [np.nanmean([cells.get(name, "ctr", t, p).mean for p in "LH"]) for t in types]
         )
         keep = ~np.isnan(ctr)
         if keep.sum() < 3 or np.std(counts[keep]) == 0:
-            parts.append(f"{learner_label(name)}: too few distinct types")
+            parts.append(f"{cells.label(name)}: too few distinct types")
             continue
         r = float(np.corrcoef(counts[keep], ctr[keep])[0, 1])
         ok = ok and r > 0
-        parts.append(f"{learner_label(name)} r = {r:+.2f}")
+        parts.append(f"{cells.label(name)} r = {r:+.2f}")
     return (
         _verdict(ok),
         "",
@@ -254,162 +242,100 @@ def _claim_more_robots_higher_ctr(cells: Cells) -> tuple[str, str, str]:
     )
 
 
-# (id, statement, check): checked once per system
-CLAIMS: tuple[tuple[str, str, Callable[[Cells], tuple[str, str, str]]], ...] = (
-    (
-        "h_above_l",
-        "CTR of high-priority tasks is higher than of low-priority tasks, for every method (§6.1)",
-        _claim_h_above_l,
-    ),
-    (
-        "cql_best_ctr",
-        "CQL has the best CTR, for low- and high-priority tasks (§6 summary; overall "
-        "CTR per priority)",
-        _claim_cql_best_overall,
-    ),
-    (
-        "cql_best_each_type",
-        "CQL has the highest CTR for each type of task (§6.1)",
-        _claim_cql_best_each_type,
-    ),
-    (
-        "subg_ctr_bit_lower",
-        "subG-CQL's CTR is a bit lower than CQL's, for both priorities (§6.1, §6 summary)",
-        _claim_subg_bit_lower,
-    ),
-    (
-        "dql_lowest_ctr_l",
-        "DQL has the lowest CTR for low-priority tasks (§6.1)",
-        _claim_dql_lowest_low_ctr,
-    ),
-    (
-        "semi_vs_dql_ctr",
-        "semi-CQL's CTR is higher than DQL's for low-priority tasks and lower for "
-        "high-priority tasks (§6.1)",
-        _claim_semi_vs_dql_ctr,
-    ),
-    (
-        "subg_lowest_itr",
-        "subG-CQL has the lowest ITR (§6.2, §6 summary)",
-        _claim_itr_extreme("subg_cql", lowest=True),
-    ),
-    ("dql_highest_itr", "DQL has the highest ITR (§6.2)", _claim_itr_extreme("dql", lowest=False)),
-    (
-        "semi_itr_between",
-        "semi-CQL's ITR is better than DQL's and worse than CQL's (§6.2)",
-        _claim_semi_itr_between,
-    ),
-    (
-        "space_order",
-        "Learning space: CQL > subG-CQL > semi-CQL, DQL (§6.3, Table 9)",
-        _claim_space_order,
-    ),
-    (
-        "space_semi_eq_dql",
-        "semi-CQL and DQL have the same learning space dimension (Table 9)",
-        _claim_space_semi_eq_dql,
-    ),
-    (
-        "more_robots_higher_ctr",
-        "Task types more robots can do have higher CTR (§6.1)",
-        _claim_more_robots_higher_ctr,
-    ),
-)
+SEMI_DQL, CQL_SUBG = ("semi_cql", "dql"), ("cql", "subg_cql")
+# (id, statement, learners it needs (None: checks for itself), check): once per system
+CLAIMS: tuple[tuple[str, str, tuple[str, ...] | None, Callable[[Cells], tuple]], ...] = (
+    ("h_above_l", "CTR of high-priority tasks is higher than of low-priority tasks, for every "
+     "method (§6.1)", None, _h_above_l),
+    ("cql_best_ctr", "CQL has the best CTR, for low- and high-priority tasks (§6 summary; overall "
+     "CTR per priority)", TABULAR, _cql_best_overall),
+    ("cql_best_each_type", "CQL has the highest CTR for each type of task (§6.1)", TABULAR,
+     _cql_best_each_type),
+    ("subg_ctr_bit_lower", "subG-CQL's CTR is a bit lower than CQL's, for both priorities (§6.1, "
+     "§6 summary)", CQL_SUBG, _subg_bit_lower),
+    ("dql_lowest_ctr_l", "DQL has the lowest CTR for low-priority tasks (§6.1)", TABULAR,
+     _dql_lowest_low_ctr),
+    ("semi_vs_dql_ctr", "semi-CQL's CTR is higher than DQL's for low-priority tasks and lower for "
+     "high-priority tasks (§6.1)", SEMI_DQL, _semi_vs_dql_ctr),
+    ("subg_lowest_itr", "subG-CQL has the lowest ITR (§6.2, §6 summary)", TABULAR,
+     _itr_extreme("subg_cql", lowest=True)),
+    ("dql_highest_itr", "DQL has the highest ITR (§6.2)", TABULAR, _itr_extreme("dql", False)),
+    ("semi_itr_between", "semi-CQL's ITR is better than DQL's and worse than CQL's (§6.2)",
+     ("cql", "semi_cql", "dql"), _semi_itr_between),
+    ("space_order", "Learning space: CQL > subG-CQL > semi-CQL, DQL (§6.3, Table 9)", TABULAR,
+     _space_order),
+    ("space_semi_eq_dql", "semi-CQL and DQL have the same learning space dimension (Table 9)",
+     SEMI_DQL, _space_semi_eq_dql),
+    ("more_robots_higher_ctr", "Task types more robots can do have higher CTR (§6.1)", None,
+     _more_robots_higher_ctr),
+)  # fmt: skip
 
 
-def check_claims(summaries: dict[tuple[str, str], CellSummary]) -> list[ClaimResult]:
+def check_claims(summary: pd.DataFrame) -> list[ClaimResult]:
     """Verdicts of every claim on every system, plus the cross-system learning space claim.
 
     Args:
-        summaries: ``(system, learner) -> summary`` (:func:`~mrta_rl.reports.summarize_runs`).
+        summary: The summary over seeds (``reports/frame.summarize``).
 
     Returns:
         One result per claim and system, in :data:`CLAIMS` order, then the cross-system one.
     """
-    systems = list(dict.fromkeys(system for system, _ in summaries))
+    by_system = {s: Cells(rows) for s, rows in summary.groupby("system", sort=False)}
     results = []
-    for claim, statement, check in CLAIMS:
-        for system in systems:
-            cells = {learner: s for (sys_, learner), s in summaries.items() if sys_ == system}
-            verdict, separation, evidence = check(cells)
-            results.append(ClaimResult(claim, statement, system, verdict, separation, evidence))
-    results.append(_claim_system2_larger(summaries))
-    return results
+    for claim, statement, needed, check in CLAIMS:
+        for system, cells in by_system.items():
+            missing = cells.missing(needed or ())
+            verdict = (NOT_EVALUABLE, "", missing) if missing else check(cells)
+            results.append(ClaimResult(claim, statement, system, *verdict))
+    return [*results, _system2_larger(by_system)]
 
 
-def _claim_system2_larger(summaries: dict[tuple[str, str], CellSummary]) -> ClaimResult:
+def _system2_larger(by_system: Mapping[str, Cells]) -> ClaimResult:
     statement = "System-II's learning space is larger than System-I's, for every method (§6.3)"
-    parts, ok, seen = [], True, 0
-    for name in TABULAR:
-        one, two = summaries.get(("system1", name)), summaries.get(("system2", name))
-        if one is None or two is None or _analytic(one) is None or _analytic(two) is None:
+    one, two = by_system.get("system1"), by_system.get("system2")
+    parts, ok = [], True
+    for name in TABULAR if one and two else ():
+        small, large = one.analytic(name), two.analytic(name)
+        if small is None or large is None:
             continue
-        seen += 1
-        ok = ok and _analytic(two) > _analytic(one)
+        ok = ok and large > small
         parts.append(
-            f"{learner_label(name)}: {system_label('system1')} {_sci(_analytic(one))}, "
-            f"{system_label('system2')} {_sci(_analytic(two))}"
+            f"{one.label(name)}: {system_label('system1')} {_sci(small)}, "
+            f"{system_label('system2')} {_sci(large)}"
         )
-    if seen == 0:
-        return ClaimResult(
-            "space_system2_larger",
-            statement,
-            "all",
-            NOT_EVALUABLE,
-            "",
-            "needs a tabular learner on both system1 and system2",
-        )
+    if not parts:
+        evidence = "needs a tabular learner on both system1 and system2"
+        return ClaimResult("space_system2_larger", statement, "all", NOT_EVALUABLE, "", evidence)
     return ClaimResult("space_system2_larger", statement, "all", _verdict(ok), "", "; ".join(parts))
 
 
-@dataclass(frozen=True)
-class ClaimAlong:
-    """Where one claim holds along a swept parameter (``env.switch_ticks``, team size...).
-
-    Attributes:
-        claim: Claim id.
-        statement: The paper's claim.
-        system: System name (or ``"all"``).
-        holds_at: Values of the parameter where it holds, ascending.
-        fails_at: Values where it does not hold.
-        not_evaluable_at: Values where a learner it compares is missing.
-    """
-
-    claim: str
-    statement: str
-    system: str
-    holds_at: tuple[Any, ...]
-    fails_at: tuple[Any, ...]
-    not_evaluable_at: tuple[Any, ...]
+def claims_table(results: Sequence[ClaimResult]) -> pd.DataFrame:
+    """The results as a table (:data:`CLAIMS_HEADER`)."""
+    rows = [[r.claim, r.system, r.verdict, r.separation, r.statement, r.evidence] for r in results]
+    return pd.DataFrame(rows, columns=CLAIMS_HEADER)
 
 
-def claims_along(
-    summaries_by_value: Mapping[Any, dict[tuple[str, str], CellSummary]],
-) -> list[ClaimAlong]:
-    """Check every claim at every value of a swept parameter.
+def claims_along(summaries: Mapping[Any, pd.DataFrame]) -> pd.DataFrame:
+    """Where each claim holds along a swept parameter (``env.switch_ticks``, team size...).
 
     Args:
-        summaries_by_value: Parameter value -> the summaries of the runs made with that value.
+        summaries: Parameter value -> the summary of the runs made with that value.
 
     Returns:
-        One row per claim and system, in :func:`check_claims` order, listing the values where the
-        claim holds, does not hold, and cannot be evaluated.
+        One row per claim and system (in :func:`check_claims` order): ``claim``, ``system`` and
+        the values where it holds, does not hold and is not evaluable (``holds_at``,
+        ``fails_at``, ``not_evaluable_at``: ascending tuples).
     """
-    verdicts: dict[tuple[str, str], dict[str, list[Any]]] = {}
-    statements: dict[str, str] = {}
-    for value in sorted(summaries_by_value):
-        for result in check_claims(summaries_by_value[value]):
-            statements[result.claim] = result.statement
-            cell = verdicts.setdefault((result.claim, result.system), {})
-            cell.setdefault(result.verdict, []).append(value)
-    return [
-        ClaimAlong(
-            claim,
-            statements[claim],
-            system,
-            tuple(cell.get(HOLDS, ())),
-            tuple(cell.get(FAILS, ())),
-            tuple(cell.get(NOT_EVALUABLE, ())),
+    table = pd.concat(
+        [claims_table(check_claims(summaries[v])).assign(value=v) for v in sorted(summaries)]
+    )
+    columns = {"holds_at": HOLDS, "fails_at": FAILS, "not_evaluable_at": NOT_EVALUABLE}
+    return (
+        table.groupby(["claim", "system"], sort=False)
+        .apply(
+            lambda g: pd.Series(
+                {k: tuple(g[g["verdict"] == v]["value"]) for k, v in columns.items()}
+            )
         )
-        for (claim, system), cell in verdicts.items()
-    ]
+        .reset_index()
+    )

@@ -3,13 +3,13 @@
 Input: a Hydra multirun dir (``multirun.yaml`` at the top, one job dir per job) or run dirs of
 ``scripts/train.py`` (or folders holding them). A run is a folder with ``metrics.json``.
 
-The *expected* grid of a multirun is rebuilt exactly as Hydra's ``BasicSweeper`` built its job
-list: the ``hydra.sweeper.params`` of ``multirun.yaml`` followed by the command-line task
-overrides (``hydra.overrides.task``), expanded as a cartesian product. A job whose dir has no
-``metrics.json`` (it failed: Hydra runs the remaining jobs and reports the error at the end, and
-``train()`` writes metrics.json last and atomically) or has no dir at all is *missing*. Without a
-multirun.yaml the expected grid is the product of the learners, systems and seeds found, so a
-hole in a hand-made set of runs is reported too.
+The *expected* grid of a multirun is rebuilt as Hydra's ``BasicSweeper`` builds its job list:
+the ``hydra.sweeper.params`` of ``multirun.yaml`` followed by the command-line task overrides
+(``hydra.overrides.task``, a later key replacing an earlier one), expanded as a cartesian
+product. A job whose dir has no ``metrics.json`` (it failed: Hydra runs the remaining jobs and
+reports the error at the end, and ``train()`` writes metrics.json last and atomically) or has no
+dir at all is *missing*. Without a multirun.yaml the expected grid is the product of the learners,
+systems and seeds found, so a hole in a hand-made set of runs is reported too.
 
 Runs are told apart by their whole configuration, not only by learner, system and seed: among
 the runs of one learner on one system, every setting of ``.hydra/config.yaml`` whose value differs
@@ -17,12 +17,15 @@ between them (the seed and the settings in :data:`NOT_CONFIGURATION` aside) make
 configuration of its own, named by what differs (``subg_reserve reserve=1 hold_level=0``; learner
 hyperparameters by their name, other settings by their dotted key). That name is the run's
 ``learner`` in the report, so each configuration is its own row; only the same configuration with
-the same seed is a duplicate.
+the same seed is a duplicate. Runs are compared on the settings their config records: a setting
+one run records and another does not differs (``null``).
+
+A run's learner is named by metrics.json's ``learner`` block (``{"name", "label", "kind"}``); a
+run that records only the learner's config choice name is labelled by that name.
 """
 
 from __future__ import annotations
 
-import copy
 import csv
 import dataclasses
 import itertools
@@ -36,8 +39,14 @@ from typing import Any
 
 from omegaconf import OmegaConf
 
-from mrta_rl.config import UserError, declared_keywords
-from mrta_rl.run_files import METRICS_FILE, REFUSED_FILE, REFUSED_JOBS_FILE, read_metrics
+from mrta_rl.config import UserError
+from mrta_rl.run_files import (
+    CONFIG_FILE,
+    METRICS_FILE,
+    REFUSED_FILE,
+    REFUSED_JOBS_FILE,
+    read_metrics,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -78,6 +87,18 @@ class RunRecord:
     config: dict[str, Any]
     overrides: tuple[str, ...]
     variant: str = ""
+
+    @property
+    def name(self) -> str:
+        """The learner's config choice name (yaml stem), without the configuration's settings."""
+        learner = self.metrics.get("learner", self.learner)
+        return str(learner["name"] if isinstance(learner, dict) else learner).partition(" ")[0]
+
+    @property
+    def label(self) -> str:
+        """The learner's label (metrics.json's learner block), else its config choice name."""
+        learner = self.metrics.get("learner")
+        return str(learner.get("label", self.name)) if isinstance(learner, dict) else self.name
 
     @property
     def key(self) -> tuple[str, str, int]:
@@ -150,8 +171,9 @@ def _load_yaml(path: Path) -> Any:
     return OmegaConf.to_container(OmegaConf.load(path), resolve=False) if path.is_file() else None
 
 
-# each learner's label as its runs recorded it (metrics.json ``learner.label``, the class's own)
-RECORDED_LABELS: dict[str, str] = {}
+def config_value(config: dict[str, Any], dotted: str) -> Any:
+    """A run config's value at a dotted key (``system.n_robots``), None if absent."""
+    return OmegaConf.select(OmegaConf.create(config), dotted, default=None) if config else None
 
 
 def load_run(run_dir: Path) -> RunRecord:
@@ -167,12 +189,15 @@ def load_run(run_dir: Path) -> RunRecord:
         RunDirError: if metrics.json is damaged (naming the file and key).
     """
     metrics = read_metrics(run_dir / METRICS_FILE)
-    config = _load_yaml(run_dir / ".hydra" / "config.yaml") or {}
-    overrides = _load_yaml(run_dir / ".hydra" / "overrides.yaml") or []
-    RECORDED_LABELS[metrics["learner"]["name"]] = metrics["learner"]["label"]
+    config = _load_yaml(run_dir / CONFIG_FILE) or {}
+    overrides = _load_yaml(run_dir / CONFIG_FILE.with_name("overrides.yaml")) or []
     return RunRecord(
         run_dir=run_dir,
-        learner=str(metrics["learner"]["name"]),
+        learner=str(
+            metrics["learner"]["name"]
+            if isinstance(metrics["learner"], dict)
+            else metrics["learner"]
+        ),
         system=str(metrics["system"]),
         seed=int(metrics["seed"]),
         metrics=metrics,
@@ -208,18 +233,13 @@ def configuration_variants(records: Sequence[RunRecord]) -> list[str]:
         ``(learner, system)`` (seed and :data:`NOT_CONFIGURATION` aside), in config order;
         ``""`` when nothing differs.
     """
-    flat = [_flatten(_as_ran(r.config)) for r in records]
+    flat = [_flatten(r.config) for r in records]
     variants = [""] * len(records)
     groups: dict[tuple[str, str], list[int]] = {}
     for i, record in enumerate(records):
         groups.setdefault((record.learner, record.system), []).append(i)
     for members in groups.values():
         keys = list(dict.fromkeys(k for i in members for k in flat[i]))  # config order
-        for i in members:  # a learner setting added after a run was made: its declared default
-            missing = [k for k in keys if k not in flat[i] and k.startswith("learner.")]
-            if missing:
-                defaults = _declared_defaults(records[i].config)
-                flat[i].update({k: defaults[k] for k in missing if k in defaults})
         differing = [
             k
             for k in keys
@@ -231,30 +251,6 @@ def configuration_variants(records: Sequence[RunRecord]) -> list[str]:
                 f"{_setting_name(k)}={_format_value(flat[i].get(k))}" for k in differing
             )
     return variants
-
-
-def _as_ran(config: dict[str, Any]) -> dict[str, Any]:
-    """A copy of a run's config, to fill with declared defaults without touching the record."""
-    return copy.deepcopy(config)
-
-
-def _declared_defaults(config: dict[str, Any]) -> dict[str, Any]:
-    """``{"learner.<name>": default}`` of the run's learner class, ``{}`` if it is unknown.
-
-    A run made before a learner setting existed has no such key in its ``.hydra/config.yaml``
-    and ran with the setting's declared default, so it is compared with that default.
-    """
-    from mrta_rl.runners.validation import learner_class  # imports the learner (and its deps)
-
-    try:
-        cls = learner_class(config.get("learner"))
-    except UserError:
-        return {}
-    return {
-        f"learner.{name}": (list(d.default) if isinstance(d.default, tuple) else d.default)
-        for name, d in declared_keywords(cls).items()
-        if not d.required
-    }
 
 
 def _format_value(value: Any) -> str:
@@ -317,7 +313,6 @@ def expected_sweep_jobs(multirun_yaml: Path) -> list[list[str]] | None:
         One override list per job, or None if the sweep was not run by the BasicSweeper (another
         sweeper plugin builds its jobs differently).
     """
-    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
     cfg = OmegaConf.load(multirun_yaml)
@@ -328,8 +323,14 @@ def expected_sweep_jobs(multirun_yaml: Path) -> list[list[str]] | None:
     # same order as BasicSweeper.sweep: sweeper params, then the command line (which wins)
     arguments = [f"{k}={v}" for k, v in params.items()]
     arguments += [str(o) for o in OmegaConf.select(cfg, "hydra.overrides.task", default=[])]
-    parsed = OverridesParser.create().parse_overrides(arguments)
-    return [list(job) for batch in BasicSweeper.split_arguments(parsed, None) for job in batch]
+    choices: dict[str, list[str]] = {}  # key -> its values as overrides; a later key replaces
+    for override in OverridesParser.create().parse_overrides(arguments):
+        key = override.get_key_element()
+        if override.is_sweep_override():
+            choices[key] = [f"{key}={value}" for value in override.sweep_string_iterator()]
+        else:
+            choices[key] = [f"{key}={override.get_value_element_as_str()}"]
+    return [list(job) for job in itertools.product(*choices.values())]
 
 
 def _override_value(overrides: Sequence[str], key: str) -> str | None:

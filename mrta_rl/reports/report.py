@@ -6,8 +6,10 @@
 * ``report.md``: the tables (paper Tables 5-9 analogues, team return vs greedy), the figures
   (linked), the check of the paper's Section 6 claims and the list of missing jobs;
 * ``runs.csv`` (one row per run), ``ctr.csv``, ``itr.csv``, ``team_return.csv``,
-  ``learning_space.csv``, ``claims.csv``, ``missing.csv``, ``field_stats.csv`` (IQM and
-  probability of improvement), ``study.csv`` (runs of a swept dimension);
+  ``group_return.csv``, ``learning_space.csv``, ``claims.csv``, ``missing.csv``,
+  ``field_stats.csv`` (IQM and probability of improvement), ``study.csv`` (runs of a swept
+  dimension), ``yardsticks*.csv`` (``reports/yardsticks.py``);
+* ``marl_eval.json``: the evaluation returns in marl-eval's format (``reports/marl_eval.py``);
 * ``ctr_<system>_L.png``, ``ctr_<system>_H.png`` (paper Figures 1-4), ``itr_<system>.png``
   (Figures 5-6), ``curve_<system>.png`` (learning curves, for learners that train) and
   ``team_return.png``, ``performance_profile.png`` and, for a swept team size or task-switch
@@ -21,21 +23,19 @@ import os
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
-from omegaconf import OmegaConf
+import pandas as pd
 
-from mrta_rl.reports import figures, studies, tables, yardsticks
-from mrta_rl.reports.aggregate import (
-    CellSummary,
-    learner_label,
-    order_learners,
-    summarize_curve,
-    summarize_runs,
-    system_label,
+from mrta_rl.reports import figures, marl_eval, studies, tables, yardsticks
+from mrta_rl.reports.claims import FAILS, HOLDS, NOT_EVALUABLE, check_claims, claims_table
+from mrta_rl.reports.collect import (
+    Collection,
+    ReportInputError,
+    RunRecord,
+    collect_runs,
+    config_value,
 )
-from mrta_rl.reports.claims import FAILS, HOLDS, NOT_EVALUABLE, check_claims
-from mrta_rl.reports.collect import Collection, ReportInputError, RunRecord, collect_runs
+from mrta_rl.reports.frame import long_table, summarize, summarize_curve, system_label
 
 logger = logging.getLogger(__name__)
 
@@ -54,6 +54,7 @@ class ReportFiles:
         csvs: CSV files by stem.
         figures: PNG files by stem.
         collection: The runs and missing jobs the report was made from.
+        marl_eval: The marl-eval JSON of the runs.
     """
 
     out_dir: Path
@@ -61,6 +62,7 @@ class ReportFiles:
     csvs: dict[str, Path] = field(default_factory=dict)
     figures: dict[str, Path] = field(default_factory=dict)
     collection: Collection | None = None
+    marl_eval: Path | None = None
 
 
 def default_out_dir(inputs: Sequence[Path | str]) -> Path:
@@ -71,51 +73,31 @@ def default_out_dir(inputs: Sequence[Path | str]) -> Path:
     return Path(os.path.commonpath([str(p) for p in paths])) / "report"
 
 
-def _config_value(config: dict[str, Any], dotted: str) -> Any:
-    return OmegaConf.select(OmegaConf.create(config), dotted, default=None) if config else None
-
-
-def _setup_markdown(runs: Sequence[RunRecord]) -> str:
+def _setup_markdown(runs: Sequence[RunRecord], summary: pd.DataFrame) -> str:
     """Run settings (distinct values over runs) and each learner's hyperparameters."""
     rows = []
     for key in SETUP_KEYS:
-        values = sorted({str(_config_value(r.config, key)) for r in runs})
+        values = sorted({str(config_value(r.config, key)) for r in runs})
         note = "" if len(values) == 1 else " (differs between runs!)"
-        shown = ", ".join("spec default" if v == "None" else v for v in values)
-        rows.append([f"`{key}`", shown + note])
-    lines = [tables.markdown_table(["setting", "value"], rows), ""]
-    learner_rows = []
-    for name in order_learners([r.learner for r in runs]):
-        settings = set()
-        for r in runs:
-            if r.learner == name:
-                cfg = r.config.get("learner") or {}
-                settings.add(", ".join(f"{k}={v}" for k, v in cfg.items() if not k.startswith("_")))
-        learner_rows.append([learner_label(name), " / ".join(sorted(settings)) or "–"])
-    lines.append(tables.markdown_table(["learner", "hyperparameters (conf/learner)"], learner_rows))
-    return "\n".join(lines)
-
-
-def _training_time_markdown(summaries: Sequence[CellSummary]) -> str:
-    rows = [
-        [
-            system_label(c.system),
-            learner_label(c.learner),
-            len(c.seeds),
-            c.train_env_ticks.format(0),
-            c.train_wall_s.format(1),
-        ]
-        for c in summaries
+        rows.append(
+            [f"`{key}`", ", ".join(v.replace("None", "spec default") for v in values) + note]
+        )
+    settings: dict[str, set[str]] = {}
+    for r in runs:
+        cfg = r.config.get("learner") or {}
+        text = ", ".join(f"{k}={v}" for k, v in cfg.items() if not k.startswith("_"))
+        settings.setdefault(r.learner, set()).add(text)
+    labels = dict(zip(summary["learner"], summary["label"], strict=True))
+    learners = [
+        [labels[n], " / ".join(sorted(settings[n])) or "–"]
+        for n in dict.fromkeys(summary["learner"])
     ]
-    return tables.markdown_table(
+    return "\n".join(
         [
-            "system",
-            "learner",
-            "seeds",
-            "training env ticks per run",
-            "training wall time per run (s)",
-        ],
-        rows,
+            tables.markdown_table(["setting", "value"], rows),
+            "",
+            tables.markdown_table(["learner", "hyperparameters (conf/learner)"], learners),
+        ]
     )
 
 
@@ -146,72 +128,55 @@ def build_report(inputs: Iterable[Path | str], out_dir: Path | str | None = None
     out.mkdir(parents=True, exist_ok=True)
     files = ReportFiles(out_dir=out, report=out / REPORT_FILE, collection=collection)
 
-    summaries = summarize_runs(collection.runs)
-    cells = list(summaries.values())
-    systems = list(dict.fromkeys(system for system, _ in summaries))
-    by_system = {s: [c for c in cells if c.system == s] for s in systems}
-    colors = figures.learner_colors(order_learners([c.learner for c in cells]))
-    claims = check_claims(summaries)
+    frame = long_table(collection.runs)
+    summary = summarize(frame)
+    claims = check_claims(summary)
+    csvs = tables.csv_tables(frame, summary)
+    csvs["claims"] = claims_table(claims)
+    csvs["missing"] = pd.DataFrame(
+        [
+            [m.learner, m.system, m.seed, m.reason, str(m.job_dir or ""), " ".join(m.overrides)]
+            for m in collection.missing
+        ],
+        columns=["learner", "system", "seed", "reason", "job_dir", "overrides"],
+    )
+    for stem, table in csvs.items():
+        files.csvs[stem] = tables.write_csv(out / f"{stem}.csv", table)
 
-    header, rows = tables.run_rows(collection.runs)
-    csv_specs = {
-        "runs": (header, rows),
-        "ctr": (
-            ["system", "learner", "task_type", "priority", *tables.STAT_HEADER],
-            tables.ctr_rows(cells),
-        ),
-        "itr": (["system", "learner", "robot", *tables.STAT_HEADER], tables.itr_rows(cells)),
-        "team_return": (tables.TEAM_RETURN_HEADER, tables.team_return_rows(cells)),
-        "group_return": (tables.GROUP_RETURN_HEADER, tables.group_return_rows(cells)),
-        "learning_space": (tables.LEARNING_SPACE_HEADER, tables.learning_space_rows(cells)),
-        "claims": (
-            ["claim", "system", "verdict", "separation", "statement", "evidence"],
-            tables.claims_rows(claims),
-        ),
-        "missing": (
-            ["learner", "system", "seed", "reason", "job_dir", "overrides"],
-            tables.missing_rows(collection.missing),
-        ),
-    }
-    for stem, (head, body) in csv_specs.items():
-        files.csvs[stem] = tables.write_csv(out / f"{stem}.csv", head, body)
-
-    for system, system_cells in by_system.items():
+    colors = figures.learner_colors(list(dict.fromkeys(summary["learner"])))
+    for system, rows in summary.groupby("system", sort=False):
         for p in ("L", "H"):
             stem = f"ctr_{system}_{p}"
-            files.figures[stem] = figures.ctr_figure(system_cells, p, _png(out, stem), colors)
-        files.figures[f"itr_{system}"] = figures.itr_figure(
-            system_cells, _png(out, f"itr_{system}"), colors
-        )
-        curves = {
-            c.learner: curve
-            for c in system_cells
-            if (
-                curve := summarize_curve(
-                    [r for r in collection.runs if r.system == system and r.learner == c.learner]
-                )
+            files.figures[stem] = figures.ctr_figure(
+                rows[rows["metric"] == "ctr"], p, _png(out, stem), colors
             )
-        }
+        files.figures[f"itr_{system}"] = figures.itr_figure(
+            rows, _png(out, f"itr_{system}"), colors
+        )
+        curves = {}
+        for learner, label in dict(zip(rows["learner"], rows["label"], strict=True)).items():
+            mine = [r for r in collection.runs if r.system == system and r.learner == learner]
+            if (curve := summarize_curve(mine)) is not None:
+                curves[learner] = (label, curve)
         if curves:
-            greedy = next((c.greedy_return for c in system_cells if c.greedy_return.n), None)
+            greedy = [s for s in rows[rows["metric"] == "greedy_team_return"]["stat"] if s.n]
             files.figures[f"curve_{system}"] = figures.curve_figure(
-                curves, greedy, system, _png(out, f"curve_{system}"), colors
+                curves, greedy[0] if greedy else None, system, _png(out, f"curve_{system}"), colors
             )
     files.figures["team_return"] = figures.team_return_figure(
-        by_system, out / "team_return.png", colors
+        summary, out / "team_return.png", colors
     )
 
     # "Learning against the rules": every run counts, the settings of a rule grid included
     rules_md, rules_files = yardsticks.write_section(
         [*collection.runs, *collection.duplicates], out
     )
-    for stem, path in rules_files.items():
+    study_md, study_files = studies.study_sections(collection.runs, inputs, out)
+    for stem, path in {**rules_files, **study_files}.items():
         (files.figures if path.suffix == ".png" else files.csvs)[stem] = path
-    study = studies.study_sections(collection.runs, inputs, out)
-    files.csvs.update(study.csvs)
-    files.figures.update(study.figures)
-    markdown = _report_markdown(collection, cells, by_system, claims, files, rules_md)
-    files.report.write_text(markdown + "\n" + study.markdown + "\n")
+    files.marl_eval = marl_eval.write_marl_eval(collection.runs, out)
+    markdown = _report_markdown(collection, frame, summary, claims, files, rules_md)
+    files.report.write_text(markdown + "\n" + study_md + "\n")
     logger.info(
         "wrote %s (%d runs, %d missing)",
         files.report,
@@ -226,171 +191,151 @@ def _png(out: Path, stem: str) -> Path:
     return out / f"{stem.replace('/', '_')}.png"
 
 
-def _image(files: ReportFiles, stem: str, alt: str) -> str:
-    path = files.figures.get(stem)
-    return f"![{alt}]({path.name})" if path else f"_No figure: {alt.lower()} (nothing to draw)._"
+def _section(title: str, text: str, *blocks: str) -> list[str]:
+    """Markdown lines: a heading, then its text and blocks, each followed by a blank line."""
+    return [title, "", *(line for block in (text, *blocks) if block for line in (block, ""))]
 
 
 def _report_markdown(
     collection: Collection,
-    cells: list[CellSummary],
-    by_system: dict[str, list[CellSummary]],
+    frame: pd.DataFrame,
+    summary: pd.DataFrame,
     claims: list,
     files: ReportFiles,
     rules_md: str = "",
 ) -> str:
-    runs, missing = collection.runs, collection.missing
+    runs, missing, duplicates = collection.runs, collection.missing, collection.duplicates
     verdicts = [c.verdict for c in claims]
-    md = [
+    systems = {s: rows for s, rows in summary.groupby("system", sort=False)}
+    md = _section(
         "# Experiment report",
-        "",
         "Inputs: " + ", ".join(f"`{p}`" for p in collection.inputs),
-        "",
         f"**{len(runs)} finished runs** of {collection.expected_jobs} expected "
         f"(expected grid from {collection.sweep_source}); **{len(missing)} missing**"
-        + (
-            f"; {len(collection.duplicates)} duplicate runs ignored"
-            if collection.duplicates
-            else ""
-        )
+        + (f"; {len(duplicates)} duplicate runs ignored" if duplicates else "")
         + ". Every number is the mean over training seeds ± the half-width of its 95 % t "
         "confidence interval (no interval with one seed); CTR and ITR are in percent, evaluated "
         "with exploration off on the same evaluation task streams for every learner and seed. "
         "Exact values: the CSV files next to this report (`runs.csv` holds every run).",
-        "",
-    ]
-    if collection.duplicates:
+    )
+    if duplicates:
         kept = {r.key: r.run_dir for r in runs}
-        md += [
+        rows = [
+            [r.learner, r.system, r.seed, f"`{r.run_dir}`", f"`{kept.get(r.key)}`"]
+            for r in duplicates
+        ]
+        header = ["configuration", "system", "seed", "left out", "kept"]
+        md += _section(
             "## Duplicate runs left out",
-            "",
             "Each of these runs has the configuration and seed of a run the report keeps (a seed "
             "counts once); only identical settings make a duplicate.",
-            "",
-            "| configuration | system | seed | left out | kept |",
-            "| :--- | :--- | ---: | :--- | :--- |",
-            *(
-                f"| {r.learner} | {r.system} | {r.seed} | `{r.run_dir}` | `{kept.get(r.key)}` |"
-                for r in collection.duplicates
-            ),
-            "",
-        ]
+            tables.markdown_table(header, rows),
+        )
     if missing:
-        md += [
+        rows = [
+            [
+                m.learner,
+                system_label(m.system),
+                "?" if m.seed is None else m.seed,
+                m.reason,
+                f"`{m.job_dir}`" if m.job_dir else "–",
+                f"`{' '.join(m.overrides)}`" if m.overrides else "–",
+            ]
+            for m in missing
+        ]
+        header = ["learner", "system", "seed", "reason", "job dir", "overrides"]
+        md += _section(
             "## Missing jobs",
-            "",
             "These jobs of the expected grid left no `metrics.json`; their cells below average "
             "fewer seeds (or are absent).",
-            "",
-            tables.missing_markdown(missing),
-            "",
-        ]
-    md += [
-        "## Setup",
-        "",
-        _setup_markdown(runs),
-        "",
+            tables.markdown_table(header, rows),
+        )
+    md += _section("## Setup", _setup_markdown(runs, summary))
+    md += _section(
         "## Team return against the greedy auction",
-        "",
         "Evaluation team return per episode; `greedy` is the plain auction on the full task "
         "sets, evaluated on the same task streams (paired per seed for the difference).",
-        "",
-        tables.team_return_markdown(cells),
-        "",
-        _image(files, "team_return", "Team return"),
-        "",
-    ]
-    group_tables = {
-        system: table
-        for system, system_cells in by_system.items()
-        if (table := tables.group_return_markdown(system_cells))
-    }
-    if group_tables:
-        md += [
+        tables.team_return_markdown(summary, tables.csv_tables(frame, summary)["team_return"]),
+        tables.image(files.figures.get("team_return"), "Team return"),
+    )
+    groups = {s: t for s, rows in systems.items() if (t := tables.group_return_markdown(rows))}
+    if groups:
+        md += _section(
             "### Team return by subG sub-group",
-            "",
             "Every reward is a task's and each task type belongs to one sub-group, so the team "
             "return splits exactly into the parts its sub-groups' task types earn; the last row "
             "is what the same types earn under the plain auction on the full team.",
-            "",
-        ]
-        for system, table in group_tables.items():
-            md += [f"{system_label(system)}:", "", table, ""]
+            *(block for s, t in groups.items() for block in (f"{system_label(s)}:", t)),
+        )
     if rules_md:
         md += [rules_md, ""]
-    md += [
+    md += _section(
         "## Completed task ratio (paper Tables 5-6, Figures 1-4)",
-        "",
         "CTR (%) = assigned / (assigned + dropped) per task type and priority; `all` pools the "
         "counts over types.",
-        "",
-    ]
-    for system, system_cells in by_system.items():
+    )
+    for system, rows in systems.items():
         label = system_label(system)
         for p, word in (("L", "low"), ("H", "high")):
-            md += [
-                f"### {label}: {word}-priority tasks",
-                "",
-                tables.ctr_markdown(system_cells, p),
-                "",
-                _image(files, f"ctr_{system}_{p}", f"{label} CTR {word}-priority"),
-                "",
-            ]
-    md += [
+            image = tables.image(
+                files.figures.get(f"ctr_{system}_{p}"), f"{label} CTR {word}-priority"
+            )
+            md += _section(
+                f"### {label}: {word}-priority tasks", tables.ctr_markdown(rows, p), image
+            )
+    md += _section(
         "## Idle time ratio (paper Tables 7-8, Figures 5-6)",
-        "",
         "ITR (%) = (horizon - busy ticks) / horizon per robot (paper eq. 9); lower is better.",
-        "",
-    ]
-    for system, system_cells in by_system.items():
+    )
+    for system, rows in systems.items():
         label = system_label(system)
-        md += [
+        md += _section(
             f"### {label}",
-            "",
-            tables.itr_markdown(system_cells),
-            "",
-            _image(files, f"itr_{system}", f"{label} ITR"),
-            "",
-        ]
-    md += [
+            tables.itr_markdown(rows),
+            tables.image(files.figures.get(f"itr_{system}"), f"{label} ITR"),
+        )
+    md += _section(
         "## Learning space (paper Table 9)",
-        "",
         "`analytic`: learning space dimension of the learner's encoding (paper eqs. 10-16, exact "
         "integer in `learning_space.csv`); `visited`: table entries updated at least once "
         "(mean ± CI over seeds); `parameters`: weights of a network learner.",
-        "",
-        tables.learning_space_markdown(cells),
-        "",
-    ]
-    md += [
+        tables.learning_space_markdown(frame, summary),
+    )
+    md += _section(
         "## Learning curves",
-        "",
         "Training team return per episode (with exploration) against training env ticks "
         "(ticks x parallel copies); line = mean over seeds, band = 95 % CI. The dashed line is "
         "the greedy auction's evaluation return.",
-        "",
+        *(
+            tables.image(files.figures.get(f"curve_{s}"), f"{system_label(s)} learning curves")
+            for s in systems
+        ),
+    )
+    claim_rows = [
+        [
+            r.statement,
+            system_label(r.system) if r.system != "all" else "both",
+            f"**{r.verdict}**",
+            r.separation or "",
+            r.evidence,
+        ]
+        for r in claims
     ]
-    for system in by_system:
-        md += [_image(files, f"curve_{system}", f"{system_label(system)} learning curves"), ""]
-    md += [
+    md += _section(
         "## Claims of the paper (Section 6)",
-        "",
         f"{verdicts.count(HOLDS)} hold, {verdicts.count(FAILS)} do not hold, "
         f"{verdicts.count(NOT_EVALUABLE)} not evaluable (a learner they compare is missing). "
         "Verdicts compare means over seeds; `clear` = the compared 95 % intervals are "
         "disjoint, `CIs overlap` = the ordering may be noise.",
-        "",
-        tables.claims_markdown(claims),
-        "",
-    ]
+        tables.markdown_table(
+            ["claim (paper)", "system", "verdict", "95% CIs", "numbers"], claim_rows
+        ),
+    )
     total_wall = sum((r.metrics.get("train") or {}).get("wall_s", 0.0) for r in runs)
-    md += [
+    md += _section(
         "## Training time",
-        "",
-        _training_time_markdown(cells),
-        "",
+        tables.training_time_markdown(summary),
         f"Sum of the training wall times of all runs: {total_wall:.1f} s "
         "(evaluation not included).",
-        "",
-    ]
+    )
     return "\n".join(md)

@@ -1,38 +1,30 @@
 """Report section "Learning against the rules": every learner next to the rules it must beat.
 
 For each system it sets, on the same evaluation episodes (every run plays evaluation episode
-``e`` on the same task stream, ``runners/evaluate.py``):
-
-* each learner's **trained** policy and its **untrained** starting policy (a run with
-  ``train.episodes=0``: the prior or initial network alone), per state encoding (``features``);
-* **greedy**, the plain auction (the baseline every run evaluates);
-* the **best team_reserve** setting found among the runs (``experiment=team_reserve_grid``) and
-  the **rollout** planner, the yardsticks of issue 10.
+``e`` on the same task stream, ``runners/evaluate.py``): each learner's **trained** policy and its
+**untrained** starting policy (a run with ``train.episodes=0``), per state encoding
+(``features``); **greedy**, the plain auction (the baseline every run evaluates); the **best
+team_reserve** setting found among the runs (``experiment=team_reserve_grid``) and the
+**rollout** planner.
 
 Differences are *paired*: per evaluation episode ``e``, ``d_e`` = (policy's return on ``e``,
-averaged over its training seeds) - (yardstick's return on ``e``, averaged likewise), and the
-95 % t interval is over the episodes (``reports/stats.py``). The interval measures the
-evaluation-stream noise, which the pairing removes from the comparison; the spread over training
-seeds is reported next to it (the learner's own interval over seeds). Runs need the
-per-episode returns (``team_return.per_episode`` in ``metrics.json``); older runs without them
-are left out of the paired columns.
+averaged over its training seeds) - (yardstick's return on ``e``, averaged likewise), with the
+95 % t interval over the episodes; the spread over training seeds is reported next to it. Runs
+without per-episode returns (``team_return.per_episode``) are left out of the paired columns.
 
-A run re-evaluated with ``scripts/evaluate.py`` (for instance on more episodes:
-``episodes=100``) is scored on that re-evaluation: its ``eval_metrics.json`` replaces the
-evaluation and greedy blocks of ``metrics.json`` (the training block stays). Greedy is taken from
-the run of the system with the most evaluation episodes; policies evaluated on another number of
-episodes than a yardstick show no paired difference with it ("–").
+A run re-evaluated with ``scripts/evaluate.py`` is scored on that re-evaluation: its
+``eval_metrics.json`` replaces the evaluation and greedy blocks of ``metrics.json``. Greedy is
+taken from the run of the system with the most evaluation episodes; policies evaluated on another
+number of episodes than a yardstick show no paired difference with it ("–").
 
 A second table, "Does training beat its own start?", gives per trained learner its untrained
-return, the trained mean over seeds, and trained - untrained twice: paired over the evaluation
-episodes and over the training seeds (each seed's mean minus the untrained mean), with the verdict
-of issue 10's acceptance 2 (the paired interval above zero).
+return, the trained mean over seeds, and trained - untrained paired over the evaluation episodes
+and over the training seeds, with the verdict (``yes``: the paired interval is above zero).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 from collections import defaultdict
 from collections.abc import Sequence
@@ -41,34 +33,24 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pandas as pd
 
 from mrta_rl.config import UserError
-from mrta_rl.reports.aggregate import learner_label, system_label
+from mrta_rl.reports import figures
 from mrta_rl.reports.collect import RunRecord, configuration_variants
+from mrta_rl.reports.frame import system_label
 from mrta_rl.reports.stats import MeanCI, mean_ci
-from mrta_rl.reports.tables import markdown_table, write_csv
-from mrta_rl.run_files import EVAL_METRICS_FILE
+from mrta_rl.reports.tables import markdown_table, signed, write_csv
+from mrta_rl.run_files import EVAL_METRICS_FILE, read_json
 
 TITLE = "Learning against the rules"
-RULES = ("team_reserve", "rollout")  # the yardstick rules of issue 10 (fixed learners)
+RULES = ("team_reserve", "rollout")  # the yardstick rules (fixed learners)
 GREEDY = "greedy"
 BEST_RESERVE = "team_reserve (best)"
 RESERVE_KEYS = ("reserve", "hold_level", "hold_scope", "grouping", "order")
 CSV_HEADER = ["system", "policy", "seeds", "mean", "ci95_seeds", "versus", "diff", "diff_ci95"]
-START_HEADER = [
-    "system",
-    "policy",
-    "episodes",
-    "untrained",
-    "seeds",
-    "trained",
-    "trained_ci95",
-    "paired_diff",
-    "paired_ci95",
-    "seeds_diff",
-    "seeds_ci95",
-    "met",
-]
+START_HEADER = ["system", "policy", "episodes", "untrained", "seeds", "trained", "trained_ci95"]
+START_HEADER += ["paired_diff", "paired_ci95", "seeds_diff", "seeds_ci95", "met"]
 EVALUATION_BLOCKS = ("eval", "baseline_greedy")  # what a re-evaluation replaces
 
 
@@ -77,12 +59,12 @@ class Policy:
     """One evaluated policy of one system: its runs' per-episode returns.
 
     Attributes:
-        name: Display name (learner, ``[untrained]``, ``[features]``, rule settings).
+        name: Display name (learner label, ``untrained``, ``[features]``).
         learner: Learner name (yaml stem).
         kind: ``"trained"``, ``"untrained"``, ``"rule"`` or ``"greedy"``.
         returns: One array of per-episode returns per run (training seed).
         means: Mean evaluation return of each run.
-        note: Extra text (e.g. a team_reserve setting).
+        note: Extra text (the best team_reserve setting).
         features: The learner's state encoding (``"paper"`` for rules).
     """
 
@@ -99,9 +81,7 @@ class Policy:
         """Per-episode returns averaged over the runs, or None if a run lacks them."""
         if not self.returns or any(len(r) == 0 for r in self.returns):
             return None
-        if len({len(r) for r in self.returns}) != 1:
-            return None
-        return np.mean(self.returns, axis=0)
+        return np.mean(self.returns, axis=0) if len({len(r) for r in self.returns}) == 1 else None
 
     @property
     def over_seeds(self) -> MeanCI:
@@ -122,7 +102,7 @@ def _per_episode(block: dict[str, Any]) -> np.ndarray:
 
 
 def with_reevaluation(run: RunRecord) -> RunRecord:
-    """The run scored on its re-evaluation (``eval_metrics.json``) if it has one (module docstring).
+    """The run scored on its re-evaluation (``eval_metrics.json``) if it has one.
 
     Raises:
         ValueError: if ``eval_metrics.json`` is not a re-evaluation (names the file and the key).
@@ -130,16 +110,13 @@ def with_reevaluation(run: RunRecord) -> RunRecord:
     path = Path(run.run_dir) / EVAL_METRICS_FILE
     if not path.is_file():
         return run
-    again = json.loads(path.read_text())
-    missing = [k for k in EVALUATION_BLOCKS if k not in again]
+    again = read_json(path)
+    missing = [k for k in EVALUATION_BLOCKS if not isinstance(again, dict) or k not in again]
     if missing:
         raise ValueError(f"{path}: not a re-evaluation of scripts/evaluate.py, no {missing}")
-    metrics = {**run.metrics, **{k: again[k] for k in EVALUATION_BLOCKS}}
-    return dataclasses.replace(run, metrics=metrics)
-
-
-def _episodes(block: dict[str, Any]) -> int:
-    return len((block.get("team_return") or {}).get("per_episode") or [])
+    return dataclasses.replace(
+        run, metrics={**run.metrics, **{k: again[k] for k in EVALUATION_BLOCKS}}
+    )
 
 
 def _kind(run: RunRecord) -> str:
@@ -149,18 +126,8 @@ def _kind(run: RunRecord) -> str:
     return "trained" if (run.metrics.get("train") or {}).get("episodes", 0) > 0 else "untrained"
 
 
-def _base(run: RunRecord) -> str:
-    """The learner's yaml stem (``run.learner`` also names what sets its configuration apart)."""
-    return str(run.metrics["learner"]["name"])
-
-
 def _features(run: RunRecord) -> str:
     return str((run.config.get("learner") or {}).get("features", "paper"))
-
-
-def _reserve_setting(run: RunRecord) -> str:
-    cfg = run.config.get("learner") or {}
-    return ", ".join(f"{k}={cfg[k]}" for k in RESERVE_KEYS if k in cfg)
 
 
 def _check_same_streams(runs: Sequence[RunRecord], greedy: dict[str, RunRecord]) -> None:
@@ -168,12 +135,11 @@ def _check_same_streams(runs: Sequence[RunRecord], greedy: dict[str, RunRecord])
 
     Every run also plays greedy (deterministic) on its evaluation episodes, so two runs were
     evaluated on the same task streams exactly when their greedy returns agree episode by
-    episode. Another ``eval.seed`` or ``eval.batch_size`` (a second round of copies continues
-    each copy's stream) changes them; pairing such runs episode by episode would be silently
-    wrong.
+    episode; pairing runs on other streams (another ``eval.seed`` or ``eval.batch_size``) would
+    be silently wrong.
 
     Raises:
-        UserError: naming the two run dirs (printed without traceback by the scripts).
+        UserError: naming the two run dirs.
     """
     for run in runs:
         reference = greedy[run.system]
@@ -188,88 +154,73 @@ def _check_same_streams(runs: Sequence[RunRecord], greedy: dict[str, RunRecord])
             )
 
 
+def _variant(run: RunRecord, kind: str, trained_variant: str) -> str:
+    """What makes a policy of a run: a rule's setting, or the encoding and other settings."""
+    if kind == "rule":
+        cfg = run.config.get("learner") or {}
+        keys = RESERVE_KEYS if run.name == "team_reserve" else ()
+        return ", ".join(f"{k}={cfg[k]}" for k in keys if k in cfg)
+    if kind == "untrained":
+        return _features(run)
+    # eval.* settings do not make a policy: each run is scored on its (re-)evaluation
+    rest = [t for t in trained_variant.split() if not t.startswith(("features=", "eval."))]
+    features = _features(run)
+    return " ".join([features] * (features != "paper") + rest) or "paper"
+
+
 def collect_policies(runs: Sequence[RunRecord]) -> dict[str, list[Policy]]:
     """Group the runs into policies per system (module docstring); ``{}`` if nothing to compare.
 
     The section applies when the runs hold a yardstick rule or an untrained learner.
 
     Args:
-        runs: Every finished run (duplicates of a ``(learner, system, seed)`` included: the
-            settings of a team_reserve grid are told apart by their config).
+        runs: Every finished run (duplicates included: the settings of a team_reserve grid are
+            told apart by their config).
 
     Returns:
         ``{system: [greedy, best team_reserve, rollout, learners...]}``.
     """
-    if not any(_base(r) in RULES or _kind(r) == "untrained" for r in runs):
+    if not any(r.name in RULES or _kind(r) == "untrained" for r in runs):
         return {}
     runs = [with_reevaluation(r) for r in runs]
     # trained configurations are told apart among the trained runs only: the settings in which
     # an untrained run differs (train.episodes, learning rates...) do not change its policy
     trained = [r for r in runs if _kind(r) == "trained"]
-    trained_variant = dict(
-        zip(
-            (id(r) for r in trained),
-            configuration_variants([dataclasses.replace(r, learner=_base(r)) for r in trained]),
-            strict=True,
-        )
-    )
+    plain = [dataclasses.replace(r, learner=r.name) for r in trained]
+    variants = dict(zip(map(id, trained), configuration_variants(plain), strict=True))
     groups: dict[tuple[str, str, str, str], list[RunRecord]] = defaultdict(list)
     greedy: dict[str, RunRecord] = {}
     for run in runs:  # greedy of the run with the most evaluation episodes (the first on ties)
         known = greedy.get(run.system)
-        if known is None or _episodes(run.metrics["baseline_greedy"]) > _episodes(
-            known.metrics["baseline_greedy"]
+        if known is None or len(_per_episode(run.metrics["baseline_greedy"])) > len(
+            _per_episode(known.metrics["baseline_greedy"])
         ):
             greedy[run.system] = run
-        learner = _base(run)
-        if learner == GREEDY:
-            continue
-        kind = _kind(run)
-        if kind == "rule":
-            variant = _reserve_setting(run) if learner == "team_reserve" else ""
-        elif kind == "trained":  # the encoding first, then any other setting that differs
-            # eval.* settings do not make a policy: each run is scored on its (re-)evaluation
-            # and other task streams are refused (_check_same_streams)
-            rest = [
-                t
-                for t in trained_variant[id(run)].split()
-                if not t.startswith(("features=", "eval."))
-            ]
-            features = _features(run)
-            variant = " ".join([features] * (features != "paper") + rest) or "paper"
-        else:
-            variant = _features(run)
-        groups[(run.system, learner, kind, variant)].append(run)
+        if run.name != GREEDY:
+            kind = _kind(run)
+            variant = _variant(run, kind, variants.get(id(run), ""))
+            groups[(run.system, run.name, kind, variant)].append(run)
     _check_same_streams(runs, greedy)
     out: dict[str, list[Policy]] = {}
     for system, base in greedy.items():
         block = base.metrics["baseline_greedy"]
-        policies = [
-            Policy(
-                GREEDY,
-                GREEDY,
-                "greedy",
-                [_per_episode(block)],
-                [block["team_return"]["mean"]],
-            )
-        ]
+        means = [block["team_return"]["mean"]]
+        policies = [Policy(GREEDY, GREEDY, "greedy", [_per_episode(block)], means)]
         reserve = [
-            (variant, members)
-            for (s, learner, _, variant), members in groups.items()
-            if s == system and learner == "team_reserve"
+            (v, m) for (s, n, _, v), m in groups.items() if s == system and n == "team_reserve"
         ]
         if reserve:
             variant, members = max(reserve, key=lambda vm: np.mean([_mean(r) for r in vm[1]]))
-            policies.append(_policy(BEST_RESERVE, "team_reserve", "rule", members, variant))
+            policies.append(_policy(BEST_RESERVE, "rule", members, variant))
         for (s, learner, kind, variant), members in sorted(groups.items(), key=_order):
             if s != system or learner == "team_reserve":
                 continue
-            name = learner_label(learner)
+            name = members[0].label
             if kind != "rule":
                 name += " untrained" if kind == "untrained" else ""
                 name += f" [{variant}]" if variant != "paper" else ""
             features = _features(members[0]) if kind != "rule" else "paper"
-            policies.append(_policy(name, learner, kind, members, features=features))
+            policies.append(_policy(name, kind, members, features=features))
         out[system] = policies
     return out
 
@@ -285,10 +236,10 @@ def _mean(run: RunRecord) -> float:
 
 
 def _policy(
-    name: str, learner: str, kind: str, runs: list[RunRecord], note: str = "", features="paper"
+    name: str, kind: str, runs: list[RunRecord], note: str = "", features="paper"
 ) -> Policy:
     returns = [_per_episode(r.metrics["eval"]) for r in runs]
-    return Policy(name, learner, kind, returns, [_mean(r) for r in runs], note, features)
+    return Policy(name, runs[0].name, kind, returns, [_mean(r) for r in runs], note, features)
 
 
 def _yardsticks(policies: list[Policy]) -> list[Policy]:
@@ -308,38 +259,29 @@ def _starting(policy: Policy, policies: list[Policy]) -> Policy | None:
     return (same or starts or [None])[0]
 
 
+def _round(value: float) -> float | str:
+    return "" if math.isnan(value) else round(value, 3)
+
+
 def section_rows(by_system: dict[str, list[Policy]]) -> list[list[Any]]:
-    """CSV rows: each policy against its starting policy and every yardstick."""
+    """CSV rows (:data:`CSV_HEADER`): each policy against its start and every yardstick."""
     rows = []
     for system, policies in by_system.items():
         for p in policies:
-            stat = p.over_seeds
-            versus = [*(_yardsticks(policies))]
-            start = _starting(p, policies)
-            if start is not None:
-                versus.insert(0, start)
-            for other in versus:
-                if other is p:
-                    continue
-                diff = paired_difference(p.per_episode, other.per_episode)
-                rows.append(
-                    [
-                        system,
-                        p.name,
-                        stat.n,
-                        round(stat.mean, 3),
-                        _round(stat.ci95),
-                        other.name,
-                        _round(diff.mean),
-                        _round(diff.ci95),
-                    ]
-                )
+            stat, start = p.over_seeds, _starting(p, policies)
+            for other in [*([start] if start else []), *_yardsticks(policies)]:
+                if other is not p:
+                    diff = paired_difference(p.per_episode, other.per_episode)
+                    rows.append(
+                        [system, p.name, stat.n, round(stat.mean, 3), _round(stat.ci95)]
+                        + [other.name, _round(diff.mean), _round(diff.ci95)]
+                    )
     return rows
 
 
 @dataclass(frozen=True)
 class StartComparison:
-    """A trained policy against its untrained start (acceptance 2 of issue 10).
+    """A trained policy against its untrained start.
 
     Attributes:
         trained: The trained policy (one run per training seed).
@@ -365,9 +307,7 @@ class StartComparison:
             return "yes"
         if self.paired.high < 0:
             return "no (below)"
-        if self.over_seeds.low > 0:
-            return "over seeds only"
-        return "no"
+        return "over seeds only" if self.over_seeds.low > 0 else "no"
 
 
 def start_comparisons(by_system: dict[str, list[Policy]]) -> list[tuple[str, StartComparison]]:
@@ -375,13 +315,11 @@ def start_comparisons(by_system: dict[str, list[Policy]]) -> list[tuple[str, Sta
     out = []
     for system, policies in by_system.items():
         for p in policies:
-            start = _starting(p, policies)
-            if start is None:
-                continue
-            untrained = float(np.mean(start.means))
-            paired = paired_difference(p.per_episode, start.per_episode)
-            seeds = mean_ci([m - untrained for m in p.means])
-            out.append((system, StartComparison(p, start, paired, seeds)))
+            if (start := _starting(p, policies)) is not None:
+                untrained = float(np.mean(start.means))
+                paired = paired_difference(p.per_episode, start.per_episode)
+                seeds = mean_ci([m - untrained for m in p.means])
+                out.append((system, StartComparison(p, start, paired, seeds)))
     return out
 
 
@@ -391,70 +329,13 @@ def start_rows(by_system: dict[str, list[Policy]]) -> list[list[Any]]:
     for system, c in start_comparisons(by_system):
         trained = c.trained.over_seeds
         rows.append(
-            [
-                system,
-                c.trained.name,
-                c.episodes,
-                round(float(np.mean(c.start.means)), 3),
-                trained.n,
-                round(trained.mean, 3),
-                _round(trained.ci95),
-                _round(c.paired.mean),
-                _round(c.paired.ci95),
-                _round(c.over_seeds.mean),
-                _round(c.over_seeds.ci95),
-                c.verdict,
-            ]
+            [system, c.trained.name, c.episodes, round(float(np.mean(c.start.means)), 3)]
+            + [trained.n, round(trained.mean, 3), _round(trained.ci95)]
+            + [_round(v) for v in (c.paired.mean, c.paired.ci95)]
+            + [_round(v) for v in (c.over_seeds.mean, c.over_seeds.ci95)]
+            + [c.verdict]
         )
     return rows
-
-
-def _start_markdown(by_system: dict[str, list[Policy]]) -> list[str]:
-    comparisons = start_comparisons(by_system)
-    if not comparisons:
-        return []
-    header = [
-        "learner",
-        "system",
-        "untrained",
-        "trained (seeds)",
-        "trained − untrained, paired over episodes",
-        "over seeds",
-        "met?",
-    ]
-    rows = [
-        [
-            c.trained.name,
-            system_label(system),
-            f"{np.mean(c.start.means):.1f}",
-            f"{c.trained.over_seeds.format(1)} ({len(c.trained.means)})",
-            f"{_fmt(c.paired)} ({c.episodes})" if c.episodes else "–",
-            _signed(c.over_seeds),
-            c.verdict,
-        ]
-        for system, c in comparisons
-    ]
-    return [
-        "### Does training beat its own start?",
-        "",
-        "Trained − untrained: paired over the evaluation episodes (their number in parentheses), "
-        "and over the training seeds (each seed's mean return minus the untrained return); "
-        "met: the paired interval is above zero.",
-        "",
-        markdown_table(header, rows),
-        "",
-    ]
-
-
-def _signed(value: MeanCI) -> str:
-    """``"+19.7 ± 5.7"``; ``"+19.7"`` for one value; ``"–"`` for none."""
-    if value.n == 0:
-        return "–"
-    return f"{value.mean:+.1f}" + (f" ± {value.ci95:.1f}" if value.n > 1 else "")
-
-
-def _round(value: float) -> float | str:
-    return "" if math.isnan(value) else round(value, 3)
 
 
 def _fmt(diff: MeanCI) -> str:
@@ -484,102 +365,49 @@ def section_markdown(
         rows = []
         for p in policies:
             start = _starting(p, policies)
-            rows.append(
-                [
-                    p.name + (f" ({p.note})" if p.note else ""),
-                    len(p.means),
-                    p.over_seeds.format(1),
-                    _fmt(paired_difference(p.per_episode, start.per_episode)) if start else "",
-                    *(
-                        "" if s is p else _fmt(paired_difference(p.per_episode, s.per_episode))
-                        for s in sticks
-                    ),
-                ]
-            )
+            versus = [
+                "" if s is p else _fmt(paired_difference(p.per_episode, s.per_episode))
+                for s in sticks
+            ]
+            start_text = _fmt(paired_difference(p.per_episode, start.per_episode)) if start else ""
+            name = p.name + (f" ({p.note})" if p.note else "")
+            rows.append([name, len(p.means), p.over_seeds.format(1), start_text, *versus])
         md += [f"### {system_label(system)}", "", markdown_table(header, rows), ""]
     if figure is not None:
         md += [f"![{TITLE}]({figure.name})", ""]
-    md += _start_markdown(by_system)
+    comparisons = start_comparisons(by_system)
+    if comparisons:
+        header = ["learner", "system", "untrained", "trained (seeds)"]
+        header += ["trained − untrained, paired over episodes", "over seeds", "met?"]
+        rows = [
+            [
+                c.trained.name,
+                system_label(system),
+                f"{np.mean(c.start.means):.1f}",
+                f"{c.trained.over_seeds.format(1)} ({len(c.trained.means)})",
+                f"{_fmt(c.paired)} ({c.episodes})" if c.episodes else "–",
+                signed(c.over_seeds),
+                c.verdict,
+            ]
+            for system, c in comparisons
+        ]
+        md += [
+            "### Does training beat its own start?",
+            "",
+            "Trained − untrained: paired over the evaluation episodes (their number in "
+            "parentheses), and over the training seeds (each seed's mean return minus the "
+            "untrained return); met: the paired interval is above zero.",
+            "",
+            markdown_table(header, rows),
+            "",
+        ]
     if start_plot is not None:
         md += [f"![Does training beat its own start?]({start_plot.name})", ""]
     return "\n".join(md)
 
 
-def _color(diff: MeanCI) -> str:
-    """Green above zero, red below, gray when the interval holds zero."""
-    return "tab:green" if diff.low > 0 else "tab:red" if diff.high < 0 else "tab:gray"
-
-
-def difference_figure(by_system: dict[str, list[Policy]], path: Path) -> Path | None:
-    """Paired difference to the best team_reserve (or greedy), with 95 % intervals, per system."""
-    from matplotlib.figure import Figure
-
-    panels = []
-    for system, policies in by_system.items():
-        ref = next((p for p in policies if p.name == BEST_RESERVE), policies[0])
-        items = [
-            (p.name, paired_difference(p.per_episode, ref.per_episode))
-            for p in policies
-            if p is not ref
-        ]
-        items = [(n, d) for n, d in items if d.n]
-        if items:
-            panels.append((system, ref, items))
-    if not panels:
-        return None
-    height = max(len(items) for _, _, items in panels) * 0.45 + 1.4
-    names = [n for _, _, items in panels for n, _ in items]
-    fig = Figure(figsize=((3.6 + _label_inches(names)) * len(panels), height))
-    for k, (system, ref, items) in enumerate(panels):
-        ax = fig.add_subplot(1, len(panels), k + 1)
-        y = np.arange(len(items))[::-1]
-        means = np.array([d.mean for _, d in items])
-        errs = np.array([0.0 if math.isnan(d.ci95) else d.ci95 for _, d in items])
-        colors = [_color(d) for _, d in items]
-        ax.barh(y, means, xerr=errs, color=colors, alpha=0.8, capsize=3)
-        ax.axvline(0.0, color="black", linewidth=0.8)
-        ax.set_yticks(y, [n for n, _ in items], fontsize=8)
-        ax.set_xlabel(f"paired difference to {ref.name}\n(team return per episode)")
-        ax.set_title(f"{system_label(system)}: {ref.name} = {ref.over_seeds.mean:.1f}", fontsize=9)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    return path
-
-
-def _label_inches(labels: list[str]) -> float:
-    """Width the longest y tick label takes at font size 8 (about 0.065 inch a character).
-
-    A figure of fixed width lets long variant names (``semi-CQL [state=slots ...]``) push the
-    axes out of it, and ``tight_layout`` then cuts the title and the axis label.
-    """
-    return 0.065 * max((len(label) for label in labels), default=0)
-
-
-def start_figure(by_system: dict[str, list[Policy]], path: Path) -> Path | None:
-    """Trained - untrained, paired over episodes with 95 % intervals: one bar per learner/system."""
-    from matplotlib.figure import Figure
-
-    comparisons = [(s, c) for s, c in start_comparisons(by_system) if c.episodes]
-    if not comparisons:
-        return None
-    labels = [f"{c.trained.name}, {system_label(s)}" for s, c in comparisons]
-    fig = Figure(figsize=(4.4 + _label_inches(labels), len(comparisons) * 0.32 + 1.4))
-    ax = fig.add_subplot(1, 1, 1)
-    y = np.arange(len(comparisons))[::-1]
-    diffs = [c.paired for _, c in comparisons]
-    errs = [0.0 if math.isnan(d.ci95) else d.ci95 for d in diffs]
-    ax.barh(y, [d.mean for d in diffs], xerr=errs, color=[_color(d) for d in diffs], capsize=3)
-    ax.axvline(0.0, color="black", linewidth=0.8)
-    ax.set_yticks(y, labels, fontsize=8)
-    ax.set_xlabel("trained − untrained, paired over the evaluation episodes\n(team return)")
-    ax.set_title("Does training beat its own start? (95 % t intervals)", fontsize=9)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    return path
-
-
 def write_section(runs: Sequence[RunRecord], out_dir: Path) -> tuple[str, dict[str, Path]]:
-    """Build the section from the runs: markdown, ``yardsticks.csv`` and ``yardsticks.png``.
+    """Build the section: markdown, ``yardsticks*.csv`` and ``yardsticks*.png``.
 
     Args:
         runs: Every finished run, duplicates included.
@@ -592,15 +420,37 @@ def write_section(runs: Sequence[RunRecord], out_dir: Path) -> tuple[str, dict[s
     if not by_system:
         return "", {}
     files = {
-        "yardsticks": write_csv(out_dir / "yardsticks.csv", CSV_HEADER, section_rows(by_system)),
+        "yardsticks": write_csv(
+            out_dir / "yardsticks.csv", pd.DataFrame(section_rows(by_system), columns=CSV_HEADER)
+        ),
         "yardsticks_start": write_csv(
-            out_dir / "yardsticks_start.csv", START_HEADER, start_rows(by_system)
+            out_dir / "yardsticks_start.csv",
+            pd.DataFrame(start_rows(by_system), columns=START_HEADER),
         ),
     }
-    figure = difference_figure(by_system, out_dir / "yardsticks.png")
+    panels = []
+    for system, policies in by_system.items():
+        ref = next((p for p in policies if p.name == BEST_RESERVE), policies[0])
+        diffs = [
+            (p.name, paired_difference(p.per_episode, ref.per_episode))
+            for p in policies
+            if p is not ref
+        ]
+        if diffs := [(n, d) for n, d in diffs if d.n]:
+            title = f"{system_label(system)}: {ref.name} = {ref.over_seeds.mean:.1f}"
+            xlabel = f"paired difference to {ref.name}\n(team return per episode)"
+            panels.append((title, xlabel, diffs))
+    figure = out_dir / "yardsticks.png" if panels else None
     if figure is not None:
-        files["yardsticks_png"] = figure
-    start = start_figure(by_system, out_dir / "yardsticks_start.png")
+        files["yardsticks_png"] = figures.difference_bars(panels, figure)
+    starts = [
+        (f"{c.trained.name}, {system_label(s)}", c.paired)
+        for s, c in start_comparisons(by_system)
+        if c.episodes
+    ]
+    start = out_dir / "yardsticks_start.png" if starts else None
     if start is not None:
-        files["yardsticks_start_png"] = start
+        title = "Does training beat its own start? (95 % t intervals)"
+        xlabel = "trained − untrained, paired over the evaluation episodes\n(team return)"
+        files["yardsticks_start_png"] = figures.difference_bars([(title, xlabel, starts)], start)
     return section_markdown(by_system, figure, start), files

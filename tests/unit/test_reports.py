@@ -1,34 +1,25 @@
-"""Reports without Hydra runs: t quantiles, collection of hand-written run dirs, claims, CSVs."""
+"""Reports without Hydra runs: t quantiles, collection of hand-written run dirs, the long table and
+its summary, claims, CSVs, the marl-eval JSON, and what the package imports."""
 
 from __future__ import annotations
 
 import csv
 import json
 import math
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
 from omegaconf import OmegaConf
 
-from mrta_rl.conf_files import learner_files, learner_named
-from mrta_rl.reports import (
-    build_report,
-    check_claims,
-    collect_runs,
-    mean_ci,
-    summarize_curve,
-    summarize_runs,
-    t_quantile,
-)
+from mrta_rl.reports import build_report, collect_runs, long_table, mean_ci, summarize, t_quantile
+from mrta_rl.reports.claims import check_claims
 from mrta_rl.reports.collect import RunRecord, configuration_variants, expected_sweep_jobs
+from mrta_rl.reports.frame import stat, summarize_curve
 
 TYPES, ROBOTS = ("T1", "T2", "T3"), ("R1", "R2")
 ROBOT_TABLE = {"R1": ["T1", "T2", "T3"], "R2": ["T1"]}  # T1: 2 robots, T2/T3: 1
-
-
-def label_of(learner: str) -> str:
-    """The label a run of ``learner`` records (its class's), or the name of a made-up one."""
-    return learner_named(learner).label if learner in learner_files() else learner
 
 
 def write_run(
@@ -45,11 +36,13 @@ def write_run(
     system: str = "system1",
     groups: dict[str, tuple[list[str], float, float]] | None = None,
     settings: dict | None = None,
+    per_episode: list[float] | None = None,
 ) -> Path:
     """A run dir as scripts/train.py writes it (metrics.json, curve.csv, .hydra/config.yaml).
 
     ``groups``: sub-group -> (task types, learner's part, greedy's part) of a partitioned run;
-    ``settings``: learner hyperparameters of the run's config.
+    ``settings``: learner hyperparameters of the run's config; ``per_episode``: the evaluation
+    team return of each episode.
     """
 
     def block(ret: float, low: float, high: float, idle: float) -> dict:
@@ -63,7 +56,7 @@ def write_run(
 
     run_dir.mkdir(parents=True)
     metrics = {
-        "learner": {"name": learner, "label": label_of(learner), "kind": "tabular"},
+        "learner": {"name": learner, "label": learner, "kind": "tabular"},
         "system": system,
         "seed": seed,
         "eval": block(team_return, ctr_l, ctr_h, itr),
@@ -71,6 +64,8 @@ def write_run(
         "train": {"env_ticks": 100, "wall_s": 1.5, "episodes": 2},
         "learning_space": space or {},
     }
+    if per_episode is not None:
+        metrics["eval"]["team_return"]["per_episode"] = per_episode
     for group, (types, mine, greedy) in (groups or {}).items():
         for key, part in (("eval", mine), ("baseline_greedy", greedy)):
             split = metrics[key].setdefault("return_by_group", {})
@@ -160,14 +155,16 @@ def test_runs_differing_in_hyperparameters_are_separate_configurations(tmp_path)
     ]
     # only the same configuration with the same seed is a duplicate
     assert [d.run_dir.name for d in collection.duplicates] == ["again"]
-    cells = summarize_runs(collection.runs)
-    assert [learner for _, learner in cells] == ["greedy", *variants]  # paper order, then values
+    frame = long_table(collection.runs)
+    summary = summarize(frame)
+    assert list(dict.fromkeys(summary["learner"])) == ["greedy", *variants]  # paper order, values
     for (reserve, hold), value in returns.items():
-        cell = cells[("system1", f"subg_reserve reserve={reserve} hold_level={hold}")]
-        assert cell.team_return.mean == value
-    assert cells[("system1", "subg_reserve reserve=1 hold_level=0")].seeds == (0, 1)
+        cell = summary[summary["learner"] == f"subg_reserve reserve={reserve} hold_level={hold}"]
+        assert stat(cell, "team_return").mean == value
+    seeds = frame[frame["learner"] == "subg_reserve reserve=1 hold_level=0"]["seed"]
+    assert sorted(set(seeds)) == [0, 1]
     report = build_report([tmp_path], tmp_path / "report").report.read_text()
-    assert "| subG-reserve reserve=1 hold_level=0 |" in report
+    assert "| subg_reserve reserve=1 hold_level=0 |" in report  # no label recorded: the name
 
 
 def test_expected_jobs_follow_the_basic_sweeper(tmp_path):
@@ -208,13 +205,16 @@ def test_summaries_and_claims(tmp_path):
         for seed in (0, 1):
             shift = {"ctr_l": kwargs["ctr_l"] + seed, "ctr_h": kwargs["ctr_h"] + seed}
             write_run(tmp_path / f"{learner}{seed}", learner, seed, **{**kwargs, **shift})
-    summaries = summarize_runs(collect_runs([tmp_path]).runs)
-    assert list(summaries) == [("system1", n) for n in ("cql", "semi_cql", "dql", "subg_cql")]
-    cql = summaries[("system1", "cql")]
-    assert cql.ctr[("T2", "L")].mean == pytest.approx(71.5)  # (70 + 1 + 71 + 1) / 2
-    assert cql.ctr[("T2", "L")].ci95 == pytest.approx(t_quantile(1) * math.sqrt(0.5) / math.sqrt(2))
-    assert cql.itr["mean"].mean == pytest.approx(20.5) and cql.return_gain.mean == 10.0
-    verdicts = {(r.claim, r.system): r.verdict for r in check_claims(summaries)}
+    summary = summarize(long_table(collect_runs([tmp_path]).runs))
+    cells = list(dict.fromkeys(zip(summary["system"], summary["learner"], strict=True)))
+    assert cells == [("system1", n) for n in ("cql", "semi_cql", "dql", "subg_cql")]
+    cql = summary[summary["learner"] == "cql"]
+    assert stat(cql, "ctr", "T2", "L").mean == pytest.approx(71.5)  # (70 + 1 + 71 + 1) / 2
+    half = t_quantile(1) * math.sqrt(0.5) / math.sqrt(2)
+    assert stat(cql, "ctr", "T2", "L").ci95 == pytest.approx(half)
+    assert stat(cql, "itr", "mean").mean == pytest.approx(20.5)
+    assert stat(cql, "gain").mean == 10.0
+    verdicts = {(r.claim, r.system): r.verdict for r in check_claims(summary)}
     for claim in (
         "h_above_l",
         "cql_best_ctr",
@@ -234,8 +234,8 @@ def test_summaries_and_claims(tmp_path):
     assert verdicts[("more_robots_higher_ctr", "system1")] == "does not hold"
     assert verdicts[("space_system2_larger", "all")] == "not evaluable"
 
-    del summaries[("system1", "dql")]  # a learner missing: comparisons over all four cannot be made
-    verdicts = {(r.claim, r.system): r.verdict for r in check_claims(summaries)}
+    without_dql = summary[summary["learner"] != "dql"]  # comparisons over all four cannot be made
+    verdicts = {(r.claim, r.system): r.verdict for r in check_claims(without_dql)}
     assert verdicts[("cql_best_ctr", "system1")] == "not evaluable"
     assert verdicts[("subg_ctr_bit_lower", "system1")] == "holds"
 
@@ -287,7 +287,7 @@ def test_report_splits_the_return_by_sub_group(tmp_path):
     text = files.report.read_text()
     assert "| learner | G1 (T1) | G2 (T2 T3) | team |" in text
     # means over the two seeds: G1 (60 + 64) / 2, G2 (40 + 42) / 2; greedy's parts as written
-    assert "| subG-CQL | 62.0 ± 25.4 | 41.0 ± 12.7 | 100.0 ± 0.0 |" in text
+    assert "| subg_cql | 62.0 ± 25.4 | 41.0 ± 12.7 | 100.0 ± 0.0 |" in text
     assert "| greedy, full team | 50.0 ± 0.0 | 40.0 ± 0.0 | 90.0 ± 0.0 |" in text
     with files.csvs["group_return"].open() as handle:
         rows = list(csv.DictReader(handle))
@@ -298,10 +298,9 @@ def test_report_splits_the_return_by_sub_group(tmp_path):
     assert float(rows[0]["return_mean"]) == 62.0 and float(rows[1]["greedy_return_mean"]) == 40.0
 
 
-def test_a_learner_setting_absent_from_an_older_run_is_its_declared_default():
-    """QMIX runs made before ``features`` / ``prior`` existed were labelled by every new key
-    (``prior=null prior_reserve=null ...``) against runs that state the defaults; now an absent
-    learner setting compares as its declared default, and only what really differs names a run."""
+def test_runs_are_compared_on_the_settings_they_record():
+    """A setting one run records and another does not differs (``null``): the report does not
+    load the learner to guess a default."""
     learner = {"_target_": "mrta_rl.learners.tabular.dql.DQLLearner", "_partial_": True}
     old = {"learner": {**learner, "alpha": 0.1}, "eval": {"episodes": 20}}
     same = {"learner": {**learner, "alpha": 0.1, "prior": "greedy", "features": "paper"}}
@@ -311,8 +310,95 @@ def test_a_learner_setting_absent_from_an_older_run_is_its_declared_default():
         for i, config in enumerate((old, same, new))
     ]
     assert configuration_variants(records) == [
-        "eval.episodes=20 features=paper",
-        "eval.episodes=null features=paper",
-        "eval.episodes=null features=time_to_free",
+        "eval.episodes=20 prior=null features=null",
+        "eval.episodes=null prior=greedy features=paper",
+        "eval.episodes=null prior=greedy features=time_to_free",
     ]
-    assert configuration_variants(records[:2]) == ["eval.episodes=20", "eval.episodes=null"]
+    assert configuration_variants(records[1:]) == ["features=paper", "features=time_to_free"]
+
+
+def test_labels_come_from_the_learner_block_of_metrics_json(tmp_path):
+    """metrics.json's ``{"name", "label", "kind"}`` block names and labels the run."""
+    run = collect_runs([write_run(tmp_path / "a", "subg_cql", 0)]).runs[0]
+    block = {"name": "subg_cql", "label": "subG-CQL", "kind": "tabular"}
+    labelled = RunRecord(
+        run.run_dir,
+        "subg_cql",
+        "system1",
+        0,
+        {**run.metrics, "learner": block},
+        (),
+        run.config,
+        (),
+        variant="alpha=0.2",
+    )
+    frame = long_table([run, labelled])
+    assert (run.name, run.label, labelled.name, labelled.label) == (
+        "subg_cql",
+        "subg_cql",
+        "subg_cql",
+        "subG-CQL",
+    )
+    assert list(dict.fromkeys(frame["label"])) == ["subg_cql", "subG-CQL alpha=0.2"]
+    assert list(dict.fromkeys(frame["kind"])) == ["tabular"]
+
+
+def test_runs_csv_is_the_long_table_pivoted(tmp_path):
+    write_run(tmp_path / "a", "cql", 0, ctr_l=40.0, space={"analytic": 2**70 + 1})
+    write_run(tmp_path / "b", "cql", 1, ctr_l=44.0, space={"analytic": 2**70 + 1})
+    files = build_report([tmp_path], tmp_path / "report")
+    with files.csvs["runs"].open() as handle:
+        rows = list(csv.DictReader(handle))
+    assert [(r["learner"], r["seed"]) for r in rows] == [("cql", "0"), ("cql", "1")]
+    assert [float(r["ctr_T2_L"]) for r in rows] == [41.0, 45.0]  # low + index of the type
+    assert [float(r["ctr_all_L"]) for r in rows] == [41.0, 45.0]  # low + 1
+    assert rows[0]["learning_space_analytic"] == str(2**70 + 1)  # exact
+    with files.csvs["ctr"].open() as handle:
+        ctr = [r for r in csv.DictReader(handle) if r["priority"] == "L"]
+    assert [r["task_type"] for r in ctr] == ["T1", "T2", "T3", "all"]  # the overall CTR last
+    assert float(ctr[1]["mean"]) == 43.0 and float(ctr[1]["ci95"]) == pytest.approx(
+        t_quantile(1) * math.sqrt(8) / math.sqrt(2)
+    )
+
+
+def test_marl_eval_json_loads_back_with_every_run(tmp_path):
+    """The format of marl-eval (BenchMARL's and Mava's JSON loggers): env, task, algorithm,
+    ``seed_<n>``, one step with ``step_count`` and the per-episode returns, absolute metrics."""
+    write_run(tmp_path / "runs" / "a", "cql", 0, per_episode=[90.0, 110.0])
+    write_run(tmp_path / "runs" / "b", "cql", 1, per_episode=[95.0, 105.0])
+    write_run(tmp_path / "runs" / "c", "greedy", 0, system="system2")  # no per-episode returns
+    files = build_report([tmp_path / "runs"], tmp_path / "report")
+    data = json.loads(files.marl_eval.read_text())
+    assert list(data) == ["auction"]
+    assert {task: sorted(algos) for task, algos in data["auction"].items()} == {
+        "system1": ["cql"],
+        "system2": ["greedy"],
+    }
+    cql = data["auction"]["system1"]["cql"]
+    assert sorted(cql) == ["seed_0", "seed_1"]
+    assert cql["seed_0"] == {
+        "step_0": {"step_count": 100, "return": [90.0, 110.0]},  # train.env_ticks of the run
+        "absolute_metrics": {"return": [90.0, 110.0]},
+    }
+    assert cql["seed_1"]["absolute_metrics"]["return"] == [95.0, 105.0]
+    greedy = data["auction"]["system2"]["greedy"]["seed_0"]
+    assert greedy["step_0"]["return"] == [100.0]  # the mean, for a run without per-episode values
+
+
+def test_reports_import_no_runner_learner_or_torch(tmp_path):
+    """Making a report reads run dirs only: in a fresh process, the report command and building
+    a report load no torch, no mrta_rl.runners and no mrta_rl.learners."""
+    write_run(tmp_path / "runs" / "a", "cql", 0, curve=[(10, 1.0), (20, 2.0)])
+    code = (
+        "import sys\n"
+        "import mrta_rl.commands.report\n"
+        "from mrta_rl.reports import build_report\n"
+        f"build_report([{str(tmp_path / 'runs')!r}])\n"
+        "bad = sorted(m for m in sys.modules if m.split('.')[0] == 'torch'"
+        " or m.startswith(('mrta_rl.runners', 'mrta_rl.learners')))\n"
+        "print(bad)\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "[]"
+    assert (tmp_path / "runs" / "report" / "report.md").is_file()

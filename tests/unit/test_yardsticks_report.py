@@ -21,13 +21,14 @@ from mrta_rl.reports.yardsticks import (
 )
 
 GREEDY = [10.0, 20.0, 30.0]  # per evaluation episode, shared by every run
+LABELS = {"subg_cql": "subG-CQL", "cql": "CQL", "qmix": "QMIX"}  # metrics.json's learner block
 
 
 def record(learner, seed, returns, *, episodes=0, space=None, learner_cfg=None):
     block = {"team_return": {"mean": float(np.mean(returns)), "per_episode": list(returns)}}
     greedy = {"team_return": {"mean": float(np.mean(GREEDY)), "per_episode": GREEDY}}
     metrics = {
-        "learner": {"name": learner, "label": learner, "kind": "fixed"},
+        "learner": {"name": learner, "label": LABELS.get(learner, learner), "kind": "tabular"},
         "system": "system2",
         "seed": seed,
         "eval": block,

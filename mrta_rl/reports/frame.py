@@ -1,0 +1,245 @@
+"""The runs as one long table (run x config x metric), and its summary over seeds.
+
+One row per run and metric value: the run's columns (``learner`` = its configuration name,
+``name``, ``label``, ``kind``, ``system``, ``seed``, ``variant``, ``run_dir``) and the metric's
+(``metric``, ``item``, ``priority``, ``value``; ``types``: the task types of a subG
+sub-group, for the return split by sub-group). The values are the evaluation block of each run's
+metrics.json (spec "Metrics": CTR pooled over the evaluation episodes of that seed, ITR eq. 9),
+the greedy baseline on the same streams, the learning space (exact Python ints: CQL on System-II
+exceeds 2**63) and the training counters. :func:`summarize` aggregates every metric of a
+``(system, learner)`` cell over its seeds: the mean with a 95 % t interval (``reports/stats.py``).
+Every table of the report is a pivot of these two frames.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from mrta_rl.reports.collect import RunRecord, natural_key
+from mrta_rl.reports.stats import MeanCI, mean_ci
+from mrta_rl.types import PRIORITIES
+
+# Row order of the paper's tables (its four methods first); other learners follow alphabetically.
+PAPER_ORDER = (
+    *("cql", "semi_cql", "dql", "subg_cql", "subg_dqn", "vdn", "qmix", "iql", "reserve_es"),
+    *("greedy", "random", "high_only", "subg_reserve", "subg_greedy"),
+)
+SYSTEM_LABELS: dict[str, str] = {"system1": "System-I", "system2": "System-II"}
+PRIORITY_LABELS: dict[str, str] = {"L": "low-priority", "H": "high-priority"}
+RUN_COLUMNS = ("learner", "label", "name", "kind", "system", "seed", "variant", "run_dir")
+# metrics that are columns of runs.csv (``<metric>_<item>_<priority>``); the rest is derived
+RUNS_CSV_METRICS = ("team_return", "greedy_team_return", "ctr", "itr", "learning_space", "train")
+STATS = ("n", "mean", "ci95", "std", "low", "high")
+
+
+def system_label(name: str) -> str:
+    """Paper name of a system (``system1`` -> ``System-I``); unknown names unchanged."""
+    return SYSTEM_LABELS.get(name, name)
+
+
+def order_learners(names: Iterable[str]) -> list[str]:
+    """:data:`PAPER_ORDER`, then the rest alphabetically; configurations by their numbers."""
+
+    def key(name: str) -> tuple[Any, ...]:
+        base = name.partition(" ")[0]
+        rank = PAPER_ORDER.index(base) if base in PAPER_ORDER else len(PAPER_ORDER)
+        return (rank, base, natural_key(name))
+
+    return sorted(set(names), key=key)
+
+
+def order_systems(names: Iterable[str]) -> list[str]:
+    """System-I, System-II, then the rest alphabetically."""
+    names = set(names)
+    known = [n for n in SYSTEM_LABELS if n in names]
+    return known + sorted(names - set(known))
+
+
+def _rows(run: RunRecord) -> Iterable[tuple[Any, ...]]:
+    """``(metric, item, priority, value[, types])`` of one run, in the column order of runs.csv."""
+    e, greedy = run.metrics["eval"], run.metrics.get("baseline_greedy") or {}
+    yield "team_return", "", "", e["team_return"]["mean"]
+    yield "greedy_team_return", "", "", (greedy.get("team_return") or {}).get("mean")
+    for p in PRIORITIES:
+        yield "ctr", "all", p, e["ctr_overall"].get(p)
+    for task, by_priority in e["ctr"].items():
+        for p in PRIORITIES:
+            yield "ctr", task, p, by_priority.get(p)
+    for robot, value in e["itr"].items():
+        yield "itr", robot, "", value
+    for key, value in (run.metrics.get("learning_space") or {}).items():
+        yield "learning_space", key, "", int(value)
+    train = run.metrics.get("train") or {}
+    for key in ("wall_s", "env_ticks", "episodes"):
+        yield "train", key, "", train.get(key)
+    for block, metric in ((e, "group_return"), (greedy, "greedy_group_return")):
+        for group, part in (block.get("return_by_group") or {}).items():
+            yield metric, group, "", part["return"], " ".join(part["types"])
+    robots = (run.config.get("system") or {}).get("robots") or {}
+    for task in e["ctr"]:  # paper §6.1: a type more robots can do has a higher CTR
+        if robots:
+            yield "capable_robots", task, "", sum(task in (t or []) for t in robots.values())
+
+
+def long_table(runs: Sequence[RunRecord]) -> pd.DataFrame:
+    """The long table of the runs (module docstring), runs in the given order.
+
+    Args:
+        runs: Finished runs.
+
+    Returns:
+        One row per run and metric value; ``value`` keeps None for an undefined metric.
+    """
+    records = []
+    for i, run in enumerate(runs):
+        learner = run.metrics.get("learner")
+        kind = learner.get("kind", "") if isinstance(learner, dict) else ""
+        label = f"{run.label} {run.variant}".strip()  # a configuration keeps what sets it apart
+        head = (run.learner, label, run.name, kind, run.system, run.seed, run.variant)
+        for row in _rows(run):
+            records.append((i, *head, str(run.run_dir), *row, *("",) * (5 - len(row))))
+    columns = ["run", *RUN_COLUMNS, "metric", "item", "priority", "value", "types"]
+    frame = pd.DataFrame.from_records(records, columns=columns)
+    # objects, not floats: ints stay ints (exact learning spaces), None stays undefined
+    frame["value"] = pd.Series([r[columns.index("value")] for r in records], dtype=object)
+    return frame
+
+
+def runs_wide(frame: pd.DataFrame) -> pd.DataFrame:
+    """One row per run with its flat metrics (runs.csv): ``ctr_T1_L``, ``itr_R1``, ..."""
+    rows = frame[frame["metric"].isin(RUNS_CSV_METRICS)]
+    columns = zip(rows["metric"], rows["item"], rows["priority"], strict=True)
+    rows = rows.assign(column=["_".join(part for part in parts if part) for parts in columns])
+    # objects, not floats: the values as metrics.json has them; columns in order of appearance
+    wide = pd.DataFrame(
+        [
+            dict(zip(g["column"], g["value"], strict=True))
+            for _, g in rows.groupby("run", sort=False)
+        ],
+        dtype=object,
+    )
+    runs = frame.drop_duplicates("run")[["learner", "system", "seed", "run_dir"]]
+    return pd.concat([runs.reset_index(drop=True), wide], axis=1)
+
+
+def _derived(frame: pd.DataFrame) -> pd.DataFrame:
+    """Per run: the mean ITR over robots, and the paired gain over greedy (learner - greedy)."""
+    per_run = frame.drop_duplicates("run").set_index("run")[list(RUN_COLUMNS)]
+    itr = frame[frame["metric"] == "itr"].groupby("run", sort=False)["value"]
+    mean_itr = itr.agg(lambda v: float(np.nanmean([np.nan if x is None else x for x in v])))
+
+    def value(metric: str) -> pd.Series:
+        return frame[frame["metric"] == metric].set_index("run")["value"]
+
+    ret, greedy = value("team_return"), value("greedy_team_return")
+    pairs = zip(ret, greedy.loc[ret.index], strict=True)
+    gain = [None if g is None or r is None else r - g for r, g in pairs]
+    parts = [
+        per_run.loc[mean_itr.index].assign(metric="itr", item="mean", value=mean_itr),
+        per_run.loc[ret.index].assign(metric="gain", item="", value=gain),
+    ]
+    return pd.concat(parts).assign(priority="", types="").reset_index()
+
+
+def summarize(frame: pd.DataFrame) -> pd.DataFrame:
+    """Mean and 95 % t interval over seeds of every metric of every ``(system, learner)`` cell.
+
+    Args:
+        frame: The long table (:func:`long_table`).
+
+    Returns:
+        One row per cell and metric value: the cell's columns (``learner``, ``label``, ``name``,
+        ``system``, ``seeds`` = number of runs), ``metric``, ``item``, ``priority``, ``types``, the
+        :data:`STATS` (NaN where undefined), ``first`` (the first seed's value, an exact int for
+        the learning space) and ``stat`` (the :class:`MeanCI`). Cells ordered by
+        system, then learner (:func:`order_learners`); metrics in the order of the runs.
+    """
+    full = pd.concat([frame, _derived(frame)], ignore_index=True)
+    systems = order_systems(full["system"])
+    learners = order_learners(full["learner"])
+    full["rank"] = [
+        (systems.index(s), learners.index(n))
+        for s, n in zip(full["system"], full["learner"], strict=True)
+    ]
+    full = full.sort_values("rank", kind="stable")
+    seeds = full.groupby(["system", "learner"])["run"].nunique()
+    records = []
+    keys = ["system", "learner", "metric", "item", "priority"]
+    for (system, learner, metric, item, priority), group in full.groupby(keys, sort=False):
+        stat = mean_ci(None if v is None else float(v) for v in group["value"])
+        first = group.iloc[0]
+        records.append(
+            {
+                "system": system,
+                "learner": learner,
+                "label": first["label"],
+                "name": first["name"],
+                "seeds": int(seeds[system, learner]),
+                "metric": metric,
+                "item": item,
+                "priority": priority,
+                "types": first["types"],
+                "first": first["value"],  # exact: the learning space of the first seed
+                **{k: getattr(stat, k) for k in STATS},
+                "stat": stat,
+            }
+        )
+    return pd.DataFrame.from_records(records)
+
+
+def stat(summary: pd.DataFrame, metric: str, item: str = "", priority: str = "") -> MeanCI:
+    """The :class:`MeanCI` of one metric value in a summary of one cell (empty if absent)."""
+    rows = summary[
+        (summary["metric"] == metric)
+        & (summary["item"] == item)
+        & (summary["priority"] == priority)
+    ]
+    return rows["stat"].iloc[0] if len(rows) else MeanCI(0, math.nan, math.nan, math.nan)
+
+
+@dataclass(frozen=True)
+class CurveSummary:
+    """Learning curve of one learner on one system over seeds.
+
+    Attributes:
+        env_ticks: Training copy-ticks at the end of each episode (x axis).
+        mean: Mean team return per episode over seeds at each point.
+        low: Lower end of the 95 % interval (equal to the mean with one seed).
+        high: Upper end of the 95 % interval.
+        seeds: Number of seeds.
+    """
+
+    env_ticks: np.ndarray
+    mean: np.ndarray
+    low: np.ndarray
+    high: np.ndarray
+    seeds: int
+
+
+def summarize_curve(runs: Sequence[RunRecord]) -> CurveSummary | None:
+    """Mean and 95 % band of the training curves of some seeds.
+
+    Seeds of one config log at the same env ticks; if their lengths differ (an interrupted run),
+    the common prefix is kept so every point averages the same seeds.
+
+    Args:
+        runs: Runs of one learner on one system.
+
+    Returns:
+        The summary, or None if no run has a curve (fixed policies do not train).
+    """
+    curves = [r.curve for r in runs if r.curve]
+    if not curves:
+        return None
+    length = min(len(c) for c in curves)
+    ticks = np.array([tick for tick, _ in curves[0][:length]], dtype=np.int64)
+    stats = [mean_ci(c[i][1] for c in curves) for i in range(length)]
+    mean = np.array([s.mean for s in stats])
+    half = np.array([0.0 if math.isnan(s.ci95) else s.ci95 for s in stats])
+    return CurveSummary(ticks, mean, mean - half, mean + half, len(curves))
