@@ -48,7 +48,7 @@ class GreedyLearner(FixedLearner):
 class SubGGreedyLearner(GreedyLearner):
     """Greedy on the subG partition: the plain auction, each robot bidding only for ``Lambda_i``.
 
-    The switch-cost study (issue 11) compares it with greedy on the whole team: the partition's
+    The switch-cost study compares it with greedy on the whole team: the partition's
     specialization can only pay when switching task types costs time (``env.switch_ticks``).
     """
 

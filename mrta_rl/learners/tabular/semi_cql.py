@@ -53,7 +53,7 @@ class SemiCQLLearner(RobotQLearner):
         state: The shared state (``encoding.SYSTEM_STATES``): ``system``, the paper's group view
             of all robots; or, coarser, the slot codes and the recency level with the number of
             idle robots (``idle_count``), each robot's idle flag (``idle``) or nothing more
-            (``slots``, the default: docs/results.md, "semi-CQL: a coarser shared state"); the
+            (``slots``, the default: docs/notebook.md, "semi-CQL: a coarser shared state"); the
             coarser ones need ``features=paper``.
         **hyperparameters: See :class:`~mrta_rl.learners.tabular.base.TabularLearner`.
     """

@@ -371,7 +371,7 @@ class SubGCQLLearner(GroupQLearner):
             ``GroupView``; or ``idle`` (the default), each robot's idle flag instead of its three
             states (no battery digit; with ``features=time_to_free`` busy / idle / free soon and
             the queue levels; ``encoding.SubGroupEncoder``). The paper's subG-CQL is
-            ``state="group", features="paper"`` (``experiment=paper`` pins it; docs/results.md,
+            ``state="group", features="paper"`` (``experiment=paper`` pins it; docs/notebook.md,
             "subG-CQL: larger budgets on the coarse state").
         **hyperparameters: See :class:`~mrta_rl.learners.tabular.base.TabularLearner`.
     """
