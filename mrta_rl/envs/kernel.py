@@ -136,7 +136,7 @@ def _compile_unpack():
         "    o, d = layout[:, 0], layout[:, 1:]\n"
         f"    return Tables({', '.join(views[:split])}), State({', '.join(views[split:])})\n"
     )
-    namespace = {"Tables": Tables, "State": State}
+    namespace = {"__name__": __name__, "Tables": Tables, "State": State}  # as this module's
     exec(compile(source, __file__, "exec"), namespace)
     return njit(cache=True, nogil=True)(namespace["unpack"])
 
@@ -163,15 +163,22 @@ def _fma(typingctx, x, y, z):
 @njit(cache=True, nogil=True)
 def begin_copy(b, tables, state):
     """Spec steps 1-2 of tick ``t[b]`` in copy ``b``: arrivals, queue order, overflow drops."""
-    queue, length, now = state.queue, 0, state.t[b]
-    n = state.last_high_arrival.shape[1]
-    state.pending_penalty[b, :] = 0.0
+    # the fields as locals: numba counts a reference at each read of a record's field
+    queue, queue_len, next_id = state.queue, state.queue_len, state.next_id
+    pending_penalty, dropped, last_high_arrival = (
+        state.pending_penalty,
+        state.dropped,
+        state.last_high_arrival,
+    )
+    fparams, dur_lo, dur_span = tables.fparams, tables.dur_lo, tables.dur_span
+    length, now, n = 0, state.t[b], last_high_arrival.shape[1]
+    pending_penalty[b, :] = 0.0
     # drop the holes left by the last step's slot tasks (assigned or dropped)
-    for j in range(state.queue_len[b]):
+    for j in range(queue_len[b]):
         if queue[b, j] != EMPTY:
             queue[b, length] = queue[b, j]
             length += 1
-    for j in range(length, state.queue_len[b]):
+    for j in range(length, queue_len[b]):
         queue[b, j] = EMPTY
     # spec step 1: N ~ Poisson(arrival_rate) new tasks, all counter-based hashes (counter_rng)
     key = tick_key(state.episode_key[b], np.uint64(now))
@@ -180,15 +187,15 @@ def begin_copy(b, tables, state):
         h_priority, h_kind = task_hash_pair(key, np.uint64(k + 1))
         # H with probability p_high; type uniform over the n types (high 32 bits of h_kind),
         # duration uniform over its type and priority's range, ends included (low 32 bits)
-        high = np.int64(unit_float(h_priority) < tables.fparams[F_P_HIGH])
+        high = np.int64(unit_float(h_priority) < fparams[F_P_HIGH])
         ttype = np.int64(bounded_uint(high_bits(h_kind), np.uint64(n)))
-        span = np.uint64(tables.dur_span[ttype, high])
-        duration = tables.dur_lo[ttype, high] + np.int64(bounded_uint(h_kind, span))
-        queue[b, length] = pack_tasks(high, now, state.next_id[b] + k, ttype, duration, np.int64(0))
+        span = np.uint64(dur_span[ttype, high])
+        duration = dur_lo[ttype, high] + np.int64(bounded_uint(h_kind, span))
+        queue[b, length] = pack_tasks(high, now, next_id[b] + k, ttype, duration, np.int64(0))
         length += 1
         if high:
-            state.last_high_arrival[b, ttype] = now
-    state.next_id[b] += count
+            last_high_arrival[b, ttype] = now
+    next_id[b] += count
     # spec step 2: queue order (H before L, due tick, id) is the keys' order; insertion sort, as
     # the queue is sorted already but for the new tasks and the re-auctioned ones
     for j in range(1, length):
@@ -203,40 +210,47 @@ def begin_copy(b, tables, state):
     for j in range(capacity, length):
         x = queue[b, j]
         ttype, high = task_type(x), task_high(x)
-        state.dropped[b, ttype, high] += 1
-        state.pending_penalty[b, ttype] += tables.fparams[F_DROP + high]
+        dropped[b, ttype, high] += 1
+        pending_penalty[b, ttype] += fparams[F_DROP + high]
         queue[b, j] = EMPTY
-    state.queue_len[b] = min(length, capacity)
+    queue_len[b] = min(length, capacity)
 
 
 @njit(cache=True, nogil=True)
 def select_copy(b, tables, state, views):
     """Spec step 3 and the decision's inputs (step 4) of copy ``b``; idempotent."""
-    K, m = state.slot_pos.shape[1], state.busy_until.shape[1]
+    queue, slot_pos, slot_keys, busy_until = (
+        state.queue,
+        state.slot_pos,
+        state.slot_keys,
+        state.busy_until,
+    )
+    slot_type, slot_high, idle, mask = views
+    can_do = tables.can_do
+    K, m = slot_pos.shape[1], busy_until.shape[1]
     now = state.t[b]
     k = 0
     if not state.done[b]:  # a finished copy auctions nothing
         # the first K queued tasks due by now, in queue order (EMPTY is never due)
         for j in range(state.queue_len[b]):
-            x = state.queue[b, j]
+            x = queue[b, j]
             if x != EMPTY and task_due(x) <= now:
-                state.slot_pos[b, k], state.slot_keys[b, k] = j, x
-                views.slot_type[b, k], views.slot_high[b, k] = task_type(x), task_high(x)
+                slot_pos[b, k], slot_keys[b, k] = j, x
+                slot_type[b, k], slot_high[b, k] = task_type(x), task_high(x)
                 k += 1
                 if k == K:
                     break
     for kk in range(k, K):
-        state.slot_pos[b, kk], state.slot_keys[b, kk] = -1, EMPTY
-        views.slot_type[b, kk], views.slot_high[b, kk] = -1, -1
+        slot_pos[b, kk], slot_keys[b, kk], slot_type[b, kk], slot_high[b, kk] = -1, EMPTY, -1, -1
     # spec step 4: idle when t > busy_until; a bid for slot k is valid if the robot is idle and
     # the slot holds a task of one of its active types (Lambda_i); waiting is always valid
     for i in range(m):
-        free = now > state.busy_until[b, i]
-        views.idle[b, i] = free
-        views.mask[b, i, 0] = True
+        free = now > busy_until[b, i]
+        idle[b, i] = free
+        mask[b, i, 0] = True
         for kk in range(K):
-            ttype = views.slot_type[b, kk]
-            views.mask[b, i, kk + 1] = free and ttype >= 0 and tables.can_do[ttype, i]
+            ttype = slot_type[b, kk]
+            mask[b, i, kk + 1] = free and ttype >= 0 and can_do[ttype, i]
 
 
 # ---------------------------------------------------------------------------- spec steps 4-8
@@ -257,17 +271,22 @@ def step_copies(lo, hi, actions, tables, state, idle_before, views, rewards):
     """
     iparams, fparams, willingness = tables.iparams, tables.fparams, tables.willingness
     queue, slot_keys, slot_pos = state.queue, state.slot_keys, state.slot_pos
-    K, m, n = slot_pos.shape[1], state.busy_until.shape[1], state.last_high_arrival.shape[1]
+    t, done, pending_penalty = state.t, state.done, state.pending_penalty
+    busy_until, battery, last_type = state.busy_until, state.battery, state.last_type
+    assigned, dropped, busy_ticks = state.assigned, state.dropped, state.busy_ticks
+    team_return, ticks = state.team_return, state.ticks
+    team_reward, assign_reward, type_penalty = rewards
+    K, m, n = slot_pos.shape[1], busy_until.shape[1], pending_penalty.shape[1]
     for b in range(lo, hi):
-        now = state.t[b]
+        now = t[b]
         # spec step 8 counts this tick's overflow drops (spec step 2)
         team = 0.0
         for j in range(n):
-            team += state.pending_penalty[b, j]
-            rewards.type_penalty[b, j] = state.pending_penalty[b, j]
+            team += pending_penalty[b, j]
+            type_penalty[b, j] = pending_penalty[b, j]
         team = -team
         for i in range(m):
-            rewards.assign[b, i] = 0.0
+            assign_reward[b, i] = 0.0
         # spec step 5, slot by slot: among the bidders, the highest willingness wins, ties to the
         # lowest robot index
         for k in range(K):
@@ -285,22 +304,22 @@ def step_copies(lo, hi, actions, tables, state, idle_before, views, rewards):
             # setup, busy and draining as execution does (docs/spec/auction_env.md, task-switch
             # cost)
             duration = task_duration(x)
-            if state.last_type[b, winner] >= 0 and state.last_type[b, winner] != ttype:
+            if last_type[b, winner] >= 0 and last_type[b, winner] != ttype:
                 duration += iparams[I_SWITCH_TICKS]
             # spec step 5: executes during ticks t+1 .. t+duration, draining the battery; below the
             # threshold afterwards, it charges right after and is full again
             ready = now + duration
-            level = state.battery[b, winner] - fparams[F_DRAIN] * duration
+            level = battery[b, winner] - fparams[F_DRAIN] * duration
             if level < fparams[F_THRESHOLD]:
                 ready += iparams[I_CHARGE_TICKS]
                 level = fparams[F_BATTERY_CAPACITY]
-            state.busy_until[b, winner], state.battery[b, winner] = ready, level
-            state.last_type[b, winner] = ttype
+            busy_until[b, winner], battery[b, winner] = ready, level
+            last_type[b, winner] = ttype
             # spec step 8: the task's assign reward, to the team and to its winner
             reward = fparams[F_ASSIGN + high]
-            rewards.assign[b, winner] += reward
+            assign_reward[b, winner] += reward
             team += reward
-            state.assigned[b, ttype, high] += 1
+            assigned[b, ttype, high] += 1
             queue[b, slot_pos[b, k]] = EMPTY
             slot_keys[b, k] = -1  # marks the slot as assigned for the loop below
         # spec step 6: an unassigned slot task goes to round 2, due t + delay; in round 2, dropped
@@ -312,21 +331,21 @@ def step_copies(lo, hi, actions, tables, state, idle_before, views, rewards):
                 queue[b, slot_pos[b, k]] = to_second_round(x, now + iparams[I_REAUCTION_DELAY])
             else:
                 ttype, high = task_type(x), task_high(x)
-                state.dropped[b, ttype, high] += 1
+                dropped[b, ttype, high] += 1
                 penalty = fparams[F_DROP + high]  # spec step 8
-                rewards.type_penalty[b, ttype] += penalty
+                type_penalty[b, ttype] += penalty
                 team -= penalty
                 queue[b, slot_pos[b, k]] = EMPTY
         # spec step 7: busy if not idle at step 4, or if it bid (the auction takes its time)
         for i in range(m):
             if not idle_before[b, i] or actions[b, i] > 0:
-                state.busy_ticks[b, i] += 1
-        rewards.team[b] = team
-        state.team_return[b] += team
-        state.ticks[b] += 1
-        state.t[b] = now + 1
-        state.done[b] = state.t[b] >= iparams[I_HORIZON]
-        begin = 0 if state.done[b] else 1  # spec steps 1-3 of the next tick, unless at the horizon
+                busy_ticks[b, i] += 1
+        team_reward[b] = team
+        team_return[b] += team
+        ticks[b] += 1
+        t[b] = now + 1
+        done[b] = t[b] >= iparams[I_HORIZON]
+        begin = 0 if done[b] else 1  # spec steps 1-3 of the next tick, unless at the horizon
         refresh_copy(b, begin, tables, state, views)
 
 
@@ -456,18 +475,19 @@ def refresh(rows, begin, layout, buffers, views):
 
 
 @njit(cache=True, nogil=True)
-def fixed_policy_copy(b, policy, actions, state, views):
-    """The spec's fixed policies for copy ``b``, into ``actions[b]``.
+def fixed_policy_copy(b, policy, episode_key, t, views, actions):
+    """The spec's fixed policies for copy ``b`` at its tick ``t``, into ``actions[b]``.
 
     ``greedy`` bids for the lowest-numbered valid slot, ``high_only`` for the lowest-numbered
     valid slot holding an H task; ``random`` picks uniformly among the valid bids and waiting,
-    from counter-based hashes of the copy's episode key, tick and robot.
+    from counter-based hashes of the copy's ``episode_key``, tick and robot. (The copy's two
+    state fields come as scalars: a record argument costs a reference count per array.)
     """
-    mask = views.mask
+    mask, slot_high = views.mask, views.slot_high
     m, n_actions = mask.shape[1], mask.shape[2]
     key = np.uint64(0)
     if policy == 1:  # only random draws (a hash per copy is a third of greedy's cost)
-        key = mix64(tick_key(state.episode_key[b], np.uint64(state.t[b])) ^ _POLICY_SALT)
+        key = mix64(tick_key(episode_key, np.uint64(t)) ^ _POLICY_SALT)
     for i in range(m):
         choice = 0
         if policy == 1:  # random
@@ -482,7 +502,7 @@ def fixed_policy_copy(b, policy, actions, state, views):
                         choice = a
         else:
             for a in range(1, n_actions):
-                if mask[b, i, a] and (policy == 0 or views.slot_high[b, a - 1] == 1):
+                if mask[b, i, a] and (policy == 0 or slot_high[b, a - 1] == 1):
                     choice = a
                     break
         actions[b, i] = choice
@@ -492,9 +512,9 @@ def fixed_policy_copy(b, policy, actions, state, views):
 def fixed_actions(policy, layout, buffers, views, actions):
     """:func:`fixed_policy_copy` of every copy, into ``actions`` ``[B, m]``."""
     state = unpack(layout, buffers)[1]
-    views = Views(*views)
+    episode_key, t, views = state.episode_key, state.t, Views(*views)
     for b in range(actions.shape[0]):
-        fixed_policy_copy(b, policy, actions, state, views)
+        fixed_policy_copy(b, policy, episode_key[b], t[b], views, actions)
 
 
 @njit(cache=True, nogil=True)
@@ -508,11 +528,13 @@ def play_copy(b, plan, tables, state, views, scratch, out):
     nothing. ``scratch`` holds the actions and rewards of copy ``b``'s row. Returns the number of
     ticks played.
     """
-    B = state.t.shape[0]
+    policy, max_ticks, rounds = plan
+    actions, rewards = scratch
+    done, B = state.done, state.t.shape[0]
     played, recorded = 0, 0
     while True:
-        if state.done[b]:
-            if played > 0 and recorded < plan.rounds:  # (an episode ended before this call: not)
+        if done[b]:
+            if played > 0 and recorded < rounds:  # (an episode ended before this call: not)
                 row = recorded * B + b
                 # element by element: a slice copy (out[row] = a[b]) makes numba compile its
                 # shape-mismatch message (string formatting), about 7 s per empty-cache process
@@ -524,14 +546,14 @@ def play_copy(b, plan, tables, state, views, scratch, out):
                     out.busy_ticks[row, i] = state.busy_ticks[b, i]
                 out.team_return[row], out.ticks[row] = state.team_return[b], state.ticks[b]
                 recorded += 1
-            if plan.rounds > 0 and recorded == plan.rounds:
+            if rounds > 0 and recorded == rounds:
                 break
             # begin typed int64 (a literal 2 would compile refresh_copy again)
             refresh_copy(b, np.int64(2), tables, state, views)
-        if played == plan.max_ticks:
+        if played == max_ticks:
             break
-        fixed_policy_copy(b, plan.policy, scratch.actions, state, views)
-        step_copies(b, b + 1, scratch.actions, tables, state, views.idle, views, scratch.rewards)
+        fixed_policy_copy(b, policy, state.episode_key[b], state.t[b], views, actions)
+        step_copies(b, b + 1, actions, tables, state, views.idle, views, rewards)
         played += 1
     return played
 
