@@ -75,8 +75,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from mrta_rl.envs import state_codes
 from mrta_rl.envs.auction import AuctionEnv
-from mrta_rl.envs.tasks import EMPTY, task_high, task_type
 
 RECENCY_THRESHOLDS: tuple[int, int] = (3, 10)  # recency level 0: delta <= 3, 1: delta <= 10, else 2
 N_RECENCY_LEVELS = 3
@@ -87,7 +87,11 @@ FREE_SOON = 3  # free level 1: a busy robot idle again within this many ticks
 N_FREE_LEVELS = 3  # idle / free soon / free later
 QUEUE_THRESHOLDS = {"H": (0, 1), "L": (2, 8)}  # queue level: count <= t0 -> 0, <= t1 -> 1, else 2
 N_QUEUE_LEVELS = 3
-_NEVER = np.iinfo(np.int64).min // 4  # "no H arrival" sentinel, far below any tick
+# the thresholds as the compiled loops (envs/state_codes.py) take them
+RECENCY_THRESHOLDS_ARRAY = np.array(RECENCY_THRESHOLDS, np.int64)
+QUEUE_THRESHOLDS_ARRAY = np.array(
+    [QUEUE_THRESHOLDS["H"], QUEUE_THRESHOLDS["L"]], np.int64
+)  # [H, L]
 
 __all__ = [
     "FEATURES",
@@ -155,8 +159,11 @@ def battery_level(env: AuctionEnv) -> np.ndarray:
     Returns:
         ``[B, m]`` int64 in {0, 1}; 1 = low, the next task may send the robot to charge.
     """
-    low = env.battery - battery_margin(env) < env.params.battery_threshold
-    return low.astype(np.int64)
+    out = np.empty((env.batch_size, env.n_robots), np.int64)
+    state_codes.battery_levels(
+        env.battery, battery_margin(env), float(env.params.battery_threshold), out
+    )
+    return out
 
 
 def recency_level(env: AuctionEnv, types_mask: np.ndarray) -> np.ndarray:
@@ -177,14 +184,10 @@ def recency_level(env: AuctionEnv, types_mask: np.ndarray) -> np.ndarray:
         raise ValueError(
             f"types_mask must be [n] or [m, n] with n={env.n_task_types}, got {types_mask.shape}"
         )
-    arrivals = env.last_high_arrival  # [B, n]
-    if types_mask.ndim == 1:
-        last = np.where(types_mask, arrivals, _NEVER).max(axis=-1)  # [B]
-        delta = env.t - last
-    else:
-        last = np.where(types_mask[None], arrivals[:, None, :], _NEVER).max(axis=-1)  # [B, m']
-        delta = env.t[:, None] - last
-    return (delta > RECENCY_THRESHOLDS[0]).astype(np.int64) + (delta > RECENCY_THRESHOLDS[1])
+    rows = np.atleast_2d(types_mask)  # [m', n]
+    out = np.empty((env.batch_size, len(rows)), np.int64)
+    state_codes.recency_levels(env.last_high_arrival, env.t, rows, RECENCY_THRESHOLDS_ARRAY, out)
+    return out[:, 0] if types_mask.ndim == 1 else out
 
 
 def check_features(features: str) -> str:
@@ -207,8 +210,9 @@ def free_level(env: AuctionEnv) -> np.ndarray:
     Returns:
         ``[B, m]`` int64 in {0, 1, 2}: idle, free within :data:`FREE_SOON` ticks, later.
     """
-    ticks = env.busy_until - env.t[:, None] + 1  # idle again at busy_until + 1; <= 0 when idle
-    return (ticks > 0).astype(np.int64) + (ticks > FREE_SOON)
+    out = np.empty((env.batch_size, env.n_robots), np.int64)
+    state_codes.free_levels(env.busy_until, env.t, FREE_SOON, out)
+    return out
 
 
 def queue_counts(env: AuctionEnv) -> np.ndarray:
@@ -220,10 +224,8 @@ def queue_counts(env: AuctionEnv) -> np.ndarray:
     Returns:
         ``[B, n, 2]`` int64 counts (priority index 0 = L, 1 = H).
     """
-    queue = env._queue  # [B, W] every copy's tasks, EMPTY elsewhere
-    b, k = np.nonzero(queue != EMPTY)
-    counts = np.zeros((env.batch_size, env.n_task_types, 2), np.int64)
-    np.add.at(counts, (b, task_type(queue[b, k]), task_high(queue[b, k])), 1)
+    counts = np.empty((env.batch_size, env.n_task_types, 2), np.int64)
+    state_codes.queue_counts_of(env._queue, env._queue_len, counts)
     return counts
 
 
@@ -240,14 +242,16 @@ def queue_level(env: AuctionEnv, types_mask: np.ndarray, counts: np.ndarray | No
         index 1 = L.
     """
     counts = queue_counts(env) if counts is None else counts  # [B, n, 2]
-    types = np.asarray(types_mask, dtype=np.int64)
-    per = np.einsum("...n,bnp->b...p", types, counts)  # [B, (m',) 2]; p: 0 = L, 1 = H
-    (h0, h1), (l0, l1) = QUEUE_THRESHOLDS["H"], QUEUE_THRESHOLDS["L"]
-    high, low = per[..., 1], per[..., 0]
-    return np.stack(
-        [(high > h0).astype(np.int64) + (high > h1), (low > l0).astype(np.int64) + (low > l1)],
-        axis=-1,
-    )
+    types_mask = np.asarray(types_mask, dtype=bool)
+    rows = np.atleast_2d(types_mask)  # [m', n]
+    out = np.empty((env.batch_size, len(rows), 2), np.int64)
+    state_codes.queue_levels(counts, rows, QUEUE_THRESHOLDS_ARRAY, out)
+    return out[:, 0] if types_mask.ndim == 1 else out
+
+
+def env_arrays(env: AuctionEnv) -> tuple[np.ndarray, ...]:
+    """The env arrays the state codes read: slots, idle flags, batteries, ticks, H arrivals."""
+    return env.slot_type, env.slot_high, env.idle, env.battery, env.t, env.last_high_arrival
 
 
 def _places(radices: np.ndarray) -> np.ndarray:
@@ -305,20 +309,23 @@ class LocalView:
         self._places = _places(radices)
         self._slot_places = self._places[:, 1 : K + 1].T.copy()  # [K, m]
         self._active = active
+        # the arguments of state_codes.encode_local after the env's (the tabular kernels' too)
+        self.tables = (
+            battery_margin(env), float(env.params.battery_threshold), self._codes,
+            self._slot_places, self._places, self._active, RECENCY_THRESHOLDS_ARRAY, extra,
+            FREE_SOON, QUEUE_THRESHOLDS_ARRAY,
+        )  # fmt: skip
+
+    @staticmethod
+    def state_arrays(env: AuctionEnv) -> tuple[np.ndarray, ...]:
+        """The env arrays the ``time_to_free`` digits read: busy-until ticks, the queue."""
+        return env.busy_until, env._queue, env._queue_len
 
     def index(self, env: AuctionEnv) -> np.ndarray:
         """``[B, m]`` int64 local state indices, each in ``[0, counts[i])``."""
-        high = np.maximum(env.slot_high, 0)  # [B, K]; empty slots use row -1 whatever high is
-        codes = self._codes[env.slot_type, high]  # [B, K, m]
-        K = len(self._slot_places)
-        first = free_level(env) if self.features == "time_to_free" else env.idle.astype(np.int64)
-        index = first + (codes * self._slot_places).sum(axis=1)  # [B, m]
-        index += battery_level(env) * self._places[:, K + 1]
-        index += recency_level(env, self._active) * self._places[:, K + 2]
-        if self.features == "time_to_free":
-            queue = queue_level(env, self._active)  # [B, m, 2]: H, L
-            index += queue[..., 0] * self._places[:, K + 3] + queue[..., 1] * self._places[:, K + 4]
-        return index
+        out = np.empty((env.batch_size, env.n_robots), np.int64)
+        state_codes.encode_local(*env_arrays(env), *self.state_arrays(env), *self.tables, out)
+        return out
 
     def decode(self, robot: int, index: int) -> dict[str, object]:
         """Fields of one robot's local index (``free``, ``queue_*`` with ``time_to_free``).
@@ -379,6 +386,19 @@ class GroupView:
             self._robot_places = places[K : K + len(ids)]  # [m_g]
             self._recency_place = int(places[K + len(ids)])
             self._queue_places = places[K + len(ids) + 1 :]  # [2] (H, L) or empty
+            # the arguments of state_codes.encode_groups and group_offsets after the env's, for
+            # this one group; robot state 3 (busy, free soon) is the busy state 0 plus 3 places
+            robots, size = self.robots[None], np.array([len(ids)], np.int64)
+            self._tables = (
+                battery_margin(env), float(env.params.battery_threshold), self._codes[None],
+                self._slot_places[None], robots, size, self._robot_places[None],
+                np.array([self._recency_place], np.int64), self.types_mask[None],
+                RECENCY_THRESHOLDS_ARRAY,
+            )  # fmt: skip
+            self._offset_tables = (
+                robots, size, 3 * self._robot_places[None], self.types_mask[None],
+                self._queue_places[None], FREE_SOON, QUEUE_THRESHOLDS_ARRAY,
+            )  # fmt: skip
 
     def index(self, env: AuctionEnv) -> np.ndarray:
         """``[B]`` int64 group state indices in ``[0, count)``.
@@ -390,17 +410,16 @@ class GroupView:
             raise OverflowError(
                 f"group state count {self.count} >= 2**63: too many robots or types for one index"
             )
-        high = np.maximum(env.slot_high, 0)
-        index = self._codes[env.slot_type, high] @ self._slot_places  # [B]
-        idle = env.idle[:, self.robots]  # [B, m_g]
-        state = idle * (1 + battery_level(env)[:, self.robots])  # 0 busy, 1 idle ok, 2 idle low
-        if self.features == "time_to_free":  # 3 = busy, idle again within FREE_SOON ticks
-            state = np.where(free_level(env)[:, self.robots] == 1, 3, state)
-        index += state @ self._robot_places
-        index += recency_level(env, self.types_mask) * self._recency_place
-        if self.features == "time_to_free":
-            index += queue_level(env, self.types_mask) @ self._queue_places  # H, L levels
-        return index
+        index = np.empty((1, env.batch_size), np.int64)
+        level = np.empty((1, env.batch_size), np.int64)
+        state_codes.encode_groups(*env_arrays(env), *self._tables, index, level)
+        if self.features == "time_to_free":  # the free-soon robot states and queue levels
+            offset = np.empty((1, env.batch_size), np.int64)
+            state_codes.group_offsets(
+                env.busy_until, env.t, env._queue, env._queue_len, *self._offset_tables, offset
+            )
+            index += offset
+        return index[0]
 
     def decode(self, index: int) -> dict[str, list[int] | int]:
         """Fields of a group state index (``queue_*`` with ``time_to_free``).

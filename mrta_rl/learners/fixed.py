@@ -5,7 +5,7 @@ evaluates them exactly like trained learners. ``greedy`` is the plain auction wi
 the baseline every run reports next to its learner. ``team_reserve`` and ``subg_reserve`` are not
 in the spec: a hand-written reserve rule over a grouping of the robots (the whole team, or the
 subG sub-groups on the partition), yardsticks of what a rule on the learners' signals reaches.
-All are vectorised over ``[B, m]``.
+The rules themselves are :mod:`mrta_rl.rules`' compiled ones, applied to every copy.
 """
 
 from __future__ import annotations
@@ -14,43 +14,12 @@ from typing import Annotated, ClassVar
 
 import numpy as np
 
+from mrta_rl import rules
 from mrta_rl.config import Choices, Range
 from mrta_rl.envs import AuctionEnv
 from mrta_rl.envs.encodings import N_RECENCY_LEVELS, recency_level
 from mrta_rl.learners.base import Learner, LearnerKind
 from mrta_rl.partition import subg_partition
-
-
-def lowest_valid_bid(bid_mask: np.ndarray) -> np.ndarray:
-    """Lowest-numbered slot with a True bid, or 0 (wait) when there is none.
-
-    A loop over the tiny slot axis (K = 3 by default) beats ``argmax`` on such a short last axis.
-
-    Args:
-        bid_mask: ``[B, m, K]`` bool, True where bidding for slot ``k + 1`` is allowed.
-
-    Returns:
-        ``[B, m]`` int64 actions in ``0..K``.
-    """
-    actions = np.zeros(bid_mask.shape[:2], dtype=np.int64)
-    for k in reversed(range(bid_mask.shape[2])):
-        actions = np.where(bid_mask[:, :, k], k + 1, actions)
-    return actions
-
-
-def fewest_types_first(active: np.ndarray, robots: list[int] | range) -> np.ndarray:
-    """``robots`` in ``team_reserve``'s bidding order: fewest active types first, then index.
-
-    Versatile robots are asked last, so they stay free for the tasks only they can do.
-
-    Args:
-        active: ``[m, n]`` bool ``Lambda_i``.
-        robots: Robot indices.
-
-    Returns:
-        The indices, reordered, as int64.
-    """
-    return np.asarray(sorted(robots, key=lambda i: (active[i].sum(), i)), np.int64)
 
 
 class GreedyLearner(Learner):
@@ -73,7 +42,7 @@ class GreedyLearner(Learner):
         Returns:
             ``[B, m]`` int64 actions.
         """
-        return lowest_valid_bid(mask[:, :, 1:])
+        return rules.greedy_actions(mask)
 
 
 class SubGGreedyLearner(GreedyLearner):
@@ -106,10 +75,8 @@ class RandomLearner(Learner):
         Returns:
             ``[B, m]`` int64 actions.
         """
-        running = np.cumsum(mask, axis=2)  # [B, m, K + 1]; running[..., 0] = 1 (wait is valid)
-        choice = self.rng.integers(0, running[:, :, -1])  # [B, m], uniform in 0..v
-        # the valid action of rank `choice` is the number of places whose running count is <= it
-        return (running <= choice[:, :, None]).sum(axis=2).astype(np.int64)
+        rank = self.rng.integers(0, mask.sum(axis=2))  # [B, m], uniform in 0..v (wait is valid)
+        return rules.actions_of_rank(mask, rank)
 
 
 class HighOnlyLearner(Learner):
@@ -142,7 +109,7 @@ class HighOnlyLearner(Learner):
         Returns:
             ``[B, m]`` int64 actions.
         """
-        return lowest_valid_bid(mask[:, :, 1:] & (view[:, None, :] == 1))
+        return rules.high_only_actions(mask, view)
 
 
 # the rule's two numbers, declared once for team_reserve and subg_reserve (mrta_rl.config)
@@ -214,9 +181,11 @@ class TeamReserveLearner(Learner):
             ]
         self._groups = []  # (robots in bidding preference order, T_g)
         for ids in groups:
+            ids = np.asarray(ids, np.int64)
             if order == "fewest_types":
-                ids = fewest_types_first(active, ids)
-            self._groups.append((np.asarray(ids, np.int64), active[ids].any(axis=0)))
+                ids = np.sort(ids)  # ties go to the lowest index
+                ids = ids[rules.fewest_types_first(active[ids])]
+            self._groups.append((ids, active[ids].any(axis=0)))
         # the recency scope of each robot: its group's types T_g, or its own Lambda_i
         self._scope = active.copy()
         if hold_scope == "group":
@@ -246,25 +215,12 @@ class TeamReserveLearner(Learner):
             ``[B, m]`` int64 conflict-free actions.
         """
         slot_high, idle, recency = view
-        batch, _, n_actions = mask.shape
-        rows = np.arange(batch)
         actions = np.zeros(mask.shape[:2], np.int64)
         may_take_low = recency >= self.hold_level  # [B, m]
         for robots, _ in self._groups:
-            free = idle[:, robots].copy()  # [B, m_g] idle robots without a bid yet
-            idle_left = free.sum(axis=1)  # [B]
-            for high in (1, 0):  # H slots first
-                for k in range(n_actions - 1):
-                    # mask: idle robots whose Lambda_i holds the slot's type (spec step 4)
-                    candidates = mask[:, robots, k + 1] & free & (slot_high[:, k] == high)[:, None]
-                    if not high:
-                        candidates &= may_take_low[:, robots]
-                        candidates &= (idle_left - 1 >= self.reserve)[:, None]
-                    has = candidates.any(axis=1)
-                    first = candidates.argmax(axis=1)  # first in preference order
-                    actions[rows[has], robots[first[has]]] = k + 1
-                    free[rows[has], first[has]] = False
-                    idle_left -= has
+            rules.reserve_actions(
+                mask, slot_high, idle, may_take_low, robots, self.reserve, actions
+            )
         return actions
 
 

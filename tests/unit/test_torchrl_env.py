@@ -16,8 +16,8 @@ from torchrl.envs.utils import check_env_specs
 from mrta_rl.envs import AuctionEnv, AuctionParams
 from mrta_rl.envs import encodings as ob
 from mrta_rl.envs.torchrl_env import AuctionTorchRLEnv, resolve_group_map
-from mrta_rl.learners.fixed import lowest_valid_bid
 from mrta_rl.partition import subg_partition
+from mrta_rl.rules import greedy_actions
 from mrta_rl.systems import RobotSystem, build_system
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -95,7 +95,7 @@ def test_prior_action_key_is_the_prior_one_hot_per_group(kind):
         for group in with_prior.group_map:
             mask, got = td.get((group, "action_mask")), td.get((group, "prior_action"))
             assert got.dtype == torch.bool and got.sum(-1).eq(1).all()
-            expected = lowest_valid_bid(mask[..., 1:].numpy())  # the plain auction, by the mask
+            expected = greedy_actions(mask.numpy())  # the plain auction, by the mask
             np.testing.assert_array_equal(got.long().argmax(-1).numpy(), expected)
         actions = random_valid(with_prior.auction.action_mask, rng)
         td = with_prior.step(to_td(with_prior, actions))["next"]
@@ -103,7 +103,7 @@ def test_prior_action_key_is_the_prior_one_hot_per_group(kind):
 
 def greedy_of_core(core: AuctionEnv) -> np.ndarray:
     """A prior read from the core env: the plain auction's actions."""
-    return lowest_valid_bid(core.action_mask[:, :, 1:])
+    return greedy_actions(core.action_mask)
 
 
 def test_group_maps():

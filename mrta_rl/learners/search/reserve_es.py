@@ -42,11 +42,11 @@ from typing import Annotated, Any, ClassVar
 
 import numpy as np
 
+from mrta_rl import rules
 from mrta_rl.config import Range
 from mrta_rl.envs import AuctionEnv, StepResult
 from mrta_rl.envs.encodings import N_RECENCY_LEVELS, free_level, queue_level, recency_level
 from mrta_rl.learners.base import Learner, LearnerKind
-from mrta_rl.learners.fixed import fewest_types_first
 
 # phi(i, k) for idle robot i and L slot k; levels in {0, 1, 2} enter divided by 2.
 FEATURES = (
@@ -153,7 +153,7 @@ class ReserveESLearner(Learner):
         self._adam_v = np.zeros(N_FEATURES)
         self.steps = 0  # ES updates made
         active = self.env.active_tasks  # Lambda_i, [m, n]
-        self._order = fewest_types_first(active, range(self.n_robots))  # the rule's order
+        self._order = rules.fewest_types_first(active)  # the rule's order
         self._versatility = active.sum(axis=1) / self.env.n_task_types
         # common random numbers: copy b starts as a clone of copy b mod copies (seed and episode
         # count included), so every member plays the same task streams, episode after episode

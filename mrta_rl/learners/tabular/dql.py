@@ -21,8 +21,9 @@ from mrta_rl.learners.fixed import HOLD_SCOPES, HoldLevel, Reserve
 from mrta_rl.learners.tabular import robot_kernels as kernels
 from mrta_rl.learners.tabular.base import NO_UNIFORMS, TabularLearner
 from mrta_rl.learners.tabular.encoding import LocalEncoder, env_arrays
-from mrta_rl.learners.tabular.priors import HOLD_PRIORS, HoldRule, greedy_actions
+from mrta_rl.learners.tabular.priors import HOLD_PRIORS, HoldRule
 from mrta_rl.metrics.learning_space import learning_space_dimension
+from mrta_rl.rules import greedy_actions
 
 
 @dataclass

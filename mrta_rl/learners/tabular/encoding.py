@@ -1,25 +1,21 @@
-"""Compiled state encodings of the tabular learners, code for code those of ``envs/encodings``.
+"""The tabular learners' state encoders: the encodings of ``envs/encodings`` for their kernels.
 
-:class:`GroupEncoder` computes ``encodings.group_state_index`` of several groups at once and
-:class:`LocalEncoder` ``encodings.local_state_index``, in per-copy loops, from the same env
-arrays (slots, idle flags, battery levels, H arrivals) and with the tables (slot codes, place
-values) of ``encodings.GroupView`` / ``encodings.LocalView``, so the codes are the same
-(tested). The battery rule (:func:`battery_low`) reads ``encodings.battery_margin``, the
-recency rule (:func:`recency`) ``encodings.RECENCY_THRESHOLDS``.
+The codes are computed once, by the compiled loops of ``envs/state_codes.py``, which the views
+of ``envs/encodings`` call too. :class:`GroupEncoder` stacks the tables (slot codes, place
+values) of several ``encodings.GroupView`` so that :func:`~mrta_rl.envs.state_codes.encode_groups`
+encodes all groups in one call, and :class:`LocalEncoder` is ``encodings.LocalView``. The
+compiled ticks of the tabular learners call the same loops with these tables.
 
 A new digit of an encoding plugs in as one more place value: ``encodings`` adds it to the
-view's radices (and its count), computes the digit for all copies, and the encoder adds
-``digit * place`` in its loop (one more input array).
+view's radices (and its count), and ``state_codes`` adds ``digit * place`` in its loop.
 
 The group encoder takes the view's ``features`` (``encodings.FEATURES``): with
 ``time_to_free``, :meth:`GroupEncoder.offset` computes the extra digits (a busy robot free
-within ``FREE_SOON`` ticks reads robot state 3; queued H and L levels over ``T_g``) in its
-own compiled loop (:func:`group_offsets`) and adds them as ``[G, B]`` offsets to the paper-era
-codes of :func:`encode_groups`, so the paper loop is unchanged (the fused ticks of subG-CQL,
-CQL and semi-CQL add the same offset). The local encoder computes its ``time_to_free`` digits
-in its compiled loop (:func:`encode_local`: the free level from ``busy_until``, the queued H and
-L counts over ``Lambda_i`` from the queue), a flag of its tables, so DQL's fused tick needs no
-offset.
+within ``FREE_SOON`` ticks reads robot state 3; queued H and L levels over ``T_g``) with
+:func:`~mrta_rl.envs.state_codes.group_offsets` and adds them as ``[G, B]`` offsets to the
+paper-era codes, so the paper loop is unchanged (the fused ticks of subG-CQL, CQL and semi-CQL
+add the same offset). The local view computes its ``time_to_free`` digits in its own loop (a
+flag of its tables), so DQL's fused tick needs no offset.
 """
 
 from __future__ import annotations
@@ -27,7 +23,6 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
-from numba import njit
 
 from mrta_rl.config import ConfigError
 from mrta_rl.envs import AuctionEnv
@@ -35,170 +30,19 @@ from mrta_rl.envs.encodings import (
     FREE_SOON,
     N_QUEUE_LEVELS,
     N_RECENCY_LEVELS,
-    QUEUE_THRESHOLDS,
-    RECENCY_THRESHOLDS,
+    QUEUE_THRESHOLDS_ARRAY,
+    RECENCY_THRESHOLDS_ARRAY,
     GroupView,
     LocalView,
     battery_margin,
+    env_arrays,
 )
-from mrta_rl.envs.tasks import EMPTY, task_high, task_type
-
-_THRESHOLDS = np.array(RECENCY_THRESHOLDS, np.int64)
-_QUEUE_THRESHOLDS = np.array([QUEUE_THRESHOLDS["H"], QUEUE_THRESHOLDS["L"]], np.int64)  # [H, L]
-
-
-@njit(cache=True)
-def recency(last_high: np.ndarray, t: int, types: np.ndarray, thresholds: np.ndarray) -> int:
-    """Recency level (``encodings.recency_level``) of one copy over the types ``types``."""
-    last, found = 0, False
-    for j in range(types.size):
-        if types[j] and (not found or last_high[j] > last):
-            last, found = last_high[j], True
-    if not found:
-        return 2  # never: the longest level
-    delta = t - last
-    return int(delta > thresholds[0]) + int(delta > thresholds[1])
-
-
-@njit(cache=True)
-def battery_low(battery: float, margin: float, threshold: float) -> int:
-    """Battery level (``encodings.battery_level``) of one robot: 1 low, 0 ok."""
-    return int(battery - margin < threshold)
-
-
-@njit(cache=True)
-def _slot_code(codes: np.ndarray, ttype: int, high: int) -> int:
-    """Code of a slot; an empty slot (type -1) reads the table's last row."""
-    return codes[ttype if ttype >= 0 else codes.shape[0] - 1, max(high, 0)]
-
-
-@njit(cache=True)
-def encode_groups(
-    slot_type, slot_high, idle, battery, t, last_high, margin, threshold, codes, slot_places,
-    robots, size, robot_places, recency_place, types, thresholds, states, level,
-):  # fmt: skip
-    """``GroupView`` state indices ``states`` and recency levels ``level`` ``[G, B]`` (written).
-
-    The leading six arguments are :func:`env_arrays`, the next ten a ``GroupEncoder``'s
-    :attr:`~GroupEncoder.tables`.
-    """
-    for g in range(states.shape[0]):
-        for b in range(states.shape[1]):
-            index = 0
-            for k in range(slot_type.shape[1]):
-                index += _slot_code(codes[g], slot_type[b, k], slot_high[b, k]) * slot_places[g, k]
-            for r in range(size[g]):
-                i = robots[g, r]
-                # robot digit: 0 busy, 1 idle with ok battery, 2 idle with low battery
-                low = battery_low(battery[b, i], margin[i], threshold)
-                index += idle[b, i] * (1 + low) * robot_places[g, r]
-            level[g, b] = recency(last_high[b], t[b], types[g], thresholds)
-            states[g, b] = index + level[g, b] * recency_place[g]
-
-
-@njit(cache=True)
-def _level(count: int, thresholds: np.ndarray) -> int:
-    """Queue level of a count (``encodings.queue_level``): 0, 1 or 2 over two thresholds."""
-    return int(count > thresholds[0]) + int(count > thresholds[1])
-
-
-@njit(cache=True)
-def _queued(queue: np.ndarray, length: int, counts: np.ndarray) -> None:
-    """Queued tasks of one copy per type and priority (``encodings.queue_counts``), written."""
-    counts[:] = 0
-    for w in range(length):  # places past the length are EMPTY (envs/kernel.py)
-        if queue[w] != EMPTY:
-            counts[task_type(queue[w]), task_high(queue[w])] += 1
-
-
-@njit(cache=True)
-def _free_level(busy_until: int, t: int, free_soon: int) -> int:
-    """Free level (``encodings.free_level``): 0 idle, 1 free within ``free_soon``, 2 later."""
-    ticks = busy_until - t + 1  # idle again at busy_until + 1; <= 0 when idle
-    return int(ticks > 0) + int(ticks > free_soon)
-
-
-@njit(cache=True)
-def _queue_digits(counts, types, thresholds, high_place: int, low_place: int) -> int:
-    """The queued H and L levels over the types ``types`` ``[n]``, times their places."""
-    high = low = 0
-    for j in range(types.shape[0]):
-        if types[j]:
-            high += counts[j, 1]
-            low += counts[j, 0]
-    return _level(high, thresholds[0]) * high_place + _level(low, thresholds[1]) * low_place
-
-
-@njit(cache=True)
-def group_offsets(
-    busy_until, t, queue, queue_len, robots, size, soon_places, types, queue_places, free_soon,
-    queue_thresholds, out,
-):  # fmt: skip
-    """``[G, B]`` what ``time_to_free`` adds to the paper codes of :func:`encode_groups` (written).
-
-    A busy robot free within ``free_soon`` ticks reads robot state 3 (the busy state 0 plus
-    ``3 x`` its place), and the queued H and L levels over ``T_g`` follow the recency digit
-    (``encodings.GroupView``, "Features"). The first four arguments are
-    :meth:`LocalEncoder.state_arrays`'s and ``env.t``.
-    """
-    counts = np.zeros((types.shape[1], 2), np.int64)  # [n, (L, H)]
-    for b in range(out.shape[1]):
-        _queued(queue[b], queue_len[b], counts)
-        for g in range(out.shape[0]):
-            value = _queue_digits(
-                counts, types[g], queue_thresholds, queue_places[g, 0], queue_places[g, 1]
-            )
-            for r in range(size[g]):
-                if _free_level(busy_until[b, robots[g, r]], t[b], free_soon) == 1:
-                    value += soon_places[g, r]
-            out[g, b] = value
-
-
-@njit(cache=True)
-def encode_local(
-    slot_type, slot_high, idle, battery, t, last_high, busy_until, queue, queue_len, margin,
-    threshold, codes, slot_places, places, active, thresholds, time_to_free, free_soon,
-    queue_thresholds, out,
-):  # fmt: skip
-    """``LocalView`` state indices ``out`` ``[B, m]`` (written).
-
-    The leading six arguments are :func:`env_arrays`, the next three
-    :meth:`LocalEncoder.state_arrays`, the next ten a ``LocalEncoder``'s
-    :attr:`~LocalEncoder.tables`. With ``time_to_free`` the first digit is the free level
-    (instead of the idle flag) and the H and L queue levels over ``Lambda_i`` follow the recency
-    digit (``encodings`` module docstring, "Features").
-    """
-    n_slots = slot_type.shape[1]
-    counts = np.zeros((active.shape[1] if time_to_free else 0, 2), np.int64)  # [n, (L, H)]
-    for b in range(out.shape[0]):
-        if time_to_free:
-            _queued(queue[b], queue_len[b], counts)
-        for i in range(out.shape[1]):
-            if time_to_free:
-                index = np.int64(_free_level(busy_until[b, i], t[b], free_soon))
-            else:
-                index = np.int64(idle[b, i])
-            for k in range(n_slots):
-                ttype = slot_type[b, k] if slot_type[b, k] >= 0 else codes.shape[0] - 1
-                index += codes[ttype, max(slot_high[b, k], 0), i] * slot_places[k, i]
-            index += battery_low(battery[b, i], margin[i], threshold) * places[i, n_slots + 1]
-            index += recency(last_high[b], t[b], active[i], thresholds) * places[i, n_slots + 2]
-            if time_to_free:  # queued H and L tasks over Lambda_i
-                index += _queue_digits(
-                    counts, active[i], queue_thresholds, places[i, n_slots + 3],
-                    places[i, n_slots + 4],
-                )  # fmt: skip
-            out[b, i] = index
+from mrta_rl.envs.state_codes import encode_groups, group_offsets
 
 
 def _battery_rule(env: AuctionEnv) -> tuple[np.ndarray, float]:
     """The arguments of :func:`battery_low` fixed by the env: margins per robot, threshold."""
     return battery_margin(env), float(env.params.battery_threshold)
-
-
-def env_arrays(env: AuctionEnv) -> tuple[np.ndarray, ...]:
-    """The env arrays the encodings read: slots, idle flags, batteries, ticks, H arrivals."""
-    return env.slot_type, env.slot_high, env.idle, env.battery, env.t, env.last_high_arrival
 
 
 class GroupEncoder:
@@ -241,13 +85,13 @@ class GroupEncoder:
             self._offset_tables = (
                 self.robots, self.size, 3 * self._robot_places,  # 0 on padding
                 self.types, np.stack([v._queue_places for v in views]),  # [G, 2]
-                FREE_SOON, _QUEUE_THRESHOLDS,
+                FREE_SOON, QUEUE_THRESHOLDS_ARRAY,
             )  # fmt: skip
         self._zeros = np.zeros((len(groups), 0), np.int64)  # paper: no offset (per batch size)
         # the arguments of encode_groups after the env's
         self.tables = (
             *_battery_rule(env), self._codes, self._slot_places, self.robots, self.size,
-            self._robot_places, self._recency_place, self.types, _THRESHOLDS,
+            self._robot_places, self._recency_place, self.types, RECENCY_THRESHOLDS_ARRAY,
         )  # fmt: skip
 
     def offset(self, env: AuctionEnv) -> np.ndarray:
@@ -273,38 +117,9 @@ class GroupEncoder:
         return states, level
 
 
-class LocalEncoder:
-    """Local state indices (``LocalView``) of every robot, all copies in one compiled loop.
-
-    Args:
-        env: The env (its slots, types and active tasks fix the tables).
-        features: ``paper`` or ``time_to_free`` (``encodings.FEATURES``).
-    """
-
-    def __init__(self, env: AuctionEnv, features: str = "paper") -> None:
-        view = LocalView(env, features)
-        self.features = features
-        self.counts = view.counts  # |S_i|
-        self._codes = view._codes  # [n + 1, 2, m]
-        self._slot_places = view._slot_places  # [K, m]
-        self._places = view._places  # [m, K + 3] (time_to_free: K + 5)
-        self._active = view._active  # Lambda_i, [m, n]
-        # the arguments of encode_local after the env's
-        self.tables = (
-            *_battery_rule(env), self._codes, self._slot_places, self._places, self._active,
-            _THRESHOLDS, features == "time_to_free", FREE_SOON, _QUEUE_THRESHOLDS,
-        )  # fmt: skip
-
-    @staticmethod
-    def state_arrays(env: AuctionEnv) -> tuple[np.ndarray, ...]:
-        """The env arrays the ``time_to_free`` digits read: busy-until ticks, the queue."""
-        return env.busy_until, env._queue, env._queue_len
-
-    def index(self, env: AuctionEnv) -> np.ndarray:
-        """``[B, m]`` int64 local state indices."""
-        out = np.empty((env.batch_size, env.n_robots), np.int64)
-        encode_local(*env_arrays(env), *self.state_arrays(env), *self.tables, out)
-        return out
+# DQL's local states: the local view itself computes them with the compiled loop (its
+# ``tables`` and ``state_arrays`` are the arguments of ``state_codes.encode_local``)
+LocalEncoder = LocalView
 
 
 SYSTEM_STATES = ("system", "idle_count", "idle", "slots")  # semi-CQL's shared state (its `state`)
@@ -368,7 +183,7 @@ class SystemEncoder(GroupEncoder):
         self._zeros = np.zeros((1, 0), np.int64)  # no offset (GroupEncoder.offset)
         self.tables = (
             np.zeros(m), -np.inf, self._codes, self._slot_places, self.robots, self.size,
-            self._robot_places, self._recency_place, self.types, _THRESHOLDS,
+            self._robot_places, self._recency_place, self.types, RECENCY_THRESHOLDS_ARRAY,
         )  # fmt: skip
 
 
@@ -476,6 +291,6 @@ class SubGroupEncoder(GroupEncoder):
         if features == "time_to_free":  # free soon: the busy digit 0 plus 2 places
             self._offset_tables = (
                 self.robots, self.size, 2 * self._robot_places, self.types, queue_places,
-                FREE_SOON, _QUEUE_THRESHOLDS,
+                FREE_SOON, QUEUE_THRESHOLDS_ARRAY,
             )  # fmt: skip
         self.tables = (np.zeros(env.n_robots), -np.inf, *self.tables[2:])

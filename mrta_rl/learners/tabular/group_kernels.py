@@ -17,14 +17,9 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from mrta_rl.learners.tabular.encoding import encode_groups
+from mrta_rl.envs.state_codes import encode_groups
 from mrta_rl.learners.tabular.joint_actions import enumerate_row
-from mrta_rl.learners.tabular.priors import (
-    PRIOR_CODES,
-    deconflict_row,
-    lowest_bid_row,
-    spread_row,
-)
+from mrta_rl.learners.tabular.priors import PRIOR_CODES
 from mrta_rl.learners.tabular.qtable import (
     ENTRY_CODE,
     ENTRY_VISITS,
@@ -40,6 +35,9 @@ from mrta_rl.learners.tabular.qtable import (
     random_entry,
 )
 from mrta_rl.learners.tabular.schedules import alpha_of_visits
+from mrta_rl.rules import deconflict as deconflict_row
+from mrta_rl.rules import greedy as lowest_bid_row
+from mrta_rl.rules import spread as spread_row
 
 GREEDY, SPREAD_WAIT = PRIOR_CODES["greedy"], PRIOR_CODES["spread_wait"]  # compile-time constants
 
@@ -387,7 +385,7 @@ def tick_groups(
 ):  # fmt: skip
     """One training tick in one call: encode the new state, eq. (3), act in it.
 
-    Exactly :func:`~mrta_rl.learners.tabular.encoding.encode_groups` (``states``, ``level``,
+    Exactly :func:`~mrta_rl.envs.state_codes.encode_groups` (``states``, ``level``,
     and ``hold = level == 0``) plus ``offset`` ``[G, B]`` (``GroupEncoder.offset``: the digits
     of the ``time_to_free`` features; 0 for the paper's), then, if ``learn``,
     :func:`update_groups` with the entries ``entry_out`` chosen at the previous tick and this

@@ -12,10 +12,11 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from mrta_rl.learners.tabular.encoding import encode_groups, encode_local
-from mrta_rl.learners.tabular.priors import lowest_bid_row, random_valid_row
+from mrta_rl.envs.state_codes import encode_groups, encode_local
 from mrta_rl.learners.tabular.qtable import ROW_STATE, find_row, insert_row
 from mrta_rl.learners.tabular.schedules import alpha_of_visits
+from mrta_rl.rules import greedy as lowest_bid_row
+from mrta_rl.rules import random_valid as random_valid_row
 
 
 @njit(cache=True)
