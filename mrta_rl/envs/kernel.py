@@ -56,6 +56,7 @@ from mrta_rl.envs.tasks import (
     task_type,
     to_second_round,
 )
+from mrta_rl.rules import count_valid, greedy, high_only, valid_action_of_rank
 
 # integer parameters (iparams)
 I_HORIZON, I_SLOTS, I_QUEUE_CAPACITY, I_REAUCTION_DELAY, I_CHARGE_TICKS, I_SWITCH_TICKS = range(6)
@@ -478,34 +479,22 @@ def refresh(rows, begin, layout, buffers, views):
 def fixed_policy_copy(b, policy, episode_key, t, views, actions):
     """The spec's fixed policies for copy ``b`` at its tick ``t``, into ``actions[b]``.
 
-    ``greedy`` bids for the lowest-numbered valid slot, ``high_only`` for the lowest-numbered
-    valid slot holding an H task; ``random`` picks uniformly among the valid bids and waiting,
-    from counter-based hashes of the copy's ``episode_key``, tick and robot. (The copy's two
-    state fields come as scalars: a record argument costs a reference count per array.)
+    The rules are ``mrta_rl.rules``' (spec "Fixed policies"); ``random`` draws the rank of its
+    valid action (waiting or a bid) from counter-based hashes of the copy's ``episode_key``, tick
+    and robot. (The copy's two state fields come as scalars: a record argument costs a reference
+    count per array.)
     """
-    mask, slot_high = views.mask, views.slot_high
-    m, n_actions = mask.shape[1], mask.shape[2]
-    key = np.uint64(0)
-    if policy == 1:  # only random draws (a hash per copy is a third of greedy's cost)
+    mask = views.mask[b]
+    if policy == 0:
+        greedy(mask, actions[b])
+    elif policy == 2:
+        high_only(mask, views.slot_high[b], actions[b])
+    else:  # random; only it draws (a hash per copy is a third of greedy's cost)
         key = mix64(tick_key(episode_key, np.uint64(t)) ^ _POLICY_SALT)
-    for i in range(m):
-        choice = 0
-        if policy == 1:  # random
-            valid = 0
-            for a in range(1, n_actions):
-                valid += mask[b, i, a]
-            pick = np.int64(bounded_uint(mix64(key + np.uint64(i + 1)), np.uint64(valid + 1)))
-            for a in range(1, n_actions):
-                if pick > 0 and mask[b, i, a]:
-                    pick -= 1
-                    if pick == 0:
-                        choice = a
-        else:
-            for a in range(1, n_actions):
-                if mask[b, i, a] and (policy == 0 or slot_high[b, a - 1] == 1):
-                    choice = a
-                    break
-        actions[b, i] = choice
+        for i in range(mask.shape[0]):
+            count = np.uint64(count_valid(mask[i]))  # waiting is always valid (spec step 4)
+            rank = bounded_uint(mix64(key + np.uint64(i + 1)), count)
+            actions[b, i] = valid_action_of_rank(mask[i], np.int64(rank))
 
 
 @njit(cache=True, nogil=True)
