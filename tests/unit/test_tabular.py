@@ -100,13 +100,24 @@ def one_row(masks, prior="greedy", prior_masks=None, weight=None, state=7, prune
     slot_high = np.zeros((1, n_actions - 1), np.int64)  # all L: spread_wait may hold them
     hold = np.array([prior_masks is not None])
     rows = np.empty(1, np.int64)
-    robots = np.arange(n)
-    group_kernels.rows_of(
-        storage.hash, storage.rows, storage.entries, storage.q, storage.sizes, 0,
-        np.array([state]), np.array([True]), masks, slot_type, slot_high, hold, robots, n,
-        robots, weight_by_type, PRIOR_CODES[prior], prune, rows,
-    )  # fmt: skip
+    robots = np.arange(n)[None]
+    learner = group_kernels.learner_of(
+        (
+            tuple(getattr(storage, name) for name in group_kernels.QTable._fields),
+            (robots, np.array([n]), robots, weight_by_type),
+            kernel_settings(prior=PRIOR_CODES[prior], prune=prune),
+        )
+    )
+    seen = group_kernels.Decision(np.array([[state]]), hold[None], masks, slot_type, slot_high)
+    group_kernels.rows_of(learner, 0, seen, np.array([True]), rows)
     return storage, int(rows[0])
+
+
+def kernel_settings(**settings):
+    """``group_kernels.Settings`` as a tuple: these ``settings``, the others plain."""
+    plain = dict(decisions_only=True, prior=0, prune=True, min_visits=0, lcb=0.0)
+    plain |= dict(prior_target=False, gamma=0.9, alpha=0.1, alpha_power=0.0, alpha_min=0.0)
+    return tuple(group_kernels.Settings(**(plain | settings)))
 
 
 def best_actions(storage, row, n, min_visits=0):
@@ -141,14 +152,16 @@ def test_storage_grows_and_finds_every_row():
     rows = np.empty(300, np.int64)
     masks = np.ones((300, 2, 4), bool)
     zeros = np.zeros((300, 3), np.int64)
+    robots = np.array([[0, 1], [0, 1]])
+    groups = (robots, np.array([2, 2]), robots, np.ones((2, 2)))
     for g in (1, 0):  # 600 rows: the hash table (1024 slots, half full at most) grows
         storage.reserve(300, 300 * 13)
-        states = np.arange(300, dtype=np.int64)[::-1] * 1_000_003
-        group_kernels.rows_of(
-            storage.hash, storage.rows, storage.entries, storage.q, storage.sizes, g, states,
-            np.ones(300, bool), masks, zeros, zeros, np.zeros(300, bool), np.arange(2), 2,
-            np.arange(2), np.ones((2, 2)), 0, True, rows,
-        )  # fmt: skip
+        states = np.zeros((2, 300), np.int64)
+        states[g] = np.arange(300, dtype=np.int64)[::-1] * 1_000_003
+        table = tuple(getattr(storage, name) for name in group_kernels.QTable._fields)
+        learner = group_kernels.learner_of((table, groups, kernel_settings()))
+        seen = group_kernels.Decision(states, np.zeros((2, 300), bool), masks, zeros, zeros)
+        group_kernels.rows_of(learner, g, seen, np.ones(300, bool), rows)
         assert (np.diff(storage.rows[0, storage.group_rows(g)]) > 0).all()  # created in order
     assert storage.hash.shape[1] > 1024 and storage.n_rows == 600
     assert storage.n_entries == 600 * max_valid_joint_actions(2, 4, True) == 600 * 13
@@ -588,10 +601,17 @@ def test_hand_computed_n_step_targets(n_step, target):
     group = (np.array([[0]]), np.array([1]), np.array([[0]]), np.ones((2, 1)))
     slots = np.zeros((1, 1), np.int64)  # one L slot of type 0
     spread = PRIOR_CODES["spread"]
+    learner = (
+        tables,
+        group,
+        kernel_settings(
+            prior=spread, prior_target=target == "prior", gamma=0.5, alpha=1.0, alpha_power=0.0
+        ),
+    )
+    seen = (states[None], np.zeros((1, 4), bool), mask, slots.repeat(4, 0), slots.repeat(4, 0))
     group_kernels.rows_of(
-        *tables, 0, states, np.ones(4, bool), mask, slots.repeat(4, 0), slots.repeat(4, 0),
-        np.zeros(4, bool), group[0][0], 1, group[2][0], group[3], spread, True, rows,
-    )  # fmt: skip
+        group_kernels.learner_of(learner), 0, group_kernels.Decision(*seen), np.ones(4, bool), rows
+    )
     bid = {}
     for k, row in zip(states.tolist(), rows.tolist(), strict=True):
         at = storage.row_entries(row)
@@ -601,9 +621,13 @@ def test_hand_computed_n_step_targets(n_step, target):
         storage.q[at] = [10 * (k - 10) + 1.0, 10 * (k - 10)]
     v = {k - 10: float(storage.q[bid[k]] + (target == "max")) for k in states.tolist()}
     pending = (
-        np.full((1, 1, n_step), -1), np.zeros((1, 1, n_step)), np.ones((1, 1, n_step)),
-        np.zeros((1, 1), np.int64), np.zeros((1, 1), bool), np.zeros((1, 1)),
-    )  # fmt: skip
+        np.full((1, 1, n_step), -1),
+        np.zeros((1, 1, n_step)),
+        np.ones((1, 1, n_step)),
+        np.zeros((1, 1), np.int64),
+        np.zeros((1, 1), bool),
+        np.zeros((1, 1)),
+    )
     chosen = [bid[10], bid[11], -1, bid[13], bid[14]]
     counts = []
     for tick, reward in enumerate(N_STEP_REWARDS):
@@ -611,11 +635,13 @@ def test_hand_computed_n_step_targets(n_step, target):
         next_mask = np.array([[[True, after != 12]]])  # state 12: no slot to bid for
         td_sum, td_count = np.zeros(1), np.zeros(1, np.int64)
         group_kernels.update_groups(
-            *tables, group[0], group[1], group[2], group[3], np.array([[chosen[tick]]]),
-            np.array([[after]]), np.zeros((1, 1), bool), next_mask, slots, slots,
-            np.array([[reward]]), np.zeros((1, 1), np.int64), np.array([tick == 4]), *pending,
-            True, spread, True, 0, 0.0, target == "prior", 0.5, 1.0, 0.0, 0.0, td_sum, td_count,
-        )  # fmt: skip
+            learner,
+            np.array([[chosen[tick]]]),
+            (np.array([[after]]), np.zeros((1, 1), bool), next_mask, slots, slots),
+            (np.array([[reward]]), np.zeros((1, 1), np.int64), np.array([tick == 4])),
+            pending,
+            (td_sum, td_count),
+        )
         counts.append(int(td_count[0]))
     expected, ticks = _n_step_targets(n_step, v)
     assert counts == ticks
