@@ -281,6 +281,13 @@ def test_spread_wait_prior_holds_low_slots_after_a_recent_high(trio, tiny_params
 
 
 # ------------------------------------------------------------------ updates and schedules
+def robot_settings(**settings):
+    """``robot_kernels.Settings`` as a tuple: these ``settings``, the others plain."""
+    plain = dict(decisions_only=True, gamma=0.9, min_visits=0, prior_target=False)
+    plain |= dict(alpha=0.1, alpha_power=0.0, alpha_min=0.0)
+    return tuple(robot_kernels.Settings(**(plain | settings)))
+
+
 def test_updates_of_one_entry_are_sequential_eq3():
     """Two copies closing on one entry in a tick: two eq. (3) updates in copy order."""
     q, visits = np.array([0.0, 0.0, 7.0, 3.0]), np.zeros(4, np.int64)
@@ -290,7 +297,11 @@ def test_updates_of_one_entry_are_sequential_eq3():
     pending = (np.array([[1], [1]]), np.array([[1.0], [2.0]]), np.array([[0.5], [0.5]]))
     no_prior = np.zeros((2, 1), np.int64)  # min_visits 0: every valid action competes
     td = robot_kernels.close_transitions(
-        q, visits, next_bases, next_mask, no_prior, 0, False, closing, *pending, 0.5, 0.0, 0.0
+        (q, visits),
+        (next_bases, next_mask, no_prior),
+        robot_settings(alpha=0.5),
+        closing,
+        pending,
     )
     target = 1.0 + 0.5 * 7.0  # both targets from the table before the tick's updates
     first = 0.5 * target
@@ -301,9 +312,12 @@ def test_updates_of_one_entry_are_sequential_eq3():
     for target in (3.0, 6.0, 9.0):  # alpha = 1 / visits: the sample mean
         pending = (np.array([[0]]), np.array([[target]]), np.array([[0.0]]))
         robot_kernels.close_transitions(
-            q, visits, np.array([[0]]), next_mask[:1], no_prior[:1], 0, False, closing[:1],
-            *pending, 1.0, 1.0, 0.0,
-        )  # fmt: skip
+            (q, visits),
+            (np.array([[0]]), next_mask[:1], no_prior[:1]),
+            robot_settings(alpha=1.0, alpha_power=1.0),
+            closing[:1],
+            pending,
+        )
     assert q[0] == pytest.approx(6.0)
 
 
@@ -315,8 +329,9 @@ def test_dql_min_visits_keeps_the_prior_until_an_entry_has_enough_updates():
     chosen = []
     for min_visits in (0, 3, 4):  # all compete: slot 2; visits >= 3: slot 3; only the prior
         actions = np.zeros((1, 1), np.int64)
-        robot_kernels.act_robots(q, visits, bases, mask, prior, min_visits, 0.0, np.zeros(0),
-                                 actions)  # fmt: skip
+        robot_kernels.act_robots(
+            (q, visits), (bases, mask, prior), min_visits, (0.0, np.zeros(0)), actions
+        )
         chosen.append(int(actions[0, 0]))
     assert chosen == [2, 3, 1]
     # eq. (3)'s max over the same competing actions: R = 0, gamma^tau = 1, alpha = 1
@@ -325,9 +340,12 @@ def test_dql_min_visits_keeps_the_prior_until_an_entry_has_enough_updates():
         qq, vv = np.concatenate([[0.0], q]), np.concatenate([[0], visits])  # entry 0: (s, a)
         pending = (np.array([[0]]), np.array([[0.0]]), np.array([[1.0]]))
         robot_kernels.close_transitions(
-            qq, vv, np.array([[1]]), mask, prior, min_visits, prior_target,
-            np.ones((1, 1), bool), *pending, 1.0, 0.0, 0.0,
-        )  # fmt: skip
+            (qq, vv),
+            (np.array([[1]]), mask, prior),
+            robot_settings(min_visits=min_visits, prior_target=prior_target, alpha=1.0),
+            np.ones((1, 1), bool),
+            pending,
+        )
         targets.append(qq[0])
     # target=prior: the prior's own Q (slot 1), whatever the others hold
     assert targets == [5.0, 2.0, -1.0, -1.0]
@@ -348,9 +366,13 @@ def test_schedules_and_pending_returns():
     for tick, reward in enumerate(([1.0, 9.0], [2.0, 9.0])):  # robot 1 cannot bid at tick 0
         mask, after = masks[0 if tick == 0 else 1][None], masks[1][None]
         closed = robot_kernels.open_transitions(
-            *args, mask if tick == 0 else np.zeros_like(mask), after if tick else mask,
-            np.array([reward]), np.array([False]), *pending, True, 0.9, closing,
-        )  # fmt: skip
+            (*args, mask if tick == 0 else np.zeros_like(mask)),
+            after if tick else mask,
+            (np.array([reward]), np.array([False])),
+            pending,
+            robot_settings(decisions_only=True, gamma=0.9),
+            closing,
+        )
     assert closed == 1 and closing.tolist() == [[True, False]]
     assert pending[0].tolist() == [[5, -1]]
     assert pending[1][0, 0] == pytest.approx(1.0 + 0.9 * 2.0)
