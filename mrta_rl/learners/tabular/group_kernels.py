@@ -195,13 +195,14 @@ def _decode_into(code: int, n_actions: int, robots: np.ndarray, n: int, out: np.
 
 
 @njit(cache=True)
-def _rows_of_deciding(learner, g, seen, out):
-    """Group ``g``'s rows in ``seen`` where it decides (``out`` ``[B]``, -1 elsewhere)."""
+def _rows_of_deciding(learner, g, seen, use, out):
+    """Group ``g``'s rows in ``seen`` where it decides (``out`` ``[B]``, -1 elsewhere).
+
+    ``use`` ``[B]`` is scratch (written: where the group decides).
+    """
     robots, n = learner.groups.robots[g], learner.groups.size[g]
     decisions_only = learner.settings.decisions_only
-    batch = out.shape[0]
-    use = np.empty(batch, np.bool_)
-    for b in range(batch):
+    for b in range(out.shape[0]):
         use[b] = decides(seen.mask[b], robots, n, decisions_only)
     rows_of(learner, g, seen, use, out)
 
@@ -220,8 +221,9 @@ def _act(learner, seen, explore, chosen, actions):
     epsilon, uniforms = explore
     n_groups, batch = seen.states.shape
     n_actions = seen.mask.shape[2]
+    use = np.empty(batch, np.bool_)
     for g in range(n_groups):  # rows first: creating them draws nothing
-        _rows_of_deciding(learner, g, seen, row_out[g])
+        _rows_of_deciding(learner, g, seen, use, row_out[g])
     actions[:] = 0
     used = 0
     explored = np.zeros(batch, np.bool_)
@@ -276,8 +278,9 @@ def entries_for_actions(learner, seen, actions, chosen):
     slot_type, weight_by_type = seen.slot_type, groups.weight_by_type
     n_groups, batch = seen.states.shape
     n_actions = seen.mask.shape[2]
+    use = np.empty(batch, np.bool_)
     for g in range(n_groups):
-        _rows_of_deciding(learner, g, seen, row_out[g])
+        _rows_of_deciding(learner, g, seen, use, row_out[g])
         n, robots = groups.size[g], groups.robots[g]
         taken = np.empty(n, np.int64)
         weight = np.empty((n, n_actions - 1))
