@@ -78,11 +78,11 @@ class EpisodeStats:
 
 def _packed(
     tables: dict[str, np.ndarray], sizes: dict[str, int]
-) -> tuple[np.ndarray, tuple[np.ndarray, ...], dict[str, np.ndarray]]:
+) -> tuple[tuple[np.ndarray, ...], dict[str, np.ndarray]]:
     """The kernel's storage of :data:`kernel.FIELDS` (see :func:`kernel.unpack`).
 
     Every field becomes a C-contiguous piece of one flat buffer per dtype, so that a compiled
-    call takes 4 buffers and a layout instead of 27 arrays.
+    call takes 4 buffers instead of 27 arrays; the int64 buffer starts with the layout.
 
     Args:
         tables: The value of every table field, by name.
@@ -90,11 +90,11 @@ def _packed(
             start at zero (a reset writes them).
 
     Returns:
-        The layout (offset and shape of each field), the buffers (``kernel.BUFFER_DTYPES``
-        order) and the fields by name, as views of the buffers.
+        The buffers (``kernel.BUFFER_DTYPES`` order) and the fields by name, as views of them.
     """
-    layout = np.ones((len(kernel.FIELDS), 4), np.int64)
+    layout = np.ones((len(kernel.FIELDS), 4), np.int64)  # offset and shape of each field
     used = [0] * len(kernel.BUFFER_DTYPES)  # places taken in each buffer
+    used[kernel.BUFFER_DTYPES.index(np.int64)] = kernel.LAYOUT_SIZE
     places = []
     for f, (name, dims, dtype) in enumerate(kernel.FIELDS):
         shape = tuple(int(d) if d.isdigit() else sizes[d] for d in dims.split())
@@ -113,7 +113,8 @@ def _packed(
         if value.shape != fields[name].shape:
             raise ValueError(f"table {name} has shape {value.shape}, not {fields[name].shape}")
         fields[name][...] = value
-    return layout, buffers, fields
+    buffers[kernel.BUFFER_DTYPES.index(np.int64)][: kernel.LAYOUT_SIZE] = layout.reshape(-1)
+    return buffers, fields
 
 
 class StepResult:
@@ -236,7 +237,7 @@ class AuctionEnv:
         # a queue holds at most queue_capacity tasks between ticks, plus one tick's arrivals
         sizes = {"B": batch_size, "m": self.n_robots, "n": self.n_task_types, "K": self.n_slots}
         sizes |= {"W": p.queue_capacity + len(cdf), "C": len(cdf)}
-        self._layout, self._buffers, fields = _packed(tables, sizes)
+        self._buffers, fields = _packed(tables, sizes)
         self._state = {name: fields[name] for name in kernel.State._fields}
         state = self._state
         self.t = state["t"]  # current tick per copy
@@ -350,7 +351,7 @@ class AuctionEnv:
     def _refresh(self, rows: np.ndarray | None, begin: int) -> None:
         """Reset (``begin=2``) or begin the tick of (1) the ``rows``, then re-select all slots."""
         rows = np.zeros(self.batch_size, bool) if rows is None else rows
-        kernel.refresh(rows, begin, self._layout, self._buffers, self._new_views())
+        kernel.refresh(rows, begin, self._buffers, self._new_views())
 
     def _begin_tick(self, rows: np.ndarray) -> None:
         """Spec steps 1-3 of tick ``t`` for ``rows``; other copies keep their slots."""
@@ -391,7 +392,6 @@ class AuctionEnv:
         problem, where = kernel.step(
             not validated,
             actions,
-            self._layout,
             self._buffers,
             (self.idle, self._mask),
             views,
@@ -474,8 +474,8 @@ class AuctionEnv:
             ValueError: on an unknown policy.
         """
         actions = np.empty((self.batch_size, self.n_robots), np.int64)
-        views = (self.slot_type, self.slot_high, self.idle, self._mask)
-        kernel.fixed_actions(self._policy_code(policy), self._layout, self._buffers, views, actions)
+        views = (self._mask, self.slot_high)
+        kernel.fixed_actions(self._policy_code(policy), self._buffers, views, actions)
         return actions
 
     # ------------------------------------------------------------------ many ticks, compiled
@@ -537,7 +537,6 @@ class AuctionEnv:
             fresh[...] = now  # play_copy decides on them first
         args = (
             (code, -1 if ticks is None else int(ticks), rounds),  # kernel.Plan
-            self._layout,
             self._buffers,
             views,
             tuple(getattr(out, f) for f in kernel.STATS),

@@ -15,11 +15,12 @@ The arrays travel in named records (numba namedtuples), each declared once below
 
 - :class:`Tables` (:data:`TABLE_FIELDS`), written once by the env, and :class:`State`
   (:data:`STATE_FIELDS`), per-copy arrays ``[B, ...]``. The env keeps them in one flat buffer
-  per dtype (:data:`BUFFER_DTYPES`) with a ``layout``; the entry points (:func:`step`,
-  :func:`refresh`, :func:`fixed_actions`, :func:`play`) take the buffers and :func:`unpack`
-  builds the two records inside compiled code. numba unboxes every array argument of a call
-  from Python, the larger part of a call's cost at small batch sizes, so 4 buffers cost less
-  than 27 arrays (and a namedtuple built in Python costs more than its arrays).
+  per dtype (:data:`BUFFER_DTYPES`), the int64 one starting with their layout; the entry points
+  (:func:`step`, :func:`refresh`, :func:`fixed_actions`, :func:`play`) take the buffers and
+  :func:`unpack` builds the two records inside compiled code. numba unboxes every array
+  argument of a call from Python, the larger part of a call's cost at small batch sizes, so 4
+  buffers cost less than 27 arrays (and a namedtuple built in Python costs more than its
+  arrays).
 - :class:`Views` (:data:`VIEW_FIELDS`): what a decision sees, fresh arrays written each tick.
 - :class:`Rewards`: one tick's rewards; :class:`Stats` (:data:`STATS`): finished episodes'
   statistics, written by :func:`play`.
@@ -102,6 +103,7 @@ FIELDS = TABLE_FIELDS + STATE_FIELDS  # the rows of the layout
 VIEW_FIELDS = ("slot_type", "slot_high", "idle", "mask")
 STATS = ("assigned", "dropped", "busy_ticks", "team_return", "ticks")  # a State's statistics
 BUFFER_DTYPES = (np.uint64, np.int64, np.float64, np.bool_)  # a field lives in its dtype's buffer
+LAYOUT_SIZE = 4 * len(FIELDS)  # the int64 buffer's first places: the layout (see unpack)
 
 Tables = namedtuple("Tables", [name for name, _, _ in TABLE_FIELDS])
 State = namedtuple("State", [name for name, _, _ in STATE_FIELDS])
@@ -117,10 +119,11 @@ _POLICY_SALT = np.uint64(0x5851F42D4C957F2D)  # keys the random policy's draws a
 
 
 def _compile_unpack():
-    """``unpack(layout, buffers) -> (Tables, State)``, generated from :data:`FIELDS`.
+    """``unpack(buffers) -> (Tables, State)``, generated from :data:`FIELDS`.
 
-    Row ``f`` of ``layout`` (int64 ``[len(FIELDS), 4]``, written by ``AuctionEnv``) holds field
-    ``f``'s offset in its dtype's buffer and its shape (unused trailing dimensions 1). The
+    The int64 buffer starts with the layout ``[len(FIELDS), 4]`` (written by ``AuctionEnv``):
+    row ``f`` holds field ``f``'s offset in its dtype's buffer and its shape (unused trailing
+    dimensions 1). The
     source is generated because numba needs each field's buffer and number of dimensions at
     compile time; it is compiled under this file's name, so numba caches it with the rest.
     """
@@ -133,7 +136,9 @@ def _compile_unpack():
         views.append(view)
     split = len(TABLE_FIELDS)
     source = (
-        "def unpack(layout, buffers):\n"
+        "def unpack(buffers):\n"
+        f"    layout = buffers[{BUFFER_DTYPES.index(np.int64)}][:{LAYOUT_SIZE}]"
+        f".reshape(({len(FIELDS)}, 4))\n"
         "    o, d = layout[:, 0], layout[:, 1:]\n"
         f"    return Tables({', '.join(views[:split])}), State({', '.join(views[split:])})\n"
     )
@@ -442,7 +447,7 @@ def first_invalid(actions, done, mask):
 
 
 @njit(cache=True, nogil=True)
-def step(check, actions, layout, buffers, before, views, rewards):
+def step(check, actions, buffers, before, views, rewards):
     """One tick of every copy (:func:`step_copies`), unless ``actions`` are invalid.
 
     ``before`` is ``(idle, mask)`` of the views the actions were decided on, ``views`` and
@@ -451,7 +456,7 @@ def step(check, actions, layout, buffers, before, views, rewards):
     and a problem is returned before anything is written; without, the caller vouches for them.
     Returns :func:`first_invalid`'s ``(problem, where)``, ``(0, 0)`` once stepped.
     """
-    tables, state = unpack(layout, buffers)
+    tables, state = unpack(buffers)
     idle_before, mask_before = before
     if check:
         problem, where = first_invalid(actions, state.done, mask_before)
@@ -464,31 +469,31 @@ def step(check, actions, layout, buffers, before, views, rewards):
 
 
 @njit(cache=True, nogil=True)
-def refresh(rows, begin, layout, buffers, views):
+def refresh(rows, begin, buffers, views):
     """Reset (``begin=2``), begin the tick (``begin=1``) or only re-select (0) the ``rows``.
 
     Every copy's slots and mask are (re)written into ``views`` (fresh arrays, :data:`VIEW_FIELDS`).
     """
-    tables, state = unpack(layout, buffers)
+    tables, state = unpack(buffers)
     views = Views(*views)
     for b in range(rows.shape[0]):
         refresh_copy(b, begin if rows[b] else 0, tables, state, views)
 
 
 @njit(cache=True, nogil=True)
-def fixed_policy_copy(b, policy, episode_key, t, views, actions):
+def fixed_policy_copy(b, policy, episode_key, t, mask, slot_high, actions):
     """The spec's fixed policies for copy ``b`` at its tick ``t``, into ``actions[b]``.
 
-    The rules are ``mrta_rl.rules``' (spec "Fixed policies"); ``random`` draws the rank of its
-    valid action (waiting or a bid) from counter-based hashes of the copy's ``episode_key``, tick
-    and robot. (The copy's two state fields come as scalars: a record argument costs a reference
-    count per array.)
+    The rules are ``mrta_rl.rules``' (spec "Fixed policies") on the views ``mask`` and
+    ``slot_high``; ``random`` draws the rank of its valid action (waiting or a bid) from
+    counter-based hashes of the copy's ``episode_key``, tick and robot. (The fields come one by
+    one: a record argument costs a reference count per array.)
     """
-    mask = views.mask[b]
+    mask = mask[b]
     if policy == 0:
         greedy(mask, actions[b])
     elif policy == 2:
-        high_only(mask, views.slot_high[b], actions[b])
+        high_only(mask, slot_high[b], actions[b])
     else:  # random; only it draws (a hash per copy is a third of greedy's cost)
         key = mix64(tick_key(episode_key, np.uint64(t)) ^ _POLICY_SALT)
         for i in range(mask.shape[0]):
@@ -498,12 +503,16 @@ def fixed_policy_copy(b, policy, episode_key, t, views, actions):
 
 
 @njit(cache=True, nogil=True)
-def fixed_actions(policy, layout, buffers, views, actions):
-    """:func:`fixed_policy_copy` of every copy, into ``actions`` ``[B, m]``."""
-    state = unpack(layout, buffers)[1]
-    episode_key, t, views = state.episode_key, state.t, Views(*views)
+def fixed_actions(policy, buffers, views, actions):
+    """:func:`fixed_policy_copy` of every copy, into ``actions`` ``[B, m]``.
+
+    ``views`` is ``(mask, slot_high)``, the only views a fixed policy reads.
+    """
+    state = unpack(buffers)[1]
+    episode_key, t = state.episode_key, state.t
+    mask, slot_high = views
     for b in range(actions.shape[0]):
-        fixed_policy_copy(b, policy, episode_key[b], t[b], views, actions)
+        fixed_policy_copy(b, policy, episode_key[b], t[b], mask, slot_high, actions)
 
 
 @njit(cache=True, nogil=True)
@@ -541,14 +550,15 @@ def play_copy(b, plan, tables, state, views, scratch, out):
             refresh_copy(b, np.int64(2), tables, state, views)
         if played == max_ticks:
             break
-        fixed_policy_copy(b, policy, state.episode_key[b], state.t[b], views, actions)
+        key, now = state.episode_key[b], state.t[b]
+        fixed_policy_copy(b, policy, key, now, views.mask, views.slot_high, actions)
         step_copies(b, b + 1, actions, tables, state, views.idle, views, rewards)
         played += 1
     return played
 
 
 @njit(cache=True, nogil=True)
-def play(lo, hi, plan, layout, buffers, views, out):
+def play(lo, hi, plan, buffers, views, out):
     """:func:`play_copy` of copies ``lo .. hi - 1`` in turn; returns the ticks they played.
 
     ``plan`` is a :class:`Plan` tuple, ``views`` and ``out`` the tuples of :data:`VIEW_FIELDS`
@@ -560,7 +570,7 @@ def play(lo, hi, plan, layout, buffers, views, out):
     n = out.assigned.shape[1]
     rewards = Rewards(np.zeros(B), np.zeros((B, m)), np.zeros((B, n)))
     scratch = Scratch(np.zeros((B, m), np.int64), rewards)
-    tables, state = unpack(layout, buffers)
+    tables, state = unpack(buffers)
     played = 0
     for b in range(lo, hi):
         played += play_copy(b, plan, tables, state, views, scratch, out)

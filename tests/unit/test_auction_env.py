@@ -514,7 +514,7 @@ def test_the_named_arrays_are_the_kernels_storage():
     """Every state array the env names is the very memory the kernel reads and writes."""
     env = AuctionEnv(build_system(MIXED), AuctionParams(horizon=40), batch_size=3, seed=1)
     env.step(greedy_actions(env))
-    tables, state = kernel.unpack(env._layout, env._buffers)
+    tables, state = kernel.unpack(env._buffers)
     fields = tables._asdict() | state._asdict()
     for name, value in env.get_state().items():
         np.testing.assert_array_equal(fields[name], value, err_msg=name)
