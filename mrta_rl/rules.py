@@ -132,28 +132,40 @@ def high_only(mask, slot_high, out):
 
 
 @njit(cache=True, nogil=True)
+def slot_winner(actions, slot, willingness):
+    """Spec step 5: among the robots bidding for ``slot``, the most willing; ties to the lowest.
+
+    Args:
+        actions: ``[m]`` int64 actions of the robots.
+        slot: The slot ``k`` (1-based, the bid's action).
+        willingness: ``[m]`` willingness ``d_iz`` of each robot for the slot's type.
+
+    Returns:
+        The winner's row, or -1 when nobody bids for the slot.
+    """
+    winner, best = -1, -1.0
+    for r in range(actions.shape[0]):
+        if actions[r] == slot and willingness[r] > best:
+            winner, best = r, willingness[r]
+    return winner
+
+
+@njit(cache=True, nogil=True)
 def deconflict(actions, weight):
     """Spec step 5 as a rule on a joint action: each slot's winner keeps its bid, losers wait.
 
-    The winner is the bidder of greatest willingness, ties to the lowest index (spec step 5), so
-    the env assigns the same tasks to the same robots; the losers' bids, which would only cost
-    them a busy tick (spec step 7), become waits.
+    The winner is :func:`slot_winner`'s, so the env assigns the same tasks to the same robots;
+    the losers' bids, which would only cost them a busy tick (spec step 7), become waits.
 
     Args:
         actions: ``[m]`` int64 actions of a group (modified in place).
         weight: ``[m, K]`` willingness ``d_iz`` of each robot for each slot's type.
     """
     for k in range(1, weight.shape[1] + 1):
-        winner, best, bidders = -1, -1.0, 0
+        winner = slot_winner(actions, k, weight[:, k - 1])
         for r in range(actions.shape[0]):
-            if actions[r] == k:
-                bidders += 1
-                if weight[r, k - 1] > best:
-                    winner, best = r, weight[r, k - 1]
-        if bidders > 1:
-            for r in range(actions.shape[0]):
-                if actions[r] == k and r != winner:
-                    actions[r] = 0
+            if actions[r] == k and r != winner:
+                actions[r] = 0
 
 
 @njit(cache=True, nogil=True)

@@ -2,9 +2,12 @@
 
 Every encoding below is a finite mixed-radix integer (for tabular learners) or a fixed-width
 float32 one-hot vector (for neural nets), computed from the env's public arrays for all ``B``
-copies at once. The counts are exact, so the learning space dimension (paper eqs 10-16) is
-``|S| x |A|`` with ``|S|`` from here and ``|A| = K + 1`` per robot. Notation: ``m`` robots,
-``n`` task types, ``K`` slots, ``Lambda_i`` the active task types of robot ``i``.
+copies at once. This module holds the tables (slot codes, place values) and the formulas; the
+digits and the state indices themselves are computed by the compiled loops of
+``envs/state_codes.py``, the one implementation the tabular learners' kernels call too. The
+counts are exact, so the learning space dimension (paper eqs 10-16) is ``|S| x |A|`` with ``|S|``
+from here and ``|A| = K + 1`` per robot. Notation: ``m`` robots, ``n`` task types, ``K`` slots,
+``Lambda_i`` the active task types of robot ``i``.
 
 Coarse signals:
     * **battery level** (2 values), :func:`battery_level`: ``1`` (low) when

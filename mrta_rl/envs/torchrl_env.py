@@ -33,8 +33,12 @@ PRIOR_KEY = "prior_action"  # (group, PRIOR_KEY): one-hot of the prior's action 
 
 
 def prior_one_hot(actions: np.ndarray, n_actions: int) -> torch.Tensor:
-    """``[B, m]`` int actions -> ``[B, m, K + 1]`` bool one-hot (the ``prior_action`` leaf)."""
-    return torch.nn.functional.one_hot(torch.from_numpy(actions), n_actions).to(torch.bool)
+    """``[B, m]`` int actions -> ``[B, m, K + 1]`` bool one-hot (the ``prior_action`` leaf).
+
+    An action of -1 (the prior has none for that robot) is an all-False row.
+    """
+    one_hot = torch.nn.functional.one_hot(torch.from_numpy(actions) + 1, n_actions + 1)
+    return one_hot[..., 1:].to(torch.bool)
 
 
 def resolve_group_map(robots: Sequence[str], group_map: GroupMapArg) -> GroupMap:

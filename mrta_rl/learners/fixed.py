@@ -125,17 +125,15 @@ class TeamReserveLearner(Learner):
 
     It reads no more than a centralized learner's group view (spec "Observations": slot contents,
     which robots are idle, the recency level of an H arrival) and bids for the robots' active
-    types ``Lambda_i`` only. Per group ``G`` and copy:
-
-    1. H slots, in slot order: the group's idle robot that may bid and comes first in ``order``
-       (``fewest_types``: fewest active types first, ties to the lowest index, so versatile robots
-       stay free; ``index``: lowest index) bids. No two robots bid for the same slot, so no bid is
-       lost (spec step 7 counts a lost bid as busy time).
-    2. L slots, in slot order, the same way, but only while at least ``reserve`` other robots of
-       ``G`` stay idle after the bid, and only by a robot whose recency level is at least
-       ``hold_level`` (``hold_scope="group"``: the level over the group's types ``T_g``;
-       ``"robot"``: over the robot's own ``Lambda_i``). ``hold_level=1``: no such H task arrived
-       within 3 ticks; ``0``: never hold; ``2``: within 10 ticks; ``3``: never bid for L.
+    types ``Lambda_i`` only. Per group ``G`` and copy it bids the reserve rule
+    (:func:`mrta_rl.rules.reserve`): H slots first, then L slots, one robot per slot, so no bid is
+    lost (spec step 7). Robots are asked in ``order`` (``fewest_types``: fewest active types
+    first, ties to the lowest index, so versatile robots stay free; ``index``: lowest index). An
+    L bid needs at least ``reserve`` other idle robots of ``G`` left without a bid, and a robot
+    whose recency level is at least ``hold_level`` (``hold_scope="group"``: the level over the
+    group's types ``T_g``; ``"robot"``: over the robot's own ``Lambda_i``). ``hold_level=1``: no
+    such H task arrived within 3 ticks; ``0``: never hold; ``2``: within 10 ticks; ``3``: never
+    bid for L.
 
     ``grouping="team"`` (default) is one group of all robots; ``"subg"`` the sub-groups of the
     subG partition (paper §4), computed from the env's system if the runner gave none. On the

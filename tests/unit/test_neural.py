@@ -13,17 +13,17 @@ from torchrl.modules import EGreedyModule, MultiAgentMLP, QValueModule
 
 from mrta_rl.envs import AuctionEnv, AuctionParams
 from mrta_rl.envs import encodings as ob
-from mrta_rl.envs.torchrl_env import AuctionTorchRLEnv
+from mrta_rl.envs.torchrl_env import AuctionTorchRLEnv, prior_one_hot
 from mrta_rl.learners import SubGReserveLearner, TeamReserveLearner
 from mrta_rl.learners.neural import IQLLearner, QMIXLearner, SubGDQNLearner, VDNLearner
 from mrta_rl.learners.neural.common import WEIGHTS_FILE, EpsilonGreedy
 from mrta_rl.learners.neural.networks import (
     PerRobotQ,
-    greedy_bid,
     joint_combine,
     joint_decode,
     stacked_forward,
 )
+from mrta_rl.learners.tabular.priors import GreedyPrior
 from mrta_rl.partition import subg_partition
 from mrta_rl.runners import build_run, evaluate_checkpoint, train
 from mrta_rl.runners.evaluate import evaluate_policy
@@ -122,10 +122,11 @@ def test_joint_combine_and_decode_round_trip():
         torch.testing.assert_close(summed[:, j], expected_sum)
 
 
-def test_greedy_bid_is_the_lowest_valid_bid():
-    mask = torch.tensor([[1, 0, 1, 1], [1, 0, 0, 0], [1, 1, 1, 0]], dtype=torch.bool)
+def test_greedy_bid_is_the_lowest_valid_bid(system):
+    mask = np.array([[[1, 0, 1, 1], [1, 0, 0, 0], [1, 1, 1, 0]]], dtype=bool)
     expected = torch.tensor([[0, 0, 1, 0], [0, 0, 0, 0], [0, 1, 0, 0]], dtype=torch.float32)
-    assert torch.equal(greedy_bid(mask), expected)
+    greedy_bid = prior_one_hot(GreedyPrior()(AuctionEnv(system), mask), 4)[0]
+    assert torch.equal(greedy_bid.float(), expected)
 
 
 @pytest.mark.parametrize("features", ob.FEATURES)

@@ -100,7 +100,12 @@ def test_network_and_transition_sizes_match_built_learners(learner, compose_cfg)
     )
     weights = sum(p.numel() for p in run.learner.networks.parameters())
     assert estimate.parts["networks"] == weights * BYTES_PER_WEIGHT
-    env = AuctionTorchRLEnv(run.env, group_map=run.learner.group_map, features=run.learner.features)
+    env = AuctionTorchRLEnv(  # as the runner builds it
+        run.env,
+        group_map=run.learner.group_map,
+        prior=run.learner.rule,
+        features=run.learner.features,
+    )
     collector = Collector(
         env,
         run.learner.explore_policy,

@@ -108,6 +108,13 @@ def test_reserve_writes_only_its_group():
     assert out.tolist() == [-1, -1, 2, 3]
 
 
+def test_slot_winner_is_the_most_willing_bidder():
+    actions = np.array([1, 2, 1, 1])
+    assert rules.slot_winner(actions, 1, np.array([0.5, 0.9, 0.8, 0.8])) == 2  # tie to robot 2
+    assert rules.slot_winner(actions, 2, np.array([0.5, 0.1, 0.8, 0.8])) == 1  # the only bidder
+    assert rules.slot_winner(actions, 3, np.ones(4)) == -1  # nobody bids
+
+
 def test_deconflict_keeps_the_most_willing_bidder():
     weight = np.array([[0.5, 0.2], [0.9, 0.2], [0.9, 0.7], [0.1, 0.7]])
     actions = np.array([1, 1, 1, 2])

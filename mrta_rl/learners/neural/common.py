@@ -28,12 +28,15 @@ shaping: the TD fixed point is unchanged, only the function the net must represe
 Rule prior (``prior: hold``, the words of DQL's ``prior``): the bonus goes instead to the action of
 the whole-team ``team_reserve`` rule (:class:`~mrta_rl.learners.tabular.priors.HoldRule`, the
 ``prior_*`` settings), so the untrained network plays that rule exactly. The rule reads the whole
-team (which robots are idle, which one the team asks first), more than a robot's local features,
-so it is computed from the core env -- by :class:`~mrta_rl.envs.torchrl_env.AuctionTorchRLEnv`
-(its ``prior`` argument) while training and by :meth:`NeuralLearner.encode` in evaluation -- and
-reaches the Q-network as the observation ``(group, "prior_action")``, a one-hot per robot, stored
-in the replay buffer with the other observations so the target network sees the rule's action of
-the next state. ``prior_in_state`` also feeds that one-hot to the network as an input.
+team (which robots are idle, which one the team asks first), more than a robot's local features.
+
+Every prior (the plain auction's :class:`~mrta_rl.learners.tabular.priors.GreedyPrior`, the rule,
+subG-DQN's ``spread_wait``) is computed from the core env with the rules of ``mrta_rl/rules.py``
+-- by :class:`~mrta_rl.envs.torchrl_env.AuctionTorchRLEnv` (its ``prior`` argument) while
+training and by :meth:`NeuralLearner.encode` in evaluation -- and reaches the Q-network as the
+observation ``(group, "prior_action")``, a one-hot per robot, stored in the replay buffer with
+the other observations so the target network sees the prior's action of the next state.
+``prior_in_state`` (with ``hold``) also feeds that one-hot to the network as an input.
 
 Inputs (``features``, :data:`~mrta_rl.envs.encodings.FEATURES`): ``paper`` (default) or
 ``time_to_free`` (free levels and queue levels added, ``encodings`` module docstring,
@@ -64,7 +67,7 @@ from mrta_rl.envs.torchrl_env import PRIOR_KEY, prior_one_hot
 from mrta_rl.learners.base import Learner
 from mrta_rl.learners.fixed import HOLD_SCOPES, HoldLevel, Reserve
 from mrta_rl.learners.neural.networks import PerRobotQ, joint_decode, joint_encode
-from mrta_rl.learners.tabular.priors import HOLD_PRIORS, HoldRule
+from mrta_rl.learners.tabular.priors import HOLD_PRIORS, GreedyPrior, HoldRule, SpreadWaitPrior
 from mrta_rl.partition import Partition
 from mrta_rl.types import GroupMap
 
@@ -74,6 +77,7 @@ WEIGHTS_FILE = "weights.pt"  # state_dict of the Q-networks (and mixer), torch.l
 META_FILE = "learner.json"  # group map and sizes, to check a checkpoint fits the run
 TRAINING_FILE = "training.pt"  # optimizer, target networks, epsilon (training checkpoints)
 JOINT = "joint"  # root sub-TensorDict of joint-action keys: (JOINT, group, leaf), batch [*]
+Prior = GreedyPrior | HoldRule | SpreadWaitPrior  # env state -> [B, m] the prior's actions
 # per-robot reward leaves of AuctionTorchRLEnv, [*, n_g, 1]: team (TorchRL's reward key),
 # individual, and sub-group reward (spec step 8)
 REWARD_KEYS = ("reward", "robot_reward", "group_reward")
@@ -106,7 +110,7 @@ def observation_td(
     env: AuctionEnv,
     group_map: GroupMap,
     mask: np.ndarray,
-    prior: HoldRule | None = None,
+    prior: Prior | None = None,
     features: str = "paper",
 ) -> TensorDict:
     """The TorchRL observation of the env's decision point, as ``AuctionTorchRLEnv`` writes it.
@@ -115,7 +119,7 @@ def observation_td(
         env: The core env at a decision point (any batch size ``B``).
         group_map: ``{group: [robot ids]}``.
         mask: ``[B, m, K + 1]`` bool valid actions (copied, the core reuses its buffer).
-        prior: The rule prior, or None (plain auction: no ``prior_action`` key).
+        prior: The prior (module docstring), or None (no ``prior_action`` key).
         features: ``encodings.FEATURES``: the encoding of ``observation`` and ``state``.
 
     Returns:
@@ -290,8 +294,8 @@ class NeuralLearner(Learner):
             raise ValueError(f"need eps_end <= eps_start, got {eps_end}, {eps_start}")
         if prior_in_state and prior != "hold":
             raise ValueError("prior_in_state needs prior=hold (the plain auction is no input)")
-        # the rule prior, computed from the env (module docstring); None: the plain auction's
-        self.rule: HoldRule | None = None
+        # the prior, computed from the env (module docstring)
+        self.rule: Prior = GreedyPrior()
         if prior == "hold":
             self.rule = HoldRule(
                 env, reserve=prior_reserve, hold_level=prior_hold_level,
@@ -388,13 +392,10 @@ class NeuralLearner(Learner):
             depth=self.hp["depth"],
             auction_prior=self.hp["auction_prior"],
             device=self.device,
-            rule_prior=self.rule is not None,
             prior_in_state=self.prior_in_state,
         )
         self.networks[group] = qnet
-        in_keys = [(group, "observation"), (group, "action_mask")]
-        if self.rule is not None:
-            in_keys.append((group, PRIOR_KEY))
+        in_keys = [(group, "observation"), (group, PRIOR_KEY)]
         value = TensorDictModule(qnet, in_keys=in_keys, out_keys=[(group, "action_value")])
         policy = TensorDictSequential(
             value,

@@ -1,8 +1,9 @@
 """Q-networks of the TorchRL learners: per-robot and joint-action nets, joint-action coding.
 
-The auction prior (see ``common.py``) lives here too: :func:`greedy_bid` marks the plain
-auction's action (or, for the ``hold`` prior, the env's ``prior_action`` one-hot does) and the
-output layers start at zero, so an untrained network is the greedy auction (or the rule).
+The auction prior (see ``common.py``) enters as an input: the env's ``prior_action`` one-hot
+marks the prior rule's action of every robot (computed from the env by ``tabular.priors``, with
+the rules of ``mrta_rl/rules.py``), its bonus is added to the output, and the output layers
+start at zero, so an untrained network plays the prior rule.
 """
 
 from __future__ import annotations
@@ -10,63 +11,6 @@ from __future__ import annotations
 import torch
 from torch import nn
 from torchrl.modules import MLP, MultiAgentMLP
-
-JOINT_PRIORS = ("greedy", "spread_wait")  # what an untrained joint-action network plays
-
-
-def greedy_bid(mask: torch.Tensor) -> torch.Tensor:
-    """One-hot of the plain auction's action (spec "Fixed policies", greedy).
-
-    Args:
-        mask: ``[*, K + 1]`` bool valid actions.
-
-    Returns:
-        ``[*, K + 1]`` float: 1 at the lowest-numbered valid bid, all zero if only wait is valid.
-    """
-    bids = mask[..., 1:]  # [*, K]
-    first = bids & (bids.cumsum(-1) == 1)  # the lowest-numbered valid bid
-    return nn.functional.pad(first.to(torch.float32), (1, 0))  # wait column: 0
-
-
-def spread_wait_bid(
-    observation: torch.Tensor,
-    mask: torch.Tensor,
-    order: torch.Tensor,
-    slots: slice,
-    recent: int,
-) -> torch.Tensor:
-    """One-hot of the subG-CQL ``spread_wait`` prior's action per robot of a sub-group.
-
-    The same rule as the tabular prior (``learners/tabular/priors.py``, ``spread_actions`` under
-    the ``spread_wait`` masks): L slots are held while an H task of the group's types arrived
-    within 3 ticks (some robot's recency level is 0: the group's level is the lowest of its
-    robots'), then idle robots, asked in ``order``, bid for distinct slots in slot order.
-
-    Args:
-        observation: ``[*, n_g, F]`` local features (``encodings.local_feature_layout``).
-        mask: ``[*, n_g, K + 1]`` bool valid actions.
-        order: ``[n_g]`` int64 robot positions in the order they are asked.
-        slots: Feature slice of the ``K`` slot one-hots (code ``1 + 2 type + high``).
-        recent: Feature index of recency level 0.
-
-    Returns:
-        ``[*, n_g, K + 1]`` float one-hot (wait included: the rule's wait is an action too).
-    """
-    *lead, n_g, n_actions = mask.shape
-    codes = observation[..., slots].reshape(*lead, n_g, n_actions - 1, -1)  # [*, n_g, K, codes]
-    low = (codes[..., 1::2] > 0).any(-1)  # odd codes 1 + 2 type are L tasks
-    hold = (observation[..., recent] > 0).any(-1)[..., None, None]  # [*, 1, 1]
-    bids = (mask[..., 1:] & ~(low & hold))[..., order, :]  # [*, n_g, K], robots in order
-    free = torch.ones(bids.shape[:-1], dtype=torch.bool, device=mask.device)  # not yet bidding
-    ranked = torch.zeros(bids.shape[:-1], dtype=torch.long, device=mask.device)
-    for k in range(n_actions - 1):
-        candidates = bids[..., k] & free
-        first = candidates & (candidates.cumsum(-1) == 1)  # the first candidate in order
-        ranked += first * (k + 1)  # a robot is first for one slot at most
-        free &= ~first
-    actions = torch.empty_like(ranked)
-    actions[..., order] = ranked
-    return nn.functional.one_hot(actions, n_actions).to(torch.float32)
 
 
 def joint_combine(per_robot: torch.Tensor, op: str) -> torch.Tensor:
@@ -145,7 +89,6 @@ class PerRobotQ(nn.Module):
         depth: int,
         auction_prior: float,
         device: torch.device,
-        rule_prior: bool = False,
         prior_in_state: bool = False,
     ) -> None:
         """Build the MLP (last layer zero, so the untrained Q-values are the prior).
@@ -159,9 +102,7 @@ class PerRobotQ(nn.Module):
             depth: Hidden layers.
             auction_prior: Bonus of the prior's action (module docstring).
             device: Parameter device.
-            rule_prior: The bonus goes to the ``prior_action`` input (a rule's one-hot, e.g. the
-                ``hold`` prior) instead of the greedy bid.
-            prior_in_state: ``rule_prior``: the one-hot is also an input (``F + K + 1``).
+            prior_in_state: The prior's one-hot is also an input of the MLP (``F + K + 1``).
         """
         super().__init__()
         layers = {
@@ -170,7 +111,7 @@ class PerRobotQ(nn.Module):
             "activation_class": nn.ReLU,
             "device": device,
         }
-        self.rule_prior, self.prior_in_state = rule_prior, rule_prior and prior_in_state
+        self.prior_in_state = prior_in_state
         n_features += n_actions if self.prior_in_state else 0
         if share_params:
             self.mlp = MLP(in_features=n_features, out_features=n_actions, **layers)
@@ -183,22 +124,14 @@ class PerRobotQ(nn.Module):
         zero_last_layer(self.mlp)
         self.auction_prior = auction_prior
 
-    def forward(
-        self,
-        observation: torch.Tensor,
-        action_mask: torch.Tensor,
-        prior_action: torch.Tensor | None = None,
-    ) -> torch.Tensor:
+    def forward(self, observation: torch.Tensor, prior_action: torch.Tensor) -> torch.Tensor:
         """Q-values ``[*, n_g, A]`` of ``observation`` ``[*, n_g, F]``.
 
-        ``prior_action`` (``rule_prior`` only): ``[*, n_g, A]`` bool one-hot of the rule's action.
+        ``prior_action``: ``[*, n_g, A]`` bool one-hot of the prior rule's action of each robot.
         """
-        if self.rule_prior:
-            prior = prior_action.to(observation.dtype)
-            if self.prior_in_state:
-                observation = torch.cat([observation, prior], -1)
-        else:
-            prior = greedy_bid(action_mask)
+        prior = prior_action.to(observation.dtype)
+        if self.prior_in_state:
+            observation = torch.cat([observation, prior], -1)
         if isinstance(self.mlp, MultiAgentMLP):
             values = stacked_forward(self.mlp, observation)
         else:
@@ -253,9 +186,6 @@ class JointQ(nn.Module):
         depth: int,
         auction_prior: float,
         device: torch.device,
-        prior: str = "greedy",
-        order: list[int] | None = None,
-        layout: dict[str, slice] | None = None,
     ) -> None:
         """Build the MLP (last layer zero) over the concatenated features of the group.
 
@@ -267,23 +197,8 @@ class JointQ(nn.Module):
             depth: Hidden layers.
             auction_prior: Bonus per robot playing the prior's action (module docstring).
             device: Parameter device.
-            prior: The rule an untrained network plays: ``"greedy"`` (:func:`greedy_bid`, the
-                plain auction) or ``"spread_wait"`` (:func:`spread_wait_bid`).
-            order: ``spread_wait``: robot positions in the order they are asked.
-            layout: ``spread_wait``: ``encodings.local_feature_layout`` of the features.
-
-        Raises:
-            ValueError: on an unknown prior, or ``spread_wait`` without order and layout.
         """
         super().__init__()
-        if prior not in JOINT_PRIORS:
-            raise ValueError(f"prior must be one of {JOINT_PRIORS}, got {prior!r}")
-        if prior == "spread_wait" and (order is None or layout is None):
-            raise ValueError("the spread_wait prior needs the robot order and the feature layout")
-        self.prior = prior
-        self.layout = layout
-        order = list(range(n_robots)) if order is None else list(order)
-        self.register_buffer("order", torch.tensor(order, dtype=torch.long, device=device))
         self.mlp = MLP(
             in_features=n_robots * n_features,
             out_features=n_actions**n_robots,
@@ -296,15 +211,14 @@ class JointQ(nn.Module):
         self.auction_prior = auction_prior
 
     def forward(
-        self, observation: torch.Tensor, action_mask: torch.Tensor
+        self, observation: torch.Tensor, action_mask: torch.Tensor, prior_action: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Joint Q-values and joint mask ``[*, A^n_g]`` (mask = product of the robots' masks)."""
+        """Joint Q-values and joint mask ``[*, A^n_g]`` (mask = product of the robots' masks).
+
+        ``prior_action``: ``[*, n_g, A]`` bool one-hot of the prior rule's action of each robot.
+        """
         value = self.mlp(observation.flatten(-2))  # [*, A^n_g]
-        if self.prior == "greedy":
-            per_robot = greedy_bid(action_mask)
-        else:
-            slots, recency = self.layout["slots"], self.layout["recency"]
-            per_robot = spread_wait_bid(observation, action_mask, self.order, slots, recency.start)
+        per_robot = prior_action.to(value.dtype)
         prior = joint_combine(per_robot, "add")  # robots playing the prior's action, summed
         return value + self.auction_prior * prior, joint_combine(action_mask, "and")
 

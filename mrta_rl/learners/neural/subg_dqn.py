@@ -10,10 +10,10 @@ from torchrl.modules import QValueModule
 from torchrl.objectives import DQNLoss
 
 from mrta_rl.config import Choices
-from mrta_rl.envs.encodings import local_feature_layout
+from mrta_rl.envs.torchrl_env import PRIOR_KEY
 from mrta_rl.learners.neural.common import JOINT, NeuralLearner
-from mrta_rl.learners.neural.networks import JOINT_PRIORS, JointDecode, JointQ
-from mrta_rl.learners.tabular.priors import PRIOR_ORDERS, spread_order
+from mrta_rl.learners.neural.networks import JointDecode, JointQ
+from mrta_rl.learners.tabular.priors import JOINT_PRIORS, PRIOR_ORDERS, SpreadWaitPrior
 from mrta_rl.types import GroupMap
 
 
@@ -44,7 +44,7 @@ class SubGDQNLearner(NeuralLearner):
         """Keep the prior's settings, then build (see :class:`NeuralLearner`).
 
         Args:
-            prior: What the untrained networks play (``networks.JOINT_PRIORS``): ``greedy``
+            prior: What the untrained networks play (``tabular.priors.JOINT_PRIORS``): ``greedy``
                 (the plain auction) or ``spread_wait`` (subG-CQL's prior, docs/neural.md).
             prior_order: ``spread_wait``: which idle robot is asked first
                 (``tabular.priors.PRIOR_ORDERS``), as subG-CQL's ``prior_order``.
@@ -53,7 +53,7 @@ class SubGDQNLearner(NeuralLearner):
         Raises:
             ValueError: on an unknown prior or prior order.
         """
-        # checked where they are used, while building: spread_order and JointQ raise
+        # types and choices: the annotations (mrta_rl.config)
         self.prior, self.prior_order = prior, prior_order
         super().__init__(**hp)
 
@@ -65,10 +65,11 @@ class SubGDQNLearner(NeuralLearner):
         greedy, explore = [], []
         A = self.n_actions
         env = self.env
-        layout = local_feature_layout(env.n_slots, env.n_task_types, self.features)
+        if self.prior == "spread_wait":  # computed from the env, as every prior (common.py)
+            groups = [[env.system.robots.index(r) for r in ids] for ids in self.group_map.values()]
+            self.rule = SpreadWaitPrior(env, groups, self.prior_order)
         for group, ids in self.group_map.items():
             n_g = len(ids)
-            robots = [env.system.robots.index(r) for r in ids]
             qnet = JointQ(
                 self.n_features,
                 n_g,
@@ -77,14 +78,11 @@ class SubGDQNLearner(NeuralLearner):
                 depth=self.hp["depth"],
                 auction_prior=self.hp["auction_prior"],
                 device=self.device,
-                prior=self.prior,
-                order=spread_order(env.active_tasks[robots], self.prior_order).tolist(),
-                layout=layout,
             )
             self.networks[group] = qnet
             qvalues = TensorDictModule(
                 qnet,
-                in_keys=[(group, "observation"), (group, "action_mask")],
+                in_keys=[(group, "observation"), (group, "action_mask"), (group, PRIOR_KEY)],
                 out_keys=[(JOINT, group, "action_value"), (JOINT, group, "action_mask")],
             )
             value = TensorDictSequential(
