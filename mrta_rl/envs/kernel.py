@@ -57,7 +57,7 @@ from mrta_rl.envs.tasks import (
     task_type,
     to_second_round,
 )
-from mrta_rl.rules import count_valid, greedy, high_only, valid_action_of_rank
+from mrta_rl.rules import count_valid, greedy, high_only, slot_winner, valid_action_of_rank
 
 # integer parameters (iparams)
 I_HORIZON, I_SLOTS, I_QUEUE_CAPACITY, I_REAUCTION_DELAY, I_CHARGE_TICKS, I_SWITCH_TICKS = range(6)
@@ -294,16 +294,13 @@ def step_copies(lo, hi, actions, tables, state, idle_before, views, rewards):
         for i in range(m):
             assign_reward[b, i] = 0.0
         # spec step 5, slot by slot: among the bidders, the highest willingness wins, ties to the
-        # lowest robot index
+        # lowest robot index (rules.slot_winner)
         for k in range(K):
             x = slot_keys[b, k]
             if x == EMPTY:
                 continue
             ttype, high = task_type(x), task_high(x)
-            winner, best = -1, -1.0
-            for i in range(m):
-                if actions[b, i] == k + 1 and willingness[ttype, i] > best:
-                    winner, best = i, willingness[ttype, i]
+            winner = slot_winner(actions[b], k + 1, willingness[ttype])
             if winner < 0:
                 continue
             # a task of another type than the robot's previous one first needs switch_ticks of
