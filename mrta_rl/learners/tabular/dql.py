@@ -302,9 +302,11 @@ class DQLLearner(RobotQLearner):
         self.rule = None  # the hold rule (tabular.priors.HoldRule)
         if prior == "hold":
             self.rule = HoldRule(
-                self.env, reserve=prior_reserve, hold_level=prior_hold_level,
+                self.env,
+                reserve=prior_reserve,
+                hold_level=prior_hold_level,
                 hold_scope=prior_hold_scope,
-            )  # fmt: skip
+            )
         self.encoder = LocalEncoder(self.env, features)
         # |S_i|, times K + 1 with the prior's action as a digit (the most significant)
         self._local_counts = self.encoder.counts
