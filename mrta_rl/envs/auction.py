@@ -246,7 +246,7 @@ class AuctionEnv:
         self.last_high_arrival = state["last_high_arrival"]  # [B, n]
         self.done = state["done"]  # [B]
         self._queue, self._queue_len = state["queue"], state["queue_len"]
-        self.stats = EpisodeStats(*(state[f] for f in kernel.STATS))
+        self.stats = EpisodeStats(**{name: state[name] for name in kernel.STATS})
         self._new_views()
         self.seed(seed)
         self.reset()

@@ -123,9 +123,9 @@ def _compile_unpack():
 
     The int64 buffer starts with the layout ``[len(FIELDS), 4]`` (written by ``AuctionEnv``):
     row ``f`` holds field ``f``'s offset in its dtype's buffer and its shape (unused trailing
-    dimensions 1). The
-    source is generated because numba needs each field's buffer and number of dimensions at
-    compile time; it is compiled under this file's name, so numba caches it with the rest.
+    dimensions 1). The source is generated because numba needs each field's buffer and number
+    of dimensions at compile time; it is compiled under this file's name, so numba caches it
+    with the rest.
     """
     views = []
     for f, (_, dims, dtype) in enumerate(FIELDS):
