@@ -26,6 +26,7 @@ Design notes:
 
 from __future__ import annotations
 
+import math
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from itertools import pairwise
@@ -76,36 +77,44 @@ class EpisodeStats:
 
 
 def _packed(
-    initial: dict[str, np.ndarray],
-) -> tuple[np.ndarray, list[np.ndarray], dict[str, np.ndarray]]:
+    tables: dict[str, np.ndarray], sizes: dict[str, int]
+) -> tuple[tuple[np.ndarray, ...], dict[str, np.ndarray]]:
     """The kernel's storage of :data:`kernel.FIELDS` (see :func:`kernel.unpack`).
 
     Every field becomes a C-contiguous piece of one flat buffer per dtype, so that a compiled
-    call takes 4 buffers and a layout instead of 27 arrays.
+    call takes 4 buffers instead of 27 arrays; the int64 buffer starts with the layout.
 
     Args:
-        initial: The first value of every field, by name.
+        tables: The value of every table field, by name.
+        sizes: The env's sizes by the letters of the fields' dimensions; the state fields
+            start at zero (a reset writes them).
 
     Returns:
-        The layout (offset and shape of each field), the buffers (``kernel.BUFFER_DTYPES``
-        order) and the fields by name, as views of the buffers holding ``initial``'s values.
+        The buffers (``kernel.BUFFER_DTYPES`` order) and the fields by name, as views of them.
     """
-    layout = np.ones((len(kernel.FIELDS), 4), np.int64)
-    sizes = [0] * len(kernel.BUFFER_DTYPES)
-    kinds = [kernel.BUFFER_DTYPES.index(initial[name].dtype.type) for name in kernel.FIELDS]
-    for f, (name, kind) in enumerate(zip(kernel.FIELDS, kinds, strict=True)):
-        layout[f, 0] = sizes[kind]
-        layout[f, 1 : 1 + initial[name].ndim] = initial[name].shape
-        sizes[kind] += initial[name].size
-    buffers = [
-        np.empty(size, dtype) for size, dtype in zip(sizes, kernel.BUFFER_DTYPES, strict=True)
-    ]
-    fields = {}
-    for f, (name, kind) in enumerate(zip(kernel.FIELDS, kinds, strict=True)):
-        value = initial[name]
-        fields[name] = buffers[kind][layout[f, 0] : layout[f, 0] + value.size].reshape(value.shape)
+    layout = np.ones((len(kernel.FIELDS), 4), np.int64)  # offset and shape of each field
+    used = [0] * len(kernel.BUFFER_DTYPES)  # places taken in each buffer
+    used[kernel.BUFFER_DTYPES.index(np.int64)] = kernel.LAYOUT_SIZE
+    places = []
+    for f, (name, dims, dtype) in enumerate(kernel.FIELDS):
+        shape = tuple(int(d) if d.isdigit() else sizes[d] for d in dims.split())
+        kind = kernel.BUFFER_DTYPES.index(dtype)
+        layout[f, 0], layout[f, 1 : 1 + len(shape)] = used[kind], shape
+        places.append((name, kind, used[kind], shape))
+        used[kind] += math.prod(shape)
+    buffers = tuple(
+        np.zeros(size, dtype) for size, dtype in zip(used, kernel.BUFFER_DTYPES, strict=True)
+    )
+    fields = {
+        name: buffers[kind][start : start + math.prod(shape)].reshape(shape)
+        for name, kind, start, shape in places
+    }
+    for name, value in tables.items():
+        if value.shape != fields[name].shape:
+            raise ValueError(f"table {name} has shape {value.shape}, not {fields[name].shape}")
         fields[name][...] = value
-    return layout, buffers, fields
+    buffers[kernel.BUFFER_DTYPES.index(np.int64)][: kernel.LAYOUT_SIZE] = layout.reshape(-1)
+    return buffers, fields
 
 
 class StepResult:
@@ -126,7 +135,7 @@ class StepResult:
     def robot_reward(self) -> np.ndarray:
         """``[B, m]``: the assign reward a robot won minus its shares of drop penalties."""
         if self._robot_reward is None:
-            self._robot_reward = self._assign - self._type_penalty @ self._share
+            self._robot_reward = kernel.robot_rewards(self._assign, self._type_penalty, self._share)
         return self._robot_reward
 
 
@@ -202,8 +211,6 @@ class AuctionEnv:
                 override = system.durations.get(name, {}).get(key)
                 lo, hi = (override.lo, override.hi) if override is not None else getattr(p, key)
                 dur_lo[j, prio], dur_span[j, prio] = lo, hi - lo + 1
-        # spec step 8: a dropped task's penalty is shared by the robots whose Lambda holds its type
-        self._penalty_share = (active / active.sum(axis=0)).T  # [n, m]
         iparams = np.zeros(6, np.int64)
         iparams[kernel.I_HORIZON], iparams[kernel.I_SLOTS] = p.horizon, p.slots
         iparams[kernel.I_QUEUE_CAPACITY] = p.queue_capacity
@@ -220,40 +227,18 @@ class AuctionEnv:
             "iparams": iparams,
             "fparams": fparams,
             "cdf": cdf,
-            "dur_lo": dur_lo.reshape(-1),  # by 2 * type + high
-            "dur_span": dur_span.reshape(-1),
+            "dur_lo": dur_lo,
+            "dur_span": dur_span,
             "willingness": system.willingness.T.astype(np.float64),  # d_iz by type, [n, m]
             "can_do": active.T.copy(),  # Lambda_i by type, [n, m]
         }
+        self._penalty_share = kernel.penalty_shares(tables["can_do"])  # spec step 8, [n, m]
 
-        B, m, n, K = batch_size, self.n_robots, self.n_task_types, self.n_slots
         # a queue holds at most queue_capacity tasks between ticks, plus one tick's arrivals
-        width = p.queue_capacity + len(cdf)
-        shapes = {
-            "seed_key": ((B,), 0, np.uint64),
-            "episode": ((B,), 0, np.uint64),
-            "episode_key": ((B,), 0, np.uint64),
-            "t": ((B,), 0, np.int64),
-            "queue": ((B, width), EMPTY, np.int64),
-            "queue_len": ((B,), 0, np.int64),
-            "next_id": ((B,), 0, np.int64),
-            "busy_until": ((B, m), -1, np.int64),
-            "battery": ((B, m), p.battery_capacity, np.float64),
-            "last_type": ((B, m), -1, np.int64),
-            "last_high_arrival": ((B, n), kernel.NEVER, np.int64),
-            "done": ((B,), False, np.bool_),
-            "pending_penalty": ((B, n), 0.0, np.float64),
-            "assigned": ((B, n, 2), 0, np.int64),
-            "dropped": ((B, n, 2), 0, np.int64),
-            "busy_ticks": ((B, m), 0, np.int64),
-            "team_return": ((B,), 0.0, np.float64),
-            "ticks": ((B,), 0, np.int64),
-            "slot_pos": ((B, K), -1, np.int64),
-            "slot_keys": ((B, K), EMPTY, np.int64),
-        }
-        initial = tables | {name: np.full(*shapes[name]) for name in kernel.STATE_FIELDS}
-        self._layout, buffers, fields = _packed(initial)
-        self._state = {name: fields[name] for name in kernel.STATE_FIELDS}
+        sizes = {"B": batch_size, "m": self.n_robots, "n": self.n_task_types, "K": self.n_slots}
+        sizes |= {"W": p.queue_capacity + len(cdf), "C": len(cdf)}
+        self._buffers, fields = _packed(tables, sizes)
+        self._state = {name: fields[name] for name in kernel.State._fields}
         state = self._state
         self.t = state["t"]  # current tick per copy
         self.busy_until, self.battery = state["busy_until"], state["battery"]  # [B, m]
@@ -261,12 +246,7 @@ class AuctionEnv:
         self.last_high_arrival = state["last_high_arrival"]  # [B, n]
         self.done = state["done"]  # [B]
         self._queue, self._queue_len = state["queue"], state["queue_len"]
-        self.stats = EpisodeStats(
-            *(state[f] for f in ("assigned", "dropped", "busy_ticks", "team_return", "ticks"))
-        )
-        # the kernel's leading arguments: the layout and the buffers (updated in place, never
-        # replaced)
-        self._fixed_args = (self._layout, *buffers)
+        self.stats = EpisodeStats(**{name: state[name] for name in kernel.STATS})
         self._new_views()
         self.seed(seed)
         self.reset()
@@ -371,7 +351,7 @@ class AuctionEnv:
     def _refresh(self, rows: np.ndarray | None, begin: int) -> None:
         """Reset (``begin=2``) or begin the tick of (1) the ``rows``, then re-select all slots."""
         rows = np.zeros(self.batch_size, bool) if rows is None else rows
-        kernel.refresh(rows, begin, *self._fixed_args, *self._new_views())
+        kernel.refresh(rows, begin, self._buffers, self._new_views())
 
     def _begin_tick(self, rows: np.ndarray) -> None:
         """Spec steps 1-3 of tick ``t`` for ``rows``; other copies keep their slots."""
@@ -410,9 +390,13 @@ class AuctionEnv:
         type_penalty = np.empty((B, self.n_task_types))  # drop penalties by type
         # the kernel checks the actions first (unless validated) and changes nothing if invalid
         problem, where = kernel.step(
-            not validated, actions, *self._fixed_args, self.idle, self._mask, *views,
-            team, assign, type_penalty,
-        )  # fmt: skip
+            not validated,
+            actions,
+            self._buffers,
+            (self.idle, self._mask),
+            views,
+            (team, assign, type_penalty),
+        )
         if problem:
             self._raise_invalid(problem, where, actions)
         self.slot_type, self.slot_high, self.idle, self._mask = views
@@ -490,9 +474,8 @@ class AuctionEnv:
             ValueError: on an unknown policy.
         """
         actions = np.empty((self.batch_size, self.n_robots), np.int64)
-        kernel.fixed_actions(
-            self._policy_code(policy), *self._fixed_args, self.slot_high, self._mask, actions
-        )
+        views = (self._mask, self.slot_high)
+        kernel.fixed_actions(self._policy_code(policy), self._buffers, views, actions)
         return actions
 
     # ------------------------------------------------------------------ many ticks, compiled
@@ -553,12 +536,10 @@ class AuctionEnv:
         for fresh, now in zip(views, current, strict=True):
             fresh[...] = now  # play_copy decides on them first
         args = (
-            code,
-            -1 if ticks is None else int(ticks),
-            rounds,
-            *self._fixed_args,
-            *views,
-            *(getattr(out, f) for f in EpisodeStats.__dataclass_fields__),
+            (code, -1 if ticks is None else int(ticks), rounds),  # kernel.Plan
+            self._buffers,
+            views,
+            tuple(getattr(out, f) for f in kernel.STATS),
         )
         if threads == 1:
             played = kernel.play(0, B, *args)
@@ -577,7 +558,7 @@ class AuctionEnv:
             copies: Copy indices to take (default: all); the arrays are ``[len(copies), ...]``.
 
         Returns:
-            ``{name: array}`` for every name of ``kernel.STATE_FIELDS``; :meth:`set_state` takes
+            ``{name: array}`` for every field of ``kernel.State``; :meth:`set_state` takes
             it back, here or in another env of the same system and parameters.
         """
         if copies is None:

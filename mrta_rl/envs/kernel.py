@@ -9,28 +9,34 @@ processes only load it) and release the GIL, so threads over shards of copies ru
 A tick is split at the decision: :func:`begin_copy` runs spec steps 1-3 (arrivals, queue order
 and overflow, slots) so that the caller sees the slots it decides on, :func:`step_copies` steps 4-8
 and then steps 1-3 of the next tick. Overflow drops of step 2 are paid in the reward of that same
-tick, returned by the following step.
+tick, returned by the following step; :func:`robot_rewards` shares the drop penalties (step 8).
 
-Arguments keep one order everywhere (the env builds them once, see ``AuctionEnv``):
+The arrays travel in named records (numba namedtuples), each declared once below:
 
-- ``fields`` (:data:`FIELDS`): the tables, then the state. The entry points (:func:`step`,
-  :func:`refresh`, :func:`fixed_actions`, :func:`play`) take them as one flat buffer per dtype
-  (:data:`BUFFER_DTYPES`) and a ``layout`` (:func:`unpack`): numba unboxes every array argument
-  of a call from Python, the larger part of a call's cost at small batch sizes, so 4 buffers
-  cost less than 27 arrays. The per-copy functions take the fields as separate arrays.
-- ``tables``: ``iparams`` (int64, indices ``I_*``), ``fparams`` (float64, indices ``F_*``),
-  ``cdf`` (Poisson CDF of the arrival count), ``dur_lo`` / ``dur_span`` (``[2n]`` by
-  ``2 * type + high``), ``willingness`` (``[n, m]`` ``d_iz`` by type), ``can_do`` (``[n, m]``
-  bool, ``Lambda_i`` by type).
-- ``state``: :data:`STATE_FIELDS`, per-copy arrays ``[B, ...]``.
-- ``views``: ``slot_type``, ``slot_high`` ``[B, K]`` (-1: empty), ``idle`` ``[B, m]``, ``mask``
-  ``[B, m, K + 1]``: what a decision sees, written fresh by the env each tick.
+- :class:`Tables` (:data:`TABLE_FIELDS`), written once by the env, and :class:`State`
+  (:data:`STATE_FIELDS`), per-copy arrays ``[B, ...]``. The env keeps them in one flat buffer
+  per dtype (:data:`BUFFER_DTYPES`), the int64 one starting with their layout; the entry points
+  (:func:`step`, :func:`refresh`, :func:`fixed_actions`, :func:`play`) take the buffers and
+  :func:`unpack` builds the two records inside compiled code. numba unboxes every array
+  argument of a call from Python, the larger part of a call's cost at small batch sizes, so 4
+  buffers cost less than 27 arrays (and a namedtuple built in Python costs more than its
+  arrays).
+- :class:`Views` (:data:`VIEW_FIELDS`): what a decision sees, fresh arrays written each tick.
+- :class:`Rewards`: one tick's rewards; :class:`Stats` (:data:`STATS`): finished episodes'
+  statistics, written by :func:`play`.
+
+Python passes the views, rewards and statistics as plain tuples in their fields' order (as cheap
+as separate arrays), and the entry points name them.
 """
 
 from __future__ import annotations
 
+from collections import namedtuple
+
 import numpy as np
-from numba import njit
+from llvmlite import ir
+from numba import njit, types
+from numba.extending import intrinsic
 
 from mrta_rl.envs.counter_rng import (
     bounded_uint,
@@ -51,6 +57,7 @@ from mrta_rl.envs.tasks import (
     task_type,
     to_second_round,
 )
+from mrta_rl.rules import count_valid, greedy, high_only, slot_winner, valid_action_of_rank
 
 # integer parameters (iparams)
 I_HORIZON, I_SLOTS, I_QUEUE_CAPACITY, I_REAUCTION_DELAY, I_CHARGE_TICKS, I_SWITCH_TICKS = range(6)
@@ -58,48 +65,121 @@ I_HORIZON, I_SLOTS, I_QUEUE_CAPACITY, I_REAUCTION_DELAY, I_CHARGE_TICKS, I_SWITC
 F_P_HIGH, F_BATTERY_CAPACITY, F_DRAIN, F_THRESHOLD, F_ASSIGN, F_DROP = 0, 1, 2, 3, 4, 6
 NEVER = -(1 << 30)  # last_high_arrival before any H arrival: far in the past
 
-STATE_FIELDS = (
-    "seed_key",  # [B] uint64, key of the copy's seed
-    "episode",  # [B] uint64, episodes started so far (the next episode's number)
-    "episode_key",  # [B] uint64, key of the current episode's draws
-    "t",  # [B] current tick
-    "queue",  # [B, W] packed tasks (envs/tasks.py), EMPTY after queue_len
-    "queue_len",  # [B] places in use (may hold EMPTY holes until the next compaction)
-    "next_id",  # [B] id of the next arriving task
-    "busy_until",  # [B, m] robot i is idle at t when t > busy_until
-    "battery",  # [B, m]
-    "last_type",  # [B, m] type of the robot's previous task, -1: none yet (switch cost)
-    "last_high_arrival",  # [B, n] tick of the last H arrival per type
-    "done",  # [B] the episode has reached the horizon
-    "pending_penalty",  # [B, n] drop penalties of this tick's overflow, paid by the next step
-    "assigned",  # [B, n, 2] stats: tasks assigned per type and priority (0 = L, 1 = H)
-    "dropped",  # [B, n, 2] stats: tasks dropped per type and priority
-    "busy_ticks",  # [B, m] stats: busy ticks per robot (spec step 7)
-    "team_return",  # [B] stats: sum of team rewards
-    "ticks",  # [B] stats: ticks played
-    "slot_pos",  # [B, K] queue place of each slot's task, -1: empty slot
-    "slot_keys",  # [B, K] packed task of each slot, EMPTY: empty slot
+# The env's arrays: name, dimensions, dtype. A dimension is a number or one of the env's sizes:
+# B copies, m robots, n task types, K slots, W queue places, C arrival counts (``len(cdf)``).
+TABLE_FIELDS = (
+    ("iparams", "6", np.int64),  # integer parameters, indices I_*
+    ("fparams", "8", np.float64),  # float parameters, indices F_*
+    ("cdf", "C", np.float64),  # Poisson CDF of the arrival count
+    ("dur_lo", "n 2", np.int64),  # shortest duration by type and priority (0 = L, 1 = H)
+    ("dur_span", "n 2", np.int64),  # number of possible durations by type and priority
+    ("willingness", "n m", np.float64),  # d_iz by type
+    ("can_do", "n m", np.bool_),  # Lambda_i by type
 )
-TABLE_FIELDS = ("iparams", "fparams", "cdf", "dur_lo", "dur_span", "willingness", "can_do")
-FIELDS = TABLE_FIELDS + STATE_FIELDS  # the order of unpack() and of every per-copy function
+STATE_FIELDS = (
+    ("seed_key", "B", np.uint64),  # key of the copy's seed
+    ("episode", "B", np.uint64),  # episodes started so far (the next episode's number)
+    ("episode_key", "B", np.uint64),  # key of the current episode's draws
+    ("t", "B", np.int64),  # current tick
+    ("queue", "B W", np.int64),  # packed tasks (envs/tasks.py), EMPTY after queue_len
+    ("queue_len", "B", np.int64),  # places in use (may hold EMPTY holes until compaction)
+    ("next_id", "B", np.int64),  # id of the next arriving task
+    ("busy_until", "B m", np.int64),  # robot i is idle at t when t > busy_until
+    ("battery", "B m", np.float64),
+    ("last_type", "B m", np.int64),  # type of the robot's previous task, -1: none (switch cost)
+    ("last_high_arrival", "B n", np.int64),  # tick of the last H arrival per type
+    ("done", "B", np.bool_),  # the episode has reached the horizon
+    ("pending_penalty", "B n", np.float64),  # this tick's overflow penalties, paid next step
+    ("assigned", "B n 2", np.int64),  # stats: tasks assigned per type and priority (0 = L)
+    ("dropped", "B n 2", np.int64),  # stats: tasks dropped per type and priority
+    ("busy_ticks", "B m", np.int64),  # stats: busy ticks per robot (spec step 7)
+    ("team_return", "B", np.float64),  # stats: sum of team rewards
+    ("ticks", "B", np.int64),  # stats: ticks played
+    ("slot_pos", "B K", np.int64),  # queue place of each slot's task, -1: empty slot
+    ("slot_keys", "B K", np.int64),  # packed task of each slot, EMPTY: empty slot
+)
+FIELDS = TABLE_FIELDS + STATE_FIELDS  # the rows of the layout
+# slot_type, slot_high [B, K] (-1: empty), idle [B, m], mask [B, m, K + 1]
+VIEW_FIELDS = ("slot_type", "slot_high", "idle", "mask")
+STATS = ("assigned", "dropped", "busy_ticks", "team_return", "ticks")  # a State's statistics
 BUFFER_DTYPES = (np.uint64, np.int64, np.float64, np.bool_)  # a field lives in its dtype's buffer
-_EPISODE_KEY, _T, _DONE = (FIELDS.index(f) for f in ("episode_key", "t", "done"))
+LAYOUT_SIZE = 4 * len(FIELDS)  # the int64 buffer's first places: the layout (see unpack)
+
+Tables = namedtuple("Tables", [name for name, _, _ in TABLE_FIELDS])
+State = namedtuple("State", [name for name, _, _ in STATE_FIELDS])
+Views = namedtuple("Views", VIEW_FIELDS)
+# team [B], assign [B, m] (assign reward each robot won), type_penalty [B, n] (drops by type)
+Rewards = namedtuple("Rewards", ("team", "assign", "type_penalty"))
+Stats = namedtuple("Stats", STATS)  # row r * B + b: episode r of copy b
+Plan = namedtuple("Plan", ("policy", "max_ticks", "rounds"))  # what play() plays, see play_copy
+Scratch = namedtuple("Scratch", ("actions", "rewards"))  # play_copy's working rows
+
 POLICIES = {"greedy": 0, "random": 1, "high_only": 2}  # the spec's fixed policies
 _POLICY_SALT = np.uint64(0x5851F42D4C957F2D)  # keys the random policy's draws apart from arrivals
 
 
+def _compile_unpack():
+    """``unpack(buffers) -> (Tables, State)``, generated from :data:`FIELDS`.
+
+    The int64 buffer starts with the layout ``[len(FIELDS), 4]`` (written by ``AuctionEnv``):
+    row ``f`` holds field ``f``'s offset in its dtype's buffer and its shape (unused trailing
+    dimensions 1). The source is generated because numba needs each field's buffer and number
+    of dimensions at compile time; it is compiled under this file's name, so numba caches it
+    with the rest.
+    """
+    views = []
+    for f, (_, dims, dtype) in enumerate(FIELDS):
+        view = f"buffers[{BUFFER_DTYPES.index(dtype)}][o[{f}] : o[{f}] + d[{f}].prod()]"
+        ndim = len(dims.split())
+        if ndim > 1:
+            view += f".reshape(({', '.join(f'd[{f}, {k}]' for k in range(ndim))}))"
+        views.append(view)
+    split = len(TABLE_FIELDS)
+    source = (
+        "def unpack(buffers):\n"
+        f"    layout = buffers[{BUFFER_DTYPES.index(np.int64)}][:{LAYOUT_SIZE}]"
+        f".reshape(({len(FIELDS)}, 4))\n"
+        "    o, d = layout[:, 0], layout[:, 1:]\n"
+        f"    return Tables({', '.join(views[:split])}), State({', '.join(views[split:])})\n"
+    )
+    namespace = {"__name__": __name__, "Tables": Tables, "State": State}  # as this module's
+    exec(compile(source, __file__, "exec"), namespace)
+    return njit(cache=True, nogil=True)(namespace["unpack"])
+
+
+unpack = _compile_unpack()
+
+
+@intrinsic
+def _fma(typingctx, x, y, z):
+    """``x * y + z`` rounded once (LLVM's ``fma``)."""
+    sig = types.float64(types.float64, types.float64, types.float64)
+
+    def codegen(context, builder, signature, args):
+        double = ir.DoubleType()
+        fma = builder.module.declare_intrinsic(
+            "llvm.fma", [double], ir.FunctionType(double, [double] * 3)
+        )
+        return builder.call(fma, args)
+
+    return sig, codegen
+
+
 # ---------------------------------------------------------------------------- spec steps 1-3
 @njit(cache=True, nogil=True)
-def begin_copy(
-    b, iparams, fparams, cdf, dur_lo, dur_span, state_episode_key, t, queue, queue_len, next_id,
-    last_high_arrival, pending_penalty, dropped,
-):  # fmt: skip
+def begin_copy(b, tables, state):
     """Spec steps 1-2 of tick ``t[b]`` in copy ``b``: arrivals, queue order, overflow drops."""
-    n = last_high_arrival.shape[1]
-    now = t[b]
+    # the fields as locals: numba counts a reference at each read of a record's field
+    queue, queue_len, next_id = state.queue, state.queue_len, state.next_id
+    pending_penalty, dropped, last_high_arrival = (
+        state.pending_penalty,
+        state.dropped,
+        state.last_high_arrival,
+    )
+    fparams, dur_lo, dur_span = tables.fparams, tables.dur_lo, tables.dur_span
+    length, now, n = 0, state.t[b], last_high_arrival.shape[1]
     pending_penalty[b, :] = 0.0
     # drop the holes left by the last step's slot tasks (assigned or dropped)
-    length = 0
     for j in range(queue_len[b]):
         if queue[b, j] != EMPTY:
             queue[b, length] = queue[b, j]
@@ -107,16 +187,16 @@ def begin_copy(
     for j in range(length, queue_len[b]):
         queue[b, j] = EMPTY
     # spec step 1: N ~ Poisson(arrival_rate) new tasks, all counter-based hashes (counter_rng)
-    key = tick_key(state_episode_key[b], np.uint64(now))
-    count = np.searchsorted(cdf, unit_float(key), side="right")
+    key = tick_key(state.episode_key[b], np.uint64(now))
+    count = np.searchsorted(tables.cdf, unit_float(key), side="right")
     for k in range(count):
         h_priority, h_kind = task_hash_pair(key, np.uint64(k + 1))
         # H with probability p_high; type uniform over the n types (high 32 bits of h_kind),
         # duration uniform over its type and priority's range, ends included (low 32 bits)
         high = np.int64(unit_float(h_priority) < fparams[F_P_HIGH])
         ttype = np.int64(bounded_uint(high_bits(h_kind), np.uint64(n)))
-        kind = 2 * ttype + high
-        duration = dur_lo[kind] + np.int64(bounded_uint(h_kind, np.uint64(dur_span[kind])))
+        span = np.uint64(dur_span[ttype, high])
+        duration = dur_lo[ttype, high] + np.int64(bounded_uint(h_kind, span))
         queue[b, length] = pack_tasks(high, now, next_id[b] + k, ttype, duration, np.int64(0))
         length += 1
         if high:
@@ -132,7 +212,7 @@ def begin_copy(
             i -= 1
         queue[b, i + 1] = x
     # spec step 2: while the queue holds more than queue_capacity tasks, the last one is dropped
-    capacity = iparams[I_QUEUE_CAPACITY]
+    capacity = tables.iparams[I_QUEUE_CAPACITY]
     for j in range(capacity, length):
         x = queue[b, j]
         ttype, high = task_type(x), task_high(x)
@@ -143,17 +223,22 @@ def begin_copy(
 
 
 @njit(cache=True, nogil=True)
-def select_copy(
-    b, t, queue, queue_len, busy_until, done, slot_pos, slot_keys, can_do, slot_type, slot_high,
-    idle, mask,
-):  # fmt: skip
+def select_copy(b, tables, state, views):
     """Spec step 3 and the decision's inputs (step 4) of copy ``b``; idempotent."""
+    queue, slot_pos, slot_keys, busy_until = (
+        state.queue,
+        state.slot_pos,
+        state.slot_keys,
+        state.busy_until,
+    )
+    slot_type, slot_high, idle, mask = views
+    can_do = tables.can_do
     K, m = slot_pos.shape[1], busy_until.shape[1]
-    now = t[b]
+    now = state.t[b]
     k = 0
-    if not done[b]:  # a finished copy auctions nothing
+    if not state.done[b]:  # a finished copy auctions nothing
         # the first K queued tasks due by now, in queue order (EMPTY is never due)
-        for j in range(queue_len[b]):
+        for j in range(state.queue_len[b]):
             x = queue[b, j]
             if x != EMPTY and task_due(x) <= now:
                 slot_pos[b, k], slot_keys[b, k] = j, x
@@ -176,14 +261,7 @@ def select_copy(
 
 # ---------------------------------------------------------------------------- spec steps 4-8
 @njit(cache=True, nogil=True)
-def step_copies(
-    lo, hi, actions, iparams, fparams, cdf, dur_lo, dur_span, willingness, can_do,
-    seed_key, episode, state_episode_key, t, queue, queue_len, next_id, busy_until, battery,
-    last_type, last_high_arrival, done, pending_penalty, assigned, dropped, busy_ticks,
-    team_return, ticks, slot_pos, slot_keys,
-    idle_before, slot_type, slot_high, idle, mask,
-    team_reward, assign_reward, type_penalty,
-):  # fmt: skip
+def step_copies(lo, hi, actions, tables, state, idle_before, views, rewards):
     """Spec steps 4-8 of copies ``lo .. hi - 1`` under ``actions`` (valid), each then steps 1-3.
 
     Copy by copy, each one's next tick begins before the following copy is stepped.
@@ -192,13 +270,19 @@ def step_copies(
     operations, a fifth of a small batch's tick when this was called once per copy).
 
     ``idle_before`` holds the idle flags the actions were decided on (spec step 7 reads them);
-    the next tick's views are written into ``slot_type``, ``slot_high``, ``idle`` and ``mask``
-    (the same arrays or fresh ones).
+    the next tick's ``views`` are written (the same arrays or fresh ones).
 
-    Writes the tick's team reward ``team_reward[b]``, the assign reward each robot won
-    ``assign_reward[b]`` and the drop penalties by type ``type_penalty[b]`` (spec step 8).
+    Writes the tick's :class:`Rewards` of each copy: the team reward, the assign reward each
+    robot won and the drop penalties by type (spec step 8; :func:`robot_rewards` shares them).
     """
-    K, m, n = slot_pos.shape[1], busy_until.shape[1], last_high_arrival.shape[1]
+    iparams, fparams, willingness = tables.iparams, tables.fparams, tables.willingness
+    queue, slot_keys, slot_pos = state.queue, state.slot_keys, state.slot_pos
+    t, done, pending_penalty = state.t, state.done, state.pending_penalty
+    busy_until, battery, last_type = state.busy_until, state.battery, state.last_type
+    assigned, dropped, busy_ticks = state.assigned, state.dropped, state.busy_ticks
+    team_return, ticks = state.team_return, state.ticks
+    team_reward, assign_reward, type_penalty = rewards
+    K, m, n = slot_pos.shape[1], busy_until.shape[1], pending_penalty.shape[1]
     for b in range(lo, hi):
         now = t[b]
         # spec step 8 counts this tick's overflow drops (spec step 2)
@@ -210,16 +294,13 @@ def step_copies(
         for i in range(m):
             assign_reward[b, i] = 0.0
         # spec step 5, slot by slot: among the bidders, the highest willingness wins, ties to the
-        # lowest robot index
+        # lowest robot index (rules.slot_winner)
         for k in range(K):
             x = slot_keys[b, k]
             if x == EMPTY:
                 continue
             ttype, high = task_type(x), task_high(x)
-            winner, best = -1, -1.0
-            for i in range(m):
-                if actions[b, i] == k + 1 and willingness[ttype, i] > best:
-                    winner, best = i, willingness[ttype, i]
+            winner = slot_winner(actions[b], k + 1, willingness[ttype])
             if winner < 0:
                 continue
             # a task of another type than the robot's previous one first needs switch_ticks of
@@ -237,6 +318,7 @@ def step_copies(
                 level = fparams[F_BATTERY_CAPACITY]
             busy_until[b, winner], battery[b, winner] = ready, level
             last_type[b, winner] = ttype
+            # spec step 8: the task's assign reward, to the team and to its winner
             reward = fparams[F_ASSIGN + high]
             assign_reward[b, winner] += reward
             team += reward
@@ -253,7 +335,7 @@ def step_copies(
             else:
                 ttype, high = task_type(x), task_high(x)
                 dropped[b, ttype, high] += 1
-                penalty = fparams[F_DROP + high]
+                penalty = fparams[F_DROP + high]  # spec step 8
                 type_penalty[b, ttype] += penalty
                 team -= penalty
                 queue[b, slot_pos[b, k]] = EMPTY
@@ -267,39 +349,77 @@ def step_copies(
         t[b] = now + 1
         done[b] = t[b] >= iparams[I_HORIZON]
         begin = 0 if done[b] else 1  # spec steps 1-3 of the next tick, unless at the horizon
-        refresh_copy(
-            b, begin, iparams, fparams, cdf, dur_lo, dur_span, willingness, can_do,
-            seed_key, episode, state_episode_key, t, queue, queue_len, next_id, busy_until, battery,
-            last_type, last_high_arrival, done, pending_penalty, assigned, dropped, busy_ticks,
-            team_return, ticks, slot_pos, slot_keys, slot_type, slot_high, idle, mask,
-        )  # fmt: skip
+        refresh_copy(b, begin, tables, state, views)
+
+
+# ---------------------------------------------------------------------------- spec step 8
+@njit(cache=True, nogil=True)
+def penalty_shares(can_do):
+    """``[n, m]``: robot ``i``'s share of a dropped type-``z`` task's penalty.
+
+    Spec step 8: the penalty is shared equally by the robots whose ``Lambda_i`` holds ``z``
+    (``can_do`` ``[n, m]``).
+    """
+    n, m = can_do.shape
+    share = np.zeros((n, m))
+    for z in range(n):
+        count = 0
+        for i in range(m):
+            count += can_do[z, i]
+        for i in range(m):
+            if can_do[z, i]:
+                share[z, i] = 1.0 / count
+    return share
 
 
 @njit(cache=True, nogil=True)
-def reset_copy(
-    b, iparams, fparams, cdf, dur_lo, dur_span, seed_key, episode, state_episode_key, t, queue,
-    queue_len, next_id, busy_until, battery, last_type, last_high_arrival, done, pending_penalty,
-    assigned, dropped, busy_ticks, team_return, ticks,
-):  # fmt: skip
+def robot_rewards(assign, type_penalty, share):
+    """Spec step 8, ``[B, m]``: the assign reward a robot won minus its shares of drop penalties.
+
+    ``assign`` and ``type_penalty`` are a tick's :class:`Rewards` fields, ``share`` is
+    :func:`penalty_shares`'. A robot's share sums over the types in type order with fused
+    multiply-adds (one rounding per type), the rounding of the BLAS matrix product the env used
+    on FMA hardware, so the rewards keep their values, and the same on every machine.
+    """
+    B, m = assign.shape
+    out = np.empty((B, m))
+    for b in range(B):
+        for i in range(m):
+            penalty = 0.0
+            for z in range(share.shape[0]):
+                penalty = _fma(type_penalty[b, z], share[z, i], penalty)
+            out[b, i] = assign[b, i] - penalty
+    return out
+
+
+@njit(cache=True, nogil=True)
+def reset_copy(b, tables, state):
     """Start copy ``b``'s next episode (full batteries, idle robots, empty queue) and its tick 0.
 
     The slots are left to :func:`select_copy`.
     """
-    state_episode_key[b] = episode_key(seed_key[b], episode[b])
-    episode[b] += np.uint64(1)
-    t[b], next_id[b], done[b] = 0, 0, False
-    queue[b, :] = EMPTY
-    queue_len[b] = 0
-    busy_until[b, :] = -1
-    battery[b, :] = fparams[F_BATTERY_CAPACITY]
-    last_type[b, :] = -1
-    last_high_arrival[b, :] = NEVER
-    assigned[b], dropped[b], busy_ticks[b] = 0, 0, 0
-    team_return[b], ticks[b] = 0.0, 0
-    begin_copy(
-        b, iparams, fparams, cdf, dur_lo, dur_span, state_episode_key, t, queue, queue_len, next_id,
-        last_high_arrival, pending_penalty, dropped,
-    )  # fmt: skip
+    state.episode_key[b] = episode_key(state.seed_key[b], state.episode[b])
+    state.episode[b] += np.uint64(1)
+    state.t[b], state.next_id[b], state.done[b] = 0, 0, False
+    state.queue[b, :] = EMPTY
+    state.queue_len[b] = 0
+    state.busy_until[b, :] = -1
+    state.battery[b, :] = tables.fparams[F_BATTERY_CAPACITY]
+    state.last_type[b, :] = -1
+    state.last_high_arrival[b, :] = NEVER
+    state.assigned[b], state.dropped[b], state.busy_ticks[b] = 0, 0, 0
+    state.team_return[b], state.ticks[b] = 0.0, 0
+    begin_copy(b, tables, state)
+
+
+@njit(cache=True, nogil=True)
+def refresh_copy(b, begin, tables, state, views):
+    """Reset (``begin=2``), begin the tick (``begin=1``) or not (0) copy ``b``, then select."""
+    if begin == 2:
+        reset_copy(b, tables, state)
+    elif begin == 1:
+        begin_copy(b, tables, state)
+    select_copy(b, tables, state, views)
 
 
 # ---------------------------------------------------------------------------- batch entry points
@@ -324,169 +444,88 @@ def first_invalid(actions, done, mask):
 
 
 @njit(cache=True, nogil=True)
-def unpack(layout, ubuf, ibuf, fbuf, bbuf):
-    """The :data:`FIELDS` as views of the uint64, int64, float64 and bool buffers.
-
-    Row ``f`` of ``layout`` (int64 ``[len(FIELDS), 4]``) holds field ``f``'s offset in its
-    buffer and its shape (unused trailing dimensions 1); ``AuctionEnv`` writes it.
-    """
-    o, d = layout[:, 0], layout[:, 1:]
-    return (
-        ibuf[o[0] : o[0] + d[0].prod()],  # iparams
-        fbuf[o[1] : o[1] + d[1].prod()],  # fparams
-        fbuf[o[2] : o[2] + d[2].prod()],  # cdf
-        ibuf[o[3] : o[3] + d[3].prod()],  # dur_lo
-        ibuf[o[4] : o[4] + d[4].prod()],  # dur_span
-        fbuf[o[5] : o[5] + d[5].prod()].reshape((d[5, 0], d[5, 1])),  # willingness
-        bbuf[o[6] : o[6] + d[6].prod()].reshape((d[6, 0], d[6, 1])),  # can_do
-        ubuf[o[7] : o[7] + d[7].prod()],  # seed_key
-        ubuf[o[8] : o[8] + d[8].prod()],  # episode
-        ubuf[o[9] : o[9] + d[9].prod()],  # episode_key
-        ibuf[o[10] : o[10] + d[10].prod()],  # t
-        ibuf[o[11] : o[11] + d[11].prod()].reshape((d[11, 0], d[11, 1])),  # queue
-        ibuf[o[12] : o[12] + d[12].prod()],  # queue_len
-        ibuf[o[13] : o[13] + d[13].prod()],  # next_id
-        ibuf[o[14] : o[14] + d[14].prod()].reshape((d[14, 0], d[14, 1])),  # busy_until
-        fbuf[o[15] : o[15] + d[15].prod()].reshape((d[15, 0], d[15, 1])),  # battery
-        ibuf[o[16] : o[16] + d[16].prod()].reshape((d[16, 0], d[16, 1])),  # last_type
-        ibuf[o[17] : o[17] + d[17].prod()].reshape((d[17, 0], d[17, 1])),  # last_high_arrival
-        bbuf[o[18] : o[18] + d[18].prod()],  # done
-        fbuf[o[19] : o[19] + d[19].prod()].reshape((d[19, 0], d[19, 1])),  # pending_penalty
-        ibuf[o[20] : o[20] + d[20].prod()].reshape((d[20, 0], d[20, 1], d[20, 2])),  # assigned
-        ibuf[o[21] : o[21] + d[21].prod()].reshape((d[21, 0], d[21, 1], d[21, 2])),  # dropped
-        ibuf[o[22] : o[22] + d[22].prod()].reshape((d[22, 0], d[22, 1])),  # busy_ticks
-        fbuf[o[23] : o[23] + d[23].prod()],  # team_return
-        ibuf[o[24] : o[24] + d[24].prod()],  # ticks
-        ibuf[o[25] : o[25] + d[25].prod()].reshape((d[25, 0], d[25, 1])),  # slot_pos
-        ibuf[o[26] : o[26] + d[26].prod()].reshape((d[26, 0], d[26, 1])),  # slot_keys
-    )  # fmt: skip
-
-
-@njit(cache=True, nogil=True)
-def step(
-    check, actions, layout, ubuf, ibuf, fbuf, bbuf,
-    idle_before, mask_before, slot_type, slot_high, idle, mask,
-    team_reward, assign_reward, type_penalty,
-):  # fmt: skip
+def step(check, actions, buffers, before, views, rewards):
     """One tick of every copy (:func:`step_copies`), unless ``actions`` are invalid.
 
-    With ``check``, the actions are first checked (:func:`first_invalid`, one call instead of
-    two) and a problem is returned before anything is written; without, the caller vouches
-    for them. Returns :func:`first_invalid`'s ``(problem, where)``, ``(0, 0)`` once stepped.
+    ``before`` is ``(idle, mask)`` of the views the actions were decided on, ``views`` and
+    ``rewards`` the tuples of :data:`VIEW_FIELDS` and :class:`Rewards` arrays to write. With
+    ``check``, the actions are first checked (:func:`first_invalid`, one call instead of two)
+    and a problem is returned before anything is written; without, the caller vouches for them.
+    Returns :func:`first_invalid`'s ``(problem, where)``, ``(0, 0)`` once stepped.
     """
-    fields = unpack(layout, ubuf, ibuf, fbuf, bbuf)
+    tables, state = unpack(buffers)
+    idle_before, mask_before = before
     if check:
-        problem, where = first_invalid(actions, fields[_DONE], mask_before)
+        problem, where = first_invalid(actions, state.done, mask_before)
         if problem:
             return problem, where
     step_copies(
-        0, actions.shape[0], actions, *fields, idle_before, slot_type, slot_high, idle, mask,
-        team_reward, assign_reward, type_penalty,
-    )  # fmt: skip
+        0, actions.shape[0], actions, tables, state, idle_before, Views(*views), Rewards(*rewards)
+    )
     return 0, 0
 
 
 @njit(cache=True, nogil=True)
-def refresh_copy(
-    b, begin, iparams, fparams, cdf, dur_lo, dur_span, willingness, can_do,
-    seed_key, episode, state_episode_key, t, queue, queue_len, next_id, busy_until, battery,
-    last_type, last_high_arrival, done, pending_penalty, assigned, dropped, busy_ticks,
-    team_return, ticks, slot_pos, slot_keys,
-    slot_type, slot_high, idle, mask,
-):  # fmt: skip
-    """Reset (``begin=2``), begin the tick (``begin=1``) or not (0) copy ``b``, then select."""
-    if begin == 2:
-        reset_copy(
-            b, iparams, fparams, cdf, dur_lo, dur_span, seed_key, episode, state_episode_key,
-            t, queue, queue_len, next_id, busy_until, battery, last_type, last_high_arrival,
-            done, pending_penalty, assigned, dropped, busy_ticks, team_return, ticks,
-        )  # fmt: skip
-    elif begin == 1:
-        begin_copy(
-            b, iparams, fparams, cdf, dur_lo, dur_span, state_episode_key, t, queue,
-            queue_len, next_id, last_high_arrival, pending_penalty, dropped,
-        )  # fmt: skip
-    select_copy(
-        b, t, queue, queue_len, busy_until, done, slot_pos, slot_keys, can_do, slot_type,
-        slot_high, idle, mask,
-    )  # fmt: skip
-
-
-@njit(cache=True, nogil=True)
-def refresh(
-    rows, begin, layout, ubuf, ibuf, fbuf, bbuf, slot_type, slot_high, idle, mask
-):  # fmt: skip
+def refresh(rows, begin, buffers, views):
     """Reset (``begin=2``), begin the tick (``begin=1``) or only re-select (0) the ``rows``.
 
-    Every copy's slots and mask are (re)written, as the views are fresh arrays.
+    Every copy's slots and mask are (re)written into ``views`` (fresh arrays, :data:`VIEW_FIELDS`).
     """
-    fields = unpack(layout, ubuf, ibuf, fbuf, bbuf)
+    tables, state = unpack(buffers)
+    views = Views(*views)
     for b in range(rows.shape[0]):
-        refresh_copy(
-            b, begin if rows[b] else 0, *fields, slot_type, slot_high, idle, mask
-        )  # fmt: skip
+        refresh_copy(b, begin if rows[b] else 0, tables, state, views)
 
 
 @njit(cache=True, nogil=True)
-def fixed_policy_copy(b, policy, actions, slot_high, mask, state_episode_key, t):
-    """The spec's fixed policies for copy ``b``, into ``actions[b]``.
+def fixed_policy_copy(b, policy, episode_key, t, mask, slot_high, actions):
+    """The spec's fixed policies for copy ``b`` at its tick ``t``, into ``actions[b]``.
 
-    ``greedy`` bids for the lowest-numbered valid slot, ``high_only`` for the lowest-numbered
-    valid slot holding an H task; ``random`` picks uniformly among the valid bids and waiting,
-    from counter-based hashes of the copy's episode key, tick and robot.
+    The rules are ``mrta_rl.rules``' (spec "Fixed policies") on the views ``mask`` and
+    ``slot_high``; ``random`` draws the rank of its valid action (waiting or a bid) from
+    counter-based hashes of the copy's ``episode_key``, tick and robot. (The fields come one by
+    one: a record argument costs a reference count per array.)
     """
-    m, n_actions = mask.shape[1], mask.shape[2]
-    key = np.uint64(0)
-    if policy == 1:  # only random draws (a hash per copy is a third of greedy's cost)
-        key = mix64(tick_key(state_episode_key[b], np.uint64(t[b])) ^ _POLICY_SALT)
-    for i in range(m):
-        choice = 0
-        if policy == 1:  # random
-            valid = 0
-            for a in range(1, n_actions):
-                valid += mask[b, i, a]
-            pick = np.int64(bounded_uint(mix64(key + np.uint64(i + 1)), np.uint64(valid + 1)))
-            for a in range(1, n_actions):
-                if pick > 0 and mask[b, i, a]:
-                    pick -= 1
-                    if pick == 0:
-                        choice = a
-        else:
-            for a in range(1, n_actions):
-                if mask[b, i, a] and (policy == 0 or slot_high[b, a - 1] == 1):
-                    choice = a
-                    break
-        actions[b, i] = choice
+    mask = mask[b]
+    if policy == 0:
+        greedy(mask, actions[b])
+    elif policy == 2:
+        high_only(mask, slot_high[b], actions[b])
+    else:  # random; only it draws (a hash per copy is a third of greedy's cost)
+        key = mix64(tick_key(episode_key, np.uint64(t)) ^ _POLICY_SALT)
+        for i in range(mask.shape[0]):
+            count = np.uint64(count_valid(mask[i]))  # waiting is always valid (spec step 4)
+            rank = bounded_uint(mix64(key + np.uint64(i + 1)), count)
+            actions[b, i] = valid_action_of_rank(mask[i], np.int64(rank))
 
 
 @njit(cache=True, nogil=True)
-def fixed_actions(policy, layout, ubuf, ibuf, fbuf, bbuf, slot_high, mask, actions):
-    """:func:`fixed_policy_copy` of every copy, into ``actions`` ``[B, m]``."""
-    fields = unpack(layout, ubuf, ibuf, fbuf, bbuf)
-    state_episode_key, t = fields[_EPISODE_KEY], fields[_T]
-    for b in range(t.shape[0]):
-        fixed_policy_copy(b, policy, actions, slot_high, mask, state_episode_key, t)
+def fixed_actions(policy, buffers, views, actions):
+    """:func:`fixed_policy_copy` of every copy, into ``actions`` ``[B, m]``.
+
+    ``views`` is ``(mask, slot_high)``, the only views a fixed policy reads.
+    """
+    state = unpack(buffers)[1]
+    episode_key, t = state.episode_key, state.t
+    mask, slot_high = views
+    for b in range(actions.shape[0]):
+        fixed_policy_copy(b, policy, episode_key[b], t[b], mask, slot_high, actions)
 
 
 @njit(cache=True, nogil=True)
-def play_copy(
-    b, policy, max_ticks, rounds, iparams, fparams, cdf, dur_lo, dur_span, willingness, can_do,
-    seed_key, episode, state_episode_key, t, queue, queue_len, next_id, busy_until, battery,
-    last_type, last_high_arrival, done, pending_penalty, assigned, dropped, busy_ticks,
-    team_return, ticks, slot_pos, slot_keys,
-    slot_type, slot_high, idle, mask,
-    actions, team_reward, assign_reward, type_penalty,
-    out_assigned, out_dropped, out_busy_ticks, out_team_return, out_ticks,
-):  # fmt: skip
-    """Copy ``b`` under fixed policy ``policy`` (:data:`POLICIES`), many ticks in one call.
+def play_copy(b, plan, tables, state, views, scratch, out):
+    """Copy ``b`` under fixed policy ``plan.policy`` (:data:`POLICIES`), many ticks in one call.
 
-    A copy whose episode has ended is first reset. With ``rounds > 0`` the copy plays until
+    A copy whose episode has ended is first reset. With ``plan.rounds > 0`` the copy plays until
     ``rounds`` episodes have ended, recording episode ``r``'s statistics in row ``r * B + b`` of
-    the ``out_*`` arrays and resetting between episodes (the last one is left done). With
-    ``rounds = 0`` it plays ``max_ticks`` ticks, resetting finished episodes, and records
-    nothing. Returns the number of ticks played.
+    ``out`` (:class:`Stats`) and resetting between episodes (the last one is left done). With
+    ``rounds = 0`` it plays ``plan.max_ticks`` ticks, resetting finished episodes, and records
+    nothing. ``scratch`` holds the actions and rewards of copy ``b``'s row. Returns the number of
+    ticks played.
     """
-    B = t.shape[0]
+    policy, max_ticks, rounds = plan
+    actions, rewards = scratch
+    done, B = state.done, state.t.shape[0]
     played, recorded = 0, 0
     while True:
         if done[b]:
@@ -494,58 +533,42 @@ def play_copy(
                 row = recorded * B + b
                 # element by element: a slice copy (out[row] = a[b]) makes numba compile its
                 # shape-mismatch message (string formatting), about 7 s per empty-cache process
-                for j in range(assigned.shape[1]):
+                for j in range(state.assigned.shape[1]):
                     for h in range(2):
-                        out_assigned[row, j, h] = assigned[b, j, h]
-                        out_dropped[row, j, h] = dropped[b, j, h]
-                for i in range(busy_ticks.shape[1]):
-                    out_busy_ticks[row, i] = busy_ticks[b, i]
-                out_team_return[row], out_ticks[row] = team_return[b], ticks[b]
+                        out.assigned[row, j, h] = state.assigned[b, j, h]
+                        out.dropped[row, j, h] = state.dropped[b, j, h]
+                for i in range(state.busy_ticks.shape[1]):
+                    out.busy_ticks[row, i] = state.busy_ticks[b, i]
+                out.team_return[row], out.ticks[row] = state.team_return[b], state.ticks[b]
                 recorded += 1
             if rounds > 0 and recorded == rounds:
                 break
-            refresh_copy(  # begin typed int64 (a literal 2 would compile refresh_copy again)
-                b, np.int64(2), iparams, fparams, cdf, dur_lo, dur_span, willingness, can_do,
-                seed_key, episode, state_episode_key, t, queue, queue_len, next_id, busy_until,
-                battery, last_type, last_high_arrival, done, pending_penalty, assigned, dropped,
-                busy_ticks, team_return, ticks, slot_pos, slot_keys, slot_type, slot_high, idle,
-                mask,
-            )  # fmt: skip
+            # begin typed int64 (a literal 2 would compile refresh_copy again)
+            refresh_copy(b, np.int64(2), tables, state, views)
         if played == max_ticks:
             break
-        fixed_policy_copy(b, policy, actions, slot_high, mask, state_episode_key, t)
-        step_copies(
-            b, b + 1, actions, iparams, fparams, cdf, dur_lo, dur_span, willingness, can_do,
-            seed_key, episode, state_episode_key, t, queue, queue_len, next_id, busy_until,
-            battery, last_type, last_high_arrival, done, pending_penalty, assigned, dropped,
-            busy_ticks, team_return, ticks, slot_pos, slot_keys,
-            idle, slot_type, slot_high, idle, mask,
-            team_reward, assign_reward, type_penalty,
-        )  # fmt: skip
+        key, now = state.episode_key[b], state.t[b]
+        fixed_policy_copy(b, policy, key, now, views.mask, views.slot_high, actions)
+        step_copies(b, b + 1, actions, tables, state, views.idle, views, rewards)
         played += 1
     return played
 
 
 @njit(cache=True, nogil=True)
-def play(
-    lo, hi, policy, max_ticks, rounds, layout, ubuf, ibuf, fbuf, bbuf,
-    slot_type, slot_high, idle, mask,
-    out_assigned, out_dropped, out_busy_ticks, out_team_return, out_ticks,
-):  # fmt: skip
+def play(lo, hi, plan, buffers, views, out):
     """:func:`play_copy` of copies ``lo .. hi - 1`` in turn; returns the ticks they played.
 
-    Calls on disjoint copy ranges may run in concurrent threads (the GIL is released).
+    ``plan`` is a :class:`Plan` tuple, ``views`` and ``out`` the tuples of :data:`VIEW_FIELDS`
+    and :data:`STATS` arrays. Calls on disjoint copy ranges may run in concurrent threads (the
+    GIL is released).
     """
-    B, m = idle.shape
-    n = out_assigned.shape[1]
-    actions = np.zeros((B, m), np.int64)  # scratch rows of play_copy
-    team_reward, assign_reward, type_penalty = np.zeros(B), np.zeros((B, m)), np.zeros((B, n))
-    fields = unpack(layout, ubuf, ibuf, fbuf, bbuf)
+    plan, views, out = Plan(*plan), Views(*views), Stats(*out)
+    B, m = views.idle.shape
+    n = out.assigned.shape[1]
+    rewards = Rewards(np.zeros(B), np.zeros((B, m)), np.zeros((B, n)))
+    scratch = Scratch(np.zeros((B, m), np.int64), rewards)
+    tables, state = unpack(buffers)
     played = 0
     for b in range(lo, hi):
-        played += play_copy(
-            b, policy, max_ticks, rounds, *fields, slot_type, slot_high, idle, mask,
-            actions, team_reward, assign_reward, type_penalty,
-            out_assigned, out_dropped, out_busy_ticks, out_team_return, out_ticks,
-        )  # fmt: skip
+        played += play_copy(b, plan, tables, state, views, scratch, out)
     return played

@@ -11,7 +11,7 @@ from mrta_rl.envs.auction import AuctionEnv
 from mrta_rl.envs.params import AuctionParams
 from mrta_rl.envs.reference import ReferenceAuction
 from mrta_rl.envs.tasks import pack_tasks, task_high, task_type
-from mrta_rl.systems import RobotSystem, build_system
+from mrta_rl.systems import RobotSystem, build_system, random_system
 
 SYSTEM1 = {
     "name": "system1",
@@ -356,6 +356,21 @@ def test_individual_rewards_sum_to_the_team_reward():
     assert env.stats.ticks.tolist() == [200] * 8
 
 
+def test_a_copys_individual_rewards_do_not_depend_on_the_batch_size():
+    """Spec step 8 shares penalties per copy: copy 0 alone or among 4 gets the same bits."""
+    system = random_system(60, 12, 0.25, seed=0, name="random60")
+    params = AuctionParams(horizon=100, penalty_drop_low=1.0)
+    alone, batch = (AuctionEnv(system, params, batch_size=b, seed=7) for b in (1, 4))
+    penalised = 0
+    for _ in range(100):
+        robot = batch.step(batch.fixed_actions("random")).robot_reward
+        np.testing.assert_array_equal(
+            alone.step(alone.fixed_actions("random")).robot_reward[0], robot[0]
+        )
+        penalised += (robot[0] < 0).sum()
+    assert penalised > 0  # drops were shared
+
+
 def test_episode_is_truncated_at_the_horizon_and_step_after_it_raises():
     env = quiet_env(SYSTEM1, horizon=3)
     for _ in range(3):
@@ -499,7 +514,8 @@ def test_the_named_arrays_are_the_kernels_storage():
     """Every state array the env names is the very memory the kernel reads and writes."""
     env = AuctionEnv(build_system(MIXED), AuctionParams(horizon=40), batch_size=3, seed=1)
     env.step(greedy_actions(env))
-    fields = dict(zip(kernel.FIELDS, kernel.unpack(*env._fixed_args), strict=True))
+    tables, state = kernel.unpack(env._buffers)
+    fields = tables._asdict() | state._asdict()
     for name, value in env.get_state().items():
         np.testing.assert_array_equal(fields[name], value, err_msg=name)
         assert np.shares_memory(fields[name], env._state[name]), name

@@ -100,13 +100,24 @@ def one_row(masks, prior="greedy", prior_masks=None, weight=None, state=7, prune
     slot_high = np.zeros((1, n_actions - 1), np.int64)  # all L: spread_wait may hold them
     hold = np.array([prior_masks is not None])
     rows = np.empty(1, np.int64)
-    robots = np.arange(n)
-    group_kernels.rows_of(
-        storage.hash, storage.rows, storage.entries, storage.q, storage.sizes, 0,
-        np.array([state]), np.array([True]), masks, slot_type, slot_high, hold, robots, n,
-        robots, weight_by_type, PRIOR_CODES[prior], prune, rows,
-    )  # fmt: skip
+    robots = np.arange(n)[None]
+    learner = group_kernels.learner_of(
+        (
+            tuple(getattr(storage, name) for name in group_kernels.QTable._fields),
+            (robots, np.array([n]), robots, weight_by_type),
+            kernel_settings(prior=PRIOR_CODES[prior], prune=prune),
+        )
+    )
+    seen = group_kernels.Decision(np.array([[state]]), hold[None], masks, slot_type, slot_high)
+    group_kernels.rows_of(learner, 0, seen, np.array([True]), rows)
     return storage, int(rows[0])
+
+
+def kernel_settings(**settings):
+    """``group_kernels.Settings`` as a tuple: these ``settings``, the others plain."""
+    plain = dict(decisions_only=True, prior=0, prune=True, min_visits=0, lcb=0.0)
+    plain |= dict(prior_target=False, gamma=0.9, alpha=0.1, alpha_power=0.0, alpha_min=0.0)
+    return tuple(group_kernels.Settings(**(plain | settings)))
 
 
 def best_actions(storage, row, n, min_visits=0):
@@ -141,14 +152,16 @@ def test_storage_grows_and_finds_every_row():
     rows = np.empty(300, np.int64)
     masks = np.ones((300, 2, 4), bool)
     zeros = np.zeros((300, 3), np.int64)
+    robots = np.array([[0, 1], [0, 1]])
+    groups = (robots, np.array([2, 2]), robots, np.ones((2, 2)))
     for g in (1, 0):  # 600 rows: the hash table (1024 slots, half full at most) grows
         storage.reserve(300, 300 * 13)
-        states = np.arange(300, dtype=np.int64)[::-1] * 1_000_003
-        group_kernels.rows_of(
-            storage.hash, storage.rows, storage.entries, storage.q, storage.sizes, g, states,
-            np.ones(300, bool), masks, zeros, zeros, np.zeros(300, bool), np.arange(2), 2,
-            np.arange(2), np.ones((2, 2)), 0, True, rows,
-        )  # fmt: skip
+        states = np.zeros((2, 300), np.int64)
+        states[g] = np.arange(300, dtype=np.int64)[::-1] * 1_000_003
+        table = tuple(getattr(storage, name) for name in group_kernels.QTable._fields)
+        learner = group_kernels.learner_of((table, groups, kernel_settings()))
+        seen = group_kernels.Decision(states, np.zeros((2, 300), bool), masks, zeros, zeros)
+        group_kernels.rows_of(learner, g, seen, np.ones(300, bool), rows)
         assert (np.diff(storage.rows[0, storage.group_rows(g)]) > 0).all()  # created in order
     assert storage.hash.shape[1] > 1024 and storage.n_rows == 600
     assert storage.n_entries == 600 * max_valid_joint_actions(2, 4, True) == 600 * 13
@@ -268,6 +281,13 @@ def test_spread_wait_prior_holds_low_slots_after_a_recent_high(trio, tiny_params
 
 
 # ------------------------------------------------------------------ updates and schedules
+def robot_settings(**settings):
+    """``robot_kernels.Settings`` as a tuple: these ``settings``, the others plain."""
+    plain = dict(decisions_only=True, gamma=0.9, min_visits=0, prior_target=False)
+    plain |= dict(alpha=0.1, alpha_power=0.0, alpha_min=0.0)
+    return tuple(robot_kernels.Settings(**(plain | settings)))
+
+
 def test_updates_of_one_entry_are_sequential_eq3():
     """Two copies closing on one entry in a tick: two eq. (3) updates in copy order."""
     q, visits = np.array([0.0, 0.0, 7.0, 3.0]), np.zeros(4, np.int64)
@@ -277,7 +297,11 @@ def test_updates_of_one_entry_are_sequential_eq3():
     pending = (np.array([[1], [1]]), np.array([[1.0], [2.0]]), np.array([[0.5], [0.5]]))
     no_prior = np.zeros((2, 1), np.int64)  # min_visits 0: every valid action competes
     td = robot_kernels.close_transitions(
-        q, visits, next_bases, next_mask, no_prior, 0, False, closing, *pending, 0.5, 0.0, 0.0
+        (q, visits),
+        (next_bases, next_mask, no_prior),
+        robot_settings(alpha=0.5),
+        closing,
+        pending,
     )
     target = 1.0 + 0.5 * 7.0  # both targets from the table before the tick's updates
     first = 0.5 * target
@@ -288,9 +312,12 @@ def test_updates_of_one_entry_are_sequential_eq3():
     for target in (3.0, 6.0, 9.0):  # alpha = 1 / visits: the sample mean
         pending = (np.array([[0]]), np.array([[target]]), np.array([[0.0]]))
         robot_kernels.close_transitions(
-            q, visits, np.array([[0]]), next_mask[:1], no_prior[:1], 0, False, closing[:1],
-            *pending, 1.0, 1.0, 0.0,
-        )  # fmt: skip
+            (q, visits),
+            (np.array([[0]]), next_mask[:1], no_prior[:1]),
+            robot_settings(alpha=1.0, alpha_power=1.0),
+            closing[:1],
+            pending,
+        )
     assert q[0] == pytest.approx(6.0)
 
 
@@ -302,8 +329,9 @@ def test_dql_min_visits_keeps_the_prior_until_an_entry_has_enough_updates():
     chosen = []
     for min_visits in (0, 3, 4):  # all compete: slot 2; visits >= 3: slot 3; only the prior
         actions = np.zeros((1, 1), np.int64)
-        robot_kernels.act_robots(q, visits, bases, mask, prior, min_visits, 0.0, np.zeros(0),
-                                 actions)  # fmt: skip
+        robot_kernels.act_robots(
+            (q, visits), (bases, mask, prior), min_visits, (0.0, np.zeros(0)), actions
+        )
         chosen.append(int(actions[0, 0]))
     assert chosen == [2, 3, 1]
     # eq. (3)'s max over the same competing actions: R = 0, gamma^tau = 1, alpha = 1
@@ -312,9 +340,12 @@ def test_dql_min_visits_keeps_the_prior_until_an_entry_has_enough_updates():
         qq, vv = np.concatenate([[0.0], q]), np.concatenate([[0], visits])  # entry 0: (s, a)
         pending = (np.array([[0]]), np.array([[0.0]]), np.array([[1.0]]))
         robot_kernels.close_transitions(
-            qq, vv, np.array([[1]]), mask, prior, min_visits, prior_target,
-            np.ones((1, 1), bool), *pending, 1.0, 0.0, 0.0,
-        )  # fmt: skip
+            (qq, vv),
+            (np.array([[1]]), mask, prior),
+            robot_settings(min_visits=min_visits, prior_target=prior_target, alpha=1.0),
+            np.ones((1, 1), bool),
+            pending,
+        )
         targets.append(qq[0])
     # target=prior: the prior's own Q (slot 1), whatever the others hold
     assert targets == [5.0, 2.0, -1.0, -1.0]
@@ -335,9 +366,13 @@ def test_schedules_and_pending_returns():
     for tick, reward in enumerate(([1.0, 9.0], [2.0, 9.0])):  # robot 1 cannot bid at tick 0
         mask, after = masks[0 if tick == 0 else 1][None], masks[1][None]
         closed = robot_kernels.open_transitions(
-            *args, mask if tick == 0 else np.zeros_like(mask), after if tick else mask,
-            np.array([reward]), np.array([False]), *pending, True, 0.9, closing,
-        )  # fmt: skip
+            (*args, mask if tick == 0 else np.zeros_like(mask)),
+            after if tick else mask,
+            (np.array([reward]), np.array([False])),
+            pending,
+            robot_settings(decisions_only=True, gamma=0.9),
+            closing,
+        )
     assert closed == 1 and closing.tolist() == [[True, False]]
     assert pending[0].tolist() == [[5, -1]]
     assert pending[1][0, 0] == pytest.approx(1.0 + 0.9 * 2.0)
@@ -588,10 +623,17 @@ def test_hand_computed_n_step_targets(n_step, target):
     group = (np.array([[0]]), np.array([1]), np.array([[0]]), np.ones((2, 1)))
     slots = np.zeros((1, 1), np.int64)  # one L slot of type 0
     spread = PRIOR_CODES["spread"]
+    learner = (
+        tables,
+        group,
+        kernel_settings(
+            prior=spread, prior_target=target == "prior", gamma=0.5, alpha=1.0, alpha_power=0.0
+        ),
+    )
+    seen = (states[None], np.zeros((1, 4), bool), mask, slots.repeat(4, 0), slots.repeat(4, 0))
     group_kernels.rows_of(
-        *tables, 0, states, np.ones(4, bool), mask, slots.repeat(4, 0), slots.repeat(4, 0),
-        np.zeros(4, bool), group[0][0], 1, group[2][0], group[3], spread, True, rows,
-    )  # fmt: skip
+        group_kernels.learner_of(learner), 0, group_kernels.Decision(*seen), np.ones(4, bool), rows
+    )
     bid = {}
     for k, row in zip(states.tolist(), rows.tolist(), strict=True):
         at = storage.row_entries(row)
@@ -601,9 +643,13 @@ def test_hand_computed_n_step_targets(n_step, target):
         storage.q[at] = [10 * (k - 10) + 1.0, 10 * (k - 10)]
     v = {k - 10: float(storage.q[bid[k]] + (target == "max")) for k in states.tolist()}
     pending = (
-        np.full((1, 1, n_step), -1), np.zeros((1, 1, n_step)), np.ones((1, 1, n_step)),
-        np.zeros((1, 1), np.int64), np.zeros((1, 1), bool), np.zeros((1, 1)),
-    )  # fmt: skip
+        np.full((1, 1, n_step), -1),
+        np.zeros((1, 1, n_step)),
+        np.ones((1, 1, n_step)),
+        np.zeros((1, 1), np.int64),
+        np.zeros((1, 1), bool),
+        np.zeros((1, 1)),
+    )
     chosen = [bid[10], bid[11], -1, bid[13], bid[14]]
     counts = []
     for tick, reward in enumerate(N_STEP_REWARDS):
@@ -611,11 +657,13 @@ def test_hand_computed_n_step_targets(n_step, target):
         next_mask = np.array([[[True, after != 12]]])  # state 12: no slot to bid for
         td_sum, td_count = np.zeros(1), np.zeros(1, np.int64)
         group_kernels.update_groups(
-            *tables, group[0], group[1], group[2], group[3], np.array([[chosen[tick]]]),
-            np.array([[after]]), np.zeros((1, 1), bool), next_mask, slots, slots,
-            np.array([[reward]]), np.zeros((1, 1), np.int64), np.array([tick == 4]), *pending,
-            True, spread, True, 0, 0.0, target == "prior", 0.5, 1.0, 0.0, 0.0, td_sum, td_count,
-        )  # fmt: skip
+            learner,
+            np.array([[chosen[tick]]]),
+            (np.array([[after]]), np.zeros((1, 1), bool), next_mask, slots, slots),
+            (np.array([[reward]]), np.zeros((1, 1), np.int64), np.array([tick == 4])),
+            pending,
+            (td_sum, td_count),
+        )
         counts.append(int(td_count[0]))
     expected, ticks = _n_step_targets(n_step, v)
     assert counts == ticks

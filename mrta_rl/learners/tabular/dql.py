@@ -9,6 +9,7 @@ The per-tick work runs in the compiled loops of :mod:`~mrta_rl.learners.tabular.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Annotated, Any, ClassVar
 
@@ -70,9 +71,12 @@ class RobotQLearner(TabularLearner, abstract=True):
             self._pending = (np.full(shape, -1, np.int64), np.zeros(shape), np.ones(shape))
             # train_tick's scratch: int and float zeros (no last decision), prior, closing, states
             self._scratch = (
-                np.zeros(shape, np.int64), np.zeros(shape), np.empty(shape, np.int64),
-                np.empty(shape, bool), np.empty(shape, np.int64),
-            )  # fmt: skip
+                np.zeros(shape, np.int64),
+                np.zeros(shape),
+                np.empty(shape, np.int64),
+                np.empty(shape, bool),
+                np.empty(shape, np.int64),
+            )
         return self._pending
 
     def _next_prior(self, env: AuctionEnv, mask: np.ndarray) -> np.ndarray | None:
@@ -80,15 +84,29 @@ class RobotQLearner(TabularLearner, abstract=True):
         return None
 
     def _tick_kernel(
-        self, env: AuctionEnv, prior: np.ndarray | None, middle: tuple, tail: tuple
+        self, env: AuctionEnv, prior: np.ndarray | None, shared: tuple, out: tuple
     ) -> int:
         """Call the learner's tick kernel (``robot_kernels.tick_*``): uniforms used, or -1.
 
-        ``middle`` and ``tail`` are the arguments the kernels share (from ``q`` to the uniforms;
-        the states, then from ``next_bases`` to ``next_actions``); ``prior`` is
-        :meth:`_next_prior`'s.
+        ``shared`` holds the arguments the kernels share (``learner``, ``last``, ``now``,
+        ``learn``, ``outcome``, ``explore``), ``out`` the local states, next bases, closing
+        flags and next actions; ``prior`` is :meth:`_next_prior`'s.
         """
         raise NotImplementedError
+
+    @functools.cached_property
+    def _kernel_settings(self) -> tuple:
+        """The hyperparameters as a ``robot_kernels.Settings`` tuple (all set by ``__init__``)."""
+        settings = kernels.Settings(
+            decisions_only=self.decisions_only,
+            gamma=self.gamma,
+            min_visits=self.min_visits,
+            prior_target=self.prior_target,
+            alpha=self.alpha,
+            alpha_power=self.alpha_power,
+            alpha_min=self.alpha_min,
+        )
+        return tuple(settings)
 
     def train_tick(self, env: AuctionEnv, result: StepResult | None) -> np.ndarray | None:
         """:meth:`TabularLearner.train_tick` in one compiled call (``robot_kernels.tick_*``)."""
@@ -108,14 +126,15 @@ class RobotQLearner(TabularLearner, abstract=True):
         epsilon = self.epsilon
         block = self.uniforms.block(2 * bases.size) if epsilon > 0.0 else NO_UNIFORMS
         next_bases, next_actions = np.empty(shape, np.int64), np.zeros(shape, np.int64)
-        used = self._tick_kernel(
-            env, prior, (
-                self.q, self.visits, bases, actions, last_mask, mask,
-                greedy if prior is None else prior, rewards, done, *pending, result is not None,
-                self.decisions_only, self.gamma, self.min_visits, self.prior_target, self.alpha,
-                self.alpha_power, self.alpha_min, epsilon, block,
-            ), (states, next_bases, closing, next_actions),
-        )  # fmt: skip
+        shared = (
+            ((self.q, self.visits), self._kernel_settings, pending),  # values, settings, pending
+            (bases, actions, last_mask),  # robot_kernels.Step
+            (mask, greedy if prior is None else prior),
+            result is not None,
+            (rewards, done),  # robot_kernels.Outcome
+            (epsilon, block),
+        )
+        used = self._tick_kernel(env, prior, shared, (states, next_bases, closing, next_actions))
         if used < 0:  # the episode has ended
             self.uniforms.settle()
             self._last = None
@@ -143,9 +162,12 @@ class RobotQLearner(TabularLearner, abstract=True):
         actions = np.zeros(mask.shape[:2], np.int64)
         block = self.uniforms.block(2 * actions.size) if epsilon > 0.0 else NO_UNIFORMS
         used = kernels.act_robots(
-            self.q, self.visits, bases, mask, self._prior(view, mask), self.min_visits, epsilon,
-            block, actions,
-        )  # fmt: skip
+            (self.q, self.visits),
+            (bases, mask, self._prior(view, mask)),
+            self.min_visits,
+            (epsilon, block),
+            actions,
+        )
         if epsilon > 0.0:
             self.uniforms.used(used)
         return actions
@@ -175,10 +197,13 @@ class RobotQLearner(TabularLearner, abstract=True):
         next_mask = np.ascontiguousarray(next_mask, bool)
         closing = np.empty(shape, bool)
         count = kernels.open_transitions(
-            self._bases(view), np.asarray(actions, np.int64), view.mask, next_mask,
-            self._rewards(result, shape), np.asarray(result.done, bool),
-            *self._pending, self.decisions_only, self.gamma, closing,
-        )  # fmt: skip
+            (self._bases(view), np.asarray(actions, np.int64), view.mask),
+            next_mask,
+            (self._rewards(result, shape), np.asarray(result.done, bool)),
+            self._pending,
+            self._kernel_settings,
+            closing,
+        )
         if count == 0:
             return {}
         # the prior only matters to the max when min_visits > 0 (else every action competes)
@@ -189,10 +214,12 @@ class RobotQLearner(TabularLearner, abstract=True):
             else np.zeros(shape, np.int64)
         )
         td_sum = kernels.close_transitions(
-            self.q, self.visits, self._bases(next_view), next_mask, next_prior, self.min_visits,
-            self.prior_target, closing, *self._pending, self.alpha, self.alpha_power,
-            self.alpha_min,
-        )  # fmt: skip
+            (self.q, self.visits),
+            (self._bases(next_view), next_mask, next_prior),
+            self._kernel_settings,
+            closing,
+            self._pending,
+        )
         return {"learner/td_error": td_sum / count} if count else {}
 
     @staticmethod
@@ -305,9 +332,11 @@ class DQLLearner(RobotQLearner):
         self.rule = None  # the hold rule (tabular.priors.HoldRule)
         if prior == "hold":
             self.rule = HoldRule(
-                self.env, reserve=prior_reserve, hold_level=prior_hold_level,
+                self.env,
+                reserve=prior_reserve,
+                hold_level=prior_hold_level,
                 hold_scope=prior_hold_scope,
-            )  # fmt: skip
+            )
         self.encoder = LocalEncoder(self.env, features)
         # |S_i|, times K + 1 with the prior's action as a digit (the most significant)
         self._local_counts = self.encoder.counts
@@ -344,13 +373,17 @@ class DQLLearner(RobotQLearner):
         return None if self.rule is None else self._rule_actions(env, mask)
 
     def _tick_kernel(
-        self, env: AuctionEnv, prior: np.ndarray | None, middle: tuple, tail: tuple
+        self, env: AuctionEnv, prior: np.ndarray | None, shared: tuple, out: tuple
     ) -> int:
-        return kernels.tick_local(
-            *env_arrays(env), *self.encoder.state_arrays(env), *self.encoder.tables, prior is None,
-            self.prior_in_state and prior is not None, self._digit_place, self._robot_base,
-            *middle, *tail,
-        )  # fmt: skip
+        learner, last, now, learn, outcome, explore = shared
+        encoding = (
+            (*env_arrays(env), *self.encoder.state_arrays(env), *self.encoder.tables),
+            self._robot_base,
+            self._digit_place,
+            prior is None,  # the plain auction's prior, computed by the kernel
+            self.prior_in_state and prior is not None,
+        )
+        return kernels.tick_local(learner, encoding, last, now, learn, outcome, explore, out)
 
     def _table_arrays(self) -> dict[str, np.ndarray]:
         shape = (self.n_robots, self._stride, self.n_actions)

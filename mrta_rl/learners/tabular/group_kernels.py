@@ -10,9 +10,20 @@ Learner conventions (docs/learners.md): a group decides at a copy when one of it
 order within one call, with the masks of the first copy showing the state. Exploration uses
 uniforms drawn by the caller, consumed in order: per group, one per deciding copy (explore?),
 then one per exploring copy (which joint action).
+
+The arrays travel in named records, declared once below: :class:`Learner` (the Q-table
+:class:`QTable`, the :class:`Groups` and the hyperparameters :class:`Settings`), a
+:class:`Decision` (what the groups see at one state), the n-step :class:`Pending` decisions, one
+tick's :class:`Outcome`, :class:`Exploration`, the :class:`Chosen` rows and entries and the
+:class:`TD` errors. Python passes each as a plain tuple in its fields' order (as cheap to pass
+as the arrays themselves; a namedtuple built in Python costs more), and the entry points
+(:func:`act_groups`, :func:`entries_for_actions`, :func:`update_groups`, :func:`tick_groups`)
+name them.
 """
 
 from __future__ import annotations
+
+from collections import namedtuple
 
 import numpy as np
 from numba import njit
@@ -42,6 +53,42 @@ from mrta_rl.rules import spread as spread_row
 GREEDY, SPREAD_WAIT = PRIOR_CODES["greedy"], PRIOR_CODES["spread_wait"]  # compile-time constants
 
 
+QTable = namedtuple("QTable", ("hash", "rows", "entries", "q", "sizes"))  # JointQStorage's
+# robots [G, n] and size [G] (padded), order [G, n] (the spread prior's), weight_by_type [n + 1, m]
+Groups = namedtuple("Groups", ("robots", "size", "order", "weight_by_type"))
+Settings = namedtuple(
+    "Settings",
+    (
+        "decisions_only",  # a group learns only where one of its robots may bid
+        "prior",  # PRIOR_CODES
+        "prune",  # conflicting bids pruned (one joint action per outcome)
+        "min_visits",  # entries updated fewer times do not compete (the prior's always does)
+        "lcb",  # the greedy value's lower-confidence margin
+        "prior_target",  # bootstrap from the prior's entry instead of the max
+        "gamma",
+        "alpha",  # alpha_of_visits(visits, alpha, alpha_power, alpha_min)
+        "alpha_power",
+        "alpha_min",
+    ),
+)
+Learner = namedtuple("Learner", ("table", "groups", "settings"))  # QTable, Groups, Settings
+# states, hold [G, B] (hold: recency level 0), mask [B, m, K + 1], slot_type, slot_high [B, K]
+Decision = namedtuple("Decision", ("states", "hold", "mask", "slot_type", "slot_high"))
+# per group and copy the last n decisions, oldest first (update_groups)
+Pending = namedtuple("Pending", ("entry", "returns", "discounts", "count", "open", "value"))
+Outcome = namedtuple("Outcome", ("rewards", "columns", "done"))  # one tick's, update_groups
+Exploration = namedtuple("Exploration", ("epsilon", "uniforms"))  # uniforms consumed in order
+Chosen = namedtuple("Chosen", ("rows", "entries"))  # [G, B], -1 where the group does not decide
+TD = namedtuple("TD", ("sum", "count"))  # [G] summed absolute TD errors and updates
+
+
+@njit(cache=True)
+def learner_of(parts):
+    """The :class:`Learner` record of a ``(table, groups, settings)`` tuple of plain tuples."""
+    table, groups, settings = parts
+    return Learner(QTable(*table), Groups(*groups), Settings(*settings))
+
+
 # ---------------------------------------------------------------------------------- rows
 @njit(cache=True)
 def decides(mask: np.ndarray, robots: np.ndarray, n: int, decisions_only: bool) -> bool:
@@ -56,11 +103,16 @@ def decides(mask: np.ndarray, robots: np.ndarray, n: int, decisions_only: bool) 
 
 
 @njit(cache=True)
-def _add_row(
-    table, rows, entries, q, sizes, g, state, mask, slot_type, slot_high, hold, robots, n,
-    order, weight_by_type, prior, prune,
-):  # fmt: skip
-    """Create the row of a new state: its valid joint actions and its prior's entry."""
+def _add_row(learner, g, seen, b):
+    """Create the row of group ``g``'s state in copy ``b`` of ``seen`` (a :class:`Decision`).
+
+    The row holds the valid joint actions and the entry of the prior's one.
+    """
+    table, groups, settings = learner
+    mask, slot_type, slot_high = seen.mask[b], seen.slot_type[b], seen.slot_high[b]
+    robots, n, weight_by_type = groups.robots[g], groups.size[g], groups.weight_by_type
+    prior, hold = settings.prior, seen.hold[g, b]
+    entries, sizes = table.entries, table.sizes
     n_actions = mask.shape[1]
     group_mask = np.empty((n, n_actions), np.bool_)
     prior_mask = np.empty((n, n_actions), np.bool_)
@@ -75,14 +127,14 @@ def _add_row(
             ttype = slot_type[k] if slot_type[k] >= 0 else weight_by_type.shape[0] - 1
             weight[r, k] = weight_by_type[ttype, robots[r]]
     start = sizes[1]
-    count = enumerate_row(group_mask, prune, entries[ENTRY_CODE], start)
+    count = enumerate_row(group_mask, settings.prune, entries[ENTRY_CODE], start)
     chosen = np.zeros(n, np.int64)
     if prior == GREEDY:
         lowest_bid_row(prior_mask, chosen)
-        if prune:
+        if settings.prune:
             deconflict_row(chosen, weight)
     else:
-        spread_row(prior_mask, order[:n], chosen)
+        spread_row(prior_mask, groups.order[g, :n], chosen)
     code, place = 0, 1
     for r in range(n):
         code += chosen[r] * place
@@ -92,26 +144,24 @@ def _add_row(
         if entries[ENTRY_CODE, e] == code:
             prior_entry = e
             break
-    row = sizes[0]
+    state, rows, row = seen.states[g, b], table.rows, sizes[0]
     rows[ROW_STATE, row], rows[ROW_GROUP, row], rows[ROW_OFFSET, row] = state, g, start
     rows[ROW_LENGTH, row], rows[ROW_PRIOR, row] = count, prior_entry
     entries[ENTRY_VISITS, start : start + count] = 0
-    q[start : start + count] = 0.0
-    insert_row(table, state, g, row)
+    table.q[start : start + count] = 0.0
+    insert_row(table.hash, state, g, row)
     sizes[0] += 1
     sizes[1] += count
 
 
 @njit(cache=True)
-def rows_of(
-    table, rows, entries, q, sizes, g, states, use, mask, slot_type, slot_high, hold, robots, n,
-    order, weight_by_type, prior, prune, out,
-):  # fmt: skip
-    """Rows of the copies ``use`` (bool ``[B]``) of group ``g``, created on a first visit.
+def rows_of(learner, g, seen, use, out):
+    """Rows of group ``g`` in the copies ``use`` (bool ``[B]``) of ``seen``, made on a first visit.
 
     New states are created in increasing state order, each from the first copy showing it.
     ``out[b]`` is the row (-1 where not ``use``).
     """
+    hash_table, states = learner.table.hash, seen.states[g]
     batch = states.size
     new_states = np.empty(batch, np.int64)
     new_copy = np.empty(batch, np.int64)
@@ -120,25 +170,21 @@ def rows_of(
         out[b] = -1
         if not use[b]:
             continue
-        out[b] = find_row(table, states[b], g)
+        out[b] = find_row(hash_table, states[b], g)
         if out[b] < 0:
-            seen = False
+            seen_before = False
             for j in range(n_new):
-                seen = seen or new_states[j] == states[b]
-            if not seen:
+                seen_before = seen_before or new_states[j] == states[b]
+            if not seen_before:
                 new_states[n_new], new_copy[n_new] = states[b], b
                 n_new += 1
     if n_new == 0:
         return
     for j in np.argsort(new_states[:n_new]):
-        b = new_copy[j]
-        _add_row(
-            table, rows, entries, q, sizes, g, states[b], mask[b], slot_type[b], slot_high[b],
-            hold[b], robots, n, order, weight_by_type, prior, prune,
-        )  # fmt: skip
+        _add_row(learner, g, seen, new_copy[j])
     for b in range(batch):
         if use[b] and out[b] < 0:
-            out[b] = find_row(table, states[b], g)
+            out[b] = find_row(hash_table, states[b], g)
 
 
 @njit(cache=True)
@@ -148,71 +194,94 @@ def _decode_into(code: int, n_actions: int, robots: np.ndarray, n: int, out: np.
         code //= n_actions
 
 
+@njit(cache=True)
+def _rows_of_deciding(learner, g, seen, use, out):
+    """Group ``g``'s rows in ``seen`` where it decides (``out`` ``[B]``, -1 elsewhere).
+
+    ``use`` ``[B]`` is scratch (written: where the group decides).
+    """
+    robots, n = learner.groups.robots[g], learner.groups.size[g]
+    decisions_only = learner.settings.decisions_only
+    for b in range(out.shape[0]):
+        use[b] = decides(seen.mask[b], robots, n, decisions_only)
+    rows_of(learner, g, seen, use, out)
+
+
 # ---------------------------------------------------------------------------------- act
 @njit(cache=True)
-def act_groups(
-    table, rows, entries, q, sizes, robots, size, order, weight_by_type, states, hold, mask,
-    slot_type, slot_high, decisions_only, prior, prune, min_visits, lcb, epsilon, uniforms,
-    row_out, entry_out, actions,
-):  # fmt: skip
+def _act(learner, seen, explore, chosen, actions):
     """Epsilon-greedy joint action of every group and copy (ties to the prior).
 
-    Writes ``row_out`` / ``entry_out`` ``[G, B]`` (-1 where the group does not decide) and
-    ``actions`` ``[B, m]``; returns the number of uniforms used.
+    Writes ``chosen`` (-1 where the group does not decide) and ``actions`` ``[B, m]``; returns
+    the number of uniforms used.
     """
-    n_groups, batch = states.shape
+    table, groups, settings = learner
+    rows, entries, q = table.rows, table.entries, table.q
+    row_out, entry_out = chosen
+    epsilon, uniforms = explore
+    n_groups, batch = seen.states.shape
+    n_actions = seen.mask.shape[2]
     use = np.empty(batch, np.bool_)
     for g in range(n_groups):  # rows first: creating them draws nothing
-        for b in range(batch):
-            use[b] = decides(mask[b], robots[g], size[g], decisions_only)
-        rows_of(
-            table, rows, entries, q, sizes, g, states[g], use, mask, slot_type, slot_high,
-            hold[g], robots[g], size[g], order[g], weight_by_type, prior, prune, row_out[g],
-        )  # fmt: skip
+        _rows_of_deciding(learner, g, seen, use, row_out[g])
     actions[:] = 0
     used = 0
-    explore = np.zeros(batch, np.bool_)
+    explored = np.zeros(batch, np.bool_)
     for g in range(n_groups):
         for b in range(batch):
             row = row_out[g, b]
-            entry_out[g, b] = -1 if row < 0 else best_entry(rows, entries, q, row, min_visits, lcb)
+            entry_out[g, b] = (
+                -1
+                if row < 0
+                else best_entry(rows, entries, q, row, settings.min_visits, settings.lcb)
+            )
         if epsilon > 0.0:
             for b in range(batch):
-                explore[b] = False
+                explored[b] = False
                 if row_out[g, b] >= 0:
-                    explore[b] = uniforms[used] < epsilon
+                    explored[b] = uniforms[used] < epsilon
                     used += 1
             for b in range(batch):
-                if explore[b]:
+                if explored[b]:
                     entry_out[g, b] = random_entry(rows, row_out[g, b], uniforms[used])
                     used += 1
         for b in range(batch):
             if entry_out[g, b] >= 0:
                 code = entries[ENTRY_CODE, entry_out[g, b]]
-                _decode_into(code, mask.shape[2], robots[g], size[g], actions[b])
+                _decode_into(code, n_actions, groups.robots[g], groups.size[g], actions[b])
     return used
 
 
 @njit(cache=True)
-def entries_for_actions(
-    table, rows, entries, q, sizes, robots, size, order, weight_by_type, states, hold, mask,
-    slot_type, slot_high, decisions_only, prior, prune, actions, row_out, entry_out,
-):  # fmt: skip
+def act_groups(learner, seen, explore, chosen, actions):
+    """:func:`_act` on plain tuples.
+
+    ``learner`` as :func:`learner_of` takes it, ``seen`` a :class:`Decision`, ``explore`` an
+    :class:`Exploration`, ``chosen`` the :class:`Chosen` arrays to write.
+    """
+    return _act(
+        learner_of(learner), Decision(*seen), Exploration(*explore), Chosen(*chosen), actions
+    )
+
+
+@njit(cache=True)
+def entries_for_actions(learner, seen, actions, chosen):
     """Rows and entries of actions chosen elsewhere; returns the first copy not stored, or -1.
 
     With pruning, the actions are first mapped to their conflict-free equivalent (same winners).
+    The arguments are plain tuples, as :func:`act_groups`'.
     """
-    n_groups, batch = states.shape
-    n_actions = mask.shape[2]
+    learner, seen, chosen = learner_of(learner), Decision(*seen), Chosen(*chosen)
+    table, groups, settings = learner
+    rows, entries = table.rows, table.entries
+    row_out, entry_out = chosen
+    slot_type, weight_by_type = seen.slot_type, groups.weight_by_type
+    n_groups, batch = seen.states.shape
+    n_actions = seen.mask.shape[2]
     use = np.empty(batch, np.bool_)
     for g in range(n_groups):
-        n = size[g]
-        for b in range(batch):
-            use[b] = decides(mask[b], robots[g], n, decisions_only)
-        rows_of(
-            table, rows, entries, q, sizes, g, states[g], use, mask, slot_type, slot_high,
-            hold[g], robots[g], n, order[g], weight_by_type, prior, prune, row_out[g],
-        )  # fmt: skip
+        _rows_of_deciding(learner, g, seen, use, row_out[g])
+        n, robots = groups.size[g], groups.robots[g]
         taken = np.empty(n, np.int64)
         weight = np.empty((n, n_actions - 1))
         for b in range(batch):
@@ -221,11 +290,11 @@ def entries_for_actions(
             if row < 0:
                 continue
             for r in range(n):
-                taken[r] = actions[b, robots[g, r]]
+                taken[r] = actions[b, robots[r]]
                 for k in range(n_actions - 1):
                     ttype = slot_type[b, k] if slot_type[b, k] >= 0 else weight_by_type.shape[0] - 1
-                    weight[r, k] = weight_by_type[ttype, robots[g, r]]
-            if prune:
+                    weight[r, k] = weight_by_type[ttype, robots[r]]
+            if settings.prune:
                 deconflict_row(taken, weight)  # same outcome as the bids taken (spec step 5)
             code, place = 0, 1
             for r in range(n):
@@ -257,44 +326,50 @@ def n_step_target(returns: np.ndarray, discounts: np.ndarray, first: int, last: 
 
 
 @njit(cache=True)
-def _learn(entries, q, e, target, alpha, alpha_power, alpha_min) -> float:
+def _learn(entries, q, e, target, settings) -> float:
     """Eq. (3) on entry ``e`` towards ``target``; returns ``|TD error|``."""
     entries[ENTRY_VISITS, e] += 1
     td = target - q[e]
-    q[e] += alpha_of_visits(entries[ENTRY_VISITS, e], alpha, alpha_power, alpha_min) * td
+    visits = entries[ENTRY_VISITS, e]
+    q[e] += alpha_of_visits(visits, settings.alpha, settings.alpha_power, settings.alpha_min) * td
     return abs(td)
 
 
 @njit(cache=True)
-def update_groups(
-    table, rows, entries, q, sizes, robots, size, order, weight_by_type, chosen, next_states,
-    next_hold, next_mask, next_slot_type, next_slot_high, rewards, reward_columns, done,
-    pending_entry, pending_return, pending_discount, pending_count, pending_open, pending_value,
-    decisions_only, prior, prune, min_visits, lcb, prior_target, gamma, alpha, alpha_power,
-    alpha_min, td_sum, td_count,
-):  # fmt: skip
+def _update(learner, chosen, next_seen, outcome, pending, td):
     """Eq. (3) per group on decision points (semi-Markov, n-step), all copies, in copy order.
 
-    Per group and copy, ``pending_*`` hold the last ``n`` decisions (``n`` = their last axis),
-    oldest first: ``pending_entry [G, B, n]`` the chosen entries, ``pending_return`` /
-    ``pending_discount`` the interval after each (``R = sum_k gamma^k r_k`` over its ticks and
-    ``gamma^tau``), ``pending_count [G, B]`` how many are held, ``pending_open`` whether the
-    newest interval still runs, ``pending_value`` the bootstrap of the last decision state met.
+    ``chosen`` ``[G, B]`` holds the entries chosen at the last decision (-1: none), ``next_seen``
+    the :class:`Decision` after the tick, ``outcome`` its :class:`Outcome`.
+
+    Per group and copy, ``pending`` holds the last ``n`` decisions (``n`` = the last axis of its
+    arrays), oldest first: ``entry [G, B, n]`` the chosen entries, ``returns`` / ``discounts``
+    the interval after each (``R = sum_k gamma^k r_k`` over its ticks and ``gamma^tau``),
+    ``count [G, B]`` how many are held, ``open`` whether the newest interval still runs,
+    ``value`` the bootstrap of the last decision state met.
 
     A decision (``chosen[g, b] >= 0``) opens an interval; the tick's group reward is added to
-    the open one (the group reward is the sum of the columns ``reward_columns[g]`` of
-    ``rewards`` ``[B, R]``, -1 padded, added left to right as numpy sums fewer than 9 terms
-    along a row of a batch). When the group decides at the next state, the open interval ends
-    and, once ``n`` decisions are held, the oldest is updated and dropped:
+    the open one (the group reward is the sum of the columns ``outcome.columns[g]`` of
+    ``outcome.rewards`` ``[B, R]``, -1 padded, added left to right as numpy sums fewer than 9
+    terms along a row of a batch). When the group decides at the next state, the open interval
+    ends and, once ``n`` decisions are held, the oldest is updated and dropped:
     ``Q(s,a) += alpha_n [R_0 + gamma^tau_0 (R_1 + ... gamma^tau_n-1 V(s')) - Q(s,a)]`` with
     ``V(s') = max_a' Q(s', a')`` (with ``prior_target`` the prior's entry ``Q(s', prior(s'))``:
     the table then evaluates the prior, docs/learners.md "target"), every target taken from
     the table before the tick's updates. ``n = 1`` is the one-step semi-Markov eq. (3).
-    At truncation (``done``: no next state) the open interval is dropped and the decisions
-    before it are updated with the intervals they have, bootstrapped from the last decision
-    state's value. ``td_sum`` / ``td_count`` ``[G]`` get the summed absolute TD errors and the
-    number of updates.
+    At truncation (``outcome.done``: no next state) the open interval is dropped and the
+    decisions before it are updated with the intervals they have, bootstrapped from the last
+    decision state's value. ``td`` (:class:`TD`, ``[G]``) gets the summed absolute TD errors
+    and the number of updates.
     """
+    table, groups, settings = learner
+    rows, entries, q = table.rows, table.entries, table.q
+    robots, size = groups.robots, groups.size
+    decisions_only, gamma = settings.decisions_only, settings.gamma
+    rewards, reward_columns, done = outcome
+    next_states, next_mask = next_seen.states, next_seen.mask
+    pending_entry, pending_count, pending_open = pending.entry, pending.count, pending.open
+    pending_value, td_sum, td_count = pending.value, td.sum, td.count
     n_groups, batch = chosen.shape
     n_step = pending_entry.shape[2]
     closing = np.empty(batch, np.bool_)
@@ -306,14 +381,10 @@ def update_groups(
             closing[b] = (
                 opened and not done[b] and decides(next_mask[b], robots[g], size[g], decisions_only)
             )
-        rows_of(
-            table, rows, entries, q, sizes, g, next_states[g], closing, next_mask,
-            next_slot_type, next_slot_high, next_hold[g], robots[g], size[g], order[g],
-            weight_by_type, prior, prune, next_rows,
-        )  # fmt: skip
+        rows_of(learner, g, next_seen, closing, next_rows)
     for g in range(n_groups):
         td_sum[g], td_count[g] = 0.0, 0
-        returns, discounts = pending_return[g], pending_discount[g]
+        returns, discounts = pending.returns[g], pending.discounts[g]
         for b in range(batch):
             if chosen[g, b] >= 0:  # a decision opens an interval
                 if pending_open[g, b]:  # the last one never met its next state: chain broken
@@ -337,12 +408,12 @@ def update_groups(
             if done[b]:  # truncation: no next state; the decisions before are flushed below
                 continue
             if decides(next_mask[b], robots[g], size[g], decisions_only):
-                next_rows[b] = find_row(table, next_states[g, b], g)
+                next_rows[b] = find_row(table.hash, next_states[g, b], g)
                 # eq. (3): r + gamma max_a' Q(s', a'), from the table before this tick's updates
-                if prior_target:  # the prior's value: its own Q, no max over noisy entries
+                if settings.prior_target:  # the prior's value: its own Q, no max over noise
                     best = q[rows[ROW_PRIOR, next_rows[b]]]
                 else:
-                    best = max_q(rows, entries, q, next_rows[b], min_visits, lcb)
+                    best = max_q(rows, entries, q, next_rows[b], settings.min_visits, settings.lcb)
                 pending_open[g, b] = False
                 pending_value[g, b] = best
                 if c + 1 == n_step:  # the oldest decision has its n intervals
@@ -350,9 +421,7 @@ def update_groups(
                     targets[b] = n_step_target(returns[b], discounts[b], 0, c, best)
         for b in range(batch):
             if closing[b]:
-                td_sum[g] += _learn(
-                    entries, q, pending_entry[g, b, 0], targets[b], alpha, alpha_power, alpha_min
-                )
+                td_sum[g] += _learn(entries, q, pending_entry[g, b, 0], targets[b], settings)
                 td_count[g] += 1
                 for j in range(n_step - 1):  # drop the oldest
                     pending_entry[g, b, j] = pending_entry[g, b, j + 1]
@@ -365,55 +434,62 @@ def update_groups(
                 last = pending_count[g, b] - (2 if pending_open[g, b] else 1)
                 for j in range(last + 1):
                     target = n_step_target(returns[b], discounts[b], j, last, pending_value[g, b])
-                    td_sum[g] += _learn(
-                        entries, q, pending_entry[g, b, j], target, alpha, alpha_power, alpha_min
-                    )
+                    td_sum[g] += _learn(entries, q, pending_entry[g, b, j], target, settings)
                     td_count[g] += 1
                 pending_count[g, b] = 0
                 pending_open[g, b] = False
 
 
+@njit(cache=True)
+def update_groups(learner, chosen, next_seen, outcome, pending, td):
+    """:func:`_update` on plain tuples.
+
+    ``learner`` as :func:`learner_of` takes it, ``next_seen`` a :class:`Decision`, ``outcome``
+    an :class:`Outcome`, ``pending`` and ``td`` the :class:`Pending` and :class:`TD` arrays.
+    """
+    _update(
+        learner_of(learner),
+        chosen,
+        Decision(*next_seen),
+        Outcome(*outcome),
+        Pending(*pending),
+        TD(*td),
+    )
+
+
 # ---------------------------------------------------------------------------------- one tick
 @njit(cache=True)
-def tick_groups(
-    table, rows, entries, q, sizes, order, weight_by_type, slot_type, slot_high, idle, battery,
-    t, last_high, margin, threshold, codes, slot_places, robots, size, robot_places,
-    recency_place, types, thresholds, offset, mask, learn, rewards, reward_columns, done,
-    pending_entry, pending_return, pending_discount, pending_count, pending_open, pending_value,
-    epsilon, uniforms, decisions_only, prior, prune, min_visits, lcb, prior_target, gamma, alpha,
-    alpha_power, alpha_min, states, level, hold, row_out, entry_out, actions, td_sum, td_count,
-):  # fmt: skip
+def tick_groups(learner, now, learn, outcome, pending, explore, tick, out):
     """One training tick in one call: encode the new state, eq. (3), act in it.
 
-    Exactly :func:`~mrta_rl.envs.state_codes.encode_groups` (``states``, ``level``,
-    and ``hold = level == 0``) plus ``offset`` ``[G, B]`` (``GroupEncoder.offset``: the digits
-    of the ``time_to_free`` features; 0 for the paper's), then, if ``learn``,
-    :func:`update_groups` with the entries ``entry_out`` chosen at the previous tick and this
-    tick's rewards, then, unless a copy is ``done`` (the episode has ended), :func:`act_groups`
-    (``row_out``, ``entry_out``, ``actions``): the calls of ``encode`` / ``update`` / ``act``
-    of the training loop, in the same order, with the same draws. Returns the number of
-    uniforms used, or -1 without acting.
+    ``now`` is ``(env_arrays, mask, tables, offset)``: the env's arrays and the encoder's
+    ``tables`` that :func:`~mrta_rl.envs.state_codes.encode_groups` reads (``env_arrays(env)``
+    and ``GroupEncoder.tables``), the action mask ``[B, m, K + 1]`` and ``offset`` ``[G, B]``
+    (``GroupEncoder.offset``: the digits of the ``time_to_free`` features; 0 for the paper's).
+    ``tick`` is ``(states, level, hold, rows, entries)`` ``[G, B]``: this tick's state codes
+    (written) and the rows and entries chosen (in: the previous tick's, out: this tick's);
+    ``out`` is ``(actions, td_sum, td_count)``.
+
+    Exactly ``encode_groups`` (``states``, ``level``, and ``hold = level == 0``) plus ``offset``,
+    then, if ``learn``, :func:`update_groups` with the entries chosen at the previous tick and
+    this tick's :class:`Outcome`, then, unless a copy is done (the episode has ended),
+    :func:`act_groups`: the calls of ``encode`` / ``update`` / ``act`` of the training loop, in
+    the same order, with the same draws. Returns the number of uniforms used, or -1 without
+    acting.
     """
-    encode_groups(
-        slot_type, slot_high, idle, battery, t, last_high, margin, threshold, codes, slot_places,
-        robots, size, robot_places, recency_place, types, thresholds, states, level,
-    )  # fmt: skip
+    learner, outcome = learner_of(learner), Outcome(*outcome)
+    env_arrays, mask, tables, offset = now
+    states, level, hold, row_out, entry_out = tick
+    actions, td_sum, td_count = out
+    encode_groups(*env_arrays, *tables, states, level)
     for g in range(states.shape[0]):
         for b in range(states.shape[1]):
             states[g, b] += offset[g, b]
             hold[g, b] = level[g, b] == 0
+    slot_type, slot_high = env_arrays[0], env_arrays[1]
+    seen = Decision(states, hold, mask, slot_type, slot_high)
     if learn:
-        update_groups(
-            table, rows, entries, q, sizes, robots, size, order, weight_by_type, entry_out,
-            states, hold, mask, slot_type, slot_high, rewards, reward_columns, done,
-            pending_entry, pending_return, pending_discount, pending_count, pending_open,
-            pending_value, decisions_only, prior, prune, min_visits, lcb, prior_target, gamma,
-            alpha, alpha_power, alpha_min, td_sum, td_count,
-        )  # fmt: skip
-    if done.any():
+        _update(learner, entry_out, seen, outcome, Pending(*pending), TD(td_sum, td_count))
+    if outcome.done.any():
         return -1
-    return act_groups(
-        table, rows, entries, q, sizes, robots, size, order, weight_by_type, states, hold, mask,
-        slot_type, slot_high, decisions_only, prior, prune, min_visits, lcb, epsilon, uniforms,
-        row_out, entry_out, actions,
-    )  # fmt: skip
+    return _act(learner, seen, Exploration(*explore), Chosen(row_out, entry_out), actions)

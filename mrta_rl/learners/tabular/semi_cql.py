@@ -130,7 +130,8 @@ class SemiCQLLearner(RobotQLearner):
     def _rows(self, states: np.ndarray) -> np.ndarray:
         self._reserve(len(states))
         rows = np.empty(len(states), np.int64)
-        kernels.rows_of_states(self._index.hash, self._index.rows, self._index.sizes, states, rows)
+        index = self._index
+        kernels.rows_of_states((index.hash, index.rows, index.sizes), states, rows)
         return rows
 
     def _reserve(self, extra: int) -> None:
@@ -162,20 +163,26 @@ class SemiCQLLearner(RobotQLearner):
         return super().train_tick(env, result)
 
     def _tick_kernel(
-        self, env: AuctionEnv, prior: np.ndarray | None, middle: tuple, tail: tuple
+        self, env: AuctionEnv, prior: np.ndarray | None, shared: tuple, out: tuple
     ) -> int:
         index, batch = self._index, env.batch_size
         if not self._system_scratch or self._system_scratch[0].shape[1] != batch:
             # the whole-system state and level (one group, [1, B]) and their rows [B], not the
-            # local states [B, m] of tail[0]; written by the kernel, kept by nobody
+            # local states [B, m] of out[0]; written by the kernel, kept by nobody
             self._system_scratch = (
-                np.empty((1, batch), np.int64), np.empty((1, batch), np.int64),
+                np.empty((1, batch), np.int64),
+                np.empty((1, batch), np.int64),
                 np.empty(batch, np.int64),
-            )  # fmt: skip
-        return kernels.tick_system(
-            *env_arrays(env), *self.encoder.tables, self.encoder.offset(env), index.hash,
-            index.rows, index.sizes, self._row_size, *middle, *self._system_scratch, *tail[1:],
-        )  # fmt: skip
+            )
+        learner, last, now, learn, outcome, explore = shared
+        encoding = (
+            (*env_arrays(env), *self.encoder.tables),
+            self.encoder.offset(env),
+            (index.hash, index.rows, index.sizes),
+            self._row_size,
+        )
+        out = (*self._system_scratch, *out[1:])
+        return kernels.tick_system(learner, encoding, last, now, learn, outcome, explore, out)
 
     def learning_space(self) -> dict[str, int]:
         """Analytic dimension (eq. 11 over the shared ``state``) and the entries updated."""

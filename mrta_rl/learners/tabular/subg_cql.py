@@ -11,6 +11,7 @@ in the compiled loops of :mod:`~mrta_rl.learners.tabular.group_kernels`.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Annotated, Any, ClassVar
 
@@ -155,9 +156,36 @@ class GroupQLearner(TabularLearner, abstract=True):
             entries = sum(int(counts[:, g].prod(axis=1).sum()) for g in self.groups)
         self.storage.reserve(new_rows, entries)
 
-    def _kernel_tables(self) -> tuple:
-        s = self.storage
-        return s.hash, s.rows, s.entries, s.q, s.sizes
+    @functools.cached_property
+    def _kernel_settings(self) -> tuple:
+        """The hyperparameters as a ``group_kernels.Settings`` tuple (all set by ``__init__``)."""
+        settings = kernels.Settings(
+            decisions_only=self.decisions_only,
+            prior=self._prior_code,
+            prune=self.prune_conflicts,
+            min_visits=self.min_visits,
+            lcb=self.lcb,
+            prior_target=self.prior_target,
+            gamma=self.gamma,
+            alpha=self.alpha,
+            alpha_power=self.alpha_power,
+            alpha_min=self.alpha_min,
+        )
+        return tuple(settings)
+
+    def _kernel_learner(self) -> tuple:
+        """The ``group_kernels.Learner`` parts, as the plain tuples the kernels take."""
+        s = self.storage  # its arrays are replaced as it grows: read at each call
+        return (
+            (s.hash, s.rows, s.entries, s.q, s.sizes),  # group_kernels.QTable
+            (self.robots, self.size, self.order, self._weight_by_type),  # group_kernels.Groups
+            self._kernel_settings,
+        )
+
+    @staticmethod
+    def _decision(view: GroupObservation, mask: np.ndarray) -> tuple:
+        """``view`` with ``mask`` as a ``group_kernels.Decision`` tuple."""
+        return view.states, view.level == 0, mask, view.slot_type, view.slot_high
 
     def encode(self, env: AuctionEnv) -> GroupObservation:
         """Group state and recency level of every group, and copies of the mask and the slots."""
@@ -186,11 +214,12 @@ class GroupQLearner(TabularLearner, abstract=True):
         block = self.uniforms.block(2 * view.states.size) if epsilon > 0.0 else NO_UNIFORMS
         mask = np.ascontiguousarray(mask, bool)
         used = kernels.act_groups(
-            *self._kernel_tables(), self.robots, self.size, self.order, self._weight_by_type,
-            view.states, view.level == 0, mask, view.slot_type, view.slot_high,
-            self.decisions_only, self._prior_code, self.prune_conflicts, self.min_visits,
-            self.lcb, epsilon, block, view.rows, view.entries, actions,
-        )  # fmt: skip
+            self._kernel_learner(),
+            self._decision(view, mask),
+            (epsilon, block),
+            (view.rows, view.entries),
+            actions,
+        )
         if epsilon > 0.0:
             self.uniforms.used(used)
         view.actions = actions.copy()
@@ -224,9 +253,12 @@ class GroupQLearner(TabularLearner, abstract=True):
             # states, level, hold, rows, entries (in: the last decision's, out: this tick's)
             shape = (n_groups, batch)
             self._tick = (
-                *(np.empty(shape, np.int64) for _ in range(2)), np.empty(shape, bool),
-                np.empty(shape, np.int64), np.full(shape, -1, np.int64),
-            )  # fmt: skip
+                np.empty(shape, np.int64),
+                np.empty(shape, np.int64),
+                np.empty(shape, bool),
+                np.empty(shape, np.int64),
+                np.full(shape, -1, np.int64),
+            )
         mask = env.action_mask
         self._reserve(mask)
         if result is not None:
@@ -239,13 +271,15 @@ class GroupQLearner(TabularLearner, abstract=True):
         actions = np.zeros((batch, self.n_robots), np.int64)
         block = self.uniforms.block(2 * n_groups * batch) if epsilon > 0.0 else NO_UNIFORMS
         used = kernels.tick_groups(
-            *self._kernel_tables(), self.order, self._weight_by_type, *env_arrays(env),
-            *self.encoder.tables, self.encoder.offset(env), mask, result is not None, rewards,
-            columns, done, *pending, epsilon, block, self.decisions_only, self._prior_code,
-            self.prune_conflicts, self.min_visits, self.lcb, self.prior_target, self.gamma,
-            self.alpha, self.alpha_power, self.alpha_min, *self._tick, actions, self._td_sum,
-            self._td_count,
-        )  # fmt: skip
+            self._kernel_learner(),
+            (env_arrays(env), mask, self.encoder.tables, self.encoder.offset(env)),
+            result is not None,
+            (rewards, columns, done),  # group_kernels.Outcome
+            pending,
+            (epsilon, block),
+            self._tick,
+            (actions, self._td_sum, self._td_count),
+        )
         if used < 0:  # the episode has ended
             self.uniforms.settle()
             return None
@@ -264,11 +298,11 @@ class GroupQLearner(TabularLearner, abstract=True):
         rows = np.empty_like(view.states)
         entries = np.empty_like(view.states)
         missing = kernels.entries_for_actions(
-            *self._kernel_tables(), self.robots, self.size, self.order, self._weight_by_type,
-            view.states, view.level == 0, view.mask, view.slot_type, view.slot_high,
-            self.decisions_only, self._prior_code, self.prune_conflicts,
-            np.asarray(actions, np.int64), rows, entries,
-        )  # fmt: skip
+            self._kernel_learner(),
+            self._decision(view, view.mask),
+            np.asarray(actions, np.int64),
+            (rows, entries),
+        )
         if missing >= 0:
             raise ValueError(
                 f"joint action not valid in its state in copy {missing} (masked, or "
@@ -302,13 +336,13 @@ class GroupQLearner(TabularLearner, abstract=True):
         self._reserve(next_view.mask)
         td_sum, td_count = np.zeros(n_groups), np.zeros(n_groups, np.int64)
         kernels.update_groups(
-            *self._kernel_tables(), self.robots, self.size, self.order, self._weight_by_type,
-            chosen, next_view.states, next_view.level == 0, np.ascontiguousarray(next_mask, bool),
-            next_view.slot_type, next_view.slot_high, *self._group_rewards(result),
-            np.asarray(result.done, bool), *self._pending, self.decisions_only, self._prior_code,
-            self.prune_conflicts, self.min_visits, self.lcb, self.prior_target, self.gamma,
-            self.alpha, self.alpha_power, self.alpha_min, td_sum, td_count,
-        )  # fmt: skip
+            self._kernel_learner(),
+            chosen,
+            self._decision(next_view, np.ascontiguousarray(next_mask, bool)),
+            (*self._group_rewards(result), np.asarray(result.done, bool)),
+            self._pending,
+            (td_sum, td_count),
+        )
         return {
             f"learner/{name}/td_error": float(td_sum[g] / td_count[g])
             for g, name in enumerate(self.group_names)
