@@ -1,4 +1,4 @@
-"""Where the wall time of a neural training run goes (issue 13): collection, training, evaluation.
+"""Where the wall time of a neural training run goes: collection, training, evaluation.
 
 :func:`profile_run` runs :func:`mrta_rl.runners.train.train` unchanged, with wall-clock timers
 wrapped around its parts (class attributes, restored afterwards). A timer costs about a

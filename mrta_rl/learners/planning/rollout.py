@@ -82,13 +82,11 @@ class RolloutPlanner(Learner):
         *,
         samples: Annotated[int, Range(1)] = 4,
         horizon: Annotated[int, Range(0)] = 20,
-        # every rule of CANDIDATES: against the five of before (greedy, spread, hold_group,
-        # reserve1, high_only) +12.0 +- 15.2 on System-I and +11.2 +- 17.9 on System-II, at
-        # 1.2-1.5x the decision time (docs/results.md, "Learning against the rules")
+        # every rule of CANDIDATES: more candidates find more, at a little more decision time
+        # (docs/results.md, "Learning against the rules")
         candidates: Annotated[tuple[str, ...], Choices(*CANDIDATES)] = tuple(CANDIDATES),
         # hold_group, not the best rule (hold): planning over a base that holds more finds more
-        # (System-II, 100 episodes: 5575.2 against 5542.5; docs/results.md, "Learning against
-        # the rules")
+        # (docs/results.md, "Learning against the rules")
         base: Annotated[str, Choices(*CANDIDATES)] = "hold_group",
         gamma: Annotated[float, Range(0, 1, low_open=True)] = 1.0,
         **kwargs,
@@ -203,12 +201,12 @@ class SubGRolloutPlanner(RolloutPlanner):
     The runner builds its env on the partition's ``Lambda_i`` (robots bid only for their kept
     types) and every candidate rule bids per sub-group (``grouping="subg"``); the default base
     ``hold_group`` is then the ``subg_reserve`` rule, subG-CQL's starting policy. Its margin over
-    ``subg_reserve`` measures what a partition-bound policy can still gain (issue 10, acceptance
-    4), with the planner's full view of the state.
+    ``subg_reserve`` measures what a partition-bound policy can still gain, with the planner's
+    full view of the state.
 
     Args:
         candidates: As :class:`RolloutPlanner`; the default keeps six of the nine (all nine
-            change it by -1.5 on System-I and +9.5 on System-II, docs/results.md).
+            do worse on System-I, docs/results.md).
         base: As :class:`RolloutPlanner`, default ``hold_group``.
         **kwargs: The other settings of :class:`RolloutPlanner`.
     """
