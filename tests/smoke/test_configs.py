@@ -168,7 +168,7 @@ def test_subg_cqls_copies_are_capped_by_team_size(compose_cfg):
         cfg = compose_cfg(["learner=subg_cql", f"system={system}"])
         assert (cfg.train.batch_size, cfg.train.robot_copies) == (512, 5120)
         assert build_run(cfg).env.batch_size == copies
-    # issue 11's 200 robots: 5120 // 200 = 25 copies
+    # a 200-robot team: 5120 // 200 = 25 copies
     big = [
         "learner=subg_cql",
         "system=random",

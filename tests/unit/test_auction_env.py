@@ -616,7 +616,7 @@ def test_set_state_rejects_a_snapshot_of_another_shape():
     np.testing.assert_array_equal(env.t, t_before)
 
 
-# ---------------------------------------------------------------- task-switch cost (issue 11)
+# ---------------------------------------------------------------- task-switch cost
 def win(env, robot, ttype, duration, id=0):
     """Robot ``robot`` (0-based) alone bids for a fresh task at the current tick of copy 0."""
     env.inject_tasks(0, [task(type=ttype, due=int(env.t[0]), id=id, duration=duration)])

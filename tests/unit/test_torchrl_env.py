@@ -268,7 +268,7 @@ def test_seeding_and_one_hot_and_invalid_actions():
         AuctionTorchRLEnv(env.auction, invalid_action="ignore")
 
 
-# ---------------------------------------------------------------- outside clients (issue 12)
+# ---------------------------------------------------------------- outside clients
 def paper_env(batch_size: int = 4, horizon: int = 8, seed: int = 0) -> AuctionTorchRLEnv:
     """System-II in the default configuration (one group, invalid_action="wait")."""
     core = AuctionEnv(load_system("system2"), AuctionParams(horizon=horizon), batch_size, seed=seed)
