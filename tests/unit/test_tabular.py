@@ -34,7 +34,16 @@ from mrta_rl.learners.tabular.subg_cql import SubGCQLLearner
 from mrta_rl.partition import subg_partition
 from mrta_rl.systems import build_system
 from tests.conftest import paper_system
-from tests.unit.tabular_tables import CASES, EXPLORE, FIXTURE, HORIZON, play, play_tables, train
+from tests.unit.tabular_tables import (
+    CASES,
+    EXPLORE,
+    FIXTURE,
+    HORIZON,
+    play,
+    play_tables,
+    saved_tables,
+    train,
+)
 
 LEARNERS = [SubGCQLLearner, CQLLearner, SemiCQLLearner, DQLLearner]
 # time_to_free digits need semi-CQL's paper-era whole-system state (its default is coarser)
@@ -412,7 +421,7 @@ def test_train_tick_is_encode_update_act(case):
     name, hyperparameters = FUSED_CASES[case]
     ticks = 4 * HORIZON  # whole episodes: the last train_tick of an episode does not act
     plain, fused = (train(name, hyperparameters, ticks, fused=f) for f in (False, True))
-    tables, fused_tables = plain._table_arrays(), fused._table_arrays()
+    tables, fused_tables = saved_tables(plain), saved_tables(fused)
     assert sorted(tables) == sorted(fused_tables)
     for key, value in tables.items():
         np.testing.assert_array_equal(fused_tables[key], value, err_msg=f"{case}/{key}")
@@ -420,7 +429,7 @@ def test_train_tick_is_encode_update_act(case):
     assert plain.rng.random() == fused.rng.random()
     if case in OPTION_CASES:  # the options change the tables (else this test could not fail)
         base_name, base_hyperparameters = FUSED_CASES[OPTION_CASES[case][0]]
-        base_tables = train(base_name, base_hyperparameters, ticks)._table_arrays()
+        base_tables = saved_tables(train(base_name, base_hyperparameters, ticks))
         assert any(
             v.shape != tables[k].shape or not np.array_equal(v, tables[k])
             for k, v in base_tables.items()
@@ -754,7 +763,7 @@ def test_save_load_round_trip(cls, trio, tiny_params, tmp_path):
     restored.load(tmp_path)
     assert restored.episodes_done == learner.episodes_done
     assert restored.learning_space() == learner.learning_space()
-    saved, again = learner._table_arrays(), restored._table_arrays()
+    saved, again = saved_tables(learner), saved_tables(restored)
     assert saved.keys() == again.keys()
     for key in saved:
         np.testing.assert_array_equal(saved[key], again[key])
