@@ -155,9 +155,9 @@ def test_a_table_growing_past_the_limit_is_refused_and_left_unchanged():
 
 
 def test_tables_that_outgrow_the_memory_limit_stop_the_run_with_the_reason(compose_cfg, tmp_path):
-    """The scaling sweep's subG-CQL at 50 robots (max_group_size=6) passed the up-front check and
-    died in its first episode asking numpy for 30 GiB; a run whose tables outgrow
-    limits.memory_gb now stops with a user error and leaves the reason as data."""
+    """subG-CQL at 50 robots (max_group_size=6) passes the up-front check, but its tables grow
+    past limits.memory_gb in training: the run stops with a user error and leaves the reason as
+    data, instead of asking numpy for more memory than the machine has."""
     from mrta_rl.runners import train
 
     cfg = compose_cfg(
