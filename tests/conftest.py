@@ -48,7 +48,7 @@ def tiny_params() -> AuctionParams:
     return AuctionParams(horizon=20)
 
 
-def _compose(overrides: list[str], config_name: str = "config") -> DictConfig:
+def compose_config(overrides: list[str], config_name: str = "config") -> DictConfig:
     """Compose ``conf/<config_name>.yaml`` with overrides, as ``@hydra.main`` would.
 
     Without a ``learner=`` override the train config uses ``learner=greedy``, so tests do not
@@ -83,6 +83,6 @@ def compiled_env() -> None:
 @pytest.fixture
 def compose_cfg() -> Iterator[Callable[..., DictConfig]]:
     """``compose_cfg(["system=system1", ...], config_name="config")`` -> composed config."""
-    yield _compose
+    yield compose_config
     GlobalHydra.instance().clear()
     HydraConfig.instance().cfg = None  # forget this run's choices

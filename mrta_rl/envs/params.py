@@ -34,8 +34,8 @@ class AuctionParams:
     # default duration ranges [lo, hi] of L and H tasks, ends included (lo <= hi)
     duration_low: Annotated[tuple[int, int], Range(1)] = (3, 6)
     duration_high: Annotated[tuple[int, int], Range(1)] = (6, 12)
-    # extra busy ticks before a task of another type than the robot's previous one (issue 11;
-    # docs/spec/auction_env.md); 0 = no switch cost
+    # extra busy ticks before a task of another type than the robot's previous one
+    # (docs/spec/auction_env.md); 0 = no switch cost
     switch_ticks: Annotated[int, Range(0)] = 0
 
     def __post_init__(self) -> None:

@@ -1,4 +1,4 @@
-"""Wall time and peak memory of one run (issue 11: the scaling study reports both per run).
+"""Wall time and peak memory of one run (the scaling study reports both per run).
 
 Peak memory is the peak resident set size (RSS) of the process, in MiB. A sweep's worker process
 runs several jobs (joblib reuses its workers), so the process-lifetime peak

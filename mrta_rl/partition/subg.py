@@ -30,7 +30,7 @@ task type that lost all its robots goes back to the sub-group whose capable robo
 it most) and the deletion of empty sub-groups, which are then renumbered ``G1, G2, ...`` in
 order of creation.
 
-**Size bound (issue 11, not in the paper).** With ``max_group_size=g`` a sub-group of more than
+**Size bound (not in the paper).** With ``max_group_size=g`` a sub-group of more than
 ``g`` robots is split after step 4 (:func:`_split_group`): every robot stays with its *anchor*,
 the kept task type it depends on most (largest ``w_ij``, ties to the lowest type), so the pairs
 that are cut are each robot's weaker ones. The robots anchored to one type form a class (strongest

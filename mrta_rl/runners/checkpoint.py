@@ -54,8 +54,8 @@ def latest_checkpoint(run_dir: Path | str) -> Path | None:
     """
     root = Path(run_dir) / CHECKPOINT_DIR
     pointer = root / POINTER_FILE
-    if not pointer.is_file():  # a checkpoint written before versions existed has no pointer
-        return root if (root / STATE_FILE).is_file() else None
+    if not pointer.is_file():  # no save has completed: a version folder alone is not named yet
+        return None
     name = pointer.read_text().strip()
     if not name.isdigit():
         raise RunDirError(f"{pointer}: not a checkpoint version (got {name[:40]!r})")

@@ -24,7 +24,7 @@ logger = logging.getLogger(__name__)
 
 REDRAW_TERMINAL_S = 0.1  # tqdm's default on a terminal
 REDRAW_LOG_S = 15.0  # in a log file or a pipe every redraw is a new line: a few per minute
-LOG_EVERY_S = 30.0  # train.log_every_s of a run configured before that setting existed
+LOG_EVERY_S = 30.0  # seconds between log lines when the caller gives no train.log_every_s
 
 
 class ProgressLog:
@@ -120,7 +120,7 @@ def progress_bar(
         desc: Label in front of the bar.
         enabled: ``cfg.train.progress_bar``.
         log_every_s: ``cfg.train.log_every_s``: seconds between log lines when the bar is off
-            (None: :data:`LOG_EVERY_S`, for runs configured before the setting existed).
+            (None: :data:`LOG_EVERY_S`).
         episode_units: Units (ticks or frames) per training episode, for the lines' episode.
         **kwargs: More tqdm options (e.g. ``unit_scale``; ``initial`` for both).
 

@@ -29,7 +29,6 @@ from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
 from mrta_rl.envs.torchrl_env import AuctionTorchRLEnv
-from mrta_rl.metrics.logger import CSVLogger
 from mrta_rl.runners.progress import progress_bar
 from mrta_rl.runners.replay import (
     REPLAY_FILE,
@@ -48,19 +47,6 @@ logger = logging.getLogger(__name__)
 # Small networks and a numpy env: one intra-op thread is fastest, and on a shared machine more
 # threads spin against each other (measured: 3.4 ms vs 1.2 ms per env step of 16 copies).
 TORCH_THREADS = 1
-
-
-class TensorboardCurveLogger(CSVLogger):
-    """``logger=tensorboard`` as runs configured before ``conf/logger`` named a backend say it.
-
-    Their ``.hydra/config.yaml`` names this class: it is :class:`CSVLogger` on TensorBoard.
-    """
-
-    def __init__(
-        self, *, run_dir: Path, filename: str = "curve.csv", log_dir: str = "tensorboard"
-    ) -> None:
-        """Open curve.csv and the run's TensorBoard logger (see :class:`CSVLogger`)."""
-        super().__init__(run_dir=run_dir, filename=filename, backend="tensorboard", log_dir=log_dir)
 
 
 def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:

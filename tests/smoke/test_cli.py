@@ -1,4 +1,4 @@
-"""The scripts on bad input (issue 9, defect 6): one message, an exit code, no run dir left.
+"""The scripts on bad input: one message, an exit code, no run dir left.
 
 Each case runs the real script in a subprocess, as a user would. A user error prints one
 ``error: ...`` line naming the culprit on stderr and exits 2; Ctrl-C exits 130 with
@@ -175,7 +175,7 @@ def test_bugs_and_full_error_keep_the_traceback(tmp_path):
     value=st.sampled_from(["-1", "0", "2", "0.5", "abc", "null", "[1,2]", "true", "{a: 1}"]),
 )
 def test_fuzz_overrides_through_the_script(key, value, tmp_path_factory):
-    """Acceptance 2, the subprocess part: accepted and run, or one message naming the key."""
+    """The config fuzz through the real script: accepted and run, or one message naming the key."""
     run_dir = tmp_path_factory.mktemp("fuzz") / "run"
     code, out, err = train(run_dir, "learner=subg_reserve", f"{key}={value}")
     if code == 0:

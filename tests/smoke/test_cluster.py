@@ -1,5 +1,5 @@
-"""Sweeps beyond one machine (issue 12): submitit and Ray launchers run a small sweep (debug=smoke,
-2 runs) that scripts/report.py reads; the Slurm launcher config composes for a typical cluster."""
+"""Sweeps beyond one machine: submitit and Ray launchers run a small sweep (debug=smoke, 2 runs)
+that scripts/report.py reads; the Slurm launcher config composes for a typical cluster."""
 
 from __future__ import annotations
 

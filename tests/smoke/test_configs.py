@@ -6,11 +6,17 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
+from hydra.core.hydra_config import HydraConfig
 from hydra.errors import MissingConfigException
 from hydra.utils import instantiate
-from omegaconf import OmegaConf
+from omegaconf import DictConfig, OmegaConf
 
-from mrta_rl.runners import build_run
+from mrta_rl.config import ConfigError
+from mrta_rl.partition import subg_partition
+from mrta_rl.runners import build_run, validate_config
+from mrta_rl.runners.validation import check_evaluate_config
+from mrta_rl.systems import build_system
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
 GROUP_FILES = sorted(
@@ -42,13 +48,51 @@ def test_group_file_builds(group, name, compose_cfg, tmp_path):
     assert np.take_along_axis(run.env.action_mask, actions[..., None], axis=2).all()
 
 
-@pytest.mark.parametrize("name", PRIMARY)
-def test_primary_config_composes(name, compose_cfg):
-    if name == "config" and not (CONF / "learner" / "subg_cql.yaml").exists():
-        pytest.skip("the default learner subg_cql is not there yet")
-    overrides = {"config": ["learner=subg_cql"], "evaluate": ["checkpoint=somewhere"]}.get(name, [])
-    cfg = compose_cfg(overrides, config_name=name)
-    assert cfg is not None
+def default_choice(group: str, config_name: str) -> str:
+    """The option of ``group`` that ``conf/<config_name>.yaml`` lists in its defaults."""
+    entries = OmegaConf.load(CONF / f"{config_name}.yaml").defaults
+    return next(
+        entry[group] for entry in entries if isinstance(entry, DictConfig) and group in entry
+    )
+
+
+def test_every_primary_config_is_tested_below():
+    # a config file added next to config.yaml gets a test of what its command reads
+    assert PRIMARY == ["config", "evaluate", "partition"]
+
+
+def test_the_train_config_is_a_valid_run_of_its_default_learner_and_system(compose_cfg):
+    learner, system = default_choice("learner", "config"), default_choice("system", "config")
+    checked = validate_config(compose_cfg([f"learner={learner}"]))
+    target = OmegaConf.load(CONF / "learner" / f"{learner}.yaml")._target_
+    assert f"{checked.learner_cls.__module__}.{checked.learner_cls.__name__}" == target
+    expected = build_system(yaml.safe_load((CONF / "system" / f"{system}.yaml").read_text()))
+    assert (checked.system.name, checked.system.robots) == (expected.name, expected.robots)
+    np.testing.assert_array_equal(checked.system.willingness, expected.willingness)
+    # the run writes its own dir and config snapshot
+    assert HydraConfig.get().output_subdir == ".hydra"
+    assert HydraConfig.get().run.dir.startswith("outputs/")
+
+
+def test_the_evaluate_config_reads_a_checkpoint_and_writes_no_run_dir(compose_cfg):
+    cfg = compose_cfg(["checkpoint=somewhere"], config_name="evaluate")
+    args = {"checkpoint": "somewhere", "episodes": None, "batch_size": None}
+    assert check_evaluate_config(cfg) == args
+    assert (HydraConfig.get().run.dir, HydraConfig.get().output_subdir) == (".", None)
+    with pytest.raises(ConfigError, match="checkpoint: missing"):
+        check_evaluate_config(compose_cfg([], config_name="evaluate"))
+
+
+def test_the_partition_config_partitions_its_default_system(compose_cfg):
+    cfg = compose_cfg([], config_name="partition")
+    system = default_choice("system", "partition")
+    assert cfg.system == OmegaConf.load(CONF / "system" / f"{system}.yaml")
+    team = build_system(OmegaConf.to_container(cfg.system))
+    partition = subg_partition(team, **cfg.partition)
+    # every robot of the team in exactly one sub-group
+    assert sorted(r for robots in partition.groups.values() for r in robots) == sorted(team.robots)
+    assert cfg.format == "table"
+    assert (HydraConfig.get().run.dir, HydraConfig.get().output_subdir) == (".", None)
 
 
 def test_unknown_learner_is_named(compose_cfg):
@@ -138,7 +182,7 @@ def test_subg_cqls_copies_are_capped_by_team_size(compose_cfg):
         cfg = compose_cfg(["learner=subg_cql", f"system={system}"])
         assert (cfg.train.batch_size, cfg.train.robot_copies) == (512, 5120)
         assert build_run(cfg).env.batch_size == copies
-    # issue 11's 200 robots: 5120 // 200 = 25 copies
+    # a 200-robot team: 5120 // 200 = 25 copies
     big = [
         "learner=subg_cql",
         "system=random",

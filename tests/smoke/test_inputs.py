@@ -13,12 +13,13 @@ import shutil
 from pathlib import Path
 
 import pytest
+from hydra.core.hydra_config import HydraConfig
 
 from mrta_rl.config import UserError
 from mrta_rl.reports import build_report
 from mrta_rl.runners import train as run_train
 from mrta_rl.runners.validation import check_evaluate_config
-from tests.conftest import _compose
+from tests.conftest import compose_config
 from tests.smoke.test_cli import assert_user_error, script, train, write_system
 from tests.smoke.test_run_dirs import save_hydra_files
 
@@ -111,9 +112,10 @@ def test_undeclared_key_is_refused_naming_it(tmp_path):
 @pytest.fixture(scope="module")
 def finished_run(tmp_path_factory) -> Path:
     run_dir = tmp_path_factory.mktemp("finished") / "run"
-    cfg = _compose(["learner=greedy", "system=system1", "debug=smoke", "eval.episodes=1"])
+    cfg = compose_config(["learner=greedy", "system=system1", "debug=smoke", "eval.episodes=1"])
     save_hydra_files(cfg, run_dir, "greedy", "system1")
     run_train(cfg, run_dir=run_dir)
+    HydraConfig.instance().cfg = None  # the next test composes its own config
     return run_dir
 
 

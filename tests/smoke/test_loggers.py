@@ -11,7 +11,6 @@ from pathlib import Path
 
 import pytest
 from hydra.utils import instantiate
-from omegaconf import open_dict
 
 from mrta_rl.runners import train
 
@@ -114,21 +113,6 @@ def test_csv_and_tensorboard(logger, compose_cfg, tmp_path):
         assert [(int(s), float(v)) for s, v in csv.reader(f)] == curve(tmp_path)
     step, value = (scalars / "eval" / "team_return" / "mean.csv").read_text().split(",")
     assert float(value) == metrics["eval"]["team_return"]["mean"]
-
-
-def test_tensorboard_as_older_runs_name_it(compose_cfg, tmp_path):
-    """Run dirs configured before the backend setting name the TensorBoard logger class."""
-    cfg = compose_cfg(["learner=dql", "debug=smoke"])
-    with open_dict(cfg):
-        cfg.logger = {
-            "_target_": "mrta_rl.runners.torchrl.TensorboardCurveLogger",
-            "_partial_": True,
-            "filename": "curve.csv",
-            "log_dir": "tensorboard",
-        }
-    train(cfg, run_dir=tmp_path)
-    assert len(curve(tmp_path)) == cfg.train.episodes
-    assert list((tmp_path / "tensorboard").rglob("events.out.tfevents.*"))
 
 
 def test_a_run_left_open_does_not_block_the_next(compose_cfg, tmp_path):

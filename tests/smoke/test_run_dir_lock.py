@@ -84,7 +84,7 @@ def test_the_run_dir_is_read_from_the_command_line(args, expected):
     assert run_dir_of(args) == expected
 
 
-# ---------------------------------------------------------------------------------- defect 2
+# ---------------------------------------------------------------------------------- refused runs
 def test_a_refused_run_leaves_a_finished_run_byte_identical(compose_cfg, tmp_path):
     """hydra.run.dir=<finished run>: refused before Hydra replaces its .hydra/ snapshot."""
     run_dir = tmp_path / "run"
@@ -103,7 +103,7 @@ def test_a_refused_run_leaves_a_finished_run_byte_identical(compose_cfg, tmp_pat
     assert digest(run_dir) == before
 
 
-# ---------------------------------------------------------------------------------- defect 7
+# ---------------------------------------------------------------------------------- refused resumes
 def test_a_refused_resume_leaves_nothing(tmp_path):
     """resume= of a new, an empty dir or /: refused, no dir made, no train.log anywhere."""
     new, empty, cwd = tmp_path / "new" / "run", tmp_path / "empty", tmp_path / "cwd"
@@ -123,7 +123,7 @@ def test_a_refused_resume_leaves_nothing(tmp_path):
     assert root_log.exists() == root_log_before
 
 
-# ---------------------------------------------------------------------------------- defect 4
+# ---------------------------------------------------------------------------------- live runs
 def test_a_live_runs_dir_is_refused_to_a_second_process(tmp_path):
     """resume= and a fresh run on a live run's dir: refused at once, naming its pid; the lock
     dies with the run (SIGKILL)."""
@@ -164,7 +164,7 @@ def test_a_live_runs_dir_is_refused_to_a_second_process(tmp_path):
     )
 
 
-# ---------------------------------------------------------------------------------- defect 3
+# ---------------------------------------------------------------------------------- atomic saves
 class Crash(BaseException):
     """Stands for SIGKILL at one filesystem step of a save: nothing after it runs."""
 

@@ -30,7 +30,7 @@ from mrta_rl.reports import build_report
 from mrta_rl.run_files import read_training_state
 from mrta_rl.runners import evaluate_checkpoint, train
 from mrta_rl.runners.checkpoint import TrainingCheckpoint
-from tests.conftest import _compose
+from tests.conftest import compose_config
 from tests.smoke.test_run_dirs import save_hydra_files, without_timings
 
 OVERRIDES = [
@@ -54,10 +54,10 @@ def pristine(tmp_path_factory) -> dict[str, Path | dict]:
     """A finished run, and the same run stopped after the checkpoint of episode ``STOP_AT``."""
     root = tmp_path_factory.mktemp("pristine")
     full_dir, cut_dir = root / "full", root / "cut"
-    cfg = _compose(OVERRIDES)
+    cfg = compose_config(OVERRIDES)
     save_hydra_files(cfg, full_dir, "subg_cql", "system1")
     full = train(cfg, run_dir=full_dir)
-    cfg = _compose(OVERRIDES)
+    cfg = compose_config(OVERRIDES)
     save_hydra_files(cfg, cut_dir, "subg_cql", "system1")
     save = TrainingCheckpoint.save
 
@@ -89,7 +89,7 @@ def state_file(run_dir: Path) -> Path:
 
 
 def resume(run_dir: Path) -> dict:
-    cfg = _compose([f"resume={run_dir}"])
+    cfg = compose_config([f"resume={run_dir}"])
     HydraConfig.instance().cfg = None  # as from the command line: no overrides but resume=
     try:
         return train(cfg)

@@ -91,7 +91,7 @@ def check_metrics(metrics: dict, run_dir: Path, system: str, learner: str) -> No
         assert list(block["ctr"]) == [f"T{j + 1}" for j in range(n)]
         assert all(set(v) == {"L", "H"} for v in block["ctr"].values())
         assert list(block["itr"]) == [f"R{i + 1}" for i in range(m)]
-    # neural runs add fps_collection, fps_training, fps_overall and gradient_steps (issue 4)
+    # neural runs add fps_collection, fps_training, fps_overall and gradient_steps
     assert set(metrics["train"]) >= {"env_ticks", "wall_s", "episodes"}
 
 

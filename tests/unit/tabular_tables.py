@@ -1,23 +1,25 @@
 """Tables of the four tabular learners after a few hundred training ticks, for regression tests.
 
 ``python tests/unit/tabular_tables.py OUT.npz`` plays every learner of :data:`CASES` on
-System-II and saves its tables (``learner._table_arrays()``, keys ``<case>/<array>``). The
-fixture ``data/tabular_tables_v1.npz`` was written by this file run against the vectorised
-learners of commit 5dee1b9 (numpy and Python dicts, before the compiled loops), with
-``PYTHONPATH`` pointing at that checkout; ``test_tabular.py`` checks that today's learners build
-exactly the same tables from the same seeds.
+System-II and saves its tables (what ``learner.save`` writes, keys ``<case>/<array>``). The
+fixture ``data/tabular_tables_v1.npz`` holds these tables for these seeds, computed by an
+implementation of the learners in plain numpy and Python dicts (no compiled loops; git history
+keeps it); ``test_tabular.py`` checks that the learners build exactly the same tables, so a
+change of an update rule, a tie-break or a random draw fails there.
 """
 
 from __future__ import annotations
 
 import importlib
 import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
 import yaml
 
 from mrta_rl.envs import AuctionEnv, AuctionParams
+from mrta_rl.learners.tabular.base import Q_FILE, TabularLearner, read_npz
 from mrta_rl.partition import subg_partition
 from mrta_rl.systems import build_system
 
@@ -31,12 +33,14 @@ CLASSES = {
 }
 EXPLORE = {"epsilon_start": 0.5, "epsilon_end": 0.3, "alpha": 1.0, "alpha_power": 1.0}
 # the fixture's semi-CQL learns over the paper's whole-system state and its subG-CQL over the
-# paper's group state, their defaults then (the vectorised learners had no `state` and no
-# `features`: regenerating the fixture from them needs this left out)
-PAPER_ERA = {"semi_cql": {"state": "system"}, "subg_cql": {"state": "group", "features": "paper"}}
+# paper's group state and features (the learners' defaults are coarser states)
+PAPER_STATES = {
+    "semi_cql": {"state": "system"},
+    "subg_cql": {"state": "group", "features": "paper"},
+}
 # (learner, hyperparameters): the defaults, and much exploration with 1/n learning rates
 CASES = {
-    f"{name}/{hp}": (name, {**PAPER_ERA.get(name, {}), **kw})
+    f"{name}/{hp}": (name, {**PAPER_STATES.get(name, {}), **kw})
     for name in CLASSES
     for hp, kw in (("default", {}), ("explore", EXPLORE))
 }
@@ -61,24 +65,27 @@ def play(env, learner, ticks: int, explore: bool = True, learn: bool = True) -> 
             view = learner.encode(env)
 
 
-def play_fused(env, learner, ticks: int) -> None:
+def play_fused(env, learner, ticks: int, after_tick=None) -> None:
     """:func:`play` through ``train_tick`` (one compiled call per tick), ``ticks`` ticks.
 
     ``train_tick`` acts as soon as it has learned, so the tables match :func:`play`'s when the
-    ticks end an episode (the last call does not act).
+    ticks end an episode (the last call does not act). ``after_tick(learner)``, if given, is
+    called after every tick.
     """
     actions = None
     for _ in range(ticks):
         if actions is None:  # an episode starts
             actions = learner.train_tick(env, None)
         actions = learner.train_tick(env, env.step(actions))  # env.step checks every action
+        if after_tick is not None:
+            after_tick(learner)
         if actions is None:
             env.reset()
             learner.end_episode()
 
 
-def train(name: str, hyperparameters: dict, ticks: int = TICKS, fused: bool = False):
-    """One learner trained for ``ticks`` ticks of System-II (:func:`play` or :func:`play_fused`)."""
+def build(name: str, hyperparameters: dict) -> tuple[AuctionEnv, TabularLearner]:
+    """One learner of :data:`CLASSES` on System-II, untrained, and its env."""
     module, cls_name = CLASSES[name].split(":")
     cls = getattr(importlib.import_module(module), cls_name)
     system = build_system(yaml.safe_load((ROOT / "conf" / "system" / "system2.yaml").read_text()))
@@ -87,14 +94,26 @@ def train(name: str, hyperparameters: dict, ticks: int = TICKS, fused: bool = Fa
     params = AuctionParams(horizon=HORIZON)
     env = AuctionEnv(system, params, batch_size=BATCH, seed=SEED, active_tasks=active)
     rng = np.random.default_rng(SEED)
-    learner = cls(env=env, rng=rng, partition=partition, **hyperparameters)
+    return env, cls(env=env, rng=rng, partition=partition, **hyperparameters)
+
+
+def train(name: str, hyperparameters: dict, ticks: int = TICKS, fused: bool = False):
+    """One learner trained for ``ticks`` ticks of System-II (:func:`play` or :func:`play_fused`)."""
+    env, learner = build(name, hyperparameters)
     (play_fused if fused else play)(env, learner, ticks)
     return learner
 
 
+def saved_tables(learner: TabularLearner) -> dict[str, np.ndarray]:
+    """The tables as ``learner.save`` writes them (``q_tables.npz``): ``{name: array}``."""
+    with tempfile.TemporaryDirectory() as folder:
+        learner.save(Path(folder))
+        return read_npz(Path(folder) / Q_FILE)
+
+
 def play_tables(name: str, hyperparameters: dict) -> dict[str, np.ndarray]:
     """The tables of one learner trained for :data:`TICKS` ticks of System-II."""
-    return train(name, hyperparameters)._table_arrays()
+    return saved_tables(train(name, hyperparameters))
 
 
 if __name__ == "__main__":

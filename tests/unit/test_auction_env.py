@@ -110,7 +110,8 @@ def test_arrivals_are_poisson_with_spec_priorities_types_and_durations():
     se = np.sqrt(rate / len(counts))
     assert abs(counts.mean() - rate) < 4 * se
     assert abs(counts.var() - rate) < 0.05 * rate  # Poisson: variance = mean
-    keys = env._queue[env._queue != np.iinfo(np.int64).max]
+    queue = env.get_state()["queue"]
+    keys = queue[queue != np.iinfo(np.int64).max]  # an empty place holds the largest key
     high = task_high(keys)
     assert abs(high.mean() - 0.33) < 4 * np.sqrt(0.33 * 0.67 / len(keys))
     type_counts = np.bincount(task_type(keys), minlength=5)
@@ -608,8 +609,8 @@ def test_one_copy_broadcast_into_many_then_reseeded_apart():
         assert (result.team_reward == expected.team_reward[1]).all()
     rollouts.reseed([1, 2, 3], [11, 12, 13])
     np.testing.assert_array_equal(
-        rollouts._state["episode_key"][1:],
-        AuctionEnv(system, params, 3, seed=11)._state["episode_key"],
+        rollouts.get_state()["episode_key"][1:],
+        AuctionEnv(system, params, 3, seed=11).get_state()["episode_key"],
     )
     slots = rollouts.slot_type.copy()
     returns = []
@@ -632,7 +633,7 @@ def test_set_state_rejects_a_snapshot_of_another_shape():
     np.testing.assert_array_equal(env.t, t_before)
 
 
-# ---------------------------------------------------------------- task-switch cost (issue 11)
+# ---------------------------------------------------------------- task-switch cost
 def win(env, robot, ttype, duration, id=0):
     """Robot ``robot`` (0-based) alone bids for a fresh task at the current tick of copy 0."""
     env.inject_tasks(0, [task(type=ttype, due=int(env.t[0]), id=id, duration=duration)])
@@ -665,8 +666,10 @@ def test_switch_cost_only_when_the_type_changes_and_not_for_the_first_task():
 @pytest.mark.parametrize("switch_ticks, busy_until, battery", [(0, 5, 21.0), (2, 7 + 10, 100.0)])
 def test_switch_setup_counts_before_the_battery_threshold(switch_ticks, busy_until, battery):
     env = quiet_env(SYSTEM1, switch_ticks=switch_ticks)
-    env._state["last_type"][0, 0] = 4  # R1's previous task was a T5
-    env.battery[0, 0] = 26.0
+    state = env.get_state()
+    state["last_type"][0, 0] = 4  # R1's previous task was a T5
+    state["battery"][0, 0] = 26.0
+    env.set_state(state)
     win(env, 0, ttype=0, duration=5)  # 26 - 5 = 21 stays; 26 - 7 = 19 < 20 charges
     assert env.busy_until[0, 0] == busy_until
     assert env.battery[0, 0] == pytest.approx(battery)

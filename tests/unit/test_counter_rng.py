@@ -8,8 +8,8 @@ from mrta_rl.envs import counter_rng as rng
 
 
 def test_episode_keys_distinct_over_copies_and_episodes():
-    # regression (issue: training copies of seed 0 repeated task streams): the old mix was
-    # symmetric, so copy b's episode e equalled copy e's episode b.
+    # a symmetric mix of (copy seed, episode) would give copy b's episode e the task stream of
+    # copy e's episode b: the training copies of one run would repeat each other's streams
     seeds = np.arange(200)
     keys = rng.seed_keys(seeds)
     grid = np.stack([rng.episode_keys(keys, np.full(len(seeds), e)) for e in range(200)])

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -271,6 +273,20 @@ def test_checkpoint_of_other_features_is_refused(system, tmp_path):
     learner.save(tmp_path)
     make(QMIXLearner, system, seed=3, features=TTF)[0].load(tmp_path)
     with pytest.raises(ValueError, match="trained with features=time_to_free"):
+        make(QMIXLearner, system)[0].load(tmp_path)
+
+
+@pytest.mark.parametrize("key", ["class", "group_map", "prior", "hyperparameters"])
+def test_weights_without_their_description_are_refused_naming_the_file(system, tmp_path, key):
+    learner, _ = make(QMIXLearner, system)
+    learner.save(tmp_path)
+    meta = tmp_path / "learner.json"
+    make(QMIXLearner, system, seed=3)[0].load(tmp_path)  # as saved: loads
+    meta.write_text(json.dumps({k: v for k, v in json.loads(meta.read_text()).items() if k != key}))
+    with pytest.raises(ValueError, match=f"learner.json: not a learner description.*{key}"):
+        make(QMIXLearner, system)[0].load(tmp_path)
+    meta.unlink()
+    with pytest.raises(ValueError, match="learner.json: not a learner description"):
         make(QMIXLearner, system)[0].load(tmp_path)
 
 

@@ -72,9 +72,10 @@ def test_busy_and_battery_levels(quiet_env):
     env = quiet_env
     env.inject_tasks(0, [task(0, 0, 0)])
     # longest duration of R1's types is 12 (H default [6, 12]); threshold 20: low iff battery < 32
-    env.battery[0] = [31.0, 32.0, 100.0]
-    env.busy_until[0, 2] = 5
-    env._select_slots()
+    state = env.get_state()
+    state["battery"][0] = [31.0, 32.0, 100.0]
+    state["busy_until"][0, 2] = 5
+    env.set_state(state)  # and its slots and masks
     assert ob.battery_level(env)[0].tolist() == [1, 0, 0]
     index = ob.local_state_index(env)
     decode = ob.LocalView(env).decode
@@ -214,8 +215,9 @@ def test_time_to_free_by_hand(quiet_env):
     # queue: T1 H, T2 L, T3 L, T1 L, T2 L (5 tasks); slots 1-3 = T1 H, T2 L, T3 L
     tasks = [task(1, 0, 1), task(0, 1, 0), task(2, 0, 2), task(0, 0, 3), task(1, 0, 4)]
     env.inject_tasks(0, tasks)
-    env.busy_until[0] = [-1, 2, 9]  # t = 0: R1 idle, R2 idle again at tick 3, R3 at tick 10
-    env._select_slots()
+    state = env.get_state()
+    state["busy_until"][0] = [-1, 2, 9]  # t = 0: R1 idle, R2 idle again at tick 3, R3 at tick 10
+    env.set_state(state)  # and its slots and masks
     assert ob.free_level(env)[0].tolist() == [0, 1, 2]  # FREE_SOON = 3: 3 ticks is soon
     counts = ob.queue_counts(env)[0]  # [n, 2], index 0 = L
     assert counts.tolist() == [[1, 1], [2, 0], [1, 0]]

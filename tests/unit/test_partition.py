@@ -236,7 +236,7 @@ def test_random_willingness_invariants(n_robots, n_task_types, density, seed):
     check_invariants(system, subg_partition(system))
 
 
-# --- size bound (issue 11): partition.max_group_size -----------------------------------------
+# --- size bound: partition.max_group_size ---------------------------------------------------
 
 
 @pytest.mark.parametrize("name", ["system1", "system2"])
@@ -303,7 +303,7 @@ def test_bound_repair_of_a_type_nobody_anchors():
 
 
 def check_bounded(system: RobotSystem, partition: Partition, bound: int) -> None:
-    """Acceptance 1 of issue 11: <= g robots per group, every type served, every robot once."""
+    """At most g robots per group, every type served, every robot in exactly one group."""
     seen = [r for robots in partition.groups.values() for r in robots]
     assert sorted(seen, key=system.robots.index) == list(system.robots)  # each robot exactly once
     assert all(1 <= len(robots) <= bound for robots in partition.groups.values())

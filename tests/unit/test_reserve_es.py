@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
 from mrta_rl.envs import AuctionEnv, AuctionParams
 from mrta_rl.learners import GreedyLearner, TeamReserveLearner
 from mrta_rl.learners.search.reserve_es import (
-    FEATURES,
     HIGH_FEATURES,
     N_FEATURES,
     N_LOW,
@@ -71,26 +72,26 @@ def test_members_play_the_same_task_streams():
 
 
 def test_es_step_by_hand():
-    """One antithetic pair pays 10 along feature 0 (the bias), the other nothing: with the
-    differences scaled by their spread and Adam's first step (``m_hat / sqrt(v_hat)`` = the sign
-    of the gradient), the bias moves by exactly ``lr`` and nothing else moves."""
+    """The first member pays 10, the others nothing: pair 0's difference is 10, pair 1's is 0;
+    scaled by their spread (5) the gradient is ``eps_0``, and Adam's first step
+    (``m_hat / sqrt(v_hat)`` = the sign of the gradient) moves every weight by ``lr`` in the
+    direction of ``eps_0``."""
     env, learner = make("system1", batch=4, pairs=2, lr=0.25)  # 4 members x 1 copy
-    start = learner.theta.copy()
-    learner._eps = np.zeros((2, N_FEATURES))
-    learner._eps[0, 0] = learner._eps[1, 1] = 1.0
-    learner._returns = np.array([10.0, 0.0, 0.0, 0.0])  # members: +eps_0, +eps_1, -eps_0, -eps_1
+    start, eps = learner.theta.copy(), learner.perturbations.copy()
+    returns = np.array([10.0, 0.0, 0.0, 0.0])  # members +eps_0, +eps_1, -eps_0, -eps_1
+    learner.update(None, None, SimpleNamespace(team_reward=returns), None, None)  # a tick's reward
     learner.end_episode()
-    expected = start.copy()
-    expected[FEATURES.index("bias")] += 0.25
-    np.testing.assert_allclose(learner.theta, expected)
+    np.testing.assert_allclose(learner.theta, start + 0.25 * np.sign(eps[0]), rtol=1e-6)
     assert learner.steps == 1
+    assert not np.array_equal(learner.perturbations, eps)  # the next episode's are new
 
 
 def test_member_weights_follow_the_perturbations():
     env, learner = make("system1", batch=8, pairs=2, sigma=0.5)
-    members = learner._copy_theta.reshape(4, 2, N_FEATURES)
-    np.testing.assert_allclose(members[0, 0], learner.theta + 0.5 * learner._eps[0])
-    np.testing.assert_allclose(members[3, 1], learner.theta - 0.5 * learner._eps[1])
+    members = learner.copy_theta.reshape(4, 2, N_FEATURES)  # member-major, 2 copies each
+    eps = learner.perturbations
+    np.testing.assert_allclose(members[0, 0], learner.theta + 0.5 * eps[0])
+    np.testing.assert_allclose(members[3, 1], learner.theta - 0.5 * eps[1])
     with pytest.raises(ValueError, match="training batch 8"):
         view = learner.encode(AuctionEnv(paper_system("system1"), batch_size=3))
         learner.act(view, np.ones((3, 6, 4), bool), explore=True)

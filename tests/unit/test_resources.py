@@ -1,4 +1,4 @@
-"""What a learner needs, estimated before any work (issue 9, defect 8)."""
+"""What a learner needs, estimated before any work."""
 
 from __future__ import annotations
 
@@ -44,7 +44,7 @@ BIG = ["system=random", "system.n_robots=300", "debug=smoke"]
     ],
 )
 def test_large_teams_are_refused_before_any_work(learner, message, compose_cfg):
-    """Issue 9 defect 8: OverflowError (subg_cql, cql) or a 25 GB allocation (qmix) on main."""
+    """Refused by name before building anything, not an OverflowError or a huge allocation."""
     cfg = compose_cfg([f"learner={learner}", *BIG])
     with pytest.raises(ValueError, match=message):
         build_run(cfg)
@@ -130,8 +130,8 @@ def test_format_bytes():
 
 def test_a_joint_row_that_cannot_fit_is_refused_up_front():
     """A 50-robot team with the auction scaled (15 slots) has an 11-robot sub-group: one row of
-    its table (all robots idle) holds sum_j C(11, j) 15!/(15-j)! = 3.3e11 joint actions (7.9 TB);
-    on main the run started and died asking numpy for 537 TiB."""
+    its table (all robots idle) holds sum_j C(11, j) 15!/(15-j)! = 3.3e11 joint actions (7.9 TB):
+    refused before the run starts, not when numpy is asked for the memory."""
     system = random_system(50, 12, 0.25, seed=0, scale_auction=True)
     params = AuctionParams(**system.env_overrides)
     estimate = estimate_resources(SubGCQLLearner, system, params, subg_partition(system))
@@ -160,9 +160,9 @@ def test_a_table_growing_past_the_limit_is_refused_and_left_unchanged():
 
 
 def test_tables_that_outgrow_the_memory_limit_stop_the_run_with_the_reason(compose_cfg, tmp_path):
-    """The scaling sweep's subG-CQL at 50 robots (max_group_size=6) passed the up-front check and
-    died in its first episode asking numpy for 30 GiB; a run whose tables outgrow
-    limits.memory_gb now stops with a user error and leaves the reason as data."""
+    """subG-CQL at 50 robots (max_group_size=6) passes the up-front check, but its tables grow
+    past limits.memory_gb in training: the run stops with a user error and leaves the reason as
+    data, instead of asking numpy for more memory than the machine has."""
     from mrta_rl.runners import train
 
     cfg = compose_cfg(

@@ -17,6 +17,7 @@ from mrta_rl.learners.memory import (
 from mrta_rl.learners.tabular.semi_cql import SemiCQLLearner
 from mrta_rl.systems import build_system
 from tests.conftest import paper_system
+from tests.unit.tabular_tables import saved_tables
 
 TRIO = {"name": "trio", "robots": {"R1": ["T1", "T2"], "R2": ["T1"], "R3": ["T1", "T2"]}}
 # the hand-made situation below: slot codes 2, 3, 3 (places 1, 5, 25); 5^3 = 125 slot states
@@ -36,7 +37,7 @@ def _learner(state: str, batch: int = 1, seed: int = 0, **hp) -> tuple[AuctionEn
     return env, SemiCQLLearner(env=env, rng=np.random.default_rng(seed), state=state, **hp)
 
 
-def _hand_made(env: AuctionEnv) -> None:
+def hand_made(env: AuctionEnv) -> None:
     """Copy 0: slots H T1, L T2, L T2; R1 idle, R2 busy, R3 idle with a low battery; the last H
     arrival 5 ticks ago (recency level 1: 3 < 5 <= 10)."""
     tasks = [(0, 1), (1, 0), (1, 0), (1, 0)]  # (type, high)
@@ -57,14 +58,13 @@ def test_shared_state_by_hand(state):
     high``), the robots' digits of the state, recency (3). ``system`` is the paper's group view
     (0 busy, 1 idle, 2 idle with low battery); the coarser states ignore the battery."""
     env, learner = _learner(state)
-    _hand_made(env)
+    hand_made(env)
     assert learner.encode(env).states.tolist() == [HAND[state]]
     if state == "system":
         assert ob.group_state_index(env, [0, 1, 2]).tolist() == [HAND[state]]
-    # the fused training tick encodes the same state
+    # the fused training tick encodes the same state: the row it makes is that state's
     learner.train_tick(env, None)
-    assert learner._system_scratch[0][0].tolist() == [HAND[state]]
-    assert learner.states.tolist() == [HAND[state]]  # its row was made
+    assert learner.states.tolist() == [HAND[state]]
 
 
 @pytest.mark.parametrize("state", HAND)
@@ -120,8 +120,10 @@ def test_save_load_keeps_the_coarse_table_and_refuses_another_state(tmp_path):
     learner.save(tmp_path)
     _, restored = _learner("idle_count", seed=9)
     restored.load(tmp_path)
-    for key, value in learner._table_arrays().items():
-        np.testing.assert_array_equal(restored._table_arrays()[key], value, err_msg=key)
+    saved, again = saved_tables(learner), saved_tables(restored)
+    assert saved.keys() == again.keys()
+    for key, value in saved.items():
+        np.testing.assert_array_equal(again[key], value, err_msg=key)
     # the paper's states of the same play lie past the 1,500 of idle_count
     env, paper = _learner("system", batch=4, epsilon_start=0.5, epsilon_end=0.5)
     actions = paper.train_tick(env, None)

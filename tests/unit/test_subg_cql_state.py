@@ -21,11 +21,11 @@ from mrta_rl.partition import subg_partition
 from mrta_rl.runners.evaluate import evaluate_policy
 from mrta_rl.systems import build_system
 from tests.conftest import paper_system
+from tests.unit.tabular_tables import saved_tables
 
 # the trio and its hand-made situation of semi-CQL's states: subg_partition keeps every type,
 # one sub-group G1 of all three robots, T_g = {T1, T2}; slot codes 2, 3, 3 (places 1, 5, 25)
-from tests.unit.test_semi_cql_state import SLOTS, TRIO
-from tests.unit.test_semi_cql_state import _hand_made as hand_made
+from tests.unit.test_semi_cql_state import SLOTS, TRIO, hand_made
 
 # R1 and R3 idle (R3 with a low battery), R2 busy; recency level 1
 HAND = {
@@ -190,8 +190,10 @@ def test_save_load_keeps_the_table_and_refuses_another_state(tmp_path):
     learner.save(tmp_path / "idle")
     _, restored = _learner("idle", seed=9)
     restored.load(tmp_path / "idle")
-    for key, value in learner._table_arrays().items():
-        np.testing.assert_array_equal(restored._table_arrays()[key], value, err_msg=key)
+    saved, again = saved_tables(learner), saved_tables(restored)
+    assert saved.keys() == again.keys()
+    for key, value in saved.items():
+        np.testing.assert_array_equal(again[key], value, err_msg=key)
     with pytest.raises(ValueError, match="state.idle"):
         _learner("group")[1].load(tmp_path / "idle")
     env, paper = _learner("group", batch=4, epsilon_start=0.5, epsilon_end=0.5)

@@ -78,7 +78,7 @@ def test_malformed_system_is_a_clear_error_naming_the_culprit(robots, task_types
 
 
 def test_task_and_robot_names_are_labels():
-    """Issue 9 defect 7: any names; task types in natural order, paper names unchanged."""
+    """Any names; task types in natural order, paper names unchanged."""
     s = build_system(
         {
             "name": "labels",
@@ -96,7 +96,7 @@ def test_task_and_robot_names_are_labels():
 
 
 def test_labelled_system_trains_and_reports_by_name(compose_cfg, tmp_path):
-    """Issue 9 defect 7 end to end: a greedy run on a labelled system, CTR keyed by the names."""
+    """End to end: a greedy run on a labelled system, CTR keyed by the names."""
     from omegaconf import OmegaConf, open_dict
 
     from mrta_rl.runners import train

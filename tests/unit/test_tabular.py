@@ -29,7 +29,16 @@ from mrta_rl.rules import deconflict_actions as deconflict
 from mrta_rl.rules import greedy_actions, random_valid_actions, spread_actions
 from mrta_rl.systems import build_system
 from tests.conftest import paper_system
-from tests.unit.tabular_tables import CASES, EXPLORE, FIXTURE, HORIZON, play, play_tables, train
+from tests.unit.tabular_tables import (
+    CASES,
+    EXPLORE,
+    FIXTURE,
+    HORIZON,
+    play,
+    play_tables,
+    saved_tables,
+    train,
+)
 
 LEARNERS = [SubGCQLLearner, CQLLearner, SemiCQLLearner, DQLLearner]
 # time_to_free digits need semi-CQL's paper-era whole-system state (its default is coarser)
@@ -442,7 +451,7 @@ def test_train_tick_is_encode_update_act(case):
     name, hyperparameters = FUSED_CASES[case]
     ticks = 4 * HORIZON  # whole episodes: the last train_tick of an episode does not act
     plain, fused = (train(name, hyperparameters, ticks, fused=f) for f in (False, True))
-    tables, fused_tables = plain._table_arrays(), fused._table_arrays()
+    tables, fused_tables = saved_tables(plain), saved_tables(fused)
     assert sorted(tables) == sorted(fused_tables)
     for key, value in tables.items():
         np.testing.assert_array_equal(fused_tables[key], value, err_msg=f"{case}/{key}")
@@ -450,7 +459,7 @@ def test_train_tick_is_encode_update_act(case):
     assert plain.rng.random() == fused.rng.random()
     if case in OPTION_CASES:  # the options change the tables (else this test could not fail)
         base_name, base_hyperparameters = FUSED_CASES[OPTION_CASES[case][0]]
-        base_tables = train(base_name, base_hyperparameters, ticks)._table_arrays()
+        base_tables = saved_tables(train(base_name, base_hyperparameters, ticks))
         assert any(
             v.shape != tables[k].shape or not np.array_equal(v, tables[k])
             for k, v in base_tables.items()
@@ -492,6 +501,8 @@ def test_compiled_encodings_are_the_observation_codes(features, system_name):
     groups = [np.array([0, 3, m - 1]), np.arange(m), np.array([m - 1])]
     group_encoder = GroupEncoder(env, groups, features)
     local_encoder = LocalEncoder(env, features)
+    group_views = [ob.GroupView(env, robots, features) for robots in groups]  # decode the codes
+    local_view = ob.LocalView(env, features)
     rng = np.random.default_rng(0)
     seen, local_seen = set(), set()
     for tick in range(120):
@@ -504,15 +515,13 @@ def test_compiled_encodings_are_the_observation_codes(features, system_name):
         for g, robots in enumerate(groups):
             codes = ob.group_state_index(env, robots, features)
             np.testing.assert_array_equal(states[g], codes)
-            seen.update(ob._group_view(env, robots, features).decode(int(c))["robots"].count(3)
-                        for c in codes)  # fmt: skip
+            seen.update(group_views[g].decode(int(c))["robots"].count(3) for c in codes)
             types = env.active_tasks[robots].any(axis=0)
             np.testing.assert_array_equal(level[g], ob.recency_level(env, types))
         local = local_encoder.index(env)
         np.testing.assert_array_equal(local, ob.local_state_index(env, features))
-        view = ob._local_view(env, features)
         for (_, robot), code in np.ndenumerate(local):
-            fields = view.decode(robot, int(code))
+            fields = local_view.decode(robot, int(code))
             local_seen.add((fields.get("free", 0), fields.get("queue_high", 0),
                             fields.get("queue_low", 0)))  # fmt: skip
         logits = rng.random(env.action_mask.shape) * env.action_mask
@@ -524,6 +533,21 @@ def test_compiled_encodings_are_the_observation_codes(features, system_name):
         # every free level and queue level (H and L) was met by the local views
         for part in range(3):
             assert {levels[part] for levels in local_seen} == {0, 1, 2}, part
+
+
+def robot_q(learner, view) -> list[np.ndarray]:
+    """Each robot's Q-values ``[K + 1]`` in copy 0's state of ``view``, as views of ``learner.q``.
+
+    The layout is the one ``save`` writes: DQL ``[robot, state, action]``; semi-CQL ``[row,
+    robot, action]`` with row ``r`` the state ``learner.states[r]``.
+    """
+    m, k1 = learner.n_robots, learner.n_actions
+    if isinstance(learner, DQLLearner):
+        table = learner.q.reshape(m, -1, k1)
+        return [table[i, view.states[0, i]] for i in range(m)]
+    row = int(np.flatnonzero(learner.states == view.states[0])[0])
+    table = learner.q[: len(learner.states) * m * k1].reshape(-1, m, k1)
+    return [table[row, i] for i in range(m)]
 
 
 # ---------------------------------------------------------------- hand-computed eq. (3), per learn
@@ -542,7 +566,8 @@ def test_hand_computed_q_update(cls, target, trio, tiny_params):
         target=target,
     )  # fmt: skip
     _h_task_in_slot_1(env)
-    view = learner.encode(env)
+    view, mask = learner.encode(env), env.action_mask.copy()
+    acted = learner.encode(env)  # a view of s of its own for act (update looks up view's rows)
     actions = np.zeros((1, 3), np.int64)
     actions[0, 1] = 1  # R2 bids for slot 1 and wins the H task
     result = env.step(actions)
@@ -552,8 +577,9 @@ def test_hand_computed_q_update(cls, target, trio, tiny_params):
     if isinstance(learner, (SubGCQLLearner, CQLLearner)):
         g = next(k for k, rs in enumerate(learner.groups) if 1 in rs)
         robots, storage = learner.groups[g], learner.storage
-        entry = learner._chosen_entries(view, actions)[g, 0]  # act was not called: looked up
-        learner.act(next_view, next_mask, explore=False)  # creates the rows of s' (no learning)
+        learner.act(acted, mask, explore=False)  # creates the rows of s (no learning) ...
+        learner.act(next_view, next_mask, explore=False)  # ... and of s'
+        entry = entry_of(storage, storage.row(g, view.states[g, 0]), actions[0, robots])
         next_row = storage.row(g, next_view.states[g, 0])
         at = storage.row_entries(next_row)
         if storage.row(g, view.states[g, 0]) != next_row:
@@ -573,13 +599,13 @@ def test_hand_computed_q_update(cls, target, trio, tiny_params):
         learner.update(view, actions, result, next_view, next_mask)
         assert storage.q[entry] == pytest.approx(1.0 + alpha * (10.0 + gamma * next_max - 1.0))
     else:
-        bases = learner._bases(view)
-        next_bases = learner._bases(next_view)
-        entry = bases[0, 1] + 1  # Q_R2(s, bid slot 1)
+        learner.act(acted, mask, explore=False)  # creates the rows of s (semi-CQL) ...
+        learner.act(next_view, next_mask, explore=False)  # ... and of s'
+        q_s, q_next = robot_q(learner, view), robot_q(learner, next_view)
         for i in range(3):
-            learner.q[next_bases[0, i] : next_bases[0, i] + 4] = [3.0, 7.0, 5.0, 9.0]
-        learner.q[bases[0, 0] : bases[0, 0] + 4] = 0.0
-        learner.q[entry] = 1.0
+            q_next[i][:] = [3.0, 7.0, 5.0, 9.0]
+        q_s[0][:] = 0.0
+        q_s[1][1] = 1.0  # Q_R2(s, bid slot 1)
         valid = next_mask[0, 1]
         next_max = max(v for v, ok in zip([3.0, 7.0, 5.0, 9.0], valid, strict=True) if ok)
         if target == "prior":  # the plain auction's action of R2 in s' (busy: wait; the
@@ -587,7 +613,7 @@ def test_hand_computed_q_update(cls, target, trio, tiny_params):
             next_max = [3.0, 7.0, 5.0, 9.0][greedy_actions(next_mask)[0, 1]]
         assert result.robot_reward[0, 1] == 10.0
         learner.update(view, actions, result, next_view, next_mask)
-        assert learner.q[entry] == pytest.approx(1.0 + alpha * (10.0 + gamma * next_max - 1.0))
+        assert q_s[1][1] == pytest.approx(1.0 + alpha * (10.0 + gamma * next_max - 1.0))
 
 
 # one robot, two actions (wait, bid slot 1); ticks 0-4 meet states 10-14 with rewards 1, 2, 4, 8,
@@ -692,10 +718,15 @@ def test_subg_cql_reward_group_or_team(reward, learned, tiny_params):
         {"type": 0, "high": 1, "due": 0, "id": 0, "duration": 5},
         {"type": 1, "high": 0, "due": 0, "id": 1, "duration": 5},
     ])  # fmt: skip
+    states = learner.encode(env).states[:, 0]  # [G] the state of each group
     actions = learner.train_tick(env, None)
     slot = {int(t): k + 1 for k, t in enumerate(env.slot_type[0]) if t >= 0}
     assert actions.tolist() == [[slot[0], slot[1]]]  # each robot bids for its type's task
-    entries = learner._tick[4][:, 0].copy()  # the entry each group chose
+    storage = learner.storage
+    entries = [  # the entry each group chose: its own robot's bid in its state's row
+        entry_of(storage, storage.row(g, states[g]), actions[0, robots])
+        for g, robots in enumerate(learner.groups)
+    ]
     result = env.step(actions)
     assert result.robot_reward[0].tolist() == [10.0, 2.0]  # spec step 8
     learner.train_tick(env, result)
@@ -765,14 +796,28 @@ def test_dql_prior_in_state_adds_the_rules_action_as_a_digit(trio, tiny_params):
     assert view.states.tolist() == LocalEncoder(env).index(env).tolist()  # digit 0: unchanged
 
 
-def test_dql_team_reward_learns_from_the_team_reward(trio, tiny_params):
-    """reward=team: every robot's eq. (3) return is the team reward, not its own."""
-    env, learner = make(DQLLearner, trio, tiny_params, batch=2, seed=5, reward="team")
-    result = env.step(greedy_actions(env.action_mask))
-    rewards = learner._rewards(result, (2, 3))
-    assert rewards.tolist() == [[r] * 3 for r in result.team_reward.tolist()]
-    own = make(DQLLearner, trio, tiny_params, batch=2, seed=5)[1]._rewards(result, (2, 3))
-    np.testing.assert_array_equal(own, result.robot_reward)
+@pytest.mark.parametrize(
+    ("reward", "learned"), [("individual", [0.0, 10.0, 0.0]), ("team", [10.0, 10.0, 10.0])]
+)
+def test_dql_learns_from_its_own_or_the_team_reward(reward, learned, trio, tiny_params):
+    """reward=team: every robot's eq. (3) return is the team reward, not its own.
+
+    R2 wins an H task (10), R1 and R3 wait (0). From Q = 0 with ``alpha = 1`` and
+    ``gamma = 0``, each robot's one updated entry holds the reward it learns from.
+    """
+    env, learner = make(
+        DQLLearner, trio, tiny_params, batch=1, alpha=1.0, gamma=0.0, decisions_only=False,
+        reward=reward,
+    )  # fmt: skip
+    _h_task_in_slot_1(env)
+    view = learner.encode(env)
+    actions = np.array([[0, 1, 0]])
+    result = env.step(actions)
+    assert result.robot_reward[0].tolist() == [0.0, 10.0, 0.0] and result.team_reward[0] == 10.0
+    learner.update(view, actions, result, learner.encode(env), env.action_mask)
+    q, visits = learner.q.reshape(3, -1), learner.visits.reshape(3, -1)  # per robot
+    assert visits.sum(axis=1).tolist() == [1, 1, 1]
+    assert q[visits > 0].tolist() == learned
 
 
 def test_dql_rejects_bad_priors(trio):
@@ -797,7 +842,7 @@ def test_save_load_round_trip(cls, trio, tiny_params, tmp_path):
     restored.load(tmp_path)
     assert restored.episodes_done == learner.episodes_done
     assert restored.learning_space() == learner.learning_space()
-    saved, again = learner._table_arrays(), restored._table_arrays()
+    saved, again = saved_tables(learner), saved_tables(restored)
     assert saved.keys() == again.keys()
     for key in saved:
         np.testing.assert_array_equal(saved[key], again[key])
@@ -897,7 +942,7 @@ def test_untrained_time_to_free_plays_as_paper(cls, hp, tiny_params):
             if cls is DQLLearner:
                 reference = ob.local_state_index(env2, "time_to_free")
                 if extra.prior_in_state:
-                    reference = reference + view2.prior * np.array(extra._local_counts)
+                    reference = reference + view2.prior * np.array(extra.encoder.counts)
             else:
                 reference = ob.group_state_index(env2, robots, "time_to_free")
             np.testing.assert_array_equal(states, reference)
@@ -909,26 +954,6 @@ def test_untrained_time_to_free_plays_as_paper(cls, hp, tiny_params):
             env2.step(actions)
         env.reset()
         env2.reset()
-
-
-@pytest.mark.parametrize("cls", [CQLLearner, SemiCQLLearner, DQLLearner])
-def test_fused_tick_time_to_free_states_are_the_observation_codes(cls, tiny_params):
-    """The states ``train_tick`` encodes with ``features=time_to_free`` are observations'."""
-    system = paper_system("system2")
-    hp = SYSTEM_STATE.get(cls, {})
-    env, learner = make(cls, system, tiny_params, batch=4, seed=1, features="time_to_free", **hp)
-    robots = list(range(env.n_robots))
-    actions, checked = learner.train_tick(env, None), 0
-    while actions is not None:
-        if cls is DQLLearner:
-            reference, states = ob.local_state_index(env, "time_to_free"), learner._scratch[4]
-        else:
-            reference = ob.group_state_index(env, robots, "time_to_free")
-            states = learner._tick[0][0] if cls is CQLLearner else learner._system_scratch[0][0]
-        np.testing.assert_array_equal(states, reference)
-        checked += 1
-        actions = learner.train_tick(env, env.step(actions))
-    assert checked == tiny_params.horizon
 
 
 def test_subg_requires_partition_env(trio):

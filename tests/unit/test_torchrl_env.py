@@ -47,12 +47,18 @@ def random_valid(mask: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     return (rng.random(mask.shape) * mask).argmax(axis=2)  # [B, m], a valid action per robot
 
 
+def group_index(env: AuctionTorchRLEnv) -> dict[str, np.ndarray]:
+    """Group -> the robot indices of its members, from the env's public group_map."""
+    robots = env.auction.system.robots
+    return {g: np.array([robots.index(r) for r in ids]) for g, ids in env.group_map.items()}
+
+
 def to_td(env: AuctionTorchRLEnv, actions: np.ndarray) -> TensorDict:
     B = actions.shape[0]
     return TensorDict(
         {
             g: TensorDict(action=torch.as_tensor(actions[:, idx]), batch_size=(B, len(idx)))
-            for g, idx in env._group_index.items()
+            for g, idx in group_index(env).items()
         },
         batch_size=(B,),
     )
@@ -74,7 +80,7 @@ def test_time_to_free_features_size_the_specs(kind):
     core = env.auction
     F = ob.local_feature_size(core, "time_to_free")
     assert F == ob.local_feature_size(core) + 9
-    for group, idx in env._group_index.items():
+    for group, idx in group_index(env).items():
         assert env.observation_spec[group, "observation"].shape == (3, len(idx), F)
     G = ob.global_feature_size(core, "time_to_free")
     assert env.observation_spec["state"].shape == (3, G)
@@ -139,7 +145,7 @@ def test_same_results_as_core(kind, features):
     team_return = np.zeros(4)
     for _ in range(15):
         mask = core.action_mask
-        for g, idx in env._group_index.items():
+        for g, idx in group_index(env).items():
             np.testing.assert_array_equal(td[g, "action_mask"].numpy(), mask[:, idx])
             np.testing.assert_array_equal(
                 td[g, "observation"].numpy(), ob.local_features(core, features)[:, idx]
@@ -152,7 +158,7 @@ def test_same_results_as_core(kind, features):
         np.testing.assert_array_equal(out["truncated"].numpy()[:, 0], result.done)
         assert not out["terminated"].any()
         group_total = np.zeros(4)
-        for g, idx in env._group_index.items():
+        for g, idx in group_index(env).items():
             # TorchRL's reward key of every group: the team reward, repeated per robot
             team = np.repeat(result.team_reward[:, None], len(idx), axis=1)
             np.testing.assert_allclose(out[g, "reward"].numpy()[..., 0], team, rtol=1e-6)
@@ -246,7 +252,7 @@ def test_seeding_and_one_hot_and_invalid_actions():
     # rand_action samples the masked action spec: valid bids only
     for _ in range(20):
         action = env.rand_action()
-        for g, idx in env._group_index.items():
+        for g, idx in group_index(env).items():
             assert env.auction.action_mask[
                 np.arange(3)[:, None], idx, action[g, "action"].numpy()
             ].all()
@@ -268,7 +274,7 @@ def test_seeding_and_one_hot_and_invalid_actions():
         AuctionTorchRLEnv(env.auction, invalid_action="ignore")
 
 
-# ---------------------------------------------------------------- outside clients (issue 12)
+# ---------------------------------------------------------------- outside clients
 def paper_env(batch_size: int = 4, horizon: int = 8, seed: int = 0) -> AuctionTorchRLEnv:
     """System-II in the default configuration (one group, invalid_action="wait")."""
     core = AuctionEnv(load_system("system2"), AuctionParams(horizon=horizon), batch_size, seed=seed)

@@ -1,6 +1,6 @@
-"""One declaration per parameter, checked before any work (issue 9, defect 5), and a fuzz test.
+"""One declaration per parameter, checked before any work, and a fuzz test.
 
-The fuzz test (issue 9, acceptance 2) throws random malformed overrides and system files at the
+The fuzz test throws random malformed overrides and system files at the
 validation layer (``runners/validation.py``): each is either accepted and then plays a smoke
 episode, or refused with a :class:`~mrta_rl.config.ConfigError` naming the key or culprit; any
 other exception fails the test. ``tests/smoke/test_cli.py`` sends a few through the real script.
@@ -29,13 +29,12 @@ from mrta_rl.runners.validation import (
     learner_class,
     training_copies,
 )
-from tests.conftest import _compose
 
 ROOT = Path(__file__).resolve().parents[2]
 LEARNERS = sorted(p.stem for p in (ROOT / "conf" / "learner").glob("*.yaml"))
 
 
-# ------------------------------------------------------------------ defect 5: regression
+# ------------------------------------------------------------------ named refusals
 @pytest.mark.parametrize(
     ("overrides", "message"),
     [
@@ -51,7 +50,7 @@ LEARNERS = sorted(p.stem for p in (ROOT / "conf" / "learner").glob("*.yaml"))
     ],
 )
 def test_nonsense_hyperparameters_are_refused_naming_the_key(overrides, message, compose_cfg):
-    """Issue 9 defect 5: each of these was accepted, failed late or failed unnamed on main."""
+    """Each nonsense value is refused before the run is built, with the key in the message."""
     cfg = compose_cfg([*overrides, "system=system1", "debug=smoke"])
     with pytest.raises(ValueError, match=message):
         build_run(cfg)
@@ -125,18 +124,18 @@ def test_learners_built_in_python_are_checked_too(tiny_system, rng):
         DQLLearner(env=AuctionEnv(tiny_system), rng=rng, alpah=0.5)
 
 
-# ------------------------------------------------------------------ fuzz (acceptance 2)
+# ------------------------------------------------------------------ fuzz
 FAST_LEARNERS = ["greedy", "random", "high_only", "subg_reserve", "subg_cql", "cql", "dql"]
 NEURAL_LEARNERS = ["iql", "qmix", "subg_dqn", "vdn"]
-_BASE: dict[str, dict] = {}
 
 
-def base_config(learner: str) -> dict:
-    """The composed config of a learner (plain dict), small budgets; composed once per learner."""
-    if learner not in _BASE:
-        cfg = _compose([f"learner={learner}", "system=system1", "debug=smoke", "env.horizon=6"])
-        _BASE[learner] = OmegaConf.to_container(cfg)
-    return copy.deepcopy(_BASE[learner])
+def base_configs(compose_cfg, learners: list[str]) -> dict[str, dict]:
+    """The composed config of each learner (plain dicts), small budgets."""
+    overrides = ["system=system1", "debug=smoke", "env.horizon=6"]
+    return {
+        name: OmegaConf.to_container(compose_cfg([f"learner={name}", *overrides]))
+        for name in learners
+    }
 
 
 junk = st.one_of(
@@ -199,10 +198,10 @@ system_file = st.one_of(
 
 
 @st.composite
-def malformed_config(draw, learners: list[str]) -> tuple[dict, str]:
-    """A composed config with one part broken: (config, the key or culprit to name)."""
-    learner = draw(st.sampled_from(learners))
-    cfg = base_config(learner)
+def malformed_config(draw, bases: dict[str, dict]) -> tuple[dict, str]:
+    """A config of ``bases`` with one part broken: (config, the key or culprit to name)."""
+    learner = draw(st.sampled_from(list(bases)))
+    cfg = copy.deepcopy(bases[learner])
     where = draw(st.sampled_from(["learner", "env", "run", "system", "unknown"]))
     if where == "system":
         cfg["system"] = draw(system_file)
@@ -253,17 +252,19 @@ def smoke_or_refusal(cfg: dict, culprit: str) -> str:
     return "accepted"
 
 
-def test_fuzz_malformed_configs_are_refused_by_name_or_run():
+FUZZ = settings(
+    deadline=None,
+    derandomize=True,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
+)
+
+
+def test_fuzz_malformed_configs_are_refused_by_name_or_run(compose_cfg):
     """Every malformed config is refused by name or runs; the fuzz saw both outcomes."""
     outcomes = {"accepted": 0, "refused": 0}
 
-    @settings(
-        max_examples=220,
-        deadline=None,
-        derandomize=True,
-        suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
-    )
-    @given(case=malformed_config(FAST_LEARNERS))
+    @settings(FUZZ, max_examples=220)
+    @given(case=malformed_config(base_configs(compose_cfg, FAST_LEARNERS)))
     def one_case(case):
         outcomes[smoke_or_refusal(*case)] += 1
 
@@ -273,15 +274,13 @@ def test_fuzz_malformed_configs_are_refused_by_name_or_run():
 
 
 @pytest.mark.slow
-@settings(
-    max_examples=80,
-    deadline=None,
-    derandomize=True,
-    suppress_health_check=[HealthCheck.too_slow],
-)
-@given(case=malformed_config(NEURAL_LEARNERS))
-def test_fuzz_neural_learners(case):
-    smoke_or_refusal(*case)
+def test_fuzz_neural_learners(compose_cfg):
+    @settings(FUZZ, max_examples=80)
+    @given(case=malformed_config(base_configs(compose_cfg, NEURAL_LEARNERS)))
+    def one_case(case):
+        smoke_or_refusal(*case)
+
+    one_case()
 
 
 def test_declared_types_cover_the_supported_annotations():

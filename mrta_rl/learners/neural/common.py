@@ -584,39 +584,36 @@ class NeuralLearner(Learner, abstract=True):
             directory: Folder written by :meth:`save`.
 
         Raises:
-            ValueError: naming the file, if it is unreadable, or its groups, tensor names or
-                shapes differ from this learner's.
+            ValueError: naming the file, if it or its description (``learner.json``) is
+                unreadable, or its class, groups, prior, features, tensor names or shapes
+                differ from this learner's.
         """
         directory = Path(directory)
         meta_path = directory / META_FILE
-        if meta_path.is_file():
-            try:
-                meta = json.loads(meta_path.read_text())
-            except ValueError as err:
-                raise ValueError(f"{meta_path}: not a learner description ({err})") from err
-            if meta.get("group_map") != self.group_map:
-                raise ValueError(
-                    f"{meta_path}: checkpoint groups {meta.get('group_map')} differ from "
-                    f"{self.group_map}"
-                )
-            if meta.get("class", type(self).__name__) != type(self).__name__:
-                raise ValueError(
-                    f"{directory} holds a {meta['class']}, not a {type(self).__name__}"
-                )
-            # checkpoints of before the rule prior were all trained with the greedy bid's bonus
-            saved = meta.get("prior", {"prior": "greedy", "prior_in_state": False})
-            if saved != self.prior_settings:
-                raise ValueError(
-                    f"{meta_path}: trained with prior {saved}, this run's learner has "
-                    f"{self.prior_settings} (the prior is part of the Q-function)"
-                )
-            # checkpoints of before the option were all trained with the paper's features
-            saved = meta.get("hyperparameters", {}).get("features", "paper")
-            if saved != self.features:
-                raise ValueError(
-                    f"{meta_path}: trained with features={saved}, this run's learner has "
-                    f"features={self.features} (the networks' inputs differ)"
-                )
+        try:
+            meta = json.loads(meta_path.read_text())
+            saved_class, saved_groups = meta["class"], meta["group_map"]
+            saved_prior, saved_features = meta["prior"], meta["hyperparameters"]["features"]
+        except (OSError, ValueError, KeyError, TypeError) as err:
+            raise ValueError(
+                f"{meta_path}: not a learner description written by save ({err!r})"
+            ) from err
+        if saved_groups != self.group_map:
+            raise ValueError(
+                f"{meta_path}: checkpoint groups {saved_groups} differ from {self.group_map}"
+            )
+        if saved_class != type(self).__name__:
+            raise ValueError(f"{directory} holds a {saved_class}, not a {type(self).__name__}")
+        if saved_prior != self.prior_settings:
+            raise ValueError(
+                f"{meta_path}: trained with prior {saved_prior}, this run's learner has "
+                f"{self.prior_settings} (the prior is part of the Q-function)"
+            )
+        if saved_features != self.features:
+            raise ValueError(
+                f"{meta_path}: trained with features={saved_features}, this run's learner has "
+                f"features={self.features} (the networks' inputs differ)"
+            )
         path = directory / WEIGHTS_FILE
         state = read_tensors(path, self.device)
         check_state_dict(state, self.networks.state_dict(), path)

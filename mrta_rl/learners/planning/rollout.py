@@ -82,13 +82,11 @@ class RolloutPlanner(FixedLearner):
         *,
         samples: Annotated[int, Range(1)] = 4,
         horizon: Annotated[int, Range(0)] = 20,
-        # every rule of CANDIDATES: against the five of before (greedy, spread, hold_group,
-        # reserve1, high_only) +12.0 +- 15.2 on System-I and +11.2 +- 17.9 on System-II, at
-        # 1.2-1.5x the decision time (docs/notebook.md, "Learning against the rules")
+        # every rule of CANDIDATES: more candidates find more, at a little more decision time
+        # (docs/notebook.md, "Learning against the rules")
         candidates: Annotated[tuple[str, ...], Choices(*CANDIDATES)] = tuple(CANDIDATES),
         # hold_group, not the best rule (hold): planning over a base that holds more finds more
-        # (System-II, 100 episodes: 5575.2 against 5542.5; docs/notebook.md, "Learning against
-        # the rules")
+        # (docs/notebook.md, "Learning against the rules")
         base: Annotated[str, Choices(*CANDIDATES)] = "hold_group",
         gamma: Annotated[float, Range(0, 1, low_open=True)] = 1.0,
         **kwargs,
@@ -208,7 +206,7 @@ class SubGRolloutPlanner(RolloutPlanner):
 
     Args:
         candidates: As :class:`RolloutPlanner`; the default keeps six of the nine (all nine
-            change it by -1.5 on System-I and +9.5 on System-II, docs/notebook.md).
+            do worse on System-I, docs/notebook.md).
         base: As :class:`RolloutPlanner`, default ``hold_group``.
         **kwargs: The other settings of :class:`RolloutPlanner`.
     """

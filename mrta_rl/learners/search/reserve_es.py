@@ -124,6 +124,13 @@ class ReserveESLearner(Learner):
         hold_level: Start rule: L waits while the robot's recency level is below this.
         **kwargs: Env, generator and partition of :class:`~mrta_rl.learners.base.Learner`.
 
+    Attributes:
+        theta: The weights ``theta`` the rule plays (evaluation plays these).
+        perturbations: ``[pairs, P]`` the ``eps_j`` of the current training episode.
+        copy_theta: ``[B, P]`` the weights each training copy plays this episode:
+            ``theta + sigma eps_j`` then ``theta - sigma eps_j``, member-major.
+        steps: ES updates made.
+
     Raises:
         ValueError: if the training batch is not a multiple of ``2 * pairs``.
     """
@@ -188,11 +195,9 @@ class ReserveESLearner(Learner):
     def _draw(self) -> None:
         """New perturbations and the per-copy weights of the next training episode."""
         self._rng_before_draw = self.rng.bit_generator.state  # a fresh dict: resuming redraws
-        self._eps = self.rng.standard_normal((self.pairs, N_FEATURES))
-        members = np.concatenate(
-            [self.theta + self.sigma * self._eps, self.theta - self.sigma * self._eps]
-        )
-        self._copy_theta = np.repeat(members, self.copies, axis=0)  # [B, P], member-major
+        self.perturbations = eps = self.rng.standard_normal((self.pairs, N_FEATURES))
+        members = np.concatenate([self.theta + self.sigma * eps, self.theta - self.sigma * eps])
+        self.copy_theta = np.repeat(members, self.copies, axis=0)  # [B, P], member-major
         self._returns = np.zeros(self.env.batch_size)
 
     def encode(self, env: AuctionEnv) -> dict[str, np.ndarray]:
@@ -234,9 +239,9 @@ class ReserveESLearner(Learner):
         """Bid per the rule of the module docstring, with the member's weights when exploring."""
         batch, _, n_actions = mask.shape
         if explore:
-            if batch != len(self._copy_theta):
-                raise ValueError(f"explore=True needs the training batch {len(self._copy_theta)}")
-            theta = self._copy_theta
+            if batch != len(self.copy_theta):
+                raise ValueError(f"explore=True needs the training batch {len(self.copy_theta)}")
+            theta = self.copy_theta
         else:
             theta = np.broadcast_to(self.theta, (batch, N_FEATURES))
         robots = self._order
@@ -289,7 +294,8 @@ class ReserveESLearner(Learner):
         fitness = self._returns.reshape(2 * self.pairs, self.copies).mean(axis=1)
         diff = fitness[: self.pairs] - fitness[self.pairs :]  # F+_j - F-_j, same streams
         scale = diff.std()
-        grad = (diff / scale) @ self._eps / self.pairs if scale > 0 else np.zeros(N_FEATURES)
+        eps = self.perturbations
+        grad = (diff / scale) @ eps / self.pairs if scale > 0 else np.zeros(N_FEATURES)
         beta1, beta2 = ADAM_BETAS
         self.steps += 1
         self._adam_m = beta1 * self._adam_m + (1 - beta1) * grad
