@@ -151,18 +151,7 @@ def product_files(area: str) -> list[Path]:
 
 @pytest.mark.parametrize(
     "area",
-    [
-        pytest.param(
-            "mrta_rl",
-            marks=pytest.mark.xfail(
-                strict=False,
-                reason="docstrings and comments of modules other workstreams are rewriting",
-            ),
-        ),
-        "conf",
-        "README.md",
-        "user docs",
-    ],
+    ["mrta_rl", "conf", "README.md", "user docs"],
 )
 def test_the_product_carries_no_history(area):
     files = product_files(area)
