@@ -150,14 +150,15 @@ def _compile_unpack():
     field's buffer and number of dimensions at compile time; it is compiled under this file's
     name, so numba caches it with the rest.
     """
-    views, values = [], []
+    views, arrays, values = [], [], []
     for f, (name, dims, dtype) in enumerate(FIELDS):
         view = f"buffers[{BUFFER_DTYPES.index(dtype)}][o[{f}] : o[{f}] + d[{f}].prod()]"
         ndim = len(dims.split())
         if ndim > 1:
             view += f".reshape(({', '.join(f'd[{f}, {k}]' for k in range(ndim))}))"
-        if name in PARAM_FIELDS:
-            values += [f"{view}[{k}]" for k in range(len(PARAM_FIELDS[name]))]
+        if name in PARAM_FIELDS:  # one view, then its values
+            arrays.append(f"    {name} = {view}\n")
+            values += [f"{name}[{k}]" for k in range(len(PARAM_FIELDS[name]))]
         else:
             views.append(view)
     split = len(TABLE_FIELDS) - len(PARAM_FIELDS)
@@ -167,6 +168,7 @@ def _compile_unpack():
         f"    layout = buffers[{BUFFER_DTYPES.index(np.int64)}][:{LAYOUT_SIZE}]"
         f".reshape(({len(FIELDS)}, 4))\n"
         "    o, d = layout[:, 0], layout[:, 1:]\n"
+        f"{''.join(arrays)}"
         f"    params = Params({', '.join(values)})\n"
         f"    return Tables({tables}), State({state})\n"
     )
