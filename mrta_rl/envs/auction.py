@@ -211,17 +211,8 @@ class AuctionEnv:
                 override = system.durations.get(name, {}).get(key)
                 lo, hi = (override.lo, override.hi) if override is not None else getattr(p, key)
                 dur_lo[j, prio], dur_span[j, prio] = lo, hi - lo + 1
-        iparams = np.zeros(6, np.int64)
-        iparams[kernel.I_HORIZON], iparams[kernel.I_SLOTS] = p.horizon, p.slots
-        iparams[kernel.I_QUEUE_CAPACITY] = p.queue_capacity
-        iparams[kernel.I_REAUCTION_DELAY] = p.reauction_delay
-        iparams[kernel.I_CHARGE_TICKS] = p.charge_ticks
-        iparams[kernel.I_SWITCH_TICKS] = p.switch_ticks
-        fparams = np.zeros(8)
-        fparams[kernel.F_P_HIGH], fparams[kernel.F_BATTERY_CAPACITY] = p.p_high, p.battery_capacity
-        fparams[kernel.F_DRAIN], fparams[kernel.F_THRESHOLD] = p.drain_per_tick, p.battery_threshold
-        fparams[kernel.F_ASSIGN : kernel.F_ASSIGN + 2] = p.reward_assign_low, p.reward_assign_high
-        fparams[kernel.F_DROP : kernel.F_DROP + 2] = p.penalty_drop_low, p.penalty_drop_high
+        iparams = np.array([getattr(p, name) for name in kernel.INT_PARAMS], np.int64)
+        fparams = np.array([getattr(p, name) for name in kernel.FLOAT_PARAMS], np.float64)
         cdf = rng.poisson_cdf(p.arrival_rate)
         tables = {
             "iparams": iparams,

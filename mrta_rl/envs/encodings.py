@@ -253,8 +253,13 @@ def queue_level(env: AuctionEnv, types_mask: np.ndarray, counts: np.ndarray | No
 
 
 def env_arrays(env: AuctionEnv) -> tuple[np.ndarray, ...]:
-    """The env arrays the state codes read: slots, idle flags, batteries, ticks, H arrivals."""
+    """The env arrays the state codes read (``state_codes.EnvArrays``), a plain tuple."""
     return env.slot_type, env.slot_high, env.idle, env.battery, env.t, env.last_high_arrival
+
+
+def busy_arrays(env: AuctionEnv) -> tuple[np.ndarray, ...]:
+    """The env arrays the ``time_to_free`` digits read (``state_codes.BusyArrays``), a tuple."""
+    return env.busy_until, env._queue, env._queue_len
 
 
 def _places(radices: np.ndarray) -> np.ndarray:
@@ -312,22 +317,26 @@ class LocalView:
         self._places = _places(radices)
         self._slot_places = self._places[:, 1 : K + 1].T.copy()  # [K, m]
         self._active = active
-        # the arguments of state_codes.encode_local after the env's (the tabular kernels' too)
-        self.tables = (
-            battery_margin(env), float(env.params.battery_threshold), self._codes,
-            self._slot_places, self._places, self._active, RECENCY_THRESHOLDS_ARRAY, extra,
-            FREE_SOON, QUEUE_THRESHOLDS_ARRAY,
-        )  # fmt: skip
-
-    @staticmethod
-    def state_arrays(env: AuctionEnv) -> tuple[np.ndarray, ...]:
-        """The env arrays the ``time_to_free`` digits read: busy-until ticks, the queue."""
-        return env.busy_until, env._queue, env._queue_len
+        # what state_codes.encode_local reads besides the env (the tabular kernels' too)
+        self.tables = tuple(
+            state_codes.LocalTables(
+                margin=battery_margin(env),
+                threshold=float(env.params.battery_threshold),
+                codes=self._codes,
+                slot_places=self._slot_places,
+                places=self._places,
+                active=self._active,
+                thresholds=RECENCY_THRESHOLDS_ARRAY,
+                time_to_free=extra,
+                free_soon=FREE_SOON,
+                queue_thresholds=QUEUE_THRESHOLDS_ARRAY,
+            )
+        )
 
     def index(self, env: AuctionEnv) -> np.ndarray:
         """``[B, m]`` int64 local state indices, each in ``[0, counts[i])``."""
         out = np.empty((env.batch_size, env.n_robots), np.int64)
-        state_codes.encode_local(*env_arrays(env), *self.state_arrays(env), *self.tables, out)
+        state_codes.encode_local(env_arrays(env), busy_arrays(env), self.tables, out)
         return out
 
     def decode(self, robot: int, index: int) -> dict[str, object]:
@@ -389,19 +398,34 @@ class GroupView:
             self._robot_places = places[K : K + len(ids)]  # [m_g]
             self._recency_place = int(places[K + len(ids)])
             self._queue_places = places[K + len(ids) + 1 :]  # [2] (H, L) or empty
-            # the arguments of state_codes.encode_groups and group_offsets after the env's, for
-            # this one group; robot state 3 (busy, free soon) is the busy state 0 plus 3 places
+            # the tables of state_codes.encode_groups and group_offsets for this one group;
+            # robot state 3 (busy, free soon) is the busy state 0 plus 3 places
             robots, size = self.robots[None], np.array([len(ids)], np.int64)
-            self._tables = (
-                battery_margin(env), float(env.params.battery_threshold), self._codes[None],
-                self._slot_places[None], robots, size, self._robot_places[None],
-                np.array([self._recency_place], np.int64), self.types_mask[None],
-                RECENCY_THRESHOLDS_ARRAY,
-            )  # fmt: skip
-            self._offset_tables = (
-                robots, size, 3 * self._robot_places[None], self.types_mask[None],
-                self._queue_places[None], FREE_SOON, QUEUE_THRESHOLDS_ARRAY,
-            )  # fmt: skip
+            self._tables = tuple(
+                state_codes.GroupTables(
+                    margin=battery_margin(env),
+                    threshold=float(env.params.battery_threshold),
+                    codes=self._codes[None],
+                    slot_places=self._slot_places[None],
+                    robots=robots,
+                    size=size,
+                    robot_places=self._robot_places[None],
+                    recency_place=np.array([self._recency_place], np.int64),
+                    types=self.types_mask[None],
+                    thresholds=RECENCY_THRESHOLDS_ARRAY,
+                )
+            )
+            self._offset_tables = tuple(
+                state_codes.OffsetTables(
+                    robots=robots,
+                    size=size,
+                    soon_places=3 * self._robot_places[None],
+                    types=self.types_mask[None],
+                    queue_places=self._queue_places[None],
+                    free_soon=FREE_SOON,
+                    queue_thresholds=QUEUE_THRESHOLDS_ARRAY,
+                )
+            )
 
     def index(self, env: AuctionEnv) -> np.ndarray:
         """``[B]`` int64 group state indices in ``[0, count)``.
@@ -415,12 +439,10 @@ class GroupView:
             )
         index = np.empty((1, env.batch_size), np.int64)
         level = np.empty((1, env.batch_size), np.int64)
-        state_codes.encode_groups(*env_arrays(env), *self._tables, index, level)
+        state_codes.encode_groups(env_arrays(env), self._tables, index, level)
         if self.features == "time_to_free":  # the free-soon robot states and queue levels
             offset = np.empty((1, env.batch_size), np.int64)
-            state_codes.group_offsets(
-                env.busy_until, env.t, env._queue, env._queue_len, *self._offset_tables, offset
-            )
+            state_codes.group_offsets(env.t, busy_arrays(env), self._offset_tables, offset)
             index += offset
         return index[0]
 

@@ -13,7 +13,8 @@ tick, returned by the following step; :func:`robot_rewards` shares the drop pena
 
 The arrays travel in named records (numba namedtuples), each declared once below:
 
-- :class:`Tables` (:data:`TABLE_FIELDS`), written once by the env, and :class:`State`
+- :class:`Tables` (:data:`TABLE_FIELDS`, the parameters named by :class:`Params`:
+  :data:`INT_PARAMS`, :data:`FLOAT_PARAMS`), written once by the env, and :class:`State`
   (:data:`STATE_FIELDS`), per-copy arrays ``[B, ...]``. The env keeps them in one flat buffer
   per dtype (:data:`BUFFER_DTYPES`), the int64 one starting with their layout; the entry points
   (:func:`step`, :func:`refresh`, :func:`fixed_actions`, :func:`play`) take the buffers and
@@ -59,17 +60,33 @@ from mrta_rl.envs.tasks import (
 )
 from mrta_rl.rules import count_valid, greedy, high_only, slot_winner, valid_action_of_rank
 
-# integer parameters (iparams)
-I_HORIZON, I_SLOTS, I_QUEUE_CAPACITY, I_REAUCTION_DELAY, I_CHARGE_TICKS, I_SWITCH_TICKS = range(6)
-# float parameters (fparams); assign / drop amounts are indexed by F_* + high
-F_P_HIGH, F_BATTERY_CAPACITY, F_DRAIN, F_THRESHOLD, F_ASSIGN, F_DROP = 0, 1, 2, 3, 4, 6
+# The env's parameters the dynamics read, named as AuctionParams' fields. The env stores them
+# in two arrays of the tables (iparams, fparams, in this order) and unpack names them (Params).
+INT_PARAMS = (
+    "horizon",
+    "slots",
+    "queue_capacity",
+    "reauction_delay",
+    "charge_ticks",
+    "switch_ticks",
+)
+FLOAT_PARAMS = (
+    "p_high",
+    "battery_capacity",
+    "drain_per_tick",
+    "battery_threshold",
+    "reward_assign_low",
+    "reward_assign_high",
+    "penalty_drop_low",
+    "penalty_drop_high",
+)
 NEVER = -(1 << 30)  # last_high_arrival before any H arrival: far in the past
 
 # The env's arrays: name, dimensions, dtype. A dimension is a number or one of the env's sizes:
 # B copies, m robots, n task types, K slots, W queue places, C arrival counts (``len(cdf)``).
 TABLE_FIELDS = (
-    ("iparams", "6", np.int64),  # integer parameters, indices I_*
-    ("fparams", "8", np.float64),  # float parameters, indices F_*
+    ("iparams", str(len(INT_PARAMS)), np.int64),  # INT_PARAMS' values
+    ("fparams", str(len(FLOAT_PARAMS)), np.float64),  # FLOAT_PARAMS' values
     ("cdf", "C", np.float64),  # Poisson CDF of the arrival count
     ("dur_lo", "n 2", np.int64),  # shortest duration by type and priority (0 = L, 1 = H)
     ("dur_span", "n 2", np.int64),  # number of possible durations by type and priority
@@ -105,7 +122,12 @@ STATS = ("assigned", "dropped", "busy_ticks", "team_return", "ticks")  # a State
 BUFFER_DTYPES = (np.uint64, np.int64, np.float64, np.bool_)  # a field lives in its dtype's buffer
 LAYOUT_SIZE = 4 * len(FIELDS)  # the int64 buffer's first places: the layout (see unpack)
 
-Tables = namedtuple("Tables", [name for name, _, _ in TABLE_FIELDS])
+PARAM_FIELDS = {"iparams": INT_PARAMS, "fparams": FLOAT_PARAMS}  # the tables' named values
+Params = namedtuple("Params", INT_PARAMS + FLOAT_PARAMS)
+# the tables without the parameter arrays, and their values as one record first
+Tables = namedtuple(
+    "Tables", ["params"] + [name for name, _, _ in TABLE_FIELDS if name not in PARAM_FIELDS]
+)
 State = namedtuple("State", [name for name, _, _ in STATE_FIELDS])
 Views = namedtuple("Views", VIEW_FIELDS)
 # team [B], assign [B, m] (assign reward each robot won), type_penalty [B, n] (drops by type)
@@ -123,26 +145,34 @@ def _compile_unpack():
 
     The int64 buffer starts with the layout ``[len(FIELDS), 4]`` (written by ``AuctionEnv``):
     row ``f`` holds field ``f``'s offset in its dtype's buffer and its shape (unused trailing
-    dimensions 1). The source is generated because numba needs each field's buffer and number
-    of dimensions at compile time; it is compiled under this file's name, so numba caches it
-    with the rest.
+    dimensions 1). The values of the parameter arrays (:data:`PARAM_FIELDS`) become the
+    :class:`Params` record, ``Tables.params``. The source is generated because numba needs each
+    field's buffer and number of dimensions at compile time; it is compiled under this file's
+    name, so numba caches it with the rest.
     """
-    views = []
-    for f, (_, dims, dtype) in enumerate(FIELDS):
+    views, arrays, values = [], [], []
+    for f, (name, dims, dtype) in enumerate(FIELDS):
         view = f"buffers[{BUFFER_DTYPES.index(dtype)}][o[{f}] : o[{f}] + d[{f}].prod()]"
         ndim = len(dims.split())
         if ndim > 1:
             view += f".reshape(({', '.join(f'd[{f}, {k}]' for k in range(ndim))}))"
-        views.append(view)
-    split = len(TABLE_FIELDS)
+        if name in PARAM_FIELDS:  # one view, then its values
+            arrays.append(f"    {name} = {view}\n")
+            values += [f"{name}[{k}]" for k in range(len(PARAM_FIELDS[name]))]
+        else:
+            views.append(view)
+    split = len(TABLE_FIELDS) - len(PARAM_FIELDS)
+    tables, state = ", ".join(["params", *views[:split]]), ", ".join(views[split:])
     source = (
         "def unpack(buffers):\n"
         f"    layout = buffers[{BUFFER_DTYPES.index(np.int64)}][:{LAYOUT_SIZE}]"
         f".reshape(({len(FIELDS)}, 4))\n"
         "    o, d = layout[:, 0], layout[:, 1:]\n"
-        f"    return Tables({', '.join(views[:split])}), State({', '.join(views[split:])})\n"
+        f"{''.join(arrays)}"
+        f"    params = Params({', '.join(values)})\n"
+        f"    return Tables({tables}), State({state})\n"
     )
-    namespace = {"__name__": __name__, "Tables": Tables, "State": State}  # as this module's
+    namespace = {"__name__": __name__, "Tables": Tables, "State": State, "Params": Params}
     exec(compile(source, __file__, "exec"), namespace)
     return njit(cache=True, nogil=True)(namespace["unpack"])
 
@@ -165,6 +195,12 @@ def _fma(typingctx, x, y, z):
     return sig, codegen
 
 
+@njit(cache=True, nogil=True)
+def drop_penalty(params, high):
+    """Spec step 8: the penalty of dropping a task of priority ``high`` (1 = H)."""
+    return params.penalty_drop_high if high else params.penalty_drop_low
+
+
 # ---------------------------------------------------------------------------- spec steps 1-3
 @njit(cache=True, nogil=True)
 def begin_copy(b, tables, state):
@@ -176,7 +212,7 @@ def begin_copy(b, tables, state):
         state.dropped,
         state.last_high_arrival,
     )
-    fparams, dur_lo, dur_span = tables.fparams, tables.dur_lo, tables.dur_span
+    params, dur_lo, dur_span = tables.params, tables.dur_lo, tables.dur_span
     length, now, n = 0, state.t[b], last_high_arrival.shape[1]
     pending_penalty[b, :] = 0.0
     # drop the holes left by the last step's slot tasks (assigned or dropped)
@@ -193,7 +229,7 @@ def begin_copy(b, tables, state):
         h_priority, h_kind = task_hash_pair(key, np.uint64(k + 1))
         # H with probability p_high; type uniform over the n types (high 32 bits of h_kind),
         # duration uniform over its type and priority's range, ends included (low 32 bits)
-        high = np.int64(unit_float(h_priority) < fparams[F_P_HIGH])
+        high = np.int64(unit_float(h_priority) < params.p_high)
         ttype = np.int64(bounded_uint(high_bits(h_kind), np.uint64(n)))
         span = np.uint64(dur_span[ttype, high])
         duration = dur_lo[ttype, high] + np.int64(bounded_uint(h_kind, span))
@@ -212,12 +248,12 @@ def begin_copy(b, tables, state):
             i -= 1
         queue[b, i + 1] = x
     # spec step 2: while the queue holds more than queue_capacity tasks, the last one is dropped
-    capacity = tables.iparams[I_QUEUE_CAPACITY]
+    capacity = params.queue_capacity
     for j in range(capacity, length):
         x = queue[b, j]
         ttype, high = task_type(x), task_high(x)
         dropped[b, ttype, high] += 1
-        pending_penalty[b, ttype] += fparams[F_DROP + high]
+        pending_penalty[b, ttype] += drop_penalty(params, high)
         queue[b, j] = EMPTY
     queue_len[b] = min(length, capacity)
 
@@ -275,7 +311,7 @@ def step_copies(lo, hi, actions, tables, state, idle_before, views, rewards):
     Writes the tick's :class:`Rewards` of each copy: the team reward, the assign reward each
     robot won and the drop penalties by type (spec step 8; :func:`robot_rewards` shares them).
     """
-    iparams, fparams, willingness = tables.iparams, tables.fparams, tables.willingness
+    params, willingness = tables.params, tables.willingness
     queue, slot_keys, slot_pos = state.queue, state.slot_keys, state.slot_pos
     t, done, pending_penalty = state.t, state.done, state.pending_penalty
     busy_until, battery, last_type = state.busy_until, state.battery, state.last_type
@@ -308,18 +344,18 @@ def step_copies(lo, hi, actions, tables, state, idle_before, views, rewards):
             # cost)
             duration = task_duration(x)
             if last_type[b, winner] >= 0 and last_type[b, winner] != ttype:
-                duration += iparams[I_SWITCH_TICKS]
+                duration += params.switch_ticks
             # spec step 5: executes during ticks t+1 .. t+duration, draining the battery; below the
             # threshold afterwards, it charges right after and is full again
             ready = now + duration
-            level = battery[b, winner] - fparams[F_DRAIN] * duration
-            if level < fparams[F_THRESHOLD]:
-                ready += iparams[I_CHARGE_TICKS]
-                level = fparams[F_BATTERY_CAPACITY]
+            level = battery[b, winner] - params.drain_per_tick * duration
+            if level < params.battery_threshold:
+                ready += params.charge_ticks
+                level = params.battery_capacity
             busy_until[b, winner], battery[b, winner] = ready, level
             last_type[b, winner] = ttype
             # spec step 8: the task's assign reward, to the team and to its winner
-            reward = fparams[F_ASSIGN + high]
+            reward = params.reward_assign_high if high else params.reward_assign_low
             assign_reward[b, winner] += reward
             team += reward
             assigned[b, ttype, high] += 1
@@ -331,11 +367,11 @@ def step_copies(lo, hi, actions, tables, state, idle_before, views, rewards):
             if x == EMPTY or x == -1:
                 continue
             if task_round(x) == 1:
-                queue[b, slot_pos[b, k]] = to_second_round(x, now + iparams[I_REAUCTION_DELAY])
+                queue[b, slot_pos[b, k]] = to_second_round(x, now + params.reauction_delay)
             else:
                 ttype, high = task_type(x), task_high(x)
                 dropped[b, ttype, high] += 1
-                penalty = fparams[F_DROP + high]  # spec step 8
+                penalty = drop_penalty(params, high)  # spec step 8
                 type_penalty[b, ttype] += penalty
                 team -= penalty
                 queue[b, slot_pos[b, k]] = EMPTY
@@ -347,7 +383,7 @@ def step_copies(lo, hi, actions, tables, state, idle_before, views, rewards):
         team_return[b] += team
         ticks[b] += 1
         t[b] = now + 1
-        done[b] = t[b] >= iparams[I_HORIZON]
+        done[b] = t[b] >= params.horizon
         begin = 0 if done[b] else 1  # spec steps 1-3 of the next tick, unless at the horizon
         refresh_copy(b, begin, tables, state, views)
 
@@ -404,7 +440,7 @@ def reset_copy(b, tables, state):
     state.queue[b, :] = EMPTY
     state.queue_len[b] = 0
     state.busy_until[b, :] = -1
-    state.battery[b, :] = tables.fparams[F_BATTERY_CAPACITY]
+    state.battery[b, :] = tables.params.battery_capacity
     state.last_type[b, :] = -1
     state.last_high_arrival[b, :] = NEVER
     state.assigned[b], state.dropped[b], state.busy_ticks[b] = 0, 0, 0

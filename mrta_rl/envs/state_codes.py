@@ -15,10 +15,77 @@ tabular learners' fused ticks (``learners/tabular``). A digit rule lives in one 
 
 from __future__ import annotations
 
+from collections import namedtuple
+
 import numpy as np
 from numba import njit
 
 from mrta_rl.envs.tasks import EMPTY, task_high, task_type
+
+# The arrays of the state indices travel in named records, declared once here. Python passes
+# each as a plain tuple in its fields' order (``encodings.env_arrays``, ``LocalView.tables``,
+# ...); the compiled loops name them (``EnvArrays(*env)``).
+EnvArrays = namedtuple(
+    "EnvArrays",
+    (
+        "slot_type",  # [B, K] type of each slot's task, -1 empty
+        "slot_high",  # [B, K] its priority (1 = H)
+        "idle",  # [B, m]
+        "battery",  # [B, m]
+        "t",  # [B] ticks
+        "last_high",  # [B, n] tick of the last H arrival per type
+    ),
+)
+BusyArrays = namedtuple(
+    "BusyArrays",
+    (
+        "busy_until",  # [B, m] robot i is idle at t when t > busy_until
+        "queue",  # [B, W] packed tasks (envs/tasks.py), EMPTY after queue_len
+        "queue_len",  # [B]
+    ),
+)
+LocalTables = namedtuple(
+    "LocalTables",
+    (
+        "margin",  # [m] battery_low's margin of each robot (encodings.battery_margin)
+        "threshold",  # battery_low's threshold
+        "codes",  # [n + 1, 2, m] slot code per (type, high, robot); row n: empty slot
+        "slot_places",  # [K, m]
+        "places",  # [m, digits] every digit's place
+        "active",  # [m, n] bool Lambda_i
+        "thresholds",  # [2] recency thresholds
+        "time_to_free",  # bool: the free level and the queue levels (encodings.FEATURES)
+        "free_soon",  # free level 1 within this many ticks
+        "queue_thresholds",  # [2, 2] the H and the L thresholds
+    ),
+)
+GroupTables = namedtuple(
+    "GroupTables",
+    (
+        "margin",  # [m] battery_low's margin of each robot
+        "threshold",  # battery_low's threshold
+        "codes",  # [G, n + 1, 2] slot code per (group, type, high); row n: empty slot
+        "slot_places",  # [G, K]
+        "robots",  # [G, widest] robot indices of each group (padded)
+        "size",  # [G] robots per group
+        "robot_places",  # [G, widest]
+        "recency_place",  # [G]
+        "types",  # [G, n] bool T_g
+        "thresholds",  # [2] recency thresholds
+    ),
+)
+OffsetTables = namedtuple(
+    "OffsetTables",
+    (
+        "robots",  # [G, widest] robot indices of each group (padded)
+        "size",  # [G] robots per group
+        "soon_places",  # [G, widest] what a robot free soon adds (0 on padding)
+        "types",  # [G, n] bool T_g
+        "queue_places",  # [G, 2] the places of the H and the L queue levels
+        "free_soon",  # free level 1 within this many ticks
+        "queue_thresholds",  # [2, 2] the H and the L thresholds
+    ),
+)
 
 
 # ------------------------------------------------------------------------------ digits
@@ -138,15 +205,19 @@ def queue_levels(counts, types, thresholds, out):
 
 # ------------------------------------------------------------------------------ state indices
 @njit(cache=True)
-def encode_groups(
-    slot_type, slot_high, idle, battery, t, last_high, margin, threshold, codes, slot_places,
-    robots, size, robot_places, recency_place, types, thresholds, states, level,
-):  # fmt: skip
+def encode_groups(env, tables, states, level):
     """``GroupView`` state indices ``states`` and recency levels ``level`` ``[G, B]`` (written).
 
-    The leading six arguments are the env's arrays (slots, idle flags, batteries, ticks, H
-    arrivals), the next ten the groups' tables (``learners.tabular.encoding.GroupEncoder``).
+    ``env`` holds the env's arrays (:class:`EnvArrays`), ``tables`` the groups' tables
+    (:class:`GroupTables`, ``learners.tabular.encoding.GroupEncoder``).
     """
+    # the fields as locals: numba counts a reference at each read of a record's field
+    env, tables = EnvArrays(*env), GroupTables(*tables)
+    slot_type, slot_high, idle, battery = env.slot_type, env.slot_high, env.idle, env.battery
+    codes, slot_places, margin = tables.codes, tables.slot_places, tables.margin
+    robots, size, robot_places = tables.robots, tables.size, tables.robot_places
+    types, recency_place, thresholds = tables.types, tables.recency_place, tables.thresholds
+    t, last_high, threshold = env.t, env.last_high, tables.threshold
     for g in range(states.shape[0]):
         for b in range(states.shape[1]):
             index = 0
@@ -162,24 +233,26 @@ def encode_groups(
 
 
 @njit(cache=True)
-def group_offsets(
-    busy_until, t, queue, queue_len, robots, size, soon_places, types, queue_places, free_soon,
-    queue_thresholds, out,
-):  # fmt: skip
+def group_offsets(t, busy, tables, out):
     """``[G, B]`` what ``time_to_free`` adds to the paper codes of :func:`encode_groups` (written).
 
     A busy robot free within ``free_soon`` ticks reads robot state 3 (the busy state 0 plus
     ``3 x`` its place), and the queued H and L levels over ``T_g`` follow the recency digit
-    (``encodings.GroupView``, "Features"). The first four arguments are the env's busy-until
-    ticks, ticks, queue and queue lengths.
+    (``encodings.GroupView``, "Features"). ``t`` ``[B]`` holds the env's ticks, ``busy`` its
+    busy-until ticks and queue (:class:`BusyArrays`), ``tables`` the groups' :class:`OffsetTables`.
     """
+    # the fields as locals: numba counts a reference at each read of a record's field
+    busy, tables = BusyArrays(*busy), OffsetTables(*tables)
+    busy_until, queue, queue_len = busy.busy_until, busy.queue, busy.queue_len
+    robots, size = tables.robots, tables.size
+    types, queue_places, soon_places = tables.types, tables.queue_places, tables.soon_places
+    thresholds, free_soon = tables.queue_thresholds, tables.free_soon
     counts = np.zeros((types.shape[1], 2), np.int64)  # [n, (L, H)]
     for b in range(out.shape[1]):
         count_queued(queue[b], queue_len[b], counts)
         for g in range(out.shape[0]):
-            value = _queue_digits(
-                counts, types[g], queue_thresholds, queue_places[g, 0], queue_places[g, 1]
-            )
+            high, low = queue_places[g, 0], queue_places[g, 1]
+            value = _queue_digits(counts, types[g], thresholds, high, low)
             for r in range(size[g]):
                 if free_level_of(busy_until[b, robots[g, r]], t[b], free_soon) == 1:
                     value += soon_places[g, r]
@@ -187,19 +260,24 @@ def group_offsets(
 
 
 @njit(cache=True)
-def encode_local(
-    slot_type, slot_high, idle, battery, t, last_high, busy_until, queue, queue_len, margin,
-    threshold, codes, slot_places, places, active, thresholds, time_to_free, free_soon,
-    queue_thresholds, out,
-):  # fmt: skip
+def encode_local(env, busy, tables, out):
     """``LocalView`` state indices ``out`` ``[B, m]`` (written).
 
-    The leading six arguments are the env's arrays (slots, idle flags, batteries, ticks, H
-    arrivals), the next three ``LocalView.state_arrays``, the next ten a ``LocalView``'s
-    ``tables``. With ``time_to_free`` the first digit is the free level (instead of the idle
-    flag) and the H and L queue levels over ``Lambda_i`` follow the recency digit
+    ``env`` holds the env's arrays (:class:`EnvArrays`), ``busy`` its busy-until ticks and
+    queue (:class:`BusyArrays`, ``encodings.busy_arrays``), ``tables`` a ``LocalView``'s
+    :class:`LocalTables`. With ``time_to_free`` the first digit is the free level (instead of
+    the idle flag) and the H and L queue levels over ``Lambda_i`` follow the recency digit
     (``encodings`` module docstring, "Features").
     """
+    # the fields as locals: numba counts a reference at each read of a record's field
+    env, busy, tables = EnvArrays(*env), BusyArrays(*busy), LocalTables(*tables)
+    slot_type, slot_high, idle, battery = env.slot_type, env.slot_high, env.idle, env.battery
+    t, last_high = env.t, env.last_high
+    busy_until, queue, queue_len = busy.busy_until, busy.queue, busy.queue_len
+    codes, slot_places, places = tables.codes, tables.slot_places, tables.places
+    margin, threshold, active = tables.margin, tables.threshold, tables.active
+    thresholds, time_to_free, free_soon = tables.thresholds, tables.time_to_free, tables.free_soon
+    queue_thresholds = tables.queue_thresholds
     n_slots = slot_type.shape[1]
     counts = np.zeros((active.shape[1] if time_to_free else 0, 2), np.int64)  # [n, (L, H)]
     for b in range(out.shape[0]):
@@ -216,8 +294,6 @@ def encode_local(
             index += battery_low(battery[b, i], margin[i], threshold) * places[i, n_slots + 1]
             index += recency(last_high[b], t[b], active[i], thresholds) * places[i, n_slots + 2]
             if time_to_free:  # queued H and L tasks over Lambda_i
-                index += _queue_digits(
-                    counts, active[i], queue_thresholds, places[i, n_slots + 3],
-                    places[i, n_slots + 4],
-                )  # fmt: skip
+                high_place, low_place = places[i, n_slots + 3], places[i, n_slots + 4]
+                index += _queue_digits(counts, active[i], queue_thresholds, high_place, low_place)
             out[b, i] = index

@@ -335,9 +335,11 @@ class NeuralLearner(Learner, abstract=True):
         self.rule: Prior = GreedyPrior()
         if prior == "hold":
             self.rule = HoldRule(
-                env, reserve=prior_reserve, hold_level=prior_hold_level,
+                env,
+                reserve=prior_reserve,
+                hold_level=prior_hold_level,
                 hold_scope=prior_hold_scope,
-            )  # fmt: skip
+            )
         self.prior_in_state = prior_in_state
         # what the Q bonus is added to: part of the Q-function, so a checkpoint must match it
         self.prior_settings: dict[str, Any] = {"prior": prior, "prior_in_state": prior_in_state}

@@ -22,7 +22,7 @@ from mrta_rl.learners.fixed import HOLD_SCOPES, HoldLevel, Reserve
 from mrta_rl.learners.memory import TABLE_ENTRY_BYTES, ResourceEstimate, Unfit
 from mrta_rl.learners.tabular import robot_kernels as kernels
 from mrta_rl.learners.tabular.base import NO_UNIFORMS, TabularLearner
-from mrta_rl.learners.tabular.encoding import LocalEncoder, env_arrays
+from mrta_rl.learners.tabular.encoding import LocalEncoder, busy_arrays, env_arrays
 from mrta_rl.learners.tabular.priors import HOLD_PRIORS, HoldRule
 from mrta_rl.metrics.learning_space import decentralized_dimension
 from mrta_rl.partition import Partition
@@ -377,7 +377,7 @@ class DQLLearner(RobotQLearner):
     ) -> int:
         learner, last, now, learn, outcome, explore = shared
         encoding = (
-            (*env_arrays(env), *self.encoder.state_arrays(env), *self.encoder.tables),
+            (env_arrays(env), busy_arrays(env), self.encoder.tables),
             self._robot_base,
             self._digit_place,
             prior is None,  # the plain auction's prior, computed by the kernel

@@ -35,14 +35,10 @@ from mrta_rl.envs.encodings import (
     GroupView,
     LocalView,
     battery_margin,
+    busy_arrays,
     env_arrays,
 )
-from mrta_rl.envs.state_codes import encode_groups, group_offsets
-
-
-def _battery_rule(env: AuctionEnv) -> tuple[np.ndarray, float]:
-    """The arguments of :func:`battery_low` fixed by the env: margins per robot, threshold."""
-    return battery_margin(env), float(env.params.battery_threshold)
+from mrta_rl.envs.state_codes import GroupTables, OffsetTables, encode_groups, group_offsets
 
 
 class GroupEncoder:
@@ -82,17 +78,33 @@ class GroupEncoder:
         if features == "time_to_free":
             # robot state 3 (busy, free soon) is the busy state 0 plus 3 places; queue places
             # (H, L) follow the recency digit (encodings.GroupView)
-            self._offset_tables = (
-                self.robots, self.size, 3 * self._robot_places,  # 0 on padding
-                self.types, np.stack([v._queue_places for v in views]),  # [G, 2]
-                FREE_SOON, QUEUE_THRESHOLDS_ARRAY,
-            )  # fmt: skip
+            self._offset_tables = tuple(
+                OffsetTables(
+                    robots=self.robots,
+                    size=self.size,
+                    soon_places=3 * self._robot_places,  # 0 on padding
+                    types=self.types,
+                    queue_places=np.stack([v._queue_places for v in views]),  # [G, 2]
+                    free_soon=FREE_SOON,
+                    queue_thresholds=QUEUE_THRESHOLDS_ARRAY,
+                )
+            )
         self._zeros = np.zeros((len(groups), 0), np.int64)  # paper: no offset (per batch size)
-        # the arguments of encode_groups after the env's
-        self.tables = (
-            *_battery_rule(env), self._codes, self._slot_places, self.robots, self.size,
-            self._robot_places, self._recency_place, self.types, RECENCY_THRESHOLDS_ARRAY,
-        )  # fmt: skip
+        # what encode_groups reads besides the env (the tabular kernels' too)
+        self.tables = tuple(
+            GroupTables(
+                margin=battery_margin(env),
+                threshold=float(env.params.battery_threshold),
+                codes=self._codes,
+                slot_places=self._slot_places,
+                robots=self.robots,
+                size=self.size,
+                robot_places=self._robot_places,
+                recency_place=self._recency_place,
+                types=self.types,
+                thresholds=RECENCY_THRESHOLDS_ARRAY,
+            )
+        )
 
     def offset(self, env: AuctionEnv) -> np.ndarray:
         """``[G, B]`` what the features add to the paper codes of :func:`encode_groups` (0s)."""
@@ -101,9 +113,7 @@ class GroupEncoder:
                 self._zeros = np.zeros((len(self.size), env.batch_size), np.int64)
             return self._zeros
         offset = np.empty((len(self.size), env.batch_size), np.int64)
-        group_offsets(
-            env.busy_until, env.t, env._queue, env._queue_len, *self._offset_tables, offset
-        )
+        group_offsets(env.t, busy_arrays(env), self._offset_tables, offset)
         return offset
 
     def index(self, env: AuctionEnv) -> tuple[np.ndarray, np.ndarray]:
@@ -111,14 +121,14 @@ class GroupEncoder:
         n_groups, batch = len(self.size), env.batch_size
         states = np.empty((n_groups, batch), np.int64)
         level = np.empty((n_groups, batch), np.int64)
-        encode_groups(*env_arrays(env), *self.tables, states, level)
+        encode_groups(env_arrays(env), self.tables, states, level)
         if self.features != "paper":
             states += self.offset(env)
         return states, level
 
 
 # DQL's local states: the local view itself computes them with the compiled loop (its
-# ``tables`` and ``state_arrays`` are the arguments of ``state_codes.encode_local``)
+# ``tables``, with ``env_arrays`` and ``busy_arrays``, are what ``state_codes.encode_local`` reads)
 LocalEncoder = LocalView
 
 
@@ -181,10 +191,20 @@ class SystemEncoder(GroupEncoder):
         self._robot_places = robot_places.astype(np.int64)[None]  # [1, m]
         self._recency_place = np.array([place * robot_radix], np.int64)
         self._zeros = np.zeros((1, 0), np.int64)  # no offset (GroupEncoder.offset)
-        self.tables = (
-            np.zeros(m), -np.inf, self._codes, self._slot_places, self.robots, self.size,
-            self._robot_places, self._recency_place, self.types, RECENCY_THRESHOLDS_ARRAY,
-        )  # fmt: skip
+        self.tables = tuple(
+            GroupTables(
+                margin=np.zeros(m),
+                threshold=-np.inf,
+                codes=self._codes,
+                slot_places=self._slot_places,
+                robots=self.robots,
+                size=self.size,
+                robot_places=self._robot_places,
+                recency_place=self._recency_place,
+                types=self.types,
+                thresholds=RECENCY_THRESHOLDS_ARRAY,
+            )
+        )
 
 
 def system_state_count(env: AuctionEnv, state: str = "system", features: str = "paper") -> int:
@@ -289,8 +309,7 @@ class SubGroupEncoder(GroupEncoder):
             self._recency_place[g] = place * radix ** len(robots)
             queue_places[g] = self._recency_place[g] * N_RECENCY_LEVELS * np.array([1, 3])
         if features == "time_to_free":  # free soon: the busy digit 0 plus 2 places
-            self._offset_tables = (
-                self.robots, self.size, 2 * self._robot_places, self.types, queue_places,
-                FREE_SOON, QUEUE_THRESHOLDS_ARRAY,
-            )  # fmt: skip
-        self.tables = (np.zeros(env.n_robots), -np.inf, *self.tables[2:])
+            soon = {"soon_places": 2 * self._robot_places, "queue_places": queue_places}
+            self._offset_tables = tuple(OffsetTables(*self._offset_tables)._replace(**soon))
+        no_battery = {"margin": np.zeros(env.n_robots), "threshold": -np.inf}
+        self.tables = tuple(GroupTables(*self.tables)._replace(**no_battery))

@@ -28,7 +28,7 @@ from collections import namedtuple
 import numpy as np
 from numba import njit
 
-from mrta_rl.envs.state_codes import encode_groups
+from mrta_rl.envs.state_codes import EnvArrays, encode_groups
 from mrta_rl.learners.tabular.joint_actions import enumerate_row
 from mrta_rl.learners.tabular.priors import PRIOR_CODES
 from mrta_rl.learners.tabular.qtable import (
@@ -481,13 +481,13 @@ def tick_groups(learner, now, learn, outcome, pending, explore, tick, out):
     env_arrays, mask, tables, offset = now
     states, level, hold, row_out, entry_out = tick
     actions, td_sum, td_count = out
-    encode_groups(*env_arrays, *tables, states, level)
+    encode_groups(env_arrays, tables, states, level)
     for g in range(states.shape[0]):
         for b in range(states.shape[1]):
             states[g, b] += offset[g, b]
             hold[g, b] = level[g, b] == 0
-    slot_type, slot_high = env_arrays[0], env_arrays[1]
-    seen = Decision(states, hold, mask, slot_type, slot_high)
+    arrays = EnvArrays(*env_arrays)
+    seen = Decision(states, hold, mask, arrays.slot_type, arrays.slot_high)
     if learn:
         _update(learner, entry_out, seen, outcome, Pending(*pending), TD(td_sum, td_count))
     if outcome.done.any():

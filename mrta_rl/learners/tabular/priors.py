@@ -57,9 +57,12 @@ class HoldRule:
     def __init__(self, env: AuctionEnv, *, reserve: int, hold_level: int, hold_scope: str):
         # a fixed, deterministic rule: its generator is never drawn
         self.rule = TeamReserveLearner(
-            env=env, rng=np.random.default_rng(0), reserve=reserve, hold_level=hold_level,
+            env=env,
+            rng=np.random.default_rng(0),
+            reserve=reserve,
+            hold_level=hold_level,
             hold_scope=hold_scope,
-        )  # fmt: skip
+        )
 
     def __call__(self, env: AuctionEnv, mask: np.ndarray | None = None) -> np.ndarray:
         """``[B, m]`` int64 the rule's actions in the env's state (mask: default the env's)."""

@@ -271,7 +271,7 @@ def tick_local(learner, encoding, last, now, learn, outcome, explore, out):
     ``learner`` is ``(values, settings, pending)`` (:class:`Values`, :class:`Settings`,
     :class:`Pending`); ``encoding`` is ``(arguments, robot_base, digit_place, greedy_prior,
     prior_digit)``: the arguments of :func:`~mrta_rl.envs.state_codes.encode_local` but its
-    output (the env's arrays, ``LocalView.state_arrays``, the encoder's ``tables``), each
+    output (the env's arrays, its busy-until ticks and queue, the encoder's ``tables``), each
     robot's first state in ``q`` and the places of the prior's digit. ``last`` is the previous
     decision's :class:`Step`, ``now`` the new state's ``(mask, prior)``: the prior's action in
     the new state (computed here, the plain auction's bid, if ``greedy_prior``; else given,

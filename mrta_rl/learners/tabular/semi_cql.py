@@ -176,7 +176,7 @@ class SemiCQLLearner(RobotQLearner):
             )
         learner, last, now, learn, outcome, explore = shared
         encoding = (
-            (*env_arrays(env), *self.encoder.tables),
+            (env_arrays(env), self.encoder.tables),
             self.encoder.offset(env),
             (index.hash, index.rows, index.sizes),
             self._row_size,
