@@ -272,14 +272,7 @@ CLAIMS: tuple[tuple[str, str, tuple[str, ...] | None, Callable[[Cells], tuple]],
 
 
 def check_claims(summary: pd.DataFrame) -> list[ClaimResult]:
-    """Verdicts of every claim on every system, plus the cross-system learning space claim.
-
-    Args:
-        summary: The summary over seeds (``reports/frame.summarize``).
-
-    Returns:
-        One result per claim and system, in :data:`CLAIMS` order, then the cross-system one.
-    """
+    """Verdicts of every claim on every system, plus the cross-system learning space claim."""
     by_system = {s: Cells(rows) for s, rows in summary.groupby("system", sort=False)}
     results = []
     for claim, statement, needed, check in CLAIMS:
@@ -316,15 +309,10 @@ def claims_table(results: Sequence[ClaimResult]) -> pd.DataFrame:
 
 
 def claims_along(summaries: Mapping[Any, pd.DataFrame]) -> pd.DataFrame:
-    """Where each claim holds along a swept parameter (``env.switch_ticks``, team size...).
+    """Per claim and system, the values of a swept parameter where it holds, fails or cannot tell.
 
-    Args:
-        summaries: Parameter value -> the summary of the runs made with that value.
-
-    Returns:
-        One row per claim and system (in :func:`check_claims` order): ``claim``, ``system`` and
-        the values where it holds, does not hold and is not evaluable (``holds_at``,
-        ``fails_at``, ``not_evaluable_at``: ascending tuples).
+    ``summaries`` maps each value to the summary of its runs; the columns ``holds_at``,
+    ``fails_at`` and ``not_evaluable_at`` hold ascending tuples.
     """
     table = pd.concat(
         [claims_table(check_claims(summaries[v])).assign(value=v) for v in sorted(summaries)]

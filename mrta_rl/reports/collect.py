@@ -149,14 +149,7 @@ class Collection:
 
 
 def read_curve(path: Path) -> tuple[tuple[int, float], ...]:
-    """Rows ``(env_ticks, team_return_mean)`` of a curve.csv (``()`` if absent or header-only).
-
-    Args:
-        path: The curve.csv file (columns of ``mrta_rl.metrics.CURVE_COLUMNS``).
-
-    Returns:
-        The rows in file order.
-    """
+    """Rows ``(env_ticks, team_return_mean)`` of a curve.csv (``()`` if absent or header-only)."""
     if not path.is_file():
         return ()
     with path.open(newline="") as handle:
@@ -177,17 +170,7 @@ def config_value(config: dict[str, Any], dotted: str) -> Any:
 
 
 def load_run(run_dir: Path) -> RunRecord:
-    """Read one run dir.
-
-    Args:
-        run_dir: Folder holding metrics.json (and curve.csv, .hydra/ if written by Hydra).
-
-    Returns:
-        The record.
-
-    Raises:
-        RunDirError: if metrics.json is damaged (naming the file and key).
-    """
+    """Read one run dir."""
     metrics = read_metrics(run_dir / METRICS_FILE)
     config = _load_yaml(run_dir / CONFIG_FILE) or {}
     overrides = _load_yaml(run_dir / CONFIG_FILE.with_name("overrides.yaml")) or []
@@ -225,13 +208,8 @@ def _setting_name(key: str) -> str:
 def configuration_variants(records: Sequence[RunRecord]) -> list[str]:
     """What sets each run's configuration apart from the other runs of its learner and system.
 
-    Args:
-        records: Runs with their configs.
-
-    Returns:
-        Per run, ``"name=value ..."`` of the settings whose values differ among the runs of its
-        ``(learner, system)`` (seed and :data:`NOT_CONFIGURATION` aside), in config order;
-        ``""`` when nothing differs.
+    Per run, ``"name=value ..."`` of the settings that differ among the runs of its ``(learner,
+    system)`` (seed and :data:`NOT_CONFIGURATION` aside), in config order; ``""`` if none.
     """
     flat = [_flatten(r.config) for r in records]
     variants = [""] * len(records)
@@ -306,12 +284,7 @@ def refused_jobs(sweep_dir: Path) -> dict[frozenset[str], str]:
 def expected_sweep_jobs(multirun_yaml: Path) -> list[list[str]] | None:
     """The job list Hydra's BasicSweeper built for a multirun, in job-number order.
 
-    Args:
-        multirun_yaml: The sweep's ``multirun.yaml``.
-
-    Returns:
-        One override list per job, or None if the sweep was not run by the BasicSweeper (another
-        sweeper plugin builds its jobs differently).
+    None if another sweeper plugin ran the sweep: it builds its jobs differently.
     """
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
@@ -373,17 +346,7 @@ def _job_dirs(sweep_dir: Path) -> dict[frozenset[str], Path]:
 
 
 def collect_runs(inputs: Iterable[Path | str]) -> Collection:
-    """Gather the runs below the inputs and list the expected jobs that left no results.
-
-    Args:
-        inputs: Multirun dirs, run dirs, or folders holding run dirs.
-
-    Returns:
-        The collection (runs sorted by learner, system, seed).
-
-    Raises:
-        ReportInputError: if an input does not exist.
-    """
+    """Gather the runs below the inputs and list the expected jobs that left no results."""
     paths = [Path(p) for p in inputs]
     for path in paths:
         if not path.exists():

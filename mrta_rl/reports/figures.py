@@ -62,20 +62,7 @@ def grouped_bars(
     path: Path,
     colors: Colors,
 ) -> Path:
-    """Bars of a percentage per item (task type, robot), one per learner, 95 % CI error bars.
-
-    Args:
-        summary: The summary rows of one system and one metric (and priority).
-        metric: The metric drawn (its items are the groups on the x axis).
-        title: Figure title.
-        xlabel: X axis label.
-        ylabel: Y axis label (with unit).
-        path: PNG to write.
-        colors: Learner -> color.
-
-    Returns:
-        ``path``.
-    """
+    """Bars of a percentage per item (task type, robot), one per learner, 95 % CI error bars."""
     rows = summary[summary["metric"] == metric]
     means = rows.pivot(index="item", columns="learner", values="mean")
     learners, items = list(dict.fromkeys(rows["learner"])), list(dict.fromkeys(rows["item"]))
@@ -164,18 +151,7 @@ def curve_figure(
     path: Path,
     colors: Colors,
 ) -> Path:
-    """Learning curves of one system: team return per training episode against env ticks.
-
-    Args:
-        curves: Learner -> (label, curve summary), for learners that train.
-        greedy: The greedy baseline's evaluation return on this system (reference line).
-        system: System name.
-        path: PNG to write.
-        colors: Learner -> color.
-
-    Returns:
-        ``path``.
-    """
+    """Learning curves of one system: team return per training episode against env ticks."""
     fig = Figure(figsize=(7.5, 4.6))
     ax = fig.add_subplot()
     for name, (label, c) in curves.items():
@@ -310,13 +286,6 @@ def difference_bars(
     """Horizontal bars of paired differences with 95 % intervals, one panel each.
 
     Green: the interval is above zero, red: below, gray: it holds zero.
-
-    Args:
-        panels: ``(title, x axis label, [(bar label, difference)])`` per panel.
-        path: PNG to write.
-
-    Returns:
-        ``path``.
     """
     height = max(len(items) for _, _, items in panels) * 0.45 + 1.4
     # long labels (``semi-CQL [state=slots ...]``) need room: about 0.065 inch a character

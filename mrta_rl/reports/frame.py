@@ -88,14 +88,7 @@ def _rows(run: RunRecord) -> Iterable[tuple[Any, ...]]:
 
 
 def long_table(runs: Sequence[RunRecord]) -> pd.DataFrame:
-    """The long table of the runs (module docstring), runs in the given order.
-
-    Args:
-        runs: Finished runs.
-
-    Returns:
-        One row per run and metric value; ``value`` keeps None for an undefined metric.
-    """
+    """The long table of the runs (module docstring), runs in the given order."""
     records = []
     for i, run in enumerate(runs):
         learner = run.metrics.get("learner")
@@ -150,15 +143,9 @@ def _derived(frame: pd.DataFrame) -> pd.DataFrame:
 def summarize(frame: pd.DataFrame) -> pd.DataFrame:
     """Mean and 95 % t interval over seeds of every metric of every ``(system, learner)`` cell.
 
-    Args:
-        frame: The long table (:func:`long_table`).
-
-    Returns:
-        One row per cell and metric value: the cell's columns (``learner``, ``label``, ``name``,
-        ``system``, ``seeds`` = number of runs), ``metric``, ``item``, ``priority``, ``types``, the
-        :data:`STATS` (NaN where undefined), ``first`` (the first seed's value, an exact int for
-        the learning space) and ``stat`` (the :class:`MeanCI`). Cells ordered by
-        system, then learner (:func:`order_learners`); metrics in the order of the runs.
+    One row per cell and metric value: the cell's columns, ``seeds``, the metric's, the
+    :data:`STATS`, ``first`` (the first seed's value: an exact int for the learning space) and
+    ``stat`` (the :class:`MeanCI`); cells by system, then :func:`order_learners`.
     """
     full = pd.concat([frame, _derived(frame)], ignore_index=True)
     systems = order_systems(full["system"])
@@ -227,12 +214,6 @@ def summarize_curve(runs: Sequence[RunRecord]) -> CurveSummary | None:
 
     Seeds of one config log at the same env ticks; if their lengths differ (an interrupted run),
     the common prefix is kept so every point averages the same seeds.
-
-    Args:
-        runs: Runs of one learner on one system.
-
-    Returns:
-        The summary, or None if no run has a curve (fixed policies do not train).
     """
     curves = [r.curve for r in runs if r.curve]
     if not curves:

@@ -102,19 +102,7 @@ def _setup_markdown(runs: Sequence[RunRecord], summary: pd.DataFrame) -> str:
 
 
 def build_report(inputs: Iterable[Path | str], out_dir: Path | str | None = None) -> ReportFiles:
-    """Collect the runs under ``inputs`` and write the report, CSVs and figures to ``out_dir``.
-
-    Args:
-        inputs: A multirun dir, run dirs, or folders holding run dirs.
-        out_dir: Output folder; default :func:`default_out_dir`.
-
-    Returns:
-        The files written.
-
-    Raises:
-        ReportInputError: if an input does not exist or no finished run is found.
-        RunDirError: if a run's metrics.json is damaged.
-    """
+    """Collect the runs under ``inputs`` and write the report, CSVs and figures to ``out_dir``."""
     inputs = [Path(p) for p in inputs]
     collection = collect_runs(inputs)
     if not collection.runs:

@@ -109,10 +109,6 @@ def study_points(runs: Sequence[RunRecord], inputs: Sequence[Path]) -> pd.DataFr
 
     A refused run is a dir with ``refused.json`` (``{"learner", "system", "seed", "reason"}``)
     and no metrics.json; its swept values come from its ``.hydra/config.yaml``.
-
-    Returns:
-        Columns :data:`STUDY_COLUMNS` (``refused``: ``"refused: <reason>"`` or ``""``) and
-        ``task``.
     """
     points = [_point(r.label, r.name, r.system, r.seed, r.config, r.metrics, "") for r in runs]
     found = {p.parent.resolve() for path in inputs for p in Path(path).rglob(REFUSED_FILE)}
@@ -255,12 +251,7 @@ def dimension_claims(runs: Sequence[RunRecord], dim: str) -> str:
 
 
 def field_statistics(points: pd.DataFrame) -> pd.DataFrame:
-    """IQM per series and probability of improvement per ordered pair of series.
-
-    Returns:
-        Columns :data:`FIELD_STATS_HEADER` and ``estimate`` (the :class:`Estimate`): the IQM
-        rows (``y`` empty), then P(X > Y) over the tasks both series ran.
-    """
+    """IQM per series, then P(X > Y) per ordered pair of series over the tasks both ran."""
     scored = points[(points["refused"] == "") & points["return_vs_greedy"].notna()]
     names = order_series(points[points["refused"] == ""])
     by_series = {
@@ -325,16 +316,7 @@ def profile_figure(points: pd.DataFrame, path: Path, colors: dict) -> Path | Non
 def study_sections(
     runs: Sequence[RunRecord], inputs: Sequence[Path], out: Path
 ) -> tuple[str, dict[str, Path]]:
-    """The field-statistics section and one section per swept dimension, with files.
-
-    Args:
-        runs: Finished runs of the report.
-        inputs: The report's inputs (searched for refused runs).
-        out: Output folder.
-
-    Returns:
-        Markdown (to append to report.md) and the files written (CSV and PNG) by stem.
-    """
+    """The field-statistics section and one section per swept dimension, with files."""
     points = study_points(runs, inputs)
     colors = figures.learner_colors(order_series(points))
     colors |= {f"{n} ({k})": c for n, c in list(colors.items()) for k in ("visited", "parameters")}

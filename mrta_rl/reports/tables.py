@@ -24,15 +24,7 @@ STAT_COLUMNS |= {"low": "ci_low", "high": "ci_high"}
 
 
 def markdown_table(header: Sequence[str], rows: Iterable[Sequence[Any]]) -> str:
-    """A GitHub markdown table: text left-aligned, numeric columns (but the first) right-aligned.
-
-    Args:
-        header: Column titles.
-        rows: Cell values (converted with ``str``; ``|`` escaped).
-
-    Returns:
-        The table, lines joined by newlines.
-    """
+    """A GitHub markdown table: text left-aligned, numeric columns (but the first) right-aligned."""
     rows = [[str(v).replace("|", "\\|") for v in row] for row in rows]
     numeric = [i > 0 and all(_NUMERIC.match(row[i]) for row in rows) for i in range(len(header))]
     lines = ["| " + " | ".join(str(h).replace("|", "\\|") for h in header) + " |"]
@@ -65,15 +57,7 @@ def _stats(rows: pd.DataFrame, *keys: str) -> pd.DataFrame:
 
 
 def csv_tables(frame: pd.DataFrame, summary: pd.DataFrame) -> dict[str, pd.DataFrame]:
-    """The report's CSV tables by stem: runs, ctr, itr, team_return, group_return, learning_space.
-
-    Args:
-        frame: The long table of the runs.
-        summary: Its summary over seeds.
-
-    Returns:
-        ``stem -> table``; rows in the summary's cell order.
-    """
+    """The CSV tables by stem: runs, ctr, itr, team_return, group_return, learning_space."""
     ctr = _cell_sorted(_metric(summary, "ctr"))
     cells = _metric(summary, "team_return").set_index(["system", "learner"])
 

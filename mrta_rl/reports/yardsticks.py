@@ -102,11 +102,7 @@ def _per_episode(block: dict[str, Any]) -> np.ndarray:
 
 
 def with_reevaluation(run: RunRecord) -> RunRecord:
-    """The run scored on its re-evaluation (``eval_metrics.json``) if it has one.
-
-    Raises:
-        ValueError: if ``eval_metrics.json`` is not a re-evaluation (names the file and the key).
-    """
+    """The run scored on its re-evaluation (``eval_metrics.json``) if it has one."""
     path = Path(run.run_dir) / EVAL_METRICS_FILE
     if not path.is_file():
         return run
@@ -137,9 +133,6 @@ def _check_same_streams(runs: Sequence[RunRecord], greedy: dict[str, RunRecord])
     evaluated on the same task streams exactly when their greedy returns agree episode by
     episode; pairing runs on other streams (another ``eval.seed`` or ``eval.batch_size``) would
     be silently wrong.
-
-    Raises:
-        UserError: naming the two run dirs.
     """
     for run in runs:
         reference = greedy[run.system]
@@ -172,13 +165,6 @@ def collect_policies(runs: Sequence[RunRecord]) -> dict[str, list[Policy]]:
     """Group the runs into policies per system (module docstring); ``{}`` if nothing to compare.
 
     The section applies when the runs hold a yardstick rule or an untrained learner.
-
-    Args:
-        runs: Every finished run (duplicates included: the settings of a team_reserve grid are
-            told apart by their config).
-
-    Returns:
-        ``{system: [greedy, best team_reserve, rollout, learners...]}``.
     """
     if not any(r.name in RULES or _kind(r) == "untrained" for r in runs):
         return {}
@@ -407,15 +393,7 @@ def section_markdown(
 
 
 def write_section(runs: Sequence[RunRecord], out_dir: Path) -> tuple[str, dict[str, Path]]:
-    """Build the section: markdown, ``yardsticks*.csv`` and ``yardsticks*.png``.
-
-    Args:
-        runs: Every finished run, duplicates included.
-        out_dir: The report folder.
-
-    Returns:
-        The markdown (``""`` if the runs hold nothing to compare) and the files written.
-    """
+    """The section's markdown (``""`` if nothing to compare) and its CSV and PNG files."""
     by_system = collect_policies(runs)
     if not by_system:
         return "", {}
