@@ -62,31 +62,17 @@ class ReportInputError(UserError):
 
 @dataclass(frozen=True)
 class RunRecord:
-    """One finished run.
-
-    Attributes:
-        run_dir: The run's folder.
-        learner: Learner name (yaml stem), from metrics.json, followed by the settings that set
-            its configuration apart from the other runs of that learner and system
-            (``subg_reserve reserve=1 hold_level=0``, see the module docstring).
-        system: System name (``system1``...), from metrics.json.
-        seed: Run seed, from metrics.json.
-        metrics: The whole metrics.json.
-        curve: Training curve rows ``(env_ticks, team_return_mean)``; empty for fixed policies.
-        config: The run's ``.hydra/config.yaml`` as a plain dict (``{}`` if absent).
-        overrides: The job's ``.hydra/overrides.yaml`` (``()`` if absent).
-        variant: What sets the configuration apart (``reserve=1 hold_level=0``), or ``""``.
-    """
+    """One finished run; ``learner`` is its configuration (``subg_reserve reserve=1``)."""
 
     run_dir: Path
     learner: str
     system: str
     seed: int
-    metrics: dict[str, Any]
-    curve: tuple[tuple[int, float], ...]
-    config: dict[str, Any]
-    overrides: tuple[str, ...]
-    variant: str = ""
+    metrics: dict[str, Any]  # the whole metrics.json
+    curve: tuple[tuple[int, float], ...]  # (env_ticks, team_return_mean); () for fixed policies
+    config: dict[str, Any]  # .hydra/config.yaml ({} if absent)
+    overrides: tuple[str, ...]  # .hydra/overrides.yaml
+    variant: str = ""  # what sets the configuration apart (reserve=1), or ""
 
     @property
     def name(self) -> str:
@@ -108,16 +94,7 @@ class RunRecord:
 
 @dataclass(frozen=True)
 class MissingJob:
-    """A job of the expected grid without metrics.json.
-
-    Attributes:
-        learner: Learner name of the job.
-        system: System name of the job.
-        seed: Seed of the job (None if not determinable).
-        overrides: The job's overrides (empty for a hole in a hand-made set of runs).
-        job_dir: The job's dir if it exists (a failed job), else None (never started).
-        reason: Short human-readable cause.
-    """
+    """A job of the expected grid without metrics.json (``job_dir`` None: never started)."""
 
     learner: str
     system: str
@@ -129,16 +106,7 @@ class MissingJob:
 
 @dataclass
 class Collection:
-    """Everything the report is built from.
-
-    Attributes:
-        inputs: The paths given.
-        runs: Finished runs, one per ``(learner, system, seed)``.
-        missing: Expected jobs without results.
-        duplicates: Runs dropped because another run had the same ``(learner, system, seed)``.
-        expected_jobs: Size of the expected grid.
-        sweep_source: How the expected grid was found (``multirun.yaml`` path or ``"runs found"``).
-    """
+    """Everything the report is built from; a duplicate repeats a kept run's configuration, seed."""
 
     inputs: list[Path]
     runs: list[RunRecord] = field(default_factory=list)

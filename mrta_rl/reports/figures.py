@@ -199,17 +199,10 @@ def team_return_figure(summary: pd.DataFrame, path: Path, colors: Colors) -> Pat
 
 @dataclass(frozen=True)
 class SweepPanel:
-    """One panel of a sweep figure: a value per series against a swept parameter.
+    """One panel of a sweep figure: per series a table ``x, mean, low, high``.
 
-    Attributes:
-        title: Panel title.
-        lines: Series -> table with columns ``x``, ``mean``, ``low``, ``high``. A series named
-            ``"... (visited)"`` is drawn dashed, ``"... (parameters)"`` dotted.
-        xlabel: X axis label.
-        ylabel: Y axis label.
-        log_x: Log-scale x axis (team sizes 10 to 200).
-        log_y: Log-scale y axis.
-        reference: A horizontal reference line (0.0 = greedy's return), or None.
+    A series named ``... (visited)`` is drawn dashed, ``... (parameters)`` dotted; ``reference``
+    is a horizontal line (0.0: greedy's return).
     """
 
     title: str

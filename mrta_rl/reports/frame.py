@@ -192,15 +192,7 @@ def stat(summary: pd.DataFrame, metric: str, item: str = "", priority: str = "")
 
 @dataclass(frozen=True)
 class CurveSummary:
-    """Learning curve of one learner on one system over seeds.
-
-    Attributes:
-        env_ticks: Training copy-ticks at the end of each episode (x axis).
-        mean: Mean team return per episode over seeds at each point.
-        low: Lower end of the 95 % interval (equal to the mean with one seed).
-        high: Upper end of the 95 % interval.
-        seeds: Number of seeds.
-    """
+    """Learning curve of one learner on one system over seeds."""
 
     env_ticks: np.ndarray
     mean: np.ndarray

@@ -8,12 +8,12 @@
 * ``runs.csv`` (one row per run), ``ctr.csv``, ``itr.csv``, ``team_return.csv``,
   ``group_return.csv``, ``learning_space.csv``, ``claims.csv``, ``missing.csv``,
   ``field_stats.csv`` (IQM and probability of improvement), ``study.csv`` (runs of a swept
-  dimension), ``yardsticks*.csv`` (``reports/yardsticks.py``);
+  dimension), ``yardsticks*.csv`` (``reports/experiments.py``);
 * ``marl_eval.json``: the evaluation returns in marl-eval's format (``reports/marl_eval.py``);
 * ``ctr_<system>_L.png``, ``ctr_<system>_H.png`` (paper Figures 1-4), ``itr_<system>.png``
   (Figures 5-6), ``curve_<system>.png`` (learning curves, for learners that train) and
   ``team_return.png``, ``performance_profile.png`` and, for a swept team size or task-switch
-  cost, ``team_size_*.png`` / ``switch_ticks_return.png`` (see ``reports/studies.py``).
+  cost, ``team_size_*.png`` / ``switch_ticks_return.png`` (see ``reports/experiments.py``).
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from mrta_rl.reports import figures, marl_eval, studies, tables, yardsticks
+from mrta_rl.reports import experiments, figures, marl_eval, tables
 from mrta_rl.reports.claims import FAILS, HOLDS, NOT_EVALUABLE, check_claims, claims_table
 from mrta_rl.reports.collect import (
     Collection,
@@ -46,16 +46,7 @@ SETUP_KEYS = ("env.horizon", "train.episodes", "train.batch_size", "eval.episode
 
 @dataclass
 class ReportFiles:
-    """What :func:`build_report` wrote.
-
-    Attributes:
-        out_dir: The output folder.
-        report: Path of report.md.
-        csvs: CSV files by stem.
-        figures: PNG files by stem.
-        collection: The runs and missing jobs the report was made from.
-        marl_eval: The marl-eval JSON of the runs.
-    """
+    """What :func:`build_report` wrote."""
 
     out_dir: Path
     report: Path
@@ -111,7 +102,7 @@ def build_report(inputs: Iterable[Path | str], out_dir: Path | str | None = None
             f"no finished run (metrics.json) under {[str(p) for p in inputs]}{missing}"
         )
     # the yardstick runs are checked (re-evaluations, same task streams) before anything is written
-    yardsticks.collect_policies([*collection.runs, *collection.duplicates])
+    experiments.collect_policies([*collection.runs, *collection.duplicates])
     out = Path(out_dir) if out_dir is not None else default_out_dir(inputs)
     out.mkdir(parents=True, exist_ok=True)
     files = ReportFiles(out_dir=out, report=out / REPORT_FILE, collection=collection)
@@ -156,10 +147,10 @@ def build_report(inputs: Iterable[Path | str], out_dir: Path | str | None = None
     )
 
     # "Learning against the rules": every run counts, the settings of a rule grid included
-    rules_md, rules_files = yardsticks.write_section(
+    rules_md, rules_files = experiments.write_section(
         [*collection.runs, *collection.duplicates], out
     )
-    study_md, study_files = studies.study_sections(collection.runs, inputs, out)
+    study_md, study_files = experiments.study_sections(collection.runs, inputs, out)
     for stem, path in {**rules_files, **study_files}.items():
         (files.figures if path.suffix == ".png" else files.csvs)[stem] = path
     files.marl_eval = marl_eval.write_marl_eval(collection.runs, out)

@@ -35,14 +35,7 @@ def t_quantile(df: int, confidence: float = CONFIDENCE) -> float:
 
 @dataclass(frozen=True)
 class MeanCI:
-    """Mean over seeds with its 95 % t interval.
-
-    Attributes:
-        n: Number of values (seeds) that had a value.
-        mean: Their mean; NaN if ``n == 0``.
-        ci95: Half-width of the interval; NaN if ``n < 2`` (no spread to estimate).
-        std: Sample standard deviation (``ddof=1``); NaN if ``n < 2``.
-    """
+    """Mean over seeds with its 95 % t interval (half-width ``ci95``, NaN below two values)."""
 
     n: int
     mean: float
@@ -97,14 +90,7 @@ IQM_CUT = 0.25  # interquartile mean: drop the lowest and highest 25 % of the ru
 
 @dataclass(frozen=True)
 class Estimate:
-    """A point estimate with its 95 % stratified bootstrap (percentile) interval.
-
-    Attributes:
-        value: The statistic on the data; NaN without data.
-        low: Lower end of the interval; NaN if undefined (a task with fewer than 2 runs).
-        high: Upper end of the interval.
-        n: Number of runs (all tasks).
-    """
+    """A point estimate with its 95 % stratified bootstrap (percentile) interval over ``n`` runs."""
 
     value: float
     low: float
@@ -205,14 +191,7 @@ def probability_of_improvement(
 
 @dataclass(frozen=True)
 class Profile:
-    """Performance profile: fraction of runs scoring above each threshold ``tau``.
-
-    Attributes:
-        tau: The thresholds.
-        fraction: Mean over tasks of the fraction of the task's runs with a score > tau.
-        low: Lower end of the 95 % stratified bootstrap band (NaN if undefined).
-        high: Upper end of the band.
-    """
+    """Performance profile: fraction of runs scoring above each threshold ``tau``."""
 
     tau: Any
     fraction: Any
