@@ -64,20 +64,14 @@ PROFILE_POINTS = 101  # thresholds of a performance profile
 STUDY_COLUMNS = ["series", "learner", "system", *DIMENSIONS, "team_seed", "seed"]
 STUDY_COLUMNS += ["return_vs_greedy", "team_return", "space_analytic", "space_visited"]
 STUDY_COLUMNS += ["parameters", "wall_s", "peak_rss_mb", "refused"]
+BLOCKS = ("eval", "baseline_greedy")  # a run's evaluation, and greedy's on the same streams
 FIELD_STATS_HEADER = ["statistic", "x", "y", "value", "ci_low", "ci_high", "n_runs"]
 
 
-def _point(
-    label: str,
-    learner: str,
-    system: str,
-    seed: int,
-    config: dict[str, Any],
-    metrics: dict[str, Any],
-    refused: str,
-) -> dict[str, Any]:
-    ret = ((metrics.get("eval") or {}).get("team_return") or {}).get("mean")
-    greedy = ((metrics.get("baseline_greedy") or {}).get("team_return") or {}).get("mean")
+def _point(cell: tuple, config: dict[str, Any], metrics: dict[str, Any], refused: str) -> dict:
+    """One study row; ``cell`` is ``(label, learner, system, seed)``."""
+    label, learner, system, seed = cell
+    ret, greedy = (((metrics.get(k) or {}).get("team_return") or {}).get("mean") for k in BLOCKS)
     greedy = None if greedy is None else float(greedy)
     resources = metrics.get("resources") or {}
     wall = resources.get("wall_s", (metrics.get("train") or {}).get("wall_s"))
@@ -113,7 +107,7 @@ def study_points(runs: Sequence[RunRecord], inputs: Sequence[Path]) -> pd.DataFr
     A refused run is a dir with ``refused.json`` (``{"learner", "system", "seed", "reason"}``)
     and no metrics.json; its swept values come from its ``.hydra/config.yaml``.
     """
-    points = [_point(r.label, r.name, r.system, r.seed, r.config, r.metrics, "") for r in runs]
+    points = [_point((r.label, r.name, r.system, r.seed), r.config, r.metrics, "") for r in runs]
     found = {p.parent.resolve() for path in inputs for p in Path(path).rglob(REFUSED_FILE)}
     found |= {Path(p).resolve() for p in inputs if (Path(p) / REFUSED_FILE).is_file()}
     for run_dir in sorted(found):
@@ -122,12 +116,9 @@ def study_points(runs: Sequence[RunRecord], inputs: Sequence[Path]) -> pd.DataFr
         record = read_json(run_dir / REFUSED_FILE)
         path = run_dir / CONFIG_FILE
         config = OmegaConf.to_container(OmegaConf.load(path)) if path.is_file() else {}
-        learner, seed = (
-            str(record.get("learner", "?")),
-            int(record.get("seed", config.get("seed", 0))),
-        )
-        system, reason = str(record.get("system", "?")), refusal_reason(run_dir)
-        points.append(_point(learner, learner, system, seed, config, {}, reason or ""))
+        learner, system = str(record.get("learner", "?")), str(record.get("system", "?"))
+        cell = (learner, learner, system, int(record.get("seed", config.get("seed", 0))))
+        points.append(_point(cell, config, {}, refusal_reason(run_dir) or ""))
     # objects, not floats: the CSV keeps ints as ints and an absent setting empty
     return pd.DataFrame(points, columns=[*STUDY_COLUMNS, "task"], dtype=object)
 
@@ -187,44 +178,41 @@ def dimension_figures(points: pd.DataFrame, dim: str, out: Path, colors: dict) -
         return {s: line for s, line in lines.items() if line is not None}
 
     returns = [
-        figures.SweepPanel(
+        figures.Panel(
             f"{system_label(system)}: team return relative to greedy",
             panel(finished[finished["system"] == system], "return_vs_greedy"),
             label,
             "(R - greedy) / |greedy| (mean, 95% CI)",
             log_x=log_x,
-            reference=0.0,
+            hline=(0.0, "greedy"),
         )
         for system in dict.fromkeys(finished["system"])
     ]
-    written = {f"{stem}_return": figures.sweep_figure(returns, out / f"{stem}_return.png", colors)}
+    written = {f"{stem}_return": figures.line_figure(returns, out / f"{stem}_return.png", colors)}
     if dim != "system.n_robots":
         return written
-    for key, column in (("analytic", "space_analytic"), ("visited", "space_visited")):
-        finished[f"log_{key}"] = [
+    space = {}
+    for column, suffix in (("space_analytic", ""), ("space_visited", " (visited)")) + (
+        ("parameters", " (parameters)"),
+    ):
+        finished[f"log_{column}"] = [
             math.log10(int(v)) if v != "" and int(v) > 0 else math.nan for v in finished[column]
         ]
-    finished["log_parameters"] = [
-        math.log10(int(v)) if v != "" and int(v) > 0 else math.nan for v in finished["parameters"]
-    ]
-    space = panel(finished, "log_analytic")
-    space |= panel(finished, "log_visited", " (visited)") | panel(
-        finished, "log_parameters", " (parameters)"
-    )
+        space |= panel(finished, f"log_{column}", suffix)
     title = "learning space: analytic dimension, entries visited, network parameters"
-    written[f"{stem}_space"] = figures.sweep_figure(
-        [figures.SweepPanel(title, space, label, "log10 of the size", log_x=log_x)],
+    written[f"{stem}_space"] = figures.line_figure(
+        [figures.Panel(title, space, label, "log10 of the size", log_x=log_x)],
         out / f"{stem}_space.png",
         colors,
     )
     costs = [
-        figures.SweepPanel(title, panel(finished, key), label, unit, log_x=log_x, log_y=True)
+        figures.Panel(title, panel(finished, key), label, unit, log_x=log_x, log_y=True)
         for title, key, unit in (
             ("wall time per run", "wall_s", "seconds"),
             ("peak memory per run", "peak_rss_mb", "peak RSS (MiB)"),
         )
     ]
-    written[f"{stem}_cost"] = figures.sweep_figure(costs, out / f"{stem}_cost.png", colors)
+    written[f"{stem}_cost"] = figures.line_figure(costs, out / f"{stem}_cost.png", colors)
     return written
 
 
@@ -241,11 +229,12 @@ def dimension_claims(runs: Sequence[RunRecord], dim: str) -> str:
             plain = dataclasses.replace(run, learner=run.name, variant="")
             by_value.setdefault(value, []).append(plain)
     along = claims_along({v: summarize(long_table(by_value[v])) for v in by_value})
+    where = ("holds_at", "fails_at", "not_evaluable_at")
     rows = [
-        [r.claim, system_label(r.system)]
-        + [
-            ", ".join(map(str, getattr(r, k))) or "none"
-            for k in ("holds_at", "fails_at", "not_evaluable_at")
+        [
+            r.claim,
+            system_label(r.system),
+            *(", ".join(map(str, getattr(r, k))) or "none" for k in where),
         ]
         for r in along.itertuples()
     ]
@@ -308,12 +297,20 @@ def profile_figure(points: pd.DataFrame, path: Path, colors: dict) -> Path | Non
         return None
     low, high = scored["return_vs_greedy"].min(), scored["return_vs_greedy"].max()
     tau = np.linspace(low - 0.01, high + 0.01, PROFILE_POINTS)
-    profiles = {
-        s: performance_profile(rows.groupby("task", sort=False)["return_vs_greedy"].agg(list), tau)
-        for s in order_series(scored)
-        if not (rows := scored[scored["series"] == s]).empty
-    }
-    return figures.profile_figure(profiles, path, colors)
+    lines = {}
+    for s in order_series(scored):
+        tasks = scored[scored["series"] == s].groupby("task", sort=False)["return_vs_greedy"]
+        p = performance_profile(tasks.agg(list), tau)
+        lines[s] = pd.DataFrame({"x": p.tau, "mean": p.fraction, "low": p.low, "high": p.high})
+    panel = figures.Panel(
+        "Performance profiles (95% stratified bootstrap bands)",
+        lines,
+        "team return relative to greedy's, (R - G) / |G| (tau)",
+        "fraction of runs with score > tau",
+        vline=(0.0, "greedy's return"),
+        ylim=(-0.02, 1.02),
+    )
+    return figures.line_figure([panel], path, colors, size=(7.5, 4.6))
 
 
 def study_sections(

@@ -18,6 +18,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 from collections.abc import Iterable, Sequence
@@ -124,23 +125,29 @@ def build_report(inputs: Iterable[Path | str], out_dir: Path | str | None = None
 
     colors = figures.learner_colors(list(dict.fromkeys(summary["learner"])))
     for system, rows in summary.groupby("system", sort=False):
-        for p in ("L", "H"):
-            stem = f"ctr_{system}_{p}"
-            files.figures[stem] = figures.ctr_figure(
-                rows[rows["metric"] == "ctr"], p, _png(out, stem), colors
-            )
-        files.figures[f"itr_{system}"] = figures.itr_figure(
-            rows, _png(out, f"itr_{system}"), colors
-        )
-        curves = {}
+        for stem, part in (("L", rows["priority"] == "L"), ("H", rows["priority"] == "H")):
+            stem = f"ctr_{system}_{stem}"
+            files.figures[stem] = figures.grouped_bars(rows[part], "ctr", _png(out, stem), colors)
+        stem = f"itr_{system}"
+        files.figures[stem] = figures.grouped_bars(rows, "itr", _png(out, stem), colors)
+        lines, line_colors = {}, {}
         for learner, label in dict(zip(rows["learner"], rows["label"], strict=True)).items():
             mine = [r for r in collection.runs if r.system == system and r.learner == learner]
-            if (curve := summarize_curve(mine)) is not None:
-                curves[learner] = (label, curve)
-        if curves:
+            if (c := summarize_curve(mine)) is not None:
+                name = f"{label} ({c.seeds} seed{'s' if c.seeds != 1 else ''})"
+                line_colors[name] = colors[learner]
+                lines[name] = pd.DataFrame({"x": c.env_ticks, "mean": c.mean, "low": c.low})
+                lines[name]["high"] = c.high
+        if lines:
             greedy = [s for s in rows[rows["metric"] == "greedy_team_return"]["stat"] if s.n]
-            files.figures[f"curve_{system}"] = figures.curve_figure(
-                curves, greedy[0] if greedy else None, system, _png(out, f"curve_{system}"), colors
+            title = f"{system_label(system)}: learning curves (mean and 95% CI band over seeds)"
+            xlabel = "training env ticks (ticks x parallel copies)"
+            panel = figures.Panel(title, lines, xlabel, "team return per episode")
+            if greedy:
+                panel = dataclasses.replace(panel, hline=(greedy[0].mean, "greedy (evaluation)"))
+            stem = f"curve_{system}"
+            files.figures[stem] = figures.line_figure(
+                [panel], _png(out, stem), line_colors, (7.5, 4.6)
             )
     files.figures["team_return"] = figures.team_return_figure(
         summary, out / "team_return.png", colors
