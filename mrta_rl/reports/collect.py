@@ -1,27 +1,13 @@
 """Collect finished runs (metrics.json, curve.csv) and the jobs a sweep expected but lost.
 
-Input: a Hydra multirun dir (``multirun.yaml`` at the top, one job dir per job) or run dirs of
-``scripts/train.py`` (or folders holding them). A run is a folder with ``metrics.json``.
-
-The *expected* grid of a multirun is rebuilt as Hydra's ``BasicSweeper`` builds its job list:
-the ``hydra.sweeper.params`` of ``multirun.yaml`` followed by the command-line task overrides
-(``hydra.overrides.task``, a later key replacing an earlier one), expanded as a cartesian
-product. A job whose dir has no ``metrics.json`` (it failed: Hydra runs the remaining jobs and
-reports the error at the end, and ``train()`` writes metrics.json last and atomically) or has no
-dir at all is *missing*. Without a multirun.yaml the expected grid is the product of the learners,
-systems and seeds found, so a hole in a hand-made set of runs is reported too.
-
-Runs are told apart by their whole configuration, not only by learner, system and seed: among
-the runs of one learner on one system, every setting of ``.hydra/config.yaml`` whose value differs
-between them (the seed and the settings in :data:`NOT_CONFIGURATION` aside) makes a
-configuration of its own, named by what differs (``subg_reserve reserve=1 hold_level=0``; learner
-hyperparameters by their name, other settings by their dotted key). That name is the run's
-``learner`` in the report, so each configuration is its own row; only the same configuration with
-the same seed is a duplicate. Runs are compared on the settings their config records: a setting
-one run records and another does not differs (``null``).
-
-A run's learner is named by metrics.json's ``learner`` block (``{"name", "label", "kind"}``); a
-run that records only the learner's config choice name is labelled by that name.
+A run is a folder with ``metrics.json``; a Hydra multirun dir has one per job. The expected grid
+of a multirun is rebuilt as Hydra's ``BasicSweeper`` builds its jobs (``hydra.sweeper.params``,
+then the command-line overrides, a later key winning, as a cartesian product), so a job that
+failed or never started is *missing*; without a multirun.yaml it is the product of the
+learners, systems and seeds found. Runs are told apart by their whole configuration: among the
+runs of a learner on a system, every setting whose value differs (the seed and
+:data:`NOT_CONFIGURATION` aside) names a configuration of its own (``subg_reserve reserve=1``),
+so only the same configuration and seed is a duplicate.
 """
 
 from __future__ import annotations
@@ -51,6 +37,7 @@ from mrta_rl.run_files import (
 logger = logging.getLogger(__name__)
 
 CURVE_FILE = "curve.csv"
+FAILED = "failed or unfinished: no metrics.json (see train.log, sweep output)"
 BASIC_SWEEPER = "hydra._internal.core_plugins.basic_sweeper.BasicSweeper"
 # settings that do not change what a run computes: never part of a configuration's name
 NOT_CONFIGURATION = ("seed", "resume", "train.progress_bar", "train.checkpoint_every")
@@ -142,19 +129,12 @@ def load_run(run_dir: Path) -> RunRecord:
     metrics = read_metrics(run_dir / METRICS_FILE)
     config = _load_yaml(run_dir / CONFIG_FILE) or {}
     overrides = _load_yaml(run_dir / CONFIG_FILE.with_name("overrides.yaml")) or []
+    learner = metrics["learner"]
+    learner = str(learner["name"] if isinstance(learner, dict) else learner)
+    curve = read_curve(run_dir / CURVE_FILE)
+    seed, overrides = int(metrics["seed"]), tuple(str(o) for o in overrides)
     return RunRecord(
-        run_dir=run_dir,
-        learner=str(
-            metrics["learner"]["name"]
-            if isinstance(metrics["learner"], dict)
-            else metrics["learner"]
-        ),
-        system=str(metrics["system"]),
-        seed=int(metrics["seed"]),
-        metrics=metrics,
-        curve=read_curve(run_dir / CURVE_FILE),
-        config=config,
-        overrides=tuple(str(o) for o in overrides),
+        run_dir, learner, str(metrics["system"]), seed, metrics, curve, config, overrides
     )
 
 
@@ -236,11 +216,8 @@ def refused_jobs(sweep_dir: Path) -> dict[frozenset[str], str]:
     Such a job leaves no run dir (``runners/cli.py`` removes it); the sweep dir keeps its
     reason in ``refused_jobs.jsonl``. An unreadable line is skipped.
     """
-    path = sweep_dir / REFUSED_JOBS_FILE
-    out: dict[frozenset[str], str] = {}
-    if not path.is_file():
-        return out
-    for line in path.read_text(errors="replace").splitlines():
+    path, out = sweep_dir / REFUSED_JOBS_FILE, {}
+    for line in path.read_text(errors="replace").splitlines() if path.is_file() else []:
         try:
             record = json.loads(line)
             out[frozenset(str(o) for o in record["overrides"])] = f"refused: {record['reason']}"
@@ -274,22 +251,14 @@ def expected_sweep_jobs(multirun_yaml: Path) -> list[list[str]] | None:
     return [list(job) for job in itertools.product(*choices.values())]
 
 
-def _override_value(overrides: Sequence[str], key: str) -> str | None:
-    """Value of ``key=value`` (also ``+key=``/``++key=``) in an override list."""
-    for item in overrides:
-        name, _, value = item.partition("=")
-        if name.lstrip("+") == key:
-            return value
-    return None
-
-
 def _job_identity(job: Sequence[str], cfg: Any) -> tuple[str, str, int | None]:
     """``(learner, system, seed)`` of an expected job: its overrides, else the sweep defaults."""
+    # key=value, +key=value or ++key=value; the first of a key counts
+    given = {k.lstrip("+"): v for k, _, v in (item.partition("=") for item in reversed(job))}
     choices = OmegaConf.select(cfg, "hydra.runtime.choices", default={}) or {}
-    learner = _override_value(job, "learner") or str(choices.get("learner", "?"))
-    system = _override_value(job, "system") or str(choices.get("system", "?"))
-    seed_text = _override_value(job, "seed")
-    seed_text = seed_text if seed_text is not None else str(cfg.get("seed", ""))
+    learner = given.get("learner") or str(choices.get("learner", "?"))
+    system = given.get("system") or str(choices.get("system", "?"))
+    seed_text = given.get("seed", str(cfg.get("seed", "")))
     try:
         seed: int | None = int(seed_text)
     except ValueError:
@@ -328,14 +297,10 @@ def collect_runs(inputs: Iterable[Path | str]) -> Collection:
             record = dataclasses.replace(
                 record, learner=f"{record.learner} {variant}", variant=variant
             )
-        run_dir = record.run_dir
-        if record.key in by_key:  # e.g. a run repeated by hand; seeds must count once
-            logger.warning(
-                "%s repeats %s; keeping %s", run_dir, record.key, by_key[record.key].run_dir
-            )
+        if (kept := by_key.setdefault(record.key, record)) is not record:
+            # e.g. a run repeated by hand: a seed counts once
+            logger.warning("%s repeats %s; keeping %s", record.run_dir, record.key, kept.run_dir)
             collection.duplicates.append(record)
-            continue
-        by_key[record.key] = record
     collection.runs = sorted(by_key.values(), key=lambda r: (natural_key(r.learner), *r.key[1:]))
 
     sweeps = [p / "multirun.yaml" for p in paths if (p / "multirun.yaml").is_file()]
@@ -343,9 +308,7 @@ def collect_runs(inputs: Iterable[Path | str]) -> Collection:
     for multirun_yaml in sweeps:
         jobs = expected_sweep_jobs(multirun_yaml)
         if jobs is None:
-            logger.warning(
-                "%s: not a BasicSweeper sweep, expected grid taken from the runs", multirun_yaml
-            )
+            logger.warning("%s: not a BasicSweeper sweep, grid taken from the runs", multirun_yaml)
             continue
         expected_found = True
         collection.sweep_source = ", ".join(str(s) for s in sweeps)
@@ -357,16 +320,12 @@ def collect_runs(inputs: Iterable[Path | str]) -> Collection:
             job_dir = dirs.get(frozenset(job))
             if job_dir is not None and (job_dir / METRICS_FILE).is_file():
                 continue
-            learner, system, seed = _job_identity(job, cfg)
-            reason = (
-                refused.get(frozenset(job), "never started (no job dir)")
-                if job_dir is None
-                else refusal_reason(job_dir)
-                or "failed or unfinished: no metrics.json (see train.log, sweep output)"
-            )
-            collection.missing.append(
-                MissingJob(learner, system, seed, tuple(job), job_dir, reason)
-            )
+            if job_dir is None:
+                reason = refused.get(frozenset(job), "never started (no job dir)")
+            else:
+                reason = refusal_reason(job_dir) or FAILED
+            missing = MissingJob(*_job_identity(job, cfg), tuple(job), job_dir, reason)
+            collection.missing.append(missing)
     if not expected_found:
         learners = sorted({r.learner for r in collection.runs}, key=natural_key)
         systems = sorted({r.system for r in collection.runs})
@@ -374,7 +333,5 @@ def collect_runs(inputs: Iterable[Path | str]) -> Collection:
         collection.expected_jobs = len(learners) * len(systems) * len(seeds)
         for key in itertools.product(learners, systems, seeds):
             if key not in by_key:
-                collection.missing.append(
-                    MissingJob(*key, overrides=(), job_dir=None, reason="no run with this seed")
-                )
+                collection.missing.append(MissingJob(*key, (), None, "no run with this seed"))
     return collection

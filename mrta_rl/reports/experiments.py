@@ -591,7 +591,7 @@ def section_rows(by_system: dict[str, list[Policy]]) -> list[list[Any]]:
 
 @dataclass(frozen=True)
 class StartComparison:
-    """A trained policy against its untrained start."""
+    """A trained policy against its untrained start: paired over episodes, and over seeds."""
 
     trained: Policy
     start: Policy
@@ -715,22 +715,17 @@ def write_section(runs: Sequence[RunRecord], out_dir: Path) -> tuple[str, dict[s
     if not by_system:
         return "", {}
     files = {
-        "yardsticks": write_csv(
-            out_dir / "yardsticks.csv", pd.DataFrame(section_rows(by_system), columns=CSV_HEADER)
-        ),
-        "yardsticks_start": write_csv(
-            out_dir / "yardsticks_start.csv",
-            pd.DataFrame(start_rows(by_system), columns=START_HEADER),
-        ),
+        stem: write_csv(out_dir / f"{stem}.csv", pd.DataFrame(rows(by_system), columns=header))
+        for stem, rows, header in (
+            ("yardsticks", section_rows, CSV_HEADER),
+            ("yardsticks_start", start_rows, START_HEADER),
+        )
     }
     panels = []
     for system, policies in by_system.items():
         ref = next((p for p in policies if p.name == BEST_RESERVE), policies[0])
-        diffs = [
-            (p.name, paired_difference(p.per_episode, ref.per_episode))
-            for p in policies
-            if p is not ref
-        ]
+        others = [p for p in policies if p is not ref]
+        diffs = [(p.name, paired_difference(p.per_episode, ref.per_episode)) for p in others]
         if diffs := [(n, d) for n, d in diffs if d.n]:
             title = f"{system_label(system)}: {ref.name} = {ref.over_seeds.mean:.1f}"
             xlabel = f"paired difference to {ref.name}\n(team return per episode)"
