@@ -20,6 +20,7 @@ import pandas as pd
 
 from mrta_rl.reports.frame import stat, system_label
 from mrta_rl.reports.stats import MeanCI
+from mrta_rl.reports.tables import big_int
 
 TABULAR = ("cql", "semi_cql", "dql", "subg_cql")  # the four methods the paper compares
 A_BIT_PP = 10.0  # "a bit lower" (§6.1): at most this many percentage points lower
@@ -95,10 +96,6 @@ def _separation(pairs: Sequence[tuple[MeanCI, MeanCI]]) -> str:
 
 def _verdict(ok: bool) -> str:
     return HOLDS if ok else FAILS
-
-
-def _sci(value: int) -> str:
-    return f"{value:.3e}" if value >= 10**6 else f"{value:,}"
 
 
 def _extreme(cells: Cells, value: Callable[[str], MeanCI], target: str, lowest: bool) -> tuple:
@@ -178,14 +175,8 @@ def _itr_extreme(target: str, lowest: bool) -> Callable[[Cells], tuple[str, str,
             min(TABULAR, key=lambda n: sign * cells.get(n, "itr", r).mean) == target for r in robots
         )
         order, word = ("ascending", "lowest") if lowest else ("descending", "highest")
-        return (
-            _verdict(ok),
-            sep,
-            (
-                f"mean ITR over robots, {order}: {evidence}; "
-                f"{cells.label(target)} {word} for {per_robot}/{len(robots)} robots"
-            ),
-        )
+        count = f"{cells.label(target)} {word} for {per_robot}/{len(robots)} robots"
+        return _verdict(ok), sep, f"mean ITR over robots, {order}: {evidence}; {count}"
 
     return check
 
@@ -204,14 +195,14 @@ def _space_order(cells: Cells) -> tuple[str, str, str]:
     if any(v is None for v in dims.values()):
         return NOT_EVALUABLE, "", "a learner reports no analytic learning space"
     ok = dims["cql"] > dims["subg_cql"] > max(dims["semi_cql"], dims["dql"])
-    return _verdict(ok), "", ", ".join(f"{cells.label(n)} {_sci(dims[n])}" for n in TABULAR)
+    return _verdict(ok), "", ", ".join(f"{cells.label(n)} {big_int(dims[n])}" for n in TABULAR)
 
 
 def _space_semi_eq_dql(cells: Cells) -> tuple[str, str, str]:
     semi, dql = cells.analytic("semi_cql"), cells.analytic("dql")
     if semi is None or dql is None:
         return NOT_EVALUABLE, "", "a learner reports no analytic learning space"
-    return _verdict(semi == dql), "", f"semi-CQL {_sci(semi)}, DQL {_sci(dql)}"
+    return _verdict(semi == dql), "", f"semi-CQL {big_int(semi)}, DQL {big_int(dql)}"
 
 
 def _more_robots_higher_ctr(cells: Cells) -> tuple[str, str, str]:
@@ -232,14 +223,8 @@ def _more_robots_higher_ctr(cells: Cells) -> tuple[str, str, str]:
         r = float(np.corrcoef(counts[keep], ctr[keep])[0, 1])
         ok = ok and r > 0
         parts.append(f"{cells.label(name)} r = {r:+.2f}")
-    return (
-        _verdict(ok),
-        "",
-        (
-            "Pearson r between a type's number of capable robots and its mean L/H CTR: "
-            + ", ".join(parts)
-        ),
-    )
+    text = "Pearson r between a type's number of capable robots and its mean L/H CTR: "
+    return _verdict(ok), "", text + ", ".join(parts)
 
 
 SEMI_DQL, CQL_SUBG = ("semi_cql", "dql"), ("cql", "subg_cql")
@@ -293,8 +278,8 @@ def _system2_larger(by_system: Mapping[str, Cells]) -> ClaimResult:
             continue
         ok = ok and large > small
         parts.append(
-            f"{one.label(name)}: {system_label('system1')} {_sci(small)}, "
-            f"{system_label('system2')} {_sci(large)}"
+            f"{one.label(name)}: {system_label('system1')} {big_int(small)}, "
+            f"{system_label('system2')} {big_int(large)}"
         )
     if not parts:
         evidence = "needs a tabular learner on both system1 and system2"

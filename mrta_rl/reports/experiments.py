@@ -50,7 +50,7 @@ from mrta_rl.reports.stats import (
     performance_profile,
     probability_of_improvement,
 )
-from mrta_rl.reports.tables import image, markdown_table, signed, write_csv
+from mrta_rl.reports.tables import image, markdown_table, paragraphs, signed, write_csv
 from mrta_rl.run_files import CONFIG_FILE, EVAL_METRICS_FILE, read_json
 
 # swept setting (dotted config key) -> (axis label, file stem, log-scale x axis)
@@ -274,19 +274,17 @@ def field_statistics_markdown(stats: pd.DataFrame, points: pd.DataFrame) -> str:
         for s, e in zip(iqm["x"], iqm["estimate"], strict=True)
     ]
     header = ["learner", "tasks", "runs", "IQM of (R - greedy) / |greedy| [95% CI]"]
-    md = [markdown_table(header, rows), ""]
+    md = paragraphs(markdown_table(header, rows))
     names = list(iqm["x"])
     if len(names) >= 2:
         pairs = stats[stats["statistic"] != "iqm"].set_index(["x", "y"])["estimate"]
         matrix = [[x, *("–" if x == y else pairs[x, y].format(2) for y in names)] for x in names]
-        md += [
+        md += paragraphs(
             "Probability of improvement P(row > column) [95% CI]: the chance that a run of the "
             "row learner scores higher than a run of the column learner on the same task "
             "(ties count one half), averaged over the tasks both ran.",
-            "",
             markdown_table(["P(row > column)", *names], matrix),
-            "",
-        ]
+        )
     return "\n".join(md)
 
 
@@ -325,20 +323,16 @@ def study_sections(
     profile = profile_figure(points, out / "performance_profile.png", colors)
     if profile is not None:
         files["performance_profile"] = profile
-    md = [
+    md = paragraphs(
         "## Statistics as the field reports them (IQM, probability of improvement)",
-        "",
         "Score of a run = (R - G) / |G|, its evaluation team return R relative to greedy's G on "
         "the same task streams (0 = greedy, 0.1 = 10 % better). "
         "IQM = interquartile mean over the runs of all tasks (a task = a system under one "
         "setting and team seed); 95 % stratified bootstrap intervals (runs resampled within each "
         f"task, {BOOTSTRAP_REPS} resamples, percentile method; Agarwal et al. 2021, as rliable). "
         "Exact values: `field_stats.csv`.",
-        "",
-        field_statistics_markdown(stats, points),
-        image(profile, "Performance profiles"),
-        "",
-    ]
+    )
+    md += [field_statistics_markdown(stats, points), image(profile, "Performance profiles"), ""]
     dims = swept_dimensions(points)
     if dims:
         files["study"] = write_csv(out / "study.csv", points[STUDY_COLUMNS])
@@ -346,38 +340,32 @@ def study_sections(
         label, stem, _ = DIMENSIONS[dim]
         written = dimension_figures(points, dim, out, colors)
         files.update(written)
-        md += [
+        md += paragraphs(
             f"## Against the {label} (`{dim}`)",
-            "",
             "Team return relative to greedy (mean ± 95 % t interval over team seeds and run "
             "seeds); `refused: ...` = refused up front, with the reason. Every run: `study.csv`.",
-            "",
-        ]
+        )
         for system in dict.fromkeys(points["system"]):
-            md += [f"{system_label(system)}:", "", dimension_table(points, dim, system), ""]
-        md += [image(written.get(f"{stem}_return"), f"Team return against the {label}"), ""]
+            md += paragraphs(f"{system_label(system)}:", dimension_table(points, dim, system))
+        md += paragraphs(image(written.get(f"{stem}_return"), f"Team return against the {label}"))
         if f"{stem}_space" in written:
-            md += [
+            md += paragraphs(
                 "Learning space (log scale; solid: analytic dimension, dashed: entries visited, "
                 "dotted: network parameters), wall time and peak memory (RSS) per run:",
-                "",
                 image(written[f"{stem}_space"], "Learning space against the team size"),
-                "",
                 image(written[f"{stem}_cost"], "Wall time and memory against the team size"),
-                "",
-            ]
-        md += [
+            )
+        md += paragraphs(
             f"Claims of the paper at each value of `{dim}` (runs without a partition bound):",
-            "",
             dimension_claims(runs, dim),
-            "",
-        ]
+        )
     return "\n".join(md), files
 
 
 # ---------------------------------------------------------------- learning against the rules
 
 TITLE = "Learning against the rules"
+START_TITLE = "Does training beat its own start?"
 RULES = ("team_reserve", "rollout")  # the yardstick rules (fixed learners)
 GREEDY = "greedy"
 BEST_RESERVE = "team_reserve (best)"
@@ -652,16 +640,14 @@ def section_markdown(
     by_system: dict[str, list[Policy]], figure: Path | None, start_plot: Path | None = None
 ) -> str:
     """The section's text: one table per system, its figure, the start table and its figure."""
-    md = [
+    md = paragraphs(
         f"## {TITLE}",
-        "",
         "Each policy against its untrained starting policy (`train.episodes=0`), greedy, the "
         "best `team_reserve` setting among these runs and the `rollout` planner: mean paired "
         "difference of the evaluation return over the shared evaluation episodes ± the "
         "half-width of its 95 % t interval (**↑**: the interval is above zero, ↓: below). "
         "`return` is the mean over training seeds ± its 95 % interval over seeds.",
-        "",
-    ]
+    )
     for system, policies in by_system.items():
         sticks = _yardsticks(policies)
         header = ["policy", "seeds", "return", "vs untrained", *(f"vs {s.name}" for s in sticks)]
@@ -675,9 +661,8 @@ def section_markdown(
             start_text = _fmt(paired_difference(p.per_episode, start.per_episode)) if start else ""
             name = p.name + (f" ({p.note})" if p.note else "")
             rows.append([name, len(p.means), p.over_seeds.format(1), start_text, *versus])
-        md += [f"### {system_label(system)}", "", markdown_table(header, rows), ""]
-    if figure is not None:
-        md += [f"![{TITLE}]({figure.name})", ""]
+        md += paragraphs(f"### {system_label(system)}", markdown_table(header, rows))
+    md += paragraphs(f"![{TITLE}]({figure.name})" if figure else "")
     comparisons = start_comparisons(by_system)
     if comparisons:
         header = ["learner", "system", "untrained", "trained (seeds)"]
@@ -694,18 +679,14 @@ def section_markdown(
             ]
             for system, c in comparisons
         ]
-        md += [
-            "### Does training beat its own start?",
-            "",
+        md += paragraphs(
+            f"### {START_TITLE}",
             "Trained − untrained: paired over the evaluation episodes (their number in "
             "parentheses), and over the training seeds (each seed's mean return minus the "
             "untrained return); met: the paired interval is above zero.",
-            "",
             markdown_table(header, rows),
-            "",
-        ]
-    if start_plot is not None:
-        md += [f"![Does training beat its own start?]({start_plot.name})", ""]
+        )
+    md += paragraphs(f"![{START_TITLE}]({start_plot.name})" if start_plot else "")
     return "\n".join(md)
 
 
@@ -740,7 +721,7 @@ def write_section(runs: Sequence[RunRecord], out_dir: Path) -> tuple[str, dict[s
     ]
     start = out_dir / "yardsticks_start.png" if starts else None
     if start is not None:
-        title = "Does training beat its own start? (95 % t intervals)"
+        title = f"{START_TITLE} (95 % t intervals)"
         xlabel = "trained − untrained, paired over the evaluation episodes\n(team return)"
         files["yardsticks_start_png"] = figures.difference_bars([(title, xlabel, starts)], start)
     return section_markdown(by_system, figure, start), files

@@ -177,11 +177,6 @@ def _png(out: Path, stem: str) -> Path:
     return out / f"{stem.replace('/', '_')}.png"
 
 
-def _section(title: str, text: str, *blocks: str) -> list[str]:
-    """Markdown lines: a heading, then its text and blocks, each followed by a blank line."""
-    return [title, "", *(line for block in (text, *blocks) if block for line in (block, ""))]
-
-
 def _report_markdown(
     collection: Collection,
     frame: pd.DataFrame,
@@ -193,7 +188,7 @@ def _report_markdown(
     runs, missing, duplicates = collection.runs, collection.missing, collection.duplicates
     verdicts = [c.verdict for c in claims]
     systems = {s: rows for s, rows in summary.groupby("system", sort=False)}
-    md = _section(
+    md = tables.paragraphs(
         "# Experiment report",
         "Inputs: " + ", ".join(f"`{p}`" for p in collection.inputs),
         f"**{len(runs)} finished runs** of {collection.expected_jobs} expected "
@@ -211,7 +206,7 @@ def _report_markdown(
             for r in duplicates
         ]
         header = ["configuration", "system", "seed", "left out", "kept"]
-        md += _section(
+        md += tables.paragraphs(
             "## Duplicate runs left out",
             "Each of these runs has the configuration and seed of a run the report keeps (a seed "
             "counts once); only identical settings make a duplicate.",
@@ -230,14 +225,14 @@ def _report_markdown(
             for m in missing
         ]
         header = ["learner", "system", "seed", "reason", "job dir", "overrides"]
-        md += _section(
+        md += tables.paragraphs(
             "## Missing jobs",
             "These jobs of the expected grid left no `metrics.json`; their cells below average "
             "fewer seeds (or are absent).",
             tables.markdown_table(header, rows),
         )
-    md += _section("## Setup", _setup_markdown(runs, summary))
-    md += _section(
+    md += tables.paragraphs("## Setup", _setup_markdown(runs, summary))
+    md += tables.paragraphs(
         "## Team return against the greedy auction",
         "Evaluation team return per episode; `greedy` is the plain auction on the full task "
         "sets, evaluated on the same task streams (paired per seed for the difference).",
@@ -246,7 +241,7 @@ def _report_markdown(
     )
     groups = {s: t for s, rows in systems.items() if (t := tables.group_return_markdown(rows))}
     if groups:
-        md += _section(
+        md += tables.paragraphs(
             "### Team return by subG sub-group",
             "Every reward is a task's and each task type belongs to one sub-group, so the team "
             "return splits exactly into the parts its sub-groups' task types earn; the last row "
@@ -255,7 +250,7 @@ def _report_markdown(
         )
     if rules_md:
         md += [rules_md, ""]
-    md += _section(
+    md += tables.paragraphs(
         "## Completed task ratio (paper Tables 5-6, Figures 1-4)",
         "CTR (%) = assigned / (assigned + dropped) per task type and priority; `all` pools the "
         "counts over types.",
@@ -266,28 +261,28 @@ def _report_markdown(
             image = tables.image(
                 files.figures.get(f"ctr_{system}_{p}"), f"{label} CTR {word}-priority"
             )
-            md += _section(
+            md += tables.paragraphs(
                 f"### {label}: {word}-priority tasks", tables.ctr_markdown(rows, p), image
             )
-    md += _section(
+    md += tables.paragraphs(
         "## Idle time ratio (paper Tables 7-8, Figures 5-6)",
         "ITR (%) = (horizon - busy ticks) / horizon per robot (paper eq. 9); lower is better.",
     )
     for system, rows in systems.items():
         label = system_label(system)
-        md += _section(
+        md += tables.paragraphs(
             f"### {label}",
             tables.itr_markdown(rows),
             tables.image(files.figures.get(f"itr_{system}"), f"{label} ITR"),
         )
-    md += _section(
+    md += tables.paragraphs(
         "## Learning space (paper Table 9)",
         "`analytic`: learning space dimension of the learner's encoding (paper eqs. 10-16, exact "
         "integer in `learning_space.csv`); `visited`: table entries updated at least once "
         "(mean ± CI over seeds); `parameters`: weights of a network learner.",
         tables.learning_space_markdown(frame, summary),
     )
-    md += _section(
+    md += tables.paragraphs(
         "## Learning curves",
         "Training team return per episode (with exploration) against training env ticks "
         "(ticks x parallel copies); line = mean over seeds, band = 95 % CI. The dashed line is "
@@ -307,7 +302,7 @@ def _report_markdown(
         ]
         for r in claims
     ]
-    md += _section(
+    md += tables.paragraphs(
         "## Claims of the paper (Section 6)",
         f"{verdicts.count(HOLDS)} hold, {verdicts.count(FAILS)} do not hold, "
         f"{verdicts.count(NOT_EVALUABLE)} not evaluable (a learner they compare is missing). "
@@ -318,7 +313,7 @@ def _report_markdown(
         ),
     )
     total_wall = sum((r.metrics.get("train") or {}).get("wall_s", 0.0) for r in runs)
-    md += _section(
+    md += tables.paragraphs(
         "## Training time",
         tables.training_time_markdown(summary),
         f"Sum of the training wall times of all runs: {total_wall:.1f} s "

@@ -38,6 +38,11 @@ def write_csv(path: Path, table: pd.DataFrame) -> Path:
     return path
 
 
+def paragraphs(*blocks: str) -> list[str]:
+    """Markdown lines: each non-empty block (a heading, text, a table) and a blank line."""
+    return [line for block in blocks if block for line in (block, "")]
+
+
 def image(path: Path | None, alt: str) -> str:
     """A markdown image of a figure, or a note that there was nothing to draw."""
     return f"![{alt}]({path.name})" if path else f"_No figure: {alt.lower()} (nothing to draw)._"
