@@ -1,19 +1,8 @@
 """Build the experiment report: collect runs, aggregate over seeds, write report.md, CSVs, PNGs.
 
-``build_report([sweep_dir])`` is the single entry point of ``scripts/report.py``. Output files
-(flat, in ``out_dir``):
-
-* ``report.md``: the tables (paper Tables 5-9 analogues, team return vs greedy), the figures
-  (linked), the check of the paper's Section 6 claims and the list of missing jobs;
-* ``runs.csv`` (one row per run), ``ctr.csv``, ``itr.csv``, ``team_return.csv``,
-  ``group_return.csv``, ``learning_space.csv``, ``claims.csv``, ``missing.csv``,
-  ``field_stats.csv`` (IQM and probability of improvement), ``study.csv`` (runs of a swept
-  dimension), ``yardsticks*.csv`` (``reports/experiments.py``);
-* ``marl_eval.json``: the evaluation returns in marl-eval's format (``reports/marl_eval.py``);
-* ``ctr_<system>_L.png``, ``ctr_<system>_H.png`` (paper Figures 1-4), ``itr_<system>.png``
-  (Figures 5-6), ``curve_<system>.png`` (learning curves, for learners that train) and
-  ``team_return.png``, ``performance_profile.png`` and, for a swept team size or task-switch
-  cost, ``team_size_*.png`` / ``switch_ticks_return.png`` (see ``reports/experiments.py``).
+Output files, flat in ``out_dir``: ``report.md`` (tables, linked figures, the paper's claims,
+missing jobs), the CSV tables (``runs.csv`` holds every run), ``marl_eval.json`` and the PNG
+figures; the experiments' own sections and files come from ``reports/experiments.py``.
 """
 
 from __future__ import annotations
@@ -37,11 +26,23 @@ from mrta_rl.reports.collect import (
     config_value,
 )
 from mrta_rl.reports.frame import long_table, summarize, summarize_curve, system_label
+from mrta_rl.reports.tables import (
+    ctr_markdown,
+    group_return_markdown,
+    image,
+    itr_markdown,
+    learning_space_markdown,
+    markdown_table,
+    paragraphs,
+    team_return_markdown,
+    training_time_markdown,
+)
 
 logger = logging.getLogger(__name__)
 
 REPORT_FILE = "report.md"
 # run config keys shown in the report's setup section (dotted paths of conf/config.yaml)
+LEARNER_SETTINGS = "hyperparameters (conf/learner)"
 SETUP_KEYS = ("env.horizon", "train.episodes", "train.batch_size", "eval.episodes", "eval.seed")
 
 
@@ -60,9 +61,7 @@ class ReportFiles:
 def default_out_dir(inputs: Sequence[Path | str]) -> Path:
     """``<input>/report`` for one input, else ``<common parent of the inputs>/report``."""
     paths = [Path(p).resolve() for p in inputs]
-    if len(paths) == 1:
-        return paths[0] / "report"
-    return Path(os.path.commonpath([str(p) for p in paths])) / "report"
+    return (paths[0] if len(paths) == 1 else Path(os.path.commonpath(paths))) / "report"
 
 
 def _setup_markdown(runs: Sequence[RunRecord], summary: pd.DataFrame) -> str:
@@ -71,9 +70,8 @@ def _setup_markdown(runs: Sequence[RunRecord], summary: pd.DataFrame) -> str:
     for key in SETUP_KEYS:
         values = sorted({str(config_value(r.config, key)) for r in runs})
         note = "" if len(values) == 1 else " (differs between runs!)"
-        rows.append(
-            [f"`{key}`", ", ".join(v.replace("None", "spec default") for v in values) + note]
-        )
+        values = ", ".join(v.replace("None", "spec default") for v in values)
+        rows.append([f"`{key}`", values + note])
     settings: dict[str, set[str]] = {}
     for r in runs:
         cfg = r.config.get("learner") or {}
@@ -84,13 +82,8 @@ def _setup_markdown(runs: Sequence[RunRecord], summary: pd.DataFrame) -> str:
         [labels[n], " / ".join(sorted(settings[n])) or "–"]
         for n in dict.fromkeys(summary["learner"])
     ]
-    return "\n".join(
-        [
-            tables.markdown_table(["setting", "value"], rows),
-            "",
-            tables.markdown_table(["learner", "hyperparameters (conf/learner)"], learners),
-        ]
-    )
+    settings_table = markdown_table(["setting", "value"], rows)
+    return settings_table + "\n\n" + markdown_table(["learner", LEARNER_SETTINGS], learners)
 
 
 def build_report(inputs: Iterable[Path | str], out_dir: Path | str | None = None) -> ReportFiles:
@@ -186,9 +179,9 @@ def _report_markdown(
     rules_md: str = "",
 ) -> str:
     runs, missing, duplicates = collection.runs, collection.missing, collection.duplicates
-    verdicts = [c.verdict for c in claims]
+    verdicts, fig = [c.verdict for c in claims], files.figures.get
     systems = {s: rows for s, rows in summary.groupby("system", sort=False)}
-    md = tables.paragraphs(
+    md = paragraphs(
         "# Experiment report",
         "Inputs: " + ", ".join(f"`{p}`" for p in collection.inputs),
         f"**{len(runs)} finished runs** of {collection.expected_jobs} expected "
@@ -206,42 +199,36 @@ def _report_markdown(
             for r in duplicates
         ]
         header = ["configuration", "system", "seed", "left out", "kept"]
-        md += tables.paragraphs(
+        md += paragraphs(
             "## Duplicate runs left out",
             "Each of these runs has the configuration and seed of a run the report keeps (a seed "
             "counts once); only identical settings make a duplicate.",
-            tables.markdown_table(header, rows),
+            markdown_table(header, rows),
         )
     if missing:
         rows = [
-            [
-                m.learner,
-                system_label(m.system),
-                "?" if m.seed is None else m.seed,
-                m.reason,
-                f"`{m.job_dir}`" if m.job_dir else "–",
-                f"`{' '.join(m.overrides)}`" if m.overrides else "–",
-            ]
+            [m.learner, system_label(m.system), "?" if m.seed is None else m.seed, m.reason]
+            + [f"`{v}`" if v else "–" for v in (m.job_dir, " ".join(m.overrides))]
             for m in missing
         ]
         header = ["learner", "system", "seed", "reason", "job dir", "overrides"]
-        md += tables.paragraphs(
+        md += paragraphs(
             "## Missing jobs",
             "These jobs of the expected grid left no `metrics.json`; their cells below average "
             "fewer seeds (or are absent).",
-            tables.markdown_table(header, rows),
+            markdown_table(header, rows),
         )
-    md += tables.paragraphs("## Setup", _setup_markdown(runs, summary))
-    md += tables.paragraphs(
+    md += paragraphs("## Setup", _setup_markdown(runs, summary))
+    md += paragraphs(
         "## Team return against the greedy auction",
         "Evaluation team return per episode; `greedy` is the plain auction on the full task "
         "sets, evaluated on the same task streams (paired per seed for the difference).",
-        tables.team_return_markdown(summary, tables.csv_tables(frame, summary)["team_return"]),
-        tables.image(files.figures.get("team_return"), "Team return"),
+        team_return_markdown(summary, tables.csv_tables(frame, summary)["team_return"]),
+        image(fig("team_return"), "Team return"),
     )
-    groups = {s: t for s, rows in systems.items() if (t := tables.group_return_markdown(rows))}
+    groups = {s: t for s, rows in systems.items() if (t := group_return_markdown(rows))}
     if groups:
-        md += tables.paragraphs(
+        md += paragraphs(
             "### Team return by subG sub-group",
             "Every reward is a task's and each task type belongs to one sub-group, so the team "
             "return splits exactly into the parts its sub-groups' task types earn; the last row "
@@ -250,7 +237,7 @@ def _report_markdown(
         )
     if rules_md:
         md += [rules_md, ""]
-    md += tables.paragraphs(
+    md += paragraphs(
         "## Completed task ratio (paper Tables 5-6, Figures 1-4)",
         "CTR (%) = assigned / (assigned + dropped) per task type and priority; `all` pools the "
         "counts over types.",
@@ -258,64 +245,50 @@ def _report_markdown(
     for system, rows in systems.items():
         label = system_label(system)
         for p, word in (("L", "low"), ("H", "high")):
-            image = tables.image(
-                files.figures.get(f"ctr_{system}_{p}"), f"{label} CTR {word}-priority"
-            )
-            md += tables.paragraphs(
-                f"### {label}: {word}-priority tasks", tables.ctr_markdown(rows, p), image
-            )
-    md += tables.paragraphs(
+            figure = image(fig(f"ctr_{system}_{p}"), f"{label} CTR {word}-priority")
+            md += paragraphs(f"### {label}: {word}-priority tasks", ctr_markdown(rows, p), figure)
+    md += paragraphs(
         "## Idle time ratio (paper Tables 7-8, Figures 5-6)",
         "ITR (%) = (horizon - busy ticks) / horizon per robot (paper eq. 9); lower is better.",
     )
     for system, rows in systems.items():
         label = system_label(system)
-        md += tables.paragraphs(
+        md += paragraphs(
             f"### {label}",
-            tables.itr_markdown(rows),
-            tables.image(files.figures.get(f"itr_{system}"), f"{label} ITR"),
+            itr_markdown(rows),
+            image(fig(f"itr_{system}"), f"{label} ITR"),
         )
-    md += tables.paragraphs(
+    md += paragraphs(
         "## Learning space (paper Table 9)",
         "`analytic`: learning space dimension of the learner's encoding (paper eqs. 10-16, exact "
         "integer in `learning_space.csv`); `visited`: table entries updated at least once "
         "(mean ± CI over seeds); `parameters`: weights of a network learner.",
-        tables.learning_space_markdown(frame, summary),
+        learning_space_markdown(frame, summary),
     )
-    md += tables.paragraphs(
+    md += paragraphs(
         "## Learning curves",
         "Training team return per episode (with exploration) against training env ticks "
         "(ticks x parallel copies); line = mean over seeds, band = 95 % CI. The dashed line is "
         "the greedy auction's evaluation return.",
-        *(
-            tables.image(files.figures.get(f"curve_{s}"), f"{system_label(s)} learning curves")
-            for s in systems
-        ),
+        *(image(fig(f"curve_{s}"), f"{system_label(s)} learning curves") for s in systems),
     )
     claim_rows = [
-        [
-            r.statement,
-            system_label(r.system) if r.system != "all" else "both",
-            f"**{r.verdict}**",
-            r.separation or "",
-            r.evidence,
-        ]
+        [r.statement, system_label(r.system) if r.system != "all" else "both", f"**{r.verdict}**"]
+        + [r.separation or "", r.evidence]
         for r in claims
     ]
-    md += tables.paragraphs(
+    md += paragraphs(
         "## Claims of the paper (Section 6)",
         f"{verdicts.count(HOLDS)} hold, {verdicts.count(FAILS)} do not hold, "
         f"{verdicts.count(NOT_EVALUABLE)} not evaluable (a learner they compare is missing). "
         "Verdicts compare means over seeds; `clear` = the compared 95 % intervals are "
         "disjoint, `CIs overlap` = the ordering may be noise.",
-        tables.markdown_table(
-            ["claim (paper)", "system", "verdict", "95% CIs", "numbers"], claim_rows
-        ),
+        markdown_table(["claim (paper)", "system", "verdict", "95% CIs", "numbers"], claim_rows),
     )
     total_wall = sum((r.metrics.get("train") or {}).get("wall_s", 0.0) for r in runs)
-    md += tables.paragraphs(
+    md += paragraphs(
         "## Training time",
-        tables.training_time_markdown(summary),
+        training_time_markdown(summary),
         f"Sum of the training wall times of all runs: {total_wall:.1f} s "
         "(evaluation not included).",
     )
