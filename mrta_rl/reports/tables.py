@@ -21,6 +21,8 @@ from mrta_rl.reports.stats import MeanCI, mean_ci
 _NUMERIC = re.compile(r"^\s*([-+]?[\d.,]+(e[-+]?\d+)?( ± [\d.,e+-]+)?( %)?|–|\?)\s*$")
 STAT_COLUMNS = {"seeds": "n_seeds", "mean": "mean", "ci95": "ci95", "std": "std"}
 STAT_COLUMNS |= {"low": "ci_low", "high": "ci_high"}
+GROUP_COLUMNS = {"item": "group", "types": "task_types", "seeds": "n_seeds"}
+GROUP_COLUMNS |= {"mean": "return_mean", "ci95": "return_ci95"}
 
 
 def markdown_table(header: Sequence[str], rows: Iterable[Sequence[Any]]) -> str:
@@ -66,47 +68,27 @@ def csv_tables(frame: pd.DataFrame, summary: pd.DataFrame) -> dict[str, pd.DataF
     ctr = _cell_sorted(_metric(summary, "ctr"))
     cells = _metric(summary, "team_return").set_index(["system", "learner"])
 
-    def part(metric: str, column: str) -> pd.Series:
-        rows = _metric(summary, metric).set_index(["system", "learner"])
-        return rows[column].reindex(cells.index)
-
-    greedy = part("greedy_team_return", "mean")
-    team_return = pd.DataFrame(
-        {
-            "n_seeds": cells["seeds"],
-            "team_return_mean": cells["mean"],
-            "team_return_ci95": cells["ci95"],
-            "greedy_mean": greedy,
-            "greedy_ci95": part("greedy_team_return", "ci95"),
-            "gain_mean": part("gain", "mean"),
-            "gain_ci95": part("gain", "ci95"),
-            "gain_percent": [
-                100.0 * gain / abs(base) if base and not math.isnan(base) else math.nan
-                for gain, base in zip(part("gain", "mean"), greedy, strict=True)
-            ],
-        }
-    ).reset_index()
+    parts = [cells[["seeds"]].rename(columns={"seeds": "n_seeds"})]
+    for metric, prefix in (("team_return", "team_return_"), ("greedy_team_return", "greedy_")):
+        rows = _metric(summary, metric).set_index(["system", "learner"])[["mean", "ci95"]]
+        parts.append(rows.reindex(cells.index).add_prefix(prefix))
+    rows = _metric(summary, "gain").set_index(["system", "learner"])[["mean", "ci95"]]
+    team_return = pd.concat([*parts, rows.reindex(cells.index).add_prefix("gain_")], axis=1)
+    team_return["gain_percent"] = [
+        100.0 * gain / abs(base) if base and not math.isnan(base) else math.nan
+        for gain, base in zip(team_return["gain_mean"], team_return["greedy_mean"], strict=True)
+    ]
+    keys = ["system", "learner", "item"]
     groups = _metric(summary, "group_return")
-    greedy_groups = _metric(summary, "greedy_group_return").set_index(["system", "learner", "item"])
-    group_return = pd.DataFrame(
-        {
-            "system": groups["system"],
-            "learner": groups["learner"],
-            "group": groups["item"],
-            "task_types": groups["types"],
-            "n_seeds": groups["seeds"],
-            "return_mean": groups["mean"],
-            "return_ci95": groups["ci95"],
-            "greedy_return_mean": greedy_groups["mean"]
-            .reindex(pd.MultiIndex.from_frame(groups[["system", "learner", "item"]]))
-            .to_numpy(),
-        }
-    )
+    greedy_groups = _metric(summary, "greedy_group_return").set_index(keys)["mean"]
+    group_return = groups[[*keys, "types", "seeds", "mean", "ci95"]].rename(columns=GROUP_COLUMNS)
+    index = pd.MultiIndex.from_frame(groups[keys])
+    group_return["greedy_return_mean"] = greedy_groups.reindex(index).to_numpy()
     return {
         "runs": runs_wide(frame),
         "ctr": _stats(ctr, "item", "priority").rename(columns={"item": "task_type"}),
         "itr": _stats(_metric(summary, "itr"), "item").rename(columns={"item": "robot"}),
-        "team_return": team_return,
+        "team_return": team_return.reset_index(),
         "group_return": group_return,
         "learning_space": learning_space_table(frame, summary),
     }
@@ -185,16 +167,8 @@ def team_return_markdown(summary: pd.DataFrame, table: pd.DataFrame) -> str:
         + ["–" if math.isnan(r.gain_percent) else f"{r.gain_percent:+.1f} %"]
         for r in table.itertuples()
     ]
-    header = [
-        "system",
-        "learner",
-        "seeds",
-        "team return",
-        "greedy",
-        "learner - greedy",
-        "vs greedy",
-    ]
-    return markdown_table(header, rows)
+    header = ["system", "learner", "seeds", "team return", "greedy", "learner - greedy"]
+    return markdown_table([*header, "vs greedy"], rows)
 
 
 def group_return_markdown(summary: pd.DataFrame) -> str:
@@ -229,9 +203,8 @@ def learning_space_markdown(frame: pd.DataFrame, summary: pd.DataFrame) -> str:
         return "_No learner reports a learning space (fixed policies only)._"
     keys = sorted(set(table["key"]), key=lambda k: ({"analytic": 0, "visited": 1}.get(k, 2), k))
     share = "analytic" in keys and "visited" in keys
-    labels = summary.drop_duplicates(["system", "learner"]).set_index(["system", "learner"])[
-        "label"
-    ]
+    labels = summary.drop_duplicates(["system", "learner"]).set_index(["system", "learner"])
+    labels = labels["label"]
     space = frame[frame["metric"] == "learning_space"]
     rows = []
     for (system, learner), cell in table.groupby(["system", "learner"], sort=False):
@@ -275,6 +248,5 @@ def training_time_markdown(summary: pd.DataFrame) -> str:
 
 def signed(value: MeanCI) -> str:
     """``"+19.7 ± 5.7"``; ``"+19.7"`` for one value; ``"–"`` for none."""
-    if value.n == 0:
-        return "–"
-    return f"{value.mean:+.1f}" + (f" ± {value.ci95:.1f}" if value.n > 1 else "")
+    spread = f" ± {value.ci95:.1f}" if value.n > 1 else ""
+    return "–" if value.n == 0 else f"{value.mean:+.1f}{spread}"
