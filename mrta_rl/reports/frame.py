@@ -150,33 +150,18 @@ def summarize(frame: pd.DataFrame) -> pd.DataFrame:
     full = pd.concat([frame, _derived(frame)], ignore_index=True)
     systems = order_systems(full["system"])
     learners = order_learners(full["learner"])
-    full["rank"] = [
-        (systems.index(s), learners.index(n))
-        for s, n in zip(full["system"], full["learner"], strict=True)
-    ]
+    pairs = zip(full["system"], full["learner"], strict=True)
+    full["rank"] = [(systems.index(s), learners.index(n)) for s, n in pairs]
     full = full.sort_values("rank", kind="stable")
     seeds = full.groupby(["system", "learner"])["run"].nunique()
     records = []
     keys = ["system", "learner", "metric", "item", "priority"]
-    for (system, learner, metric, item, priority), group in full.groupby(keys, sort=False):
+    for cell, group in full.groupby(keys, sort=False):
         stat = mean_ci(None if v is None else float(v) for v in group["value"])
-        first = group.iloc[0]
-        records.append(
-            {
-                "system": system,
-                "learner": learner,
-                "label": first["label"],
-                "name": first["name"],
-                "seeds": int(seeds[system, learner]),
-                "metric": metric,
-                "item": item,
-                "priority": priority,
-                "types": first["types"],
-                "first": first["value"],  # exact: the learning space of the first seed
-                **{k: getattr(stat, k) for k in STATS},
-                "stat": stat,
-            }
-        )
+        first = group.iloc[0]  # its value is exact: the learning space of the first seed
+        record = dict(zip(keys, cell, strict=True)) | {"seeds": int(seeds[cell[:2]])}
+        record |= {k: first[k] for k in ("label", "name", "types")} | {"first": first["value"]}
+        records.append(record | {k: getattr(stat, k) for k in STATS} | {"stat": stat})
     return pd.DataFrame.from_records(records)
 
 
