@@ -474,9 +474,9 @@ def _variant(run: RunRecord, kind: str, trained_variant: str) -> str:
 
 
 def collect_policies(runs: Sequence[RunRecord]) -> dict[str, list[Policy]]:
-    """Group the runs into policies per system (module docstring); ``{}`` if nothing to compare.
+    """Per system: greedy, the best team_reserve, rollout, the learners (trained and untrained).
 
-    The section applies when the runs hold a yardstick rule or an untrained learner.
+    ``{}`` if the runs hold no yardstick rule and no untrained learner: nothing to compare.
     """
     if not any(r.name in RULES or _kind(r) == "untrained" for r in runs):
         return {}
@@ -488,11 +488,9 @@ def collect_policies(runs: Sequence[RunRecord]) -> dict[str, list[Policy]]:
     variants = dict(zip(map(id, trained), configuration_variants(plain), strict=True))
     groups: dict[tuple[str, str, str, str], list[RunRecord]] = defaultdict(list)
     greedy: dict[str, RunRecord] = {}
+    episodes = {id(r): len(_per_episode(r.metrics["baseline_greedy"])) for r in runs}
     for run in runs:  # greedy of the run with the most evaluation episodes (the first on ties)
-        known = greedy.get(run.system)
-        if known is None or len(_per_episode(run.metrics["baseline_greedy"])) > len(
-            _per_episode(known.metrics["baseline_greedy"])
-        ):
+        if run.system not in greedy or episodes[id(run)] > episodes[id(greedy[run.system])]:
             greedy[run.system] = run
         if run.name != GREEDY:
             kind = _kind(run)
@@ -505,7 +503,7 @@ def collect_policies(runs: Sequence[RunRecord]) -> dict[str, list[Policy]]:
         means = [block["team_return"]["mean"]]
         policies = [Policy(GREEDY, GREEDY, "greedy", [_per_episode(block)], means)]
         reserve = [
-            (v, m) for (s, n, _, v), m in groups.items() if s == system and n == "team_reserve"
+            (v, m) for (s, n, _, v), m in groups.items() if (s, n) == (system, "team_reserve")
         ]
         if reserve:
             variant, members = max(reserve, key=lambda vm: np.mean([_mean(r) for r in vm[1]]))
