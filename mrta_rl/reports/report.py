@@ -96,7 +96,7 @@ def build_report(inputs: Iterable[Path | str], out_dir: Path | str | None = None
             f"no finished run (metrics.json) under {[str(p) for p in inputs]}{missing}"
         )
     # the yardstick runs are checked (re-evaluations, same task streams) before anything is written
-    experiments.collect_policies([*collection.runs, *collection.duplicates])
+    experiments.collect_policies(collection.runs + collection.duplicates)
     out = Path(out_dir) if out_dir is not None else default_out_dir(inputs)
     out.mkdir(parents=True, exist_ok=True)
     files = ReportFiles(out_dir=out, report=out / REPORT_FILE, collection=collection)
@@ -138,30 +138,22 @@ def build_report(inputs: Iterable[Path | str], out_dir: Path | str | None = None
             panel = figures.Panel(title, lines, xlabel, "team return per episode")
             if greedy:
                 panel = dataclasses.replace(panel, hline=(greedy[0].mean, "greedy (evaluation)"))
-            stem = f"curve_{system}"
-            files.figures[stem] = figures.line_figure(
-                [panel], _png(out, stem), line_colors, (7.5, 4.6)
-            )
-    files.figures["team_return"] = figures.team_return_figure(
-        summary, out / "team_return.png", colors
-    )
+            png, stem = _png(out, f"curve_{system}"), f"curve_{system}"
+            files.figures[stem] = figures.line_figure([panel], png, line_colors, (7.5, 4.6))
+    png = out / "team_return.png"
+    files.figures["team_return"] = figures.team_return_figure(summary, png, colors)
 
     # "Learning against the rules": every run counts, the settings of a rule grid included
-    rules_md, rules_files = experiments.write_section(
-        [*collection.runs, *collection.duplicates], out
-    )
+    every_run = [*collection.runs, *collection.duplicates]
+    rules_md, rules_files = experiments.write_section(every_run, out)
     study_md, study_files = experiments.study_sections(collection.runs, inputs, out)
     for stem, path in {**rules_files, **study_files}.items():
         (files.figures if path.suffix == ".png" else files.csvs)[stem] = path
     files.marl_eval = marl_eval.write_marl_eval(collection.runs, out)
     markdown = _report_markdown(collection, frame, summary, claims, files, rules_md)
     files.report.write_text(markdown + "\n" + study_md + "\n")
-    logger.info(
-        "wrote %s (%d runs, %d missing)",
-        files.report,
-        len(collection.runs),
-        len(collection.missing),
-    )
+    counts = len(collection.runs), len(collection.missing)
+    logger.info("wrote %s (%d runs, %d missing)", files.report, *counts)
     return files
 
 
