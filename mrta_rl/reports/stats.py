@@ -85,6 +85,9 @@ def mean_ci(values: Iterable[float | None]) -> MeanCI:
 
 BOOTSTRAP_REPS = 2000  # bootstrap resamples of every interval
 BOOTSTRAP_SEED = 0  # fixed, so a report is reproducible
+# each task's runs resampled alone (scipy's unpaired samples), vectorized statistics
+STRATIFIED = {"confidence_level": CONFIDENCE, "method": "percentile", "paired": False}
+STRATIFIED |= {"vectorized": True}
 IQM_CUT = 0.25  # interquartile mean: drop the lowest and highest 25 % of the runs
 
 
@@ -126,15 +129,9 @@ def _bootstrap(
         return nan, nan
     if all(np.ptp(s) == 0 for s in samples) and len({float(s[0]) for s in samples}) == 1:
         return value, value  # every run has the same score: the interval is that point
+    rng = np.random.default_rng(seed)
     result = scipy_stats.bootstrap(
-        tuple(samples),
-        statistic,
-        n_resamples=reps,
-        confidence_level=CONFIDENCE,
-        method="percentile",
-        paired=False,
-        vectorized=True,
-        rng=np.random.default_rng(seed),
+        tuple(samples), statistic, n_resamples=reps, rng=rng, **STRATIFIED
     )
     return result.confidence_interval.low, result.confidence_interval.high
 
