@@ -79,10 +79,6 @@ class Cells:
         return f"missing: {', '.join(gone)}" if gone else ""
 
 
-def _fmt(value: MeanCI) -> str:
-    return value.format(1)
-
-
 def _separated(a: MeanCI, b: MeanCI) -> bool:
     """True if the two 95 % intervals are disjoint (False when an interval is undefined)."""
     if math.isnan(a.ci95) or math.isnan(b.ci95):
@@ -103,7 +99,7 @@ def _extreme(cells: Cells, value: Callable[[str], MeanCI], target: str, lowest: 
     values = {n: value(n) for n in TABULAR}
     ranked = sorted(values, key=lambda n: (1.0 if lowest else -1.0) * values[n].mean)
     others = [values[n] for n in TABULAR if n != target]
-    evidence = ", ".join(f"{cells.label(n)} {_fmt(values[n])}" for n in ranked)
+    evidence = ", ".join(f"{cells.label(n)} {values[n].format(1)}" for n in ranked)
     return ranked[0] == target, _separation([(values[target], o) for o in others]), evidence
 
 
@@ -113,7 +109,7 @@ def _h_above_l(cells: Cells) -> tuple[str, str, str]:
         return NOT_EVALUABLE, "", "no tabular learner"
     pairs = [(cells.get(n, "ctr", "all", "H"), cells.get(n, "ctr", "all", "L")) for n in present]
     evidence = "; ".join(
-        f"{cells.label(n)} H {_fmt(h)} vs L {_fmt(low)}"
+        f"{cells.label(n)} H {h.format(1)} vs L {low.format(1)}"
         for n, (h, low) in zip(present, pairs, strict=True)
     )
     return _verdict(all(h.mean > low.mean for h, low in pairs)), _separation(pairs), evidence
@@ -136,8 +132,8 @@ def _cql_best_each_type(cells: Cells) -> tuple[str, str, str]:
         best = max(TABULAR, key=lambda n: cells.get(n, "ctr", t, p).mean)
         if best != "cql" and not math.isnan(cells.get(best, "ctr", t, p).mean):
             lost.append(
-                f"{t}{p} ({cells.label(best)} {_fmt(cells.get(best, 'ctr', t, p))} vs "
-                f"CQL {_fmt(cells.get('cql', 'ctr', t, p))})"
+                f"{t}{p} ({cells.label(best)} {cells.get(best, 'ctr', t, p).format(1)} vs "
+                f"CQL {cells.get('cql', 'ctr', t, p).format(1)})"
             )
     evidence = f"CQL highest in {len(keys) - len(lost)}/{len(keys)} task type x priority cells"
     return _verdict(not lost), "", evidence + ("; not in: " + ", ".join(lost) if lost else "")
@@ -150,7 +146,7 @@ def _subg_bit_lower(cells: Cells) -> tuple[str, str, str]:
         gap = cql.mean - subg.mean
         ok = ok and 0.0 < gap <= A_BIT_PP
         pairs.append((cql, subg))
-        parts.append(f"{p}: CQL {_fmt(cql)} vs subG-CQL {_fmt(subg)} (gap {gap:+.1f} pp)")
+        parts.append(f"{p}: CQL {cql.format(1)} vs subG-CQL {subg.format(1)} (gap {gap:+.1f} pp)")
     return _verdict(ok), _separation(pairs), "; ".join(parts) + f"; 'a bit' = (0, {A_BIT_PP:g}] pp"
 
 
@@ -162,7 +158,9 @@ def _dql_lowest_low_ctr(cells: Cells) -> tuple[str, str, str]:
 def _semi_vs_dql_ctr(cells: Cells) -> tuple[str, str, str]:
     semi, dql = ({p: cells.get(n, "ctr", "all", p) for p in "LH"} for n in ("semi_cql", "dql"))
     ok = semi["L"].mean > dql["L"].mean and semi["H"].mean < dql["H"].mean
-    evidence = "; ".join(f"{p}: semi-CQL {_fmt(semi[p])} vs DQL {_fmt(dql[p])}" for p in "LH")
+    evidence = "; ".join(
+        f"{p}: semi-CQL {semi[p].format(1)} vs DQL {dql[p].format(1)}" for p in "LH"
+    )
     return _verdict(ok), _separation([(semi[p], dql[p]) for p in "LH"]), evidence
 
 
@@ -186,7 +184,7 @@ def _semi_itr_between(cells: Cells) -> tuple[str, str, str]:
     return (
         _verdict(cql.mean < semi.mean < dql.mean),
         _separation([(cql, semi), (semi, dql)]),
-        f"mean ITR: CQL {_fmt(cql)} < semi-CQL {_fmt(semi)} < DQL {_fmt(dql)} expected",
+        f"mean ITR: CQL {cql.format(1)} < semi-CQL {semi.format(1)} < DQL {dql.format(1)} expected",
     )
 
 
