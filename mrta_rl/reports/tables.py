@@ -208,17 +208,12 @@ def learning_space_markdown(frame: pd.DataFrame, summary: pd.DataFrame) -> str:
     space = frame[frame["metric"] == "learning_space"]
     rows = []
     for (system, learner), cell in table.groupby(["system", "learner"], sort=False):
-        by_key = cell.set_index("key")
+        by_key = {r.key: r for r in cell.itertuples()}
         row: list[Any] = [system_label(system), labels[system, learner]]
-        for key in keys:
-            if key not in by_key.index:
-                row.append("–")
-            elif by_key.at[key, "exact"]:
-                row.append(big_int(int(by_key.at[key, "exact"])))
-            else:
-                ci95 = by_key.at[key, "ci95"]
-                spread = "" if math.isnan(ci95) else f" ± {ci95:.3g}"
-                row.append(f"{by_key.at[key, 'mean']:.4g}{spread}")
+        for r in (by_key.get(key) for key in keys):
+            spread = "" if r is None or math.isnan(r.ci95) else f" ± {r.ci95:.3g}"
+            text = r and (big_int(int(r.exact)) if r.exact else f"{r.mean:.4g}{spread}")
+            row.append(text or "–")
         if share:
             mine = space[(space["system"] == system) & (space["learner"] == learner)]
             analytic = list(mine[mine["item"] == "analytic"]["value"])
