@@ -21,6 +21,7 @@ from mrta_rl.reports.stats import MeanCI, mean_ci
 _NUMERIC = re.compile(r"^\s*([-+]?[\d.,]+(e[-+]?\d+)?( ± [\d.,e+-]+)?( %)?|–|\?)\s*$")
 STAT_COLUMNS = {"seeds": "n_seeds", "mean": "mean", "ci95": "ci95", "std": "std"}
 STAT_COLUMNS |= {"low": "ci_low", "high": "ci_high"}
+TEAM_METRICS = ("team_return", "greedy_team_return", "gain")  # a cell's return, greedy's, the gain
 GROUP_COLUMNS = {"item": "group", "types": "task_types", "seeds": "n_seeds"}
 GROUP_COLUMNS |= {"mean": "return_mean", "ci95": "return_ci95"}
 
@@ -142,9 +143,8 @@ def ctr_markdown(summary: pd.DataFrame, priority: str) -> str:
     """Rows learners, columns task types and ``all``: CTR of one priority on one system."""
     rows = _metric(summary, "ctr")
     rows = _cell_sorted(rows[rows["priority"] == priority])
-    rows = rows.assign(
-        item=[f"all {priority}" if t == "all" else f"{t}{priority}" for t in rows["item"]]
-    )
+    items = [f"all {priority}" if t == "all" else f"{t}{priority}" for t in rows["item"]]
+    rows = rows.assign(item=items)
     return _markdown_pivot(_pivot_text(rows, "item"), "learner")
 
 
@@ -160,10 +160,7 @@ def team_return_markdown(summary: pd.DataFrame, table: pd.DataFrame) -> str:
     labels = plain.drop_duplicates(["system", "learner"]).set_index(["system", "learner"])["label"]
     rows = [
         [system_label(r.system), labels[r.system, r.learner], r.n_seeds]
-        + [
-            stats[r.system, r.learner, m].format()
-            for m in ("team_return", "greedy_team_return", "gain")
-        ]
+        + [stats[r.system, r.learner, m].format() for m in TEAM_METRICS]
         + ["–" if math.isnan(r.gain_percent) else f"{r.gain_percent:+.1f} %"]
         for r in table.itertuples()
     ]
