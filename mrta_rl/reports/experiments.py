@@ -64,14 +64,17 @@ PROFILE_POINTS = 101  # thresholds of a performance profile
 STUDY_COLUMNS = ["series", "learner", "system", *DIMENSIONS, "team_seed", "seed"]
 STUDY_COLUMNS += ["return_vs_greedy", "team_return", "space_analytic", "space_visited"]
 STUDY_COLUMNS += ["parameters", "wall_s", "peak_rss_mb", "refused"]
-BLOCKS = ("eval", "baseline_greedy")  # a run's evaluation, and greedy's on the same streams
+# a run's evaluation and greedy's on the same streams: what a re-evaluation replaces
+EVALUATION_BLOCKS = ("eval", "baseline_greedy")
 FIELD_STATS_HEADER = ["statistic", "x", "y", "value", "ci_low", "ci_high", "n_runs"]
 
 
 def _point(cell: tuple, config: dict[str, Any], metrics: dict[str, Any], refused: str) -> dict:
     """One study row; ``cell`` is ``(label, learner, system, seed)``."""
     label, learner, system, seed = cell
-    ret, greedy = (((metrics.get(k) or {}).get("team_return") or {}).get("mean") for k in BLOCKS)
+    ret, greedy = (
+        ((metrics.get(k) or {}).get("team_return") or {}).get("mean") for k in EVALUATION_BLOCKS
+    )
     greedy = None if greedy is None else float(greedy)
     resources = metrics.get("resources") or {}
     wall = resources.get("wall_s", (metrics.get("train") or {}).get("wall_s"))
@@ -373,7 +376,6 @@ RESERVE_KEYS = ("reserve", "hold_level", "hold_scope", "grouping", "order")
 CSV_HEADER = ["system", "policy", "seeds", "mean", "ci95_seeds", "versus", "diff", "diff_ci95"]
 START_HEADER = ["system", "policy", "episodes", "untrained", "seeds", "trained", "trained_ci95"]
 START_HEADER += ["paired_diff", "paired_ci95", "seeds_diff", "seeds_ci95", "met"]
-EVALUATION_BLOCKS = ("eval", "baseline_greedy")  # what a re-evaluation replaces
 
 
 @dataclass
