@@ -20,6 +20,7 @@ import pandas as pd
 
 from mrta_rl.reports.frame import stat, system_label
 from mrta_rl.reports.stats import MeanCI
+from mrta_rl.reports.tables import big_int
 
 TABULAR = ("cql", "semi_cql", "dql", "subg_cql")  # the four methods the paper compares
 A_BIT_PP = 10.0  # "a bit lower" (§6.1): at most this many percentage points lower
@@ -78,10 +79,6 @@ class Cells:
         return f"missing: {', '.join(gone)}" if gone else ""
 
 
-def _fmt(value: MeanCI) -> str:
-    return value.format(1)
-
-
 def _separated(a: MeanCI, b: MeanCI) -> bool:
     """True if the two 95 % intervals are disjoint (False when an interval is undefined)."""
     if math.isnan(a.ci95) or math.isnan(b.ci95):
@@ -97,16 +94,12 @@ def _verdict(ok: bool) -> str:
     return HOLDS if ok else FAILS
 
 
-def _sci(value: int) -> str:
-    return f"{value:.3e}" if value >= 10**6 else f"{value:,}"
-
-
 def _extreme(cells: Cells, value: Callable[[str], MeanCI], target: str, lowest: bool) -> tuple:
     """Is ``target`` the lowest/highest of the four methods? -> (ok, separation, evidence)."""
     values = {n: value(n) for n in TABULAR}
     ranked = sorted(values, key=lambda n: (1.0 if lowest else -1.0) * values[n].mean)
     others = [values[n] for n in TABULAR if n != target]
-    evidence = ", ".join(f"{cells.label(n)} {_fmt(values[n])}" for n in ranked)
+    evidence = ", ".join(f"{cells.label(n)} {values[n].format(1)}" for n in ranked)
     return ranked[0] == target, _separation([(values[target], o) for o in others]), evidence
 
 
@@ -116,7 +109,7 @@ def _h_above_l(cells: Cells) -> tuple[str, str, str]:
         return NOT_EVALUABLE, "", "no tabular learner"
     pairs = [(cells.get(n, "ctr", "all", "H"), cells.get(n, "ctr", "all", "L")) for n in present]
     evidence = "; ".join(
-        f"{cells.label(n)} H {_fmt(h)} vs L {_fmt(low)}"
+        f"{cells.label(n)} H {h.format(1)} vs L {low.format(1)}"
         for n, (h, low) in zip(present, pairs, strict=True)
     )
     return _verdict(all(h.mean > low.mean for h, low in pairs)), _separation(pairs), evidence
@@ -139,8 +132,8 @@ def _cql_best_each_type(cells: Cells) -> tuple[str, str, str]:
         best = max(TABULAR, key=lambda n: cells.get(n, "ctr", t, p).mean)
         if best != "cql" and not math.isnan(cells.get(best, "ctr", t, p).mean):
             lost.append(
-                f"{t}{p} ({cells.label(best)} {_fmt(cells.get(best, 'ctr', t, p))} vs "
-                f"CQL {_fmt(cells.get('cql', 'ctr', t, p))})"
+                f"{t}{p} ({cells.label(best)} {cells.get(best, 'ctr', t, p).format(1)} vs "
+                f"CQL {cells.get('cql', 'ctr', t, p).format(1)})"
             )
     evidence = f"CQL highest in {len(keys) - len(lost)}/{len(keys)} task type x priority cells"
     return _verdict(not lost), "", evidence + ("; not in: " + ", ".join(lost) if lost else "")
@@ -153,7 +146,7 @@ def _subg_bit_lower(cells: Cells) -> tuple[str, str, str]:
         gap = cql.mean - subg.mean
         ok = ok and 0.0 < gap <= A_BIT_PP
         pairs.append((cql, subg))
-        parts.append(f"{p}: CQL {_fmt(cql)} vs subG-CQL {_fmt(subg)} (gap {gap:+.1f} pp)")
+        parts.append(f"{p}: CQL {cql.format(1)} vs subG-CQL {subg.format(1)} (gap {gap:+.1f} pp)")
     return _verdict(ok), _separation(pairs), "; ".join(parts) + f"; 'a bit' = (0, {A_BIT_PP:g}] pp"
 
 
@@ -165,7 +158,9 @@ def _dql_lowest_low_ctr(cells: Cells) -> tuple[str, str, str]:
 def _semi_vs_dql_ctr(cells: Cells) -> tuple[str, str, str]:
     semi, dql = ({p: cells.get(n, "ctr", "all", p) for p in "LH"} for n in ("semi_cql", "dql"))
     ok = semi["L"].mean > dql["L"].mean and semi["H"].mean < dql["H"].mean
-    evidence = "; ".join(f"{p}: semi-CQL {_fmt(semi[p])} vs DQL {_fmt(dql[p])}" for p in "LH")
+    evidence = "; ".join(
+        f"{p}: semi-CQL {semi[p].format(1)} vs DQL {dql[p].format(1)}" for p in "LH"
+    )
     return _verdict(ok), _separation([(semi[p], dql[p]) for p in "LH"]), evidence
 
 
@@ -178,14 +173,8 @@ def _itr_extreme(target: str, lowest: bool) -> Callable[[Cells], tuple[str, str,
             min(TABULAR, key=lambda n: sign * cells.get(n, "itr", r).mean) == target for r in robots
         )
         order, word = ("ascending", "lowest") if lowest else ("descending", "highest")
-        return (
-            _verdict(ok),
-            sep,
-            (
-                f"mean ITR over robots, {order}: {evidence}; "
-                f"{cells.label(target)} {word} for {per_robot}/{len(robots)} robots"
-            ),
-        )
+        count = f"{cells.label(target)} {word} for {per_robot}/{len(robots)} robots"
+        return _verdict(ok), sep, f"mean ITR over robots, {order}: {evidence}; {count}"
 
     return check
 
@@ -195,7 +184,7 @@ def _semi_itr_between(cells: Cells) -> tuple[str, str, str]:
     return (
         _verdict(cql.mean < semi.mean < dql.mean),
         _separation([(cql, semi), (semi, dql)]),
-        f"mean ITR: CQL {_fmt(cql)} < semi-CQL {_fmt(semi)} < DQL {_fmt(dql)} expected",
+        f"mean ITR: CQL {cql.format(1)} < semi-CQL {semi.format(1)} < DQL {dql.format(1)} expected",
     )
 
 
@@ -204,14 +193,14 @@ def _space_order(cells: Cells) -> tuple[str, str, str]:
     if any(v is None for v in dims.values()):
         return NOT_EVALUABLE, "", "a learner reports no analytic learning space"
     ok = dims["cql"] > dims["subg_cql"] > max(dims["semi_cql"], dims["dql"])
-    return _verdict(ok), "", ", ".join(f"{cells.label(n)} {_sci(dims[n])}" for n in TABULAR)
+    return _verdict(ok), "", ", ".join(f"{cells.label(n)} {big_int(dims[n])}" for n in TABULAR)
 
 
 def _space_semi_eq_dql(cells: Cells) -> tuple[str, str, str]:
     semi, dql = cells.analytic("semi_cql"), cells.analytic("dql")
     if semi is None or dql is None:
         return NOT_EVALUABLE, "", "a learner reports no analytic learning space"
-    return _verdict(semi == dql), "", f"semi-CQL {_sci(semi)}, DQL {_sci(dql)}"
+    return _verdict(semi == dql), "", f"semi-CQL {big_int(semi)}, DQL {big_int(dql)}"
 
 
 def _more_robots_higher_ctr(cells: Cells) -> tuple[str, str, str]:
@@ -232,14 +221,8 @@ def _more_robots_higher_ctr(cells: Cells) -> tuple[str, str, str]:
         r = float(np.corrcoef(counts[keep], ctr[keep])[0, 1])
         ok = ok and r > 0
         parts.append(f"{cells.label(name)} r = {r:+.2f}")
-    return (
-        _verdict(ok),
-        "",
-        (
-            "Pearson r between a type's number of capable robots and its mean L/H CTR: "
-            + ", ".join(parts)
-        ),
-    )
+    text = "Pearson r between a type's number of capable robots and its mean L/H CTR: "
+    return _verdict(ok), "", text + ", ".join(parts)
 
 
 SEMI_DQL, CQL_SUBG = ("semi_cql", "dql"), ("cql", "subg_cql")
@@ -272,14 +255,7 @@ CLAIMS: tuple[tuple[str, str, tuple[str, ...] | None, Callable[[Cells], tuple]],
 
 
 def check_claims(summary: pd.DataFrame) -> list[ClaimResult]:
-    """Verdicts of every claim on every system, plus the cross-system learning space claim.
-
-    Args:
-        summary: The summary over seeds (``reports/frame.summarize``).
-
-    Returns:
-        One result per claim and system, in :data:`CLAIMS` order, then the cross-system one.
-    """
+    """Verdicts of every claim on every system, plus the cross-system learning space claim."""
     by_system = {s: Cells(rows) for s, rows in summary.groupby("system", sort=False)}
     results = []
     for claim, statement, needed, check in CLAIMS:
@@ -300,8 +276,8 @@ def _system2_larger(by_system: Mapping[str, Cells]) -> ClaimResult:
             continue
         ok = ok and large > small
         parts.append(
-            f"{one.label(name)}: {system_label('system1')} {_sci(small)}, "
-            f"{system_label('system2')} {_sci(large)}"
+            f"{one.label(name)}: {system_label('system1')} {big_int(small)}, "
+            f"{system_label('system2')} {big_int(large)}"
         )
     if not parts:
         evidence = "needs a tabular learner on both system1 and system2"
@@ -316,15 +292,10 @@ def claims_table(results: Sequence[ClaimResult]) -> pd.DataFrame:
 
 
 def claims_along(summaries: Mapping[Any, pd.DataFrame]) -> pd.DataFrame:
-    """Where each claim holds along a swept parameter (``env.switch_ticks``, team size...).
+    """Per claim and system, the values of a swept parameter where it holds, fails or cannot tell.
 
-    Args:
-        summaries: Parameter value -> the summary of the runs made with that value.
-
-    Returns:
-        One row per claim and system (in :func:`check_claims` order): ``claim``, ``system`` and
-        the values where it holds, does not hold and is not evaluable (``holds_at``,
-        ``fails_at``, ``not_evaluable_at``: ascending tuples).
+    ``summaries`` maps each value to the summary of its runs; the columns ``holds_at``,
+    ``fails_at`` and ``not_evaluable_at`` hold ascending tuples.
     """
     table = pd.concat(
         [claims_table(check_claims(summaries[v])).assign(value=v) for v in sorted(summaries)]

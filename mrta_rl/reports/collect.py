@@ -1,27 +1,13 @@
 """Collect finished runs (metrics.json, curve.csv) and the jobs a sweep expected but lost.
 
-Input: a Hydra multirun dir (``multirun.yaml`` at the top, one job dir per job) or run dirs of
-``scripts/train.py`` (or folders holding them). A run is a folder with ``metrics.json``.
-
-The *expected* grid of a multirun is rebuilt as Hydra's ``BasicSweeper`` builds its job list:
-the ``hydra.sweeper.params`` of ``multirun.yaml`` followed by the command-line task overrides
-(``hydra.overrides.task``, a later key replacing an earlier one), expanded as a cartesian
-product. A job whose dir has no ``metrics.json`` (it failed: Hydra runs the remaining jobs and
-reports the error at the end, and ``train()`` writes metrics.json last and atomically) or has no
-dir at all is *missing*. Without a multirun.yaml the expected grid is the product of the learners,
-systems and seeds found, so a hole in a hand-made set of runs is reported too.
-
-Runs are told apart by their whole configuration, not only by learner, system and seed: among
-the runs of one learner on one system, every setting of ``.hydra/config.yaml`` whose value differs
-between them (the seed and the settings in :data:`NOT_CONFIGURATION` aside) makes a
-configuration of its own, named by what differs (``subg_reserve reserve=1 hold_level=0``; learner
-hyperparameters by their name, other settings by their dotted key). That name is the run's
-``learner`` in the report, so each configuration is its own row; only the same configuration with
-the same seed is a duplicate. Runs are compared on the settings their config records: a setting
-one run records and another does not differs (``null``).
-
-A run's learner is named by metrics.json's ``learner`` block (``{"name", "label", "kind"}``); a
-run that records only the learner's config choice name is labelled by that name.
+A run is a folder with ``metrics.json``; a Hydra multirun dir has one per job. The expected grid
+of a multirun is rebuilt as Hydra's ``BasicSweeper`` builds its jobs (``hydra.sweeper.params``,
+then the command-line overrides, a later key winning, as a cartesian product), so a job that
+failed or never started is *missing*; without a multirun.yaml it is the product of the
+learners, systems and seeds found. Runs are told apart by their whole configuration: among the
+runs of a learner on a system, every setting whose value differs (the seed and
+:data:`NOT_CONFIGURATION` aside) names a configuration of its own (``subg_reserve reserve=1``),
+so only the same configuration and seed is a duplicate.
 """
 
 from __future__ import annotations
@@ -51,6 +37,7 @@ from mrta_rl.run_files import (
 logger = logging.getLogger(__name__)
 
 CURVE_FILE = "curve.csv"
+FAILED = "failed or unfinished: no metrics.json (see train.log, sweep output)"
 BASIC_SWEEPER = "hydra._internal.core_plugins.basic_sweeper.BasicSweeper"
 # settings that do not change what a run computes: never part of a configuration's name
 NOT_CONFIGURATION = ("seed", "resume", "train.progress_bar", "train.checkpoint_every")
@@ -62,31 +49,17 @@ class ReportInputError(UserError):
 
 @dataclass(frozen=True)
 class RunRecord:
-    """One finished run.
-
-    Attributes:
-        run_dir: The run's folder.
-        learner: Learner name (yaml stem), from metrics.json, followed by the settings that set
-            its configuration apart from the other runs of that learner and system
-            (``subg_reserve reserve=1 hold_level=0``, see the module docstring).
-        system: System name (``system1``...), from metrics.json.
-        seed: Run seed, from metrics.json.
-        metrics: The whole metrics.json.
-        curve: Training curve rows ``(env_ticks, team_return_mean)``; empty for fixed policies.
-        config: The run's ``.hydra/config.yaml`` as a plain dict (``{}`` if absent).
-        overrides: The job's ``.hydra/overrides.yaml`` (``()`` if absent).
-        variant: What sets the configuration apart (``reserve=1 hold_level=0``), or ``""``.
-    """
+    """One finished run; ``learner`` is its configuration (``subg_reserve reserve=1``)."""
 
     run_dir: Path
     learner: str
     system: str
     seed: int
-    metrics: dict[str, Any]
-    curve: tuple[tuple[int, float], ...]
-    config: dict[str, Any]
-    overrides: tuple[str, ...]
-    variant: str = ""
+    metrics: dict[str, Any]  # the whole metrics.json
+    curve: tuple[tuple[int, float], ...]  # (env_ticks, team_return_mean); () for fixed policies
+    config: dict[str, Any]  # .hydra/config.yaml ({} if absent)
+    overrides: tuple[str, ...]  # .hydra/overrides.yaml
+    variant: str = ""  # what sets the configuration apart (reserve=1), or ""
 
     @property
     def name(self) -> str:
@@ -108,16 +81,7 @@ class RunRecord:
 
 @dataclass(frozen=True)
 class MissingJob:
-    """A job of the expected grid without metrics.json.
-
-    Attributes:
-        learner: Learner name of the job.
-        system: System name of the job.
-        seed: Seed of the job (None if not determinable).
-        overrides: The job's overrides (empty for a hole in a hand-made set of runs).
-        job_dir: The job's dir if it exists (a failed job), else None (never started).
-        reason: Short human-readable cause.
-    """
+    """A job of the expected grid without metrics.json (``job_dir`` None: never started)."""
 
     learner: str
     system: str
@@ -129,16 +93,7 @@ class MissingJob:
 
 @dataclass
 class Collection:
-    """Everything the report is built from.
-
-    Attributes:
-        inputs: The paths given.
-        runs: Finished runs, one per ``(learner, system, seed)``.
-        missing: Expected jobs without results.
-        duplicates: Runs dropped because another run had the same ``(learner, system, seed)``.
-        expected_jobs: Size of the expected grid.
-        sweep_source: How the expected grid was found (``multirun.yaml`` path or ``"runs found"``).
-    """
+    """Everything the report is built from; a duplicate repeats a kept run's configuration, seed."""
 
     inputs: list[Path]
     runs: list[RunRecord] = field(default_factory=list)
@@ -149,14 +104,7 @@ class Collection:
 
 
 def read_curve(path: Path) -> tuple[tuple[int, float], ...]:
-    """Rows ``(env_ticks, team_return_mean)`` of a curve.csv (``()`` if absent or header-only).
-
-    Args:
-        path: The curve.csv file (columns of ``mrta_rl.metrics.CURVE_COLUMNS``).
-
-    Returns:
-        The rows in file order.
-    """
+    """Rows ``(env_ticks, team_return_mean)`` of a curve.csv (``()`` if absent or header-only)."""
     if not path.is_file():
         return ()
     with path.open(newline="") as handle:
@@ -177,33 +125,16 @@ def config_value(config: dict[str, Any], dotted: str) -> Any:
 
 
 def load_run(run_dir: Path) -> RunRecord:
-    """Read one run dir.
-
-    Args:
-        run_dir: Folder holding metrics.json (and curve.csv, .hydra/ if written by Hydra).
-
-    Returns:
-        The record.
-
-    Raises:
-        RunDirError: if metrics.json is damaged (naming the file and key).
-    """
+    """Read one run dir."""
     metrics = read_metrics(run_dir / METRICS_FILE)
     config = _load_yaml(run_dir / CONFIG_FILE) or {}
     overrides = _load_yaml(run_dir / CONFIG_FILE.with_name("overrides.yaml")) or []
+    learner = metrics["learner"]
+    learner = str(learner["name"] if isinstance(learner, dict) else learner)
+    curve = read_curve(run_dir / CURVE_FILE)
+    seed, overrides = int(metrics["seed"]), tuple(str(o) for o in overrides)
     return RunRecord(
-        run_dir=run_dir,
-        learner=str(
-            metrics["learner"]["name"]
-            if isinstance(metrics["learner"], dict)
-            else metrics["learner"]
-        ),
-        system=str(metrics["system"]),
-        seed=int(metrics["seed"]),
-        metrics=metrics,
-        curve=read_curve(run_dir / CURVE_FILE),
-        config=config,
-        overrides=tuple(str(o) for o in overrides),
+        run_dir, learner, str(metrics["system"]), seed, metrics, curve, config, overrides
     )
 
 
@@ -225,13 +156,8 @@ def _setting_name(key: str) -> str:
 def configuration_variants(records: Sequence[RunRecord]) -> list[str]:
     """What sets each run's configuration apart from the other runs of its learner and system.
 
-    Args:
-        records: Runs with their configs.
-
-    Returns:
-        Per run, ``"name=value ..."`` of the settings whose values differ among the runs of its
-        ``(learner, system)`` (seed and :data:`NOT_CONFIGURATION` aside), in config order;
-        ``""`` when nothing differs.
+    Per run, ``"name=value ..."`` of the settings that differ among the runs of its ``(learner,
+    system)`` (seed and :data:`NOT_CONFIGURATION` aside), in config order; ``""`` if none.
     """
     flat = [_flatten(r.config) for r in records]
     variants = [""] * len(records)
@@ -290,11 +216,8 @@ def refused_jobs(sweep_dir: Path) -> dict[frozenset[str], str]:
     Such a job leaves no run dir (``runners/cli.py`` removes it); the sweep dir keeps its
     reason in ``refused_jobs.jsonl``. An unreadable line is skipped.
     """
-    path = sweep_dir / REFUSED_JOBS_FILE
-    out: dict[frozenset[str], str] = {}
-    if not path.is_file():
-        return out
-    for line in path.read_text(errors="replace").splitlines():
+    path, out = sweep_dir / REFUSED_JOBS_FILE, {}
+    for line in path.read_text(errors="replace").splitlines() if path.is_file() else []:
         try:
             record = json.loads(line)
             out[frozenset(str(o) for o in record["overrides"])] = f"refused: {record['reason']}"
@@ -306,12 +229,7 @@ def refused_jobs(sweep_dir: Path) -> dict[frozenset[str], str]:
 def expected_sweep_jobs(multirun_yaml: Path) -> list[list[str]] | None:
     """The job list Hydra's BasicSweeper built for a multirun, in job-number order.
 
-    Args:
-        multirun_yaml: The sweep's ``multirun.yaml``.
-
-    Returns:
-        One override list per job, or None if the sweep was not run by the BasicSweeper (another
-        sweeper plugin builds its jobs differently).
+    None if another sweeper plugin ran the sweep: it builds its jobs differently.
     """
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
@@ -333,22 +251,14 @@ def expected_sweep_jobs(multirun_yaml: Path) -> list[list[str]] | None:
     return [list(job) for job in itertools.product(*choices.values())]
 
 
-def _override_value(overrides: Sequence[str], key: str) -> str | None:
-    """Value of ``key=value`` (also ``+key=``/``++key=``) in an override list."""
-    for item in overrides:
-        name, _, value = item.partition("=")
-        if name.lstrip("+") == key:
-            return value
-    return None
-
-
 def _job_identity(job: Sequence[str], cfg: Any) -> tuple[str, str, int | None]:
     """``(learner, system, seed)`` of an expected job: its overrides, else the sweep defaults."""
+    # key=value, +key=value or ++key=value; the first of a key counts
+    given = {k.lstrip("+"): v for k, _, v in (item.partition("=") for item in reversed(job))}
     choices = OmegaConf.select(cfg, "hydra.runtime.choices", default={}) or {}
-    learner = _override_value(job, "learner") or str(choices.get("learner", "?"))
-    system = _override_value(job, "system") or str(choices.get("system", "?"))
-    seed_text = _override_value(job, "seed")
-    seed_text = seed_text if seed_text is not None else str(cfg.get("seed", ""))
+    learner = given.get("learner") or str(choices.get("learner", "?"))
+    system = given.get("system") or str(choices.get("system", "?"))
+    seed_text = given.get("seed", str(cfg.get("seed", "")))
     try:
         seed: int | None = int(seed_text)
     except ValueError:
@@ -373,17 +283,7 @@ def _job_dirs(sweep_dir: Path) -> dict[frozenset[str], Path]:
 
 
 def collect_runs(inputs: Iterable[Path | str]) -> Collection:
-    """Gather the runs below the inputs and list the expected jobs that left no results.
-
-    Args:
-        inputs: Multirun dirs, run dirs, or folders holding run dirs.
-
-    Returns:
-        The collection (runs sorted by learner, system, seed).
-
-    Raises:
-        ReportInputError: if an input does not exist.
-    """
+    """Gather the runs below the inputs and list the expected jobs that left no results."""
     paths = [Path(p) for p in inputs]
     for path in paths:
         if not path.exists():
@@ -397,14 +297,10 @@ def collect_runs(inputs: Iterable[Path | str]) -> Collection:
             record = dataclasses.replace(
                 record, learner=f"{record.learner} {variant}", variant=variant
             )
-        run_dir = record.run_dir
-        if record.key in by_key:  # e.g. a run repeated by hand; seeds must count once
-            logger.warning(
-                "%s repeats %s; keeping %s", run_dir, record.key, by_key[record.key].run_dir
-            )
+        if (kept := by_key.setdefault(record.key, record)) is not record:
+            # e.g. a run repeated by hand: a seed counts once
+            logger.warning("%s repeats %s; keeping %s", record.run_dir, record.key, kept.run_dir)
             collection.duplicates.append(record)
-            continue
-        by_key[record.key] = record
     collection.runs = sorted(by_key.values(), key=lambda r: (natural_key(r.learner), *r.key[1:]))
 
     sweeps = [p / "multirun.yaml" for p in paths if (p / "multirun.yaml").is_file()]
@@ -412,9 +308,7 @@ def collect_runs(inputs: Iterable[Path | str]) -> Collection:
     for multirun_yaml in sweeps:
         jobs = expected_sweep_jobs(multirun_yaml)
         if jobs is None:
-            logger.warning(
-                "%s: not a BasicSweeper sweep, expected grid taken from the runs", multirun_yaml
-            )
+            logger.warning("%s: not a BasicSweeper sweep, grid taken from the runs", multirun_yaml)
             continue
         expected_found = True
         collection.sweep_source = ", ".join(str(s) for s in sweeps)
@@ -426,16 +320,12 @@ def collect_runs(inputs: Iterable[Path | str]) -> Collection:
             job_dir = dirs.get(frozenset(job))
             if job_dir is not None and (job_dir / METRICS_FILE).is_file():
                 continue
-            learner, system, seed = _job_identity(job, cfg)
-            reason = (
-                refused.get(frozenset(job), "never started (no job dir)")
-                if job_dir is None
-                else refusal_reason(job_dir)
-                or "failed or unfinished: no metrics.json (see train.log, sweep output)"
-            )
-            collection.missing.append(
-                MissingJob(learner, system, seed, tuple(job), job_dir, reason)
-            )
+            if job_dir is None:
+                reason = refused.get(frozenset(job), "never started (no job dir)")
+            else:
+                reason = refusal_reason(job_dir) or FAILED
+            missing = MissingJob(*_job_identity(job, cfg), tuple(job), job_dir, reason)
+            collection.missing.append(missing)
     if not expected_found:
         learners = sorted({r.learner for r in collection.runs}, key=natural_key)
         systems = sorted({r.system for r in collection.runs})
@@ -443,7 +333,5 @@ def collect_runs(inputs: Iterable[Path | str]) -> Collection:
         collection.expected_jobs = len(learners) * len(systems) * len(seeds)
         for key in itertools.product(learners, systems, seeds):
             if key not in by_key:
-                collection.missing.append(
-                    MissingJob(*key, overrides=(), job_dir=None, reason="no run with this seed")
-                )
+                collection.missing.append(MissingJob(*key, (), None, "no run with this seed"))
     return collection

@@ -88,14 +88,7 @@ def _rows(run: RunRecord) -> Iterable[tuple[Any, ...]]:
 
 
 def long_table(runs: Sequence[RunRecord]) -> pd.DataFrame:
-    """The long table of the runs (module docstring), runs in the given order.
-
-    Args:
-        runs: Finished runs.
-
-    Returns:
-        One row per run and metric value; ``value`` keeps None for an undefined metric.
-    """
+    """The long table of the runs (module docstring), runs in the given order."""
     records = []
     for i, run in enumerate(runs):
         learner = run.metrics.get("learner")
@@ -150,46 +143,25 @@ def _derived(frame: pd.DataFrame) -> pd.DataFrame:
 def summarize(frame: pd.DataFrame) -> pd.DataFrame:
     """Mean and 95 % t interval over seeds of every metric of every ``(system, learner)`` cell.
 
-    Args:
-        frame: The long table (:func:`long_table`).
-
-    Returns:
-        One row per cell and metric value: the cell's columns (``learner``, ``label``, ``name``,
-        ``system``, ``seeds`` = number of runs), ``metric``, ``item``, ``priority``, ``types``, the
-        :data:`STATS` (NaN where undefined), ``first`` (the first seed's value, an exact int for
-        the learning space) and ``stat`` (the :class:`MeanCI`). Cells ordered by
-        system, then learner (:func:`order_learners`); metrics in the order of the runs.
+    One row per cell and metric value: the cell's columns, ``seeds``, the metric's, the
+    :data:`STATS`, ``first`` (the first seed's value: an exact int for the learning space) and
+    ``stat`` (the :class:`MeanCI`); cells by system, then :func:`order_learners`.
     """
     full = pd.concat([frame, _derived(frame)], ignore_index=True)
     systems = order_systems(full["system"])
     learners = order_learners(full["learner"])
-    full["rank"] = [
-        (systems.index(s), learners.index(n))
-        for s, n in zip(full["system"], full["learner"], strict=True)
-    ]
+    pairs = zip(full["system"], full["learner"], strict=True)
+    full["rank"] = [(systems.index(s), learners.index(n)) for s, n in pairs]
     full = full.sort_values("rank", kind="stable")
     seeds = full.groupby(["system", "learner"])["run"].nunique()
     records = []
     keys = ["system", "learner", "metric", "item", "priority"]
-    for (system, learner, metric, item, priority), group in full.groupby(keys, sort=False):
+    for cell, group in full.groupby(keys, sort=False):
         stat = mean_ci(None if v is None else float(v) for v in group["value"])
-        first = group.iloc[0]
-        records.append(
-            {
-                "system": system,
-                "learner": learner,
-                "label": first["label"],
-                "name": first["name"],
-                "seeds": int(seeds[system, learner]),
-                "metric": metric,
-                "item": item,
-                "priority": priority,
-                "types": first["types"],
-                "first": first["value"],  # exact: the learning space of the first seed
-                **{k: getattr(stat, k) for k in STATS},
-                "stat": stat,
-            }
-        )
+        first = group.iloc[0]  # its value is exact: the learning space of the first seed
+        record = dict(zip(keys, cell, strict=True)) | {"seeds": int(seeds[cell[:2]])}
+        record |= {k: first[k] for k in ("label", "name", "types")} | {"first": first["value"]}
+        records.append(record | {k: getattr(stat, k) for k in STATS} | {"stat": stat})
     return pd.DataFrame.from_records(records)
 
 
@@ -205,15 +177,7 @@ def stat(summary: pd.DataFrame, metric: str, item: str = "", priority: str = "")
 
 @dataclass(frozen=True)
 class CurveSummary:
-    """Learning curve of one learner on one system over seeds.
-
-    Attributes:
-        env_ticks: Training copy-ticks at the end of each episode (x axis).
-        mean: Mean team return per episode over seeds at each point.
-        low: Lower end of the 95 % interval (equal to the mean with one seed).
-        high: Upper end of the 95 % interval.
-        seeds: Number of seeds.
-    """
+    """Learning curve of one learner on one system over seeds."""
 
     env_ticks: np.ndarray
     mean: np.ndarray
@@ -227,12 +191,6 @@ def summarize_curve(runs: Sequence[RunRecord]) -> CurveSummary | None:
 
     Seeds of one config log at the same env ticks; if their lengths differ (an interrupted run),
     the common prefix is kept so every point averages the same seeds.
-
-    Args:
-        runs: Runs of one learner on one system.
-
-    Returns:
-        The summary, or None if no run has a curve (fixed policies do not train).
     """
     curves = [r.curve for r in runs if r.curve]
     if not curves:

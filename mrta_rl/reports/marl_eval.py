@@ -24,14 +24,7 @@ FILE = "marl_eval.json"
 
 
 def marl_eval_data(runs: Sequence[RunRecord]) -> dict[str, Any]:
-    """The marl-eval structure of the runs (module docstring).
-
-    Args:
-        runs: Finished runs, one per configuration, system and seed.
-
-    Returns:
-        ``{env: {system: {configuration: {"seed_<n>": run data}}}}``.
-    """
+    """The marl-eval structure of the runs (module docstring)."""
     data: dict[str, Any] = {}
     for run in runs:
         returns = run.metrics["eval"]["team_return"]

@@ -1,23 +1,13 @@
 """Build the experiment report: collect runs, aggregate over seeds, write report.md, CSVs, PNGs.
 
-``build_report([sweep_dir])`` is the single entry point of ``scripts/report.py``. Output files
-(flat, in ``out_dir``):
-
-* ``report.md``: the tables (paper Tables 5-9 analogues, team return vs greedy), the figures
-  (linked), the check of the paper's Section 6 claims and the list of missing jobs;
-* ``runs.csv`` (one row per run), ``ctr.csv``, ``itr.csv``, ``team_return.csv``,
-  ``group_return.csv``, ``learning_space.csv``, ``claims.csv``, ``missing.csv``,
-  ``field_stats.csv`` (IQM and probability of improvement), ``study.csv`` (runs of a swept
-  dimension), ``yardsticks*.csv`` (``reports/yardsticks.py``);
-* ``marl_eval.json``: the evaluation returns in marl-eval's format (``reports/marl_eval.py``);
-* ``ctr_<system>_L.png``, ``ctr_<system>_H.png`` (paper Figures 1-4), ``itr_<system>.png``
-  (Figures 5-6), ``curve_<system>.png`` (learning curves, for learners that train) and
-  ``team_return.png``, ``performance_profile.png`` and, for a swept team size or task-switch
-  cost, ``team_size_*.png`` / ``switch_ticks_return.png`` (see ``reports/studies.py``).
+Output files, flat in ``out_dir``: ``report.md`` (tables, linked figures, the paper's claims,
+missing jobs), the CSV tables (``runs.csv`` holds every run), ``marl_eval.json`` and the PNG
+figures; the experiments' own sections and files come from ``reports/experiments.py``.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 from collections.abc import Iterable, Sequence
@@ -26,7 +16,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from mrta_rl.reports import figures, marl_eval, studies, tables, yardsticks
+from mrta_rl.reports import experiments, figures, marl_eval, tables
 from mrta_rl.reports.claims import FAILS, HOLDS, NOT_EVALUABLE, check_claims, claims_table
 from mrta_rl.reports.collect import (
     Collection,
@@ -36,26 +26,29 @@ from mrta_rl.reports.collect import (
     config_value,
 )
 from mrta_rl.reports.frame import long_table, summarize, summarize_curve, system_label
+from mrta_rl.reports.tables import (
+    ctr_markdown,
+    group_return_markdown,
+    image,
+    itr_markdown,
+    learning_space_markdown,
+    markdown_table,
+    paragraphs,
+    team_return_markdown,
+    training_time_markdown,
+)
 
 logger = logging.getLogger(__name__)
 
 REPORT_FILE = "report.md"
 # run config keys shown in the report's setup section (dotted paths of conf/config.yaml)
+LEARNER_SETTINGS = "hyperparameters (conf/learner)"
 SETUP_KEYS = ("env.horizon", "train.episodes", "train.batch_size", "eval.episodes", "eval.seed")
 
 
 @dataclass
 class ReportFiles:
-    """What :func:`build_report` wrote.
-
-    Attributes:
-        out_dir: The output folder.
-        report: Path of report.md.
-        csvs: CSV files by stem.
-        figures: PNG files by stem.
-        collection: The runs and missing jobs the report was made from.
-        marl_eval: The marl-eval JSON of the runs.
-    """
+    """What :func:`build_report` wrote."""
 
     out_dir: Path
     report: Path
@@ -68,9 +61,7 @@ class ReportFiles:
 def default_out_dir(inputs: Sequence[Path | str]) -> Path:
     """``<input>/report`` for one input, else ``<common parent of the inputs>/report``."""
     paths = [Path(p).resolve() for p in inputs]
-    if len(paths) == 1:
-        return paths[0] / "report"
-    return Path(os.path.commonpath([str(p) for p in paths])) / "report"
+    return (paths[0] if len(paths) == 1 else Path(os.path.commonpath(paths))) / "report"
 
 
 def _setup_markdown(runs: Sequence[RunRecord], summary: pd.DataFrame) -> str:
@@ -79,9 +70,8 @@ def _setup_markdown(runs: Sequence[RunRecord], summary: pd.DataFrame) -> str:
     for key in SETUP_KEYS:
         values = sorted({str(config_value(r.config, key)) for r in runs})
         note = "" if len(values) == 1 else " (differs between runs!)"
-        rows.append(
-            [f"`{key}`", ", ".join(v.replace("None", "spec default") for v in values) + note]
-        )
+        values = ", ".join(v.replace("None", "spec default") for v in values)
+        rows.append([f"`{key}`", values + note])
     settings: dict[str, set[str]] = {}
     for r in runs:
         cfg = r.config.get("learner") or {}
@@ -92,29 +82,12 @@ def _setup_markdown(runs: Sequence[RunRecord], summary: pd.DataFrame) -> str:
         [labels[n], " / ".join(sorted(settings[n])) or "–"]
         for n in dict.fromkeys(summary["learner"])
     ]
-    return "\n".join(
-        [
-            tables.markdown_table(["setting", "value"], rows),
-            "",
-            tables.markdown_table(["learner", "hyperparameters (conf/learner)"], learners),
-        ]
-    )
+    settings_table = markdown_table(["setting", "value"], rows)
+    return settings_table + "\n\n" + markdown_table(["learner", LEARNER_SETTINGS], learners)
 
 
 def build_report(inputs: Iterable[Path | str], out_dir: Path | str | None = None) -> ReportFiles:
-    """Collect the runs under ``inputs`` and write the report, CSVs and figures to ``out_dir``.
-
-    Args:
-        inputs: A multirun dir, run dirs, or folders holding run dirs.
-        out_dir: Output folder; default :func:`default_out_dir`.
-
-    Returns:
-        The files written.
-
-    Raises:
-        ReportInputError: if an input does not exist or no finished run is found.
-        RunDirError: if a run's metrics.json is damaged.
-    """
+    """Collect the runs under ``inputs`` and write the report, CSVs and figures to ``out_dir``."""
     inputs = [Path(p) for p in inputs]
     collection = collect_runs(inputs)
     if not collection.runs:
@@ -123,7 +96,7 @@ def build_report(inputs: Iterable[Path | str], out_dir: Path | str | None = None
             f"no finished run (metrics.json) under {[str(p) for p in inputs]}{missing}"
         )
     # the yardstick runs are checked (re-evaluations, same task streams) before anything is written
-    yardsticks.collect_policies([*collection.runs, *collection.duplicates])
+    experiments.collect_policies(collection.runs + collection.duplicates)
     out = Path(out_dir) if out_dir is not None else default_out_dir(inputs)
     out.mkdir(parents=True, exist_ok=True)
     files = ReportFiles(out_dir=out, report=out / REPORT_FILE, collection=collection)
@@ -145,55 +118,48 @@ def build_report(inputs: Iterable[Path | str], out_dir: Path | str | None = None
 
     colors = figures.learner_colors(list(dict.fromkeys(summary["learner"])))
     for system, rows in summary.groupby("system", sort=False):
-        for p in ("L", "H"):
-            stem = f"ctr_{system}_{p}"
-            files.figures[stem] = figures.ctr_figure(
-                rows[rows["metric"] == "ctr"], p, _png(out, stem), colors
-            )
-        files.figures[f"itr_{system}"] = figures.itr_figure(
-            rows, _png(out, f"itr_{system}"), colors
-        )
-        curves = {}
+        for stem, part in (("L", rows["priority"] == "L"), ("H", rows["priority"] == "H")):
+            stem = f"ctr_{system}_{stem}"
+            files.figures[stem] = figures.grouped_bars(rows[part], "ctr", _png(out, stem), colors)
+        stem = f"itr_{system}"
+        files.figures[stem] = figures.grouped_bars(rows, "itr", _png(out, stem), colors)
+        lines, line_colors = {}, {}
         for learner, label in dict(zip(rows["learner"], rows["label"], strict=True)).items():
             mine = [r for r in collection.runs if r.system == system and r.learner == learner]
-            if (curve := summarize_curve(mine)) is not None:
-                curves[learner] = (label, curve)
-        if curves:
+            if (c := summarize_curve(mine)) is not None:
+                name = f"{label} ({c.seeds} seed{'s' if c.seeds != 1 else ''})"
+                line_colors[name] = colors[learner]
+                lines[name] = pd.DataFrame({"x": c.env_ticks, "mean": c.mean, "low": c.low})
+                lines[name]["high"] = c.high
+        if lines:
             greedy = [s for s in rows[rows["metric"] == "greedy_team_return"]["stat"] if s.n]
-            files.figures[f"curve_{system}"] = figures.curve_figure(
-                curves, greedy[0] if greedy else None, system, _png(out, f"curve_{system}"), colors
-            )
-    files.figures["team_return"] = figures.team_return_figure(
-        summary, out / "team_return.png", colors
-    )
+            title = f"{system_label(system)}: learning curves (mean and 95% CI band over seeds)"
+            xlabel = "training env ticks (ticks x parallel copies)"
+            panel = figures.Panel(title, lines, xlabel, "team return per episode")
+            if greedy:
+                panel = dataclasses.replace(panel, hline=(greedy[0].mean, "greedy (evaluation)"))
+            png, stem = _png(out, f"curve_{system}"), f"curve_{system}"
+            files.figures[stem] = figures.line_figure([panel], png, line_colors, (7.5, 4.6))
+    png = out / "team_return.png"
+    files.figures["team_return"] = figures.team_return_figure(summary, png, colors)
 
     # "Learning against the rules": every run counts, the settings of a rule grid included
-    rules_md, rules_files = yardsticks.write_section(
-        [*collection.runs, *collection.duplicates], out
-    )
-    study_md, study_files = studies.study_sections(collection.runs, inputs, out)
+    every_run = [*collection.runs, *collection.duplicates]
+    rules_md, rules_files = experiments.write_section(every_run, out)
+    study_md, study_files = experiments.study_sections(collection.runs, inputs, out)
     for stem, path in {**rules_files, **study_files}.items():
         (files.figures if path.suffix == ".png" else files.csvs)[stem] = path
     files.marl_eval = marl_eval.write_marl_eval(collection.runs, out)
     markdown = _report_markdown(collection, frame, summary, claims, files, rules_md)
     files.report.write_text(markdown + "\n" + study_md + "\n")
-    logger.info(
-        "wrote %s (%d runs, %d missing)",
-        files.report,
-        len(collection.runs),
-        len(collection.missing),
-    )
+    counts = len(collection.runs), len(collection.missing)
+    logger.info("wrote %s (%d runs, %d missing)", files.report, *counts)
     return files
 
 
 def _png(out: Path, stem: str) -> Path:
     """The figure file of a stem; a system in a config subfolder (``sub/nested``) stays in out."""
     return out / f"{stem.replace('/', '_')}.png"
-
-
-def _section(title: str, text: str, *blocks: str) -> list[str]:
-    """Markdown lines: a heading, then its text and blocks, each followed by a blank line."""
-    return [title, "", *(line for block in (text, *blocks) if block for line in (block, ""))]
 
 
 def _report_markdown(
@@ -205,9 +171,9 @@ def _report_markdown(
     rules_md: str = "",
 ) -> str:
     runs, missing, duplicates = collection.runs, collection.missing, collection.duplicates
-    verdicts = [c.verdict for c in claims]
+    verdicts, fig = [c.verdict for c in claims], files.figures.get
     systems = {s: rows for s, rows in summary.groupby("system", sort=False)}
-    md = _section(
+    md = paragraphs(
         "# Experiment report",
         "Inputs: " + ", ".join(f"`{p}`" for p in collection.inputs),
         f"**{len(runs)} finished runs** of {collection.expected_jobs} expected "
@@ -225,42 +191,36 @@ def _report_markdown(
             for r in duplicates
         ]
         header = ["configuration", "system", "seed", "left out", "kept"]
-        md += _section(
+        md += paragraphs(
             "## Duplicate runs left out",
             "Each of these runs has the configuration and seed of a run the report keeps (a seed "
             "counts once); only identical settings make a duplicate.",
-            tables.markdown_table(header, rows),
+            markdown_table(header, rows),
         )
     if missing:
         rows = [
-            [
-                m.learner,
-                system_label(m.system),
-                "?" if m.seed is None else m.seed,
-                m.reason,
-                f"`{m.job_dir}`" if m.job_dir else "–",
-                f"`{' '.join(m.overrides)}`" if m.overrides else "–",
-            ]
+            [m.learner, system_label(m.system), "?" if m.seed is None else m.seed, m.reason]
+            + [f"`{v}`" if v else "–" for v in (m.job_dir, " ".join(m.overrides))]
             for m in missing
         ]
         header = ["learner", "system", "seed", "reason", "job dir", "overrides"]
-        md += _section(
+        md += paragraphs(
             "## Missing jobs",
             "These jobs of the expected grid left no `metrics.json`; their cells below average "
             "fewer seeds (or are absent).",
-            tables.markdown_table(header, rows),
+            markdown_table(header, rows),
         )
-    md += _section("## Setup", _setup_markdown(runs, summary))
-    md += _section(
+    md += paragraphs("## Setup", _setup_markdown(runs, summary))
+    md += paragraphs(
         "## Team return against the greedy auction",
         "Evaluation team return per episode; `greedy` is the plain auction on the full task "
         "sets, evaluated on the same task streams (paired per seed for the difference).",
-        tables.team_return_markdown(summary, tables.csv_tables(frame, summary)["team_return"]),
-        tables.image(files.figures.get("team_return"), "Team return"),
+        team_return_markdown(summary, tables.csv_tables(frame, summary)["team_return"]),
+        image(fig("team_return"), "Team return"),
     )
-    groups = {s: t for s, rows in systems.items() if (t := tables.group_return_markdown(rows))}
+    groups = {s: t for s, rows in systems.items() if (t := group_return_markdown(rows))}
     if groups:
-        md += _section(
+        md += paragraphs(
             "### Team return by subG sub-group",
             "Every reward is a task's and each task type belongs to one sub-group, so the team "
             "return splits exactly into the parts its sub-groups' task types earn; the last row "
@@ -269,7 +229,7 @@ def _report_markdown(
         )
     if rules_md:
         md += [rules_md, ""]
-    md += _section(
+    md += paragraphs(
         "## Completed task ratio (paper Tables 5-6, Figures 1-4)",
         "CTR (%) = assigned / (assigned + dropped) per task type and priority; `all` pools the "
         "counts over types.",
@@ -277,64 +237,50 @@ def _report_markdown(
     for system, rows in systems.items():
         label = system_label(system)
         for p, word in (("L", "low"), ("H", "high")):
-            image = tables.image(
-                files.figures.get(f"ctr_{system}_{p}"), f"{label} CTR {word}-priority"
-            )
-            md += _section(
-                f"### {label}: {word}-priority tasks", tables.ctr_markdown(rows, p), image
-            )
-    md += _section(
+            figure = image(fig(f"ctr_{system}_{p}"), f"{label} CTR {word}-priority")
+            md += paragraphs(f"### {label}: {word}-priority tasks", ctr_markdown(rows, p), figure)
+    md += paragraphs(
         "## Idle time ratio (paper Tables 7-8, Figures 5-6)",
         "ITR (%) = (horizon - busy ticks) / horizon per robot (paper eq. 9); lower is better.",
     )
     for system, rows in systems.items():
         label = system_label(system)
-        md += _section(
+        md += paragraphs(
             f"### {label}",
-            tables.itr_markdown(rows),
-            tables.image(files.figures.get(f"itr_{system}"), f"{label} ITR"),
+            itr_markdown(rows),
+            image(fig(f"itr_{system}"), f"{label} ITR"),
         )
-    md += _section(
+    md += paragraphs(
         "## Learning space (paper Table 9)",
         "`analytic`: learning space dimension of the learner's encoding (paper eqs. 10-16, exact "
         "integer in `learning_space.csv`); `visited`: table entries updated at least once "
         "(mean ± CI over seeds); `parameters`: weights of a network learner.",
-        tables.learning_space_markdown(frame, summary),
+        learning_space_markdown(frame, summary),
     )
-    md += _section(
+    md += paragraphs(
         "## Learning curves",
         "Training team return per episode (with exploration) against training env ticks "
         "(ticks x parallel copies); line = mean over seeds, band = 95 % CI. The dashed line is "
         "the greedy auction's evaluation return.",
-        *(
-            tables.image(files.figures.get(f"curve_{s}"), f"{system_label(s)} learning curves")
-            for s in systems
-        ),
+        *(image(fig(f"curve_{s}"), f"{system_label(s)} learning curves") for s in systems),
     )
     claim_rows = [
-        [
-            r.statement,
-            system_label(r.system) if r.system != "all" else "both",
-            f"**{r.verdict}**",
-            r.separation or "",
-            r.evidence,
-        ]
+        [r.statement, system_label(r.system) if r.system != "all" else "both", f"**{r.verdict}**"]
+        + [r.separation or "", r.evidence]
         for r in claims
     ]
-    md += _section(
+    md += paragraphs(
         "## Claims of the paper (Section 6)",
         f"{verdicts.count(HOLDS)} hold, {verdicts.count(FAILS)} do not hold, "
         f"{verdicts.count(NOT_EVALUABLE)} not evaluable (a learner they compare is missing). "
         "Verdicts compare means over seeds; `clear` = the compared 95 % intervals are "
         "disjoint, `CIs overlap` = the ordering may be noise.",
-        tables.markdown_table(
-            ["claim (paper)", "system", "verdict", "95% CIs", "numbers"], claim_rows
-        ),
+        markdown_table(["claim (paper)", "system", "verdict", "95% CIs", "numbers"], claim_rows),
     )
     total_wall = sum((r.metrics.get("train") or {}).get("wall_s", 0.0) for r in runs)
-    md += _section(
+    md += paragraphs(
         "## Training time",
-        tables.training_time_markdown(summary),
+        training_time_markdown(summary),
         f"Sum of the training wall times of all runs: {total_wall:.1f} s "
         "(evaluation not included).",
     )

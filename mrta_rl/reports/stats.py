@@ -25,18 +25,7 @@ CONFIDENCE = 0.95  # two-sided level of every interval in the reports
 
 
 def t_quantile(df: int, confidence: float = CONFIDENCE) -> float:
-    """Two-sided critical value ``t`` with ``P(|T| <= t) = confidence`` for ``df`` degrees.
-
-    Args:
-        df: Degrees of freedom, an integer >= 1 (number of seeds - 1).
-        confidence: Two-sided level in (0, 1).
-
-    Returns:
-        The critical value (scipy's Student t quantile).
-
-    Raises:
-        ValueError: if ``df`` < 1 or ``confidence`` is not in (0, 1).
-    """
+    """Two-sided critical value ``t`` with ``P(|T| <= t) = confidence`` for ``df`` degrees."""
     if int(df) != df or df < 1:
         raise ValueError(f"degrees of freedom must be an integer >= 1, got {df!r}")
     if not 0.0 < confidence < 1.0:
@@ -46,14 +35,7 @@ def t_quantile(df: int, confidence: float = CONFIDENCE) -> float:
 
 @dataclass(frozen=True)
 class MeanCI:
-    """Mean over seeds with its 95 % t interval.
-
-    Attributes:
-        n: Number of values (seeds) that had a value.
-        mean: Their mean; NaN if ``n == 0``.
-        ci95: Half-width of the interval; NaN if ``n < 2`` (no spread to estimate).
-        std: Sample standard deviation (``ddof=1``); NaN if ``n < 2``.
-    """
+    """Mean over seeds with its 95 % t interval (half-width ``ci95``, NaN below two values)."""
 
     n: int
     mean: float
@@ -80,15 +62,7 @@ class MeanCI:
 
 
 def mean_ci(values: Iterable[float | None]) -> MeanCI:
-    """Mean and 95 % t interval of the values, ignoring None and NaN (undefined metrics).
-
-    Args:
-        values: One value per seed; None/NaN where the metric is undefined for that seed (e.g. a
-            CTR of a task type none of whose tasks was decided).
-
-    Returns:
-        The aggregate.
-    """
+    """Mean and 95 % t interval of the values, ignoring None and NaN (undefined metrics)."""
     kept = [float(v) for v in values if v is not None and not math.isnan(float(v))]
     n = len(kept)
     if n == 0:
@@ -111,19 +85,15 @@ def mean_ci(values: Iterable[float | None]) -> MeanCI:
 
 BOOTSTRAP_REPS = 2000  # bootstrap resamples of every interval
 BOOTSTRAP_SEED = 0  # fixed, so a report is reproducible
+# each task's runs resampled alone (scipy's unpaired samples), vectorized statistics
+STRATIFIED = {"confidence_level": CONFIDENCE, "method": "percentile", "paired": False}
+STRATIFIED |= {"vectorized": True}
 IQM_CUT = 0.25  # interquartile mean: drop the lowest and highest 25 % of the runs
 
 
 @dataclass(frozen=True)
 class Estimate:
-    """A point estimate with its 95 % stratified bootstrap (percentile) interval.
-
-    Attributes:
-        value: The statistic on the data; NaN without data.
-        low: Lower end of the interval; NaN if undefined (a task with fewer than 2 runs).
-        high: Upper end of the interval.
-        n: Number of runs (all tasks).
-    """
+    """A point estimate with its 95 % stratified bootstrap (percentile) interval over ``n`` runs."""
 
     value: float
     low: float
@@ -159,15 +129,9 @@ def _bootstrap(
         return nan, nan
     if all(np.ptp(s) == 0 for s in samples) and len({float(s[0]) for s in samples}) == 1:
         return value, value  # every run has the same score: the interval is that point
+    rng = np.random.default_rng(seed)
     result = scipy_stats.bootstrap(
-        tuple(samples),
-        statistic,
-        n_resamples=reps,
-        confidence_level=CONFIDENCE,
-        method="percentile",
-        paired=False,
-        vectorized=True,
-        rng=np.random.default_rng(seed),
+        tuple(samples), statistic, n_resamples=reps, rng=rng, **STRATIFIED
     )
     return result.confidence_interval.low, result.confidence_interval.high
 
@@ -177,16 +141,7 @@ def iqm_ci(
     reps: int = BOOTSTRAP_REPS,
     seed: int = BOOTSTRAP_SEED,
 ) -> Estimate:
-    """Interquartile mean of the runs with its 95 % stratified bootstrap interval.
-
-    Args:
-        scores_by_task: Per task, one score per run (NaN/None ignored).
-        reps: Bootstrap resamples.
-        seed: Bootstrap generator seed.
-
-    Returns:
-        The estimate (``n == 0`` without any score).
-    """
+    """Interquartile mean of the runs with its 95 % stratified bootstrap interval."""
     tasks = _tasks(scores_by_task)
     if not tasks:
         return Estimate(math.nan, math.nan, math.nan, 0)
@@ -218,18 +173,6 @@ def probability_of_improvement(
     Ties count one half (rliable ``probability_of_improvement``, the Mann-Whitney U statistic
     divided by ``n * m``). The interval resamples the runs of X and of Y independently within
     each task.
-
-    Args:
-        x_by_task: Per task, the scores of X's runs.
-        y_by_task: Per task, the scores of Y's runs, tasks in the same order.
-        reps: Bootstrap resamples.
-        seed: Bootstrap generator seed.
-
-    Returns:
-        The estimate over the tasks where both have runs.
-
-    Raises:
-        ValueError: if the two lists have different numbers of tasks.
     """
     if len(x_by_task) != len(y_by_task):
         raise ValueError(f"X has {len(x_by_task)} tasks but Y has {len(y_by_task)}")
@@ -245,14 +188,7 @@ def probability_of_improvement(
 
 @dataclass(frozen=True)
 class Profile:
-    """Performance profile: fraction of runs scoring above each threshold ``tau``.
-
-    Attributes:
-        tau: The thresholds.
-        fraction: Mean over tasks of the fraction of the task's runs with a score > tau.
-        low: Lower end of the 95 % stratified bootstrap band (NaN if undefined).
-        high: Upper end of the band.
-    """
+    """Performance profile: fraction of runs scoring above each threshold ``tau``."""
 
     tau: Any
     fraction: Any
@@ -266,17 +202,7 @@ def performance_profile(
     reps: int = BOOTSTRAP_REPS,
     seed: int = BOOTSTRAP_SEED,
 ) -> Profile:
-    """Run-score distribution (rliable ``create_performance_profile``) with a bootstrap band.
-
-    Args:
-        scores_by_task: Per task, one score per run.
-        tau: Thresholds (x axis).
-        reps: Bootstrap resamples.
-        seed: Bootstrap generator seed.
-
-    Returns:
-        The profile; all NaN without any score.
-    """
+    """Run-score distribution (rliable ``create_performance_profile``) with a bootstrap band."""
     taus = np.asarray(tau, dtype=float)
     tasks = _tasks(scores_by_task)
     if not tasks:

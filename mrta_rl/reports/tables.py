@@ -21,18 +21,13 @@ from mrta_rl.reports.stats import MeanCI, mean_ci
 _NUMERIC = re.compile(r"^\s*([-+]?[\d.,]+(e[-+]?\d+)?( ± [\d.,e+-]+)?( %)?|–|\?)\s*$")
 STAT_COLUMNS = {"seeds": "n_seeds", "mean": "mean", "ci95": "ci95", "std": "std"}
 STAT_COLUMNS |= {"low": "ci_low", "high": "ci_high"}
+TEAM_METRICS = ("team_return", "greedy_team_return", "gain")  # a cell's return, greedy's, the gain
+GROUP_COLUMNS = {"item": "group", "types": "task_types", "seeds": "n_seeds"}
+GROUP_COLUMNS |= {"mean": "return_mean", "ci95": "return_ci95"}
 
 
 def markdown_table(header: Sequence[str], rows: Iterable[Sequence[Any]]) -> str:
-    """A GitHub markdown table: text left-aligned, numeric columns (but the first) right-aligned.
-
-    Args:
-        header: Column titles.
-        rows: Cell values (converted with ``str``; ``|`` escaped).
-
-    Returns:
-        The table, lines joined by newlines.
-    """
+    """A GitHub markdown table: text left-aligned, numeric columns (but the first) right-aligned."""
     rows = [[str(v).replace("|", "\\|") for v in row] for row in rows]
     numeric = [i > 0 and all(_NUMERIC.match(row[i]) for row in rows) for i in range(len(header))]
     lines = ["| " + " | ".join(str(h).replace("|", "\\|") for h in header) + " |"]
@@ -44,6 +39,11 @@ def write_csv(path: Path, table: pd.DataFrame) -> Path:
     """Write a table as CSV (NaN and None empty, CRLF as the csv module); returns ``path``."""
     table.to_csv(path, index=False, na_rep="", lineterminator="\r\n")
     return path
+
+
+def paragraphs(*blocks: str) -> list[str]:
+    """Markdown lines: each non-empty block (a heading, text, a table) and a blank line."""
+    return [line for block in blocks if block for line in (block, "")]
 
 
 def image(path: Path | None, alt: str) -> str:
@@ -65,59 +65,31 @@ def _stats(rows: pd.DataFrame, *keys: str) -> pd.DataFrame:
 
 
 def csv_tables(frame: pd.DataFrame, summary: pd.DataFrame) -> dict[str, pd.DataFrame]:
-    """The report's CSV tables by stem: runs, ctr, itr, team_return, group_return, learning_space.
-
-    Args:
-        frame: The long table of the runs.
-        summary: Its summary over seeds.
-
-    Returns:
-        ``stem -> table``; rows in the summary's cell order.
-    """
+    """The CSV tables by stem: runs, ctr, itr, team_return, group_return, learning_space."""
     ctr = _cell_sorted(_metric(summary, "ctr"))
     cells = _metric(summary, "team_return").set_index(["system", "learner"])
 
-    def part(metric: str, column: str) -> pd.Series:
-        rows = _metric(summary, metric).set_index(["system", "learner"])
-        return rows[column].reindex(cells.index)
-
-    greedy = part("greedy_team_return", "mean")
-    team_return = pd.DataFrame(
-        {
-            "n_seeds": cells["seeds"],
-            "team_return_mean": cells["mean"],
-            "team_return_ci95": cells["ci95"],
-            "greedy_mean": greedy,
-            "greedy_ci95": part("greedy_team_return", "ci95"),
-            "gain_mean": part("gain", "mean"),
-            "gain_ci95": part("gain", "ci95"),
-            "gain_percent": [
-                100.0 * gain / abs(base) if base and not math.isnan(base) else math.nan
-                for gain, base in zip(part("gain", "mean"), greedy, strict=True)
-            ],
-        }
-    ).reset_index()
+    parts = [cells[["seeds"]].rename(columns={"seeds": "n_seeds"})]
+    for metric, prefix in (("team_return", "team_return_"), ("greedy_team_return", "greedy_")):
+        rows = _metric(summary, metric).set_index(["system", "learner"])[["mean", "ci95"]]
+        parts.append(rows.reindex(cells.index).add_prefix(prefix))
+    rows = _metric(summary, "gain").set_index(["system", "learner"])[["mean", "ci95"]]
+    team_return = pd.concat([*parts, rows.reindex(cells.index).add_prefix("gain_")], axis=1)
+    team_return["gain_percent"] = [
+        100.0 * gain / abs(base) if base and not math.isnan(base) else math.nan
+        for gain, base in zip(team_return["gain_mean"], team_return["greedy_mean"], strict=True)
+    ]
+    keys = ["system", "learner", "item"]
     groups = _metric(summary, "group_return")
-    greedy_groups = _metric(summary, "greedy_group_return").set_index(["system", "learner", "item"])
-    group_return = pd.DataFrame(
-        {
-            "system": groups["system"],
-            "learner": groups["learner"],
-            "group": groups["item"],
-            "task_types": groups["types"],
-            "n_seeds": groups["seeds"],
-            "return_mean": groups["mean"],
-            "return_ci95": groups["ci95"],
-            "greedy_return_mean": greedy_groups["mean"]
-            .reindex(pd.MultiIndex.from_frame(groups[["system", "learner", "item"]]))
-            .to_numpy(),
-        }
-    )
+    greedy_groups = _metric(summary, "greedy_group_return").set_index(keys)["mean"]
+    group_return = groups[[*keys, "types", "seeds", "mean", "ci95"]].rename(columns=GROUP_COLUMNS)
+    index = pd.MultiIndex.from_frame(groups[keys])
+    group_return["greedy_return_mean"] = greedy_groups.reindex(index).to_numpy()
     return {
         "runs": runs_wide(frame),
         "ctr": _stats(ctr, "item", "priority").rename(columns={"item": "task_type"}),
         "itr": _stats(_metric(summary, "itr"), "item").rename(columns={"item": "robot"}),
-        "team_return": team_return,
+        "team_return": team_return.reset_index(),
         "group_return": group_return,
         "learning_space": learning_space_table(frame, summary),
     }
@@ -171,9 +143,8 @@ def ctr_markdown(summary: pd.DataFrame, priority: str) -> str:
     """Rows learners, columns task types and ``all``: CTR of one priority on one system."""
     rows = _metric(summary, "ctr")
     rows = _cell_sorted(rows[rows["priority"] == priority])
-    rows = rows.assign(
-        item=[f"all {priority}" if t == "all" else f"{t}{priority}" for t in rows["item"]]
-    )
+    items = [f"all {priority}" if t == "all" else f"{t}{priority}" for t in rows["item"]]
+    rows = rows.assign(item=items)
     return _markdown_pivot(_pivot_text(rows, "item"), "learner")
 
 
@@ -189,23 +160,12 @@ def team_return_markdown(summary: pd.DataFrame, table: pd.DataFrame) -> str:
     labels = plain.drop_duplicates(["system", "learner"]).set_index(["system", "learner"])["label"]
     rows = [
         [system_label(r.system), labels[r.system, r.learner], r.n_seeds]
-        + [
-            stats[r.system, r.learner, m].format()
-            for m in ("team_return", "greedy_team_return", "gain")
-        ]
+        + [stats[r.system, r.learner, m].format() for m in TEAM_METRICS]
         + ["–" if math.isnan(r.gain_percent) else f"{r.gain_percent:+.1f} %"]
         for r in table.itertuples()
     ]
-    header = [
-        "system",
-        "learner",
-        "seeds",
-        "team return",
-        "greedy",
-        "learner - greedy",
-        "vs greedy",
-    ]
-    return markdown_table(header, rows)
+    header = ["system", "learner", "seeds", "team return", "greedy", "learner - greedy"]
+    return markdown_table([*header, "vs greedy"], rows)
 
 
 def group_return_markdown(summary: pd.DataFrame) -> str:
@@ -240,23 +200,17 @@ def learning_space_markdown(frame: pd.DataFrame, summary: pd.DataFrame) -> str:
         return "_No learner reports a learning space (fixed policies only)._"
     keys = sorted(set(table["key"]), key=lambda k: ({"analytic": 0, "visited": 1}.get(k, 2), k))
     share = "analytic" in keys and "visited" in keys
-    labels = summary.drop_duplicates(["system", "learner"]).set_index(["system", "learner"])[
-        "label"
-    ]
+    labels = summary.drop_duplicates(["system", "learner"]).set_index(["system", "learner"])
+    labels = labels["label"]
     space = frame[frame["metric"] == "learning_space"]
     rows = []
     for (system, learner), cell in table.groupby(["system", "learner"], sort=False):
-        by_key = cell.set_index("key")
+        by_key = {r.key: r for r in cell.itertuples()}
         row: list[Any] = [system_label(system), labels[system, learner]]
-        for key in keys:
-            if key not in by_key.index:
-                row.append("–")
-            elif by_key.at[key, "exact"]:
-                row.append(big_int(int(by_key.at[key, "exact"])))
-            else:
-                ci95 = by_key.at[key, "ci95"]
-                spread = "" if math.isnan(ci95) else f" ± {ci95:.3g}"
-                row.append(f"{by_key.at[key, 'mean']:.4g}{spread}")
+        for r in (by_key.get(key) for key in keys):
+            spread = "" if r is None or math.isnan(r.ci95) else f" ± {r.ci95:.3g}"
+            text = r and (big_int(int(r.exact)) if r.exact else f"{r.mean:.4g}{spread}")
+            row.append(text or "–")
         if share:
             mine = space[(space["system"] == system) & (space["learner"] == learner)]
             analytic = list(mine[mine["item"] == "analytic"]["value"])
@@ -286,6 +240,5 @@ def training_time_markdown(summary: pd.DataFrame) -> str:
 
 def signed(value: MeanCI) -> str:
     """``"+19.7 ± 5.7"``; ``"+19.7"`` for one value; ``"–"`` for none."""
-    if value.n == 0:
-        return "–"
-    return f"{value.mean:+.1f}" + (f" ± {value.ci95:.1f}" if value.n > 1 else "")
+    spread = f" ± {value.ci95:.1f}" if value.n > 1 else ""
+    return "–" if value.n == 0 else f"{value.mean:+.1f}{spread}"

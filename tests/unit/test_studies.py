@@ -15,8 +15,8 @@ from scipy import stats as scipy_stats
 
 from mrta_rl.reports import build_report
 from mrta_rl.reports.collect import collect_runs
+from mrta_rl.reports.experiments import study_points, swept_dimensions
 from mrta_rl.reports.stats import iqm_ci, performance_profile, probability_of_improvement
-from mrta_rl.reports.studies import study_points, swept_dimensions
 from tests.unit.test_reports import write_run
 
 # --- statistics on small fixed arrays, against values computed independently -------------------

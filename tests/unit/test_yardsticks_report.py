@@ -1,4 +1,4 @@
-"""The report section "Learning against the rules" (mrta_rl/reports/yardsticks.py), by hand."""
+"""The report section "Learning against the rules" (mrta_rl/reports/experiments.py), by hand."""
 
 from __future__ import annotations
 
@@ -11,14 +11,14 @@ import numpy as np
 import pytest
 
 from mrta_rl.reports.collect import RunRecord
-from mrta_rl.reports.stats import t_quantile
-from mrta_rl.reports.yardsticks import (
+from mrta_rl.reports.experiments import (
     BEST_RESERVE,
     collect_policies,
     section_rows,
     start_comparisons,
     write_section,
 )
+from mrta_rl.reports.stats import t_quantile
 
 GREEDY = [10.0, 20.0, 30.0]  # per evaluation episode, shared by every run
 LABELS = {"subg_cql": "subG-CQL", "cql": "CQL", "qmix": "QMIX"}  # metrics.json's learner block

@@ -1,0 +1,727 @@
+"""The experiments' own sections of report.md: studies along a swept setting, and yardsticks.
+
+* **Studies** (:data:`DIMENSIONS`): runs that differ in the team size (``experiment=scaling``) or
+  the task-switch cost (``experiment=switch_cost``) get each learner's team return relative to
+  greedy against that setting (and for the team size, learning space, wall time and memory), the
+  paper's claims at every value, and runs refused up front as ``refused: <reason>``. Every report
+  also gets the statistics the field reports (rliable's IQM, probability of improvement and
+  performance profiles, computed with scipy in ``reports/stats.py``). A run's score is
+  ``(R - G) / |G|``, its gain over greedy on the same task streams: a plain ratio ``R / G`` would
+  flip its meaning where greedy's return is negative (large random teams). A *task*, the
+  bootstrap's stratum, is one team under one setting: system, swept values and team seed.
+* **Learning against the rules** (``experiment=yardsticks``): per system, each learner's trained
+  policy and its untrained start (``train.episodes=0``) next to greedy, the best ``team_reserve``
+  setting among the runs and the ``rollout`` planner. Differences are paired per evaluation
+  episode (every run plays episode ``e`` on the same task stream), as seeds are few; a run
+  re-evaluated by ``scripts/evaluate.py`` is scored on its ``eval_metrics.json``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections import defaultdict
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from omegaconf import OmegaConf
+
+from mrta_rl.config import UserError
+from mrta_rl.reports import figures
+from mrta_rl.reports.claims import claims_along
+from mrta_rl.reports.collect import (
+    METRICS_FILE,
+    REFUSED_FILE,
+    RunRecord,
+    config_value,
+    configuration_variants,
+    refusal_reason,
+)
+from mrta_rl.reports.frame import long_table, order_learners, summarize, system_label
+from mrta_rl.reports.stats import (
+    BOOTSTRAP_REPS,
+    MeanCI,
+    iqm_ci,
+    mean_ci,
+    performance_profile,
+    probability_of_improvement,
+)
+from mrta_rl.reports.tables import image, markdown_table, paragraphs, signed, write_csv
+from mrta_rl.run_files import CONFIG_FILE, EVAL_METRICS_FILE, read_json
+
+# swept setting (dotted config key) -> (axis label, file stem, log-scale x axis)
+DIMENSIONS: dict[str, tuple[str, str, bool]] = {
+    "system.n_robots": ("team size (robots)", "team_size", True),
+    "env.switch_ticks": ("task-switch setup ticks s", "switch_ticks", False),
+}
+BOUND_KEY = "partition.max_group_size"
+TEAM_SEED_KEY = "system.seed"
+PROFILE_POINTS = 101  # thresholds of a performance profile
+STUDY_COLUMNS = ["series", "learner", "system", *DIMENSIONS, "team_seed", "seed"]
+STUDY_COLUMNS += ["return_vs_greedy", "team_return", "space_analytic", "space_visited"]
+STUDY_COLUMNS += ["parameters", "wall_s", "peak_rss_mb", "refused"]
+# a run's evaluation and greedy's on the same streams: what a re-evaluation replaces
+EVALUATION_BLOCKS = ("eval", "baseline_greedy")
+FIELD_STATS_HEADER = ["statistic", "x", "y", "value", "ci_low", "ci_high", "n_runs"]
+
+
+def _point(cell: tuple, config: dict[str, Any], metrics: dict[str, Any], refused: str) -> dict:
+    """One study row; ``cell`` is ``(label, learner, system, seed)``."""
+    label, learner, system, seed = cell
+    ret, greedy = (
+        ((metrics.get(k) or {}).get("team_return") or {}).get("mean") for k in EVALUATION_BLOCKS
+    )
+    greedy = None if greedy is None else float(greedy)
+    resources = metrics.get("resources") or {}
+    wall = resources.get("wall_s", (metrics.get("train") or {}).get("wall_s"))
+    space = {k: int(v) for k, v in (metrics.get("learning_space") or {}).items()}
+    bound = config_value(config, BOUND_KEY)
+    settings = {k: config_value(config, k) for k in DIMENSIONS}
+    random_team = "n_robots" in (config.get("system") or {})
+    team_seed = config_value(config, TEAM_SEED_KEY) if random_team else None
+    return {
+        "series": label + (f" (g={bound})" if bound is not None else ""),
+        "learner": learner,
+        "system": system,
+        **settings,
+        "team_seed": team_seed,
+        "seed": seed,
+        "return_vs_greedy": (float(ret) - greedy) / abs(greedy)
+        if ret is not None and greedy
+        else math.nan,
+        "team_return": math.nan if ret is None else float(ret),
+        "space_analytic": str(space["analytic"]) if "analytic" in space else "",
+        "space_visited": space.get("visited", ""),
+        "parameters": space.get("parameters", ""),
+        "wall_s": math.nan if wall is None else float(wall),
+        "peak_rss_mb": float(resources.get("peak_rss_mb", math.nan)),
+        "refused": refused,
+        "task": (system, tuple(sorted(settings.items())), team_seed),  # the bootstrap stratum
+    }
+
+
+def study_points(runs: Sequence[RunRecord], inputs: Sequence[Path]) -> pd.DataFrame:
+    """Every finished run and every refused run below the inputs, one row each.
+
+    A refused run is a dir with ``refused.json`` (``{"learner", "system", "seed", "reason"}``)
+    and no metrics.json; its swept values come from its ``.hydra/config.yaml``.
+    """
+    points = [_point((r.label, r.name, r.system, r.seed), r.config, r.metrics, "") for r in runs]
+    found = {p.parent.resolve() for path in inputs for p in Path(path).rglob(REFUSED_FILE)}
+    found |= {Path(p).resolve() for p in inputs if (Path(p) / REFUSED_FILE).is_file()}
+    for run_dir in sorted(found):
+        if (run_dir / METRICS_FILE).is_file():
+            continue
+        record = read_json(run_dir / REFUSED_FILE)
+        path = run_dir / CONFIG_FILE
+        config = OmegaConf.to_container(OmegaConf.load(path)) if path.is_file() else {}
+        learner, system = str(record.get("learner", "?")), str(record.get("system", "?"))
+        cell = (learner, learner, system, int(record.get("seed", config.get("seed", 0))))
+        points.append(_point(cell, config, {}, refusal_reason(run_dir) or ""))
+    # objects, not floats: the CSV keeps ints as ints and an absent setting empty
+    return pd.DataFrame(points, columns=[*STUDY_COLUMNS, "task"], dtype=object)
+
+
+def swept_dimensions(points: pd.DataFrame) -> list[str]:
+    """The :data:`DIMENSIONS` that take at least two values among the points."""
+    return [k for k in DIMENSIONS if points[k].dropna().nunique() >= 2]
+
+
+def order_series(points: pd.DataFrame) -> list[str]:
+    """Series in the paper's learner order, bounds after the unbounded learner."""
+    learners = order_learners(points["learner"])
+    rank = {}
+    for series, learner in zip(points["series"], points["learner"], strict=True):
+        rank[series] = min(rank.get(series, len(learners)), learners.index(learner))
+    return sorted(rank, key=lambda s: (rank[s], s))
+
+
+def _line(points: pd.DataFrame, dim: str, column: str) -> pd.DataFrame | None:
+    """Mean and 95 % interval of ``column`` per value of ``dim`` (None without any value)."""
+    rows = []
+    for x, group in points.dropna(subset=[dim]).groupby(dim):
+        stat = mean_ci(group[column])
+        if stat.n:
+            half = 0.0 if math.isnan(stat.ci95) else stat.ci95
+            rows.append((float(x), stat.mean, stat.mean - half, stat.mean + half))
+    return pd.DataFrame(rows, columns=["x", "mean", "low", "high"]) if rows else None
+
+
+def dimension_table(points: pd.DataFrame, dim: str, system: str) -> str:
+    """Markdown: series x values of ``dim``, cells ``score mean ± CI`` or ``refused: reason``."""
+    mine = points[points["system"] == system]
+    xs = sorted(mine[dim].dropna().unique())
+    rows = []
+    for series in order_series(mine):
+        row = [series]
+        for x in xs:
+            cell = mine[(mine["series"] == series) & (mine[dim] == x)]
+            refused = sorted(set(cell["refused"]) - {""})
+            finished = cell[cell["refused"] == ""]["return_vs_greedy"]
+            text = mean_ci(finished).format(3) if len(finished) else refused[0] if refused else "–"
+            if len(finished) and refused:
+                text += f" ({len(refused)} {refused[0]})"
+            row.append(text)
+        rows.append(row)
+    return markdown_table([f"learner \\ {DIMENSIONS[dim][0]}", *map(str, xs)], rows)
+
+
+def dimension_figures(points: pd.DataFrame, dim: str, out: Path, colors: dict) -> dict[str, Path]:
+    """The figures of one swept dimension (see module docstring), by file stem."""
+    label, stem, log_x = DIMENSIONS[dim]
+    finished = points[points["refused"] == ""].copy()
+    series = order_series(finished)
+
+    def panel(rows: pd.DataFrame, column: str, suffix: str = "") -> dict[str, pd.DataFrame]:
+        lines = {s + suffix: _line(rows[rows["series"] == s], dim, column) for s in series}
+        return {s: line for s, line in lines.items() if line is not None}
+
+    returns = [
+        figures.Panel(
+            f"{system_label(system)}: team return relative to greedy",
+            panel(finished[finished["system"] == system], "return_vs_greedy"),
+            label,
+            "(R - greedy) / |greedy| (mean, 95% CI)",
+            log_x=log_x,
+            hline=(0.0, "greedy"),
+        )
+        for system in dict.fromkeys(finished["system"])
+    ]
+    written = {f"{stem}_return": figures.line_figure(returns, out / f"{stem}_return.png", colors)}
+    if dim != "system.n_robots":
+        return written
+    space = {}
+    for column, suffix in (("space_analytic", ""), ("space_visited", " (visited)")) + (
+        ("parameters", " (parameters)"),
+    ):
+        finished[f"log_{column}"] = [
+            math.log10(int(v)) if v != "" and int(v) > 0 else math.nan for v in finished[column]
+        ]
+        space |= panel(finished, f"log_{column}", suffix)
+    title = "learning space: analytic dimension, entries visited, network parameters"
+    written[f"{stem}_space"] = figures.line_figure(
+        [figures.Panel(title, space, label, "log10 of the size", log_x=log_x)],
+        out / f"{stem}_space.png",
+        colors,
+    )
+    costs = [
+        figures.Panel(title, panel(finished, key), label, unit, log_x=log_x, log_y=True)
+        for title, key, unit in (
+            ("wall time per run", "wall_s", "seconds"),
+            ("peak memory per run", "peak_rss_mb", "peak RSS (MiB)"),
+        )
+    ]
+    written[f"{stem}_cost"] = figures.line_figure(costs, out / f"{stem}_cost.png", colors)
+    return written
+
+
+def dimension_claims(runs: Sequence[RunRecord], dim: str) -> str:
+    """Markdown: for each claim and system, the values of ``dim`` where it holds or not.
+
+    Runs with a partition bound are left out: the claims are about the paper's subG-CQL. The
+    runs of a learner at one value (team seeds and run seeds) make one cell.
+    """
+    by_value: dict[Any, list[RunRecord]] = {}
+    for run in runs:
+        value = config_value(run.config, dim)
+        if value is not None and config_value(run.config, BOUND_KEY) is None:
+            plain = dataclasses.replace(run, learner=run.name, variant="")
+            by_value.setdefault(value, []).append(plain)
+    along = claims_along({v: summarize(long_table(by_value[v])) for v in by_value})
+    where = ("holds_at", "fails_at", "not_evaluable_at")
+    rows = [
+        [
+            r.claim,
+            system_label(r.system),
+            *(", ".join(map(str, getattr(r, k))) or "none" for k in where),
+        ]
+        for r in along.itertuples()
+    ]
+    header = ["claim", "system", f"holds at {DIMENSIONS[dim][0]}", "does not hold at"]
+    return markdown_table([*header, "not evaluable at"], rows)
+
+
+def field_statistics(points: pd.DataFrame) -> pd.DataFrame:
+    """IQM per series, then P(X > Y) per ordered pair of series over the tasks both ran."""
+    scored = points[(points["refused"] == "") & points["return_vs_greedy"].notna()]
+    names = order_series(points[points["refused"] == ""])
+    by_series = {
+        s: scored[scored["series"] == s].groupby("task", sort=False)["return_vs_greedy"].agg(list)
+        for s in names
+    }
+    rows = [("iqm", s, "", iqm_ci(by_series[s].tolist())) for s in names]
+    for x in names:
+        for y in names:
+            if x != y:
+                common = [t for t in by_series[x].index if t in by_series[y].index]
+                estimate = probability_of_improvement(
+                    [by_series[x][t] for t in common], [by_series[y][t] for t in common]
+                )
+                rows.append(("probability_of_improvement", x, y, estimate))
+    return pd.DataFrame(
+        [(k, x, y, e.value, e.low, e.high, e.n, e) for k, x, y, e in rows],
+        columns=[*FIELD_STATS_HEADER, "estimate"],
+    )
+
+
+def field_statistics_markdown(stats: pd.DataFrame, points: pd.DataFrame) -> str:
+    """The IQM table and the probability-of-improvement matrix."""
+    iqm = stats[stats["statistic"] == "iqm"]
+    finished = points[points["refused"] == ""]
+    rows = [
+        [s, finished[finished["series"] == s]["task"].nunique(), e.n, e.format(3)]
+        for s, e in zip(iqm["x"], iqm["estimate"], strict=True)
+    ]
+    header = ["learner", "tasks", "runs", "IQM of (R - greedy) / |greedy| [95% CI]"]
+    md = paragraphs(markdown_table(header, rows))
+    names = list(iqm["x"])
+    if len(names) >= 2:
+        pairs = stats[stats["statistic"] != "iqm"].set_index(["x", "y"])["estimate"]
+        matrix = [[x, *("–" if x == y else pairs[x, y].format(2) for y in names)] for x in names]
+        md += paragraphs(
+            "Probability of improvement P(row > column) [95% CI]: the chance that a run of the "
+            "row learner scores higher than a run of the column learner on the same task "
+            "(ties count one half), averaged over the tasks both ran.",
+            markdown_table(["P(row > column)", *names], matrix),
+        )
+    return "\n".join(md)
+
+
+def profile_figure(points: pd.DataFrame, path: Path, colors: dict) -> Path | None:
+    """Performance profiles of every series (None if no finished run has a score)."""
+    scored = points[(points["refused"] == "") & points["return_vs_greedy"].notna()]
+    if scored.empty:
+        return None
+    low, high = scored["return_vs_greedy"].min(), scored["return_vs_greedy"].max()
+    tau = np.linspace(low - 0.01, high + 0.01, PROFILE_POINTS)
+    lines = {}
+    for s in order_series(scored):
+        tasks = scored[scored["series"] == s].groupby("task", sort=False)["return_vs_greedy"]
+        p = performance_profile(tasks.agg(list), tau)
+        lines[s] = pd.DataFrame({"x": p.tau, "mean": p.fraction, "low": p.low, "high": p.high})
+    panel = figures.Panel(
+        "Performance profiles (95% stratified bootstrap bands)",
+        lines,
+        "team return relative to greedy's, (R - G) / |G| (tau)",
+        "fraction of runs with score > tau",
+        vline=(0.0, "greedy's return"),
+        ylim=(-0.02, 1.02),
+    )
+    return figures.line_figure([panel], path, colors, size=(7.5, 4.6))
+
+
+def study_sections(
+    runs: Sequence[RunRecord], inputs: Sequence[Path], out: Path
+) -> tuple[str, dict[str, Path]]:
+    """The field-statistics section and one section per swept dimension, with files."""
+    points = study_points(runs, inputs)
+    colors = figures.learner_colors(order_series(points))
+    colors |= {f"{n} ({k})": c for n, c in list(colors.items()) for k in ("visited", "parameters")}
+    stats = field_statistics(points)
+    files = {"field_stats": write_csv(out / "field_stats.csv", stats[FIELD_STATS_HEADER])}
+    profile = profile_figure(points, out / "performance_profile.png", colors)
+    if profile is not None:
+        files["performance_profile"] = profile
+    md = paragraphs(
+        "## Statistics as the field reports them (IQM, probability of improvement)",
+        "Score of a run = (R - G) / |G|, its evaluation team return R relative to greedy's G on "
+        "the same task streams (0 = greedy, 0.1 = 10 % better). "
+        "IQM = interquartile mean over the runs of all tasks (a task = a system under one "
+        "setting and team seed); 95 % stratified bootstrap intervals (runs resampled within each "
+        f"task, {BOOTSTRAP_REPS} resamples, percentile method; Agarwal et al. 2021, as rliable). "
+        "Exact values: `field_stats.csv`.",
+    )
+    md += [field_statistics_markdown(stats, points), image(profile, "Performance profiles"), ""]
+    dims = swept_dimensions(points)
+    if dims:
+        files["study"] = write_csv(out / "study.csv", points[STUDY_COLUMNS])
+    for dim in dims:
+        label, stem, _ = DIMENSIONS[dim]
+        written = dimension_figures(points, dim, out, colors)
+        files.update(written)
+        md += paragraphs(
+            f"## Against the {label} (`{dim}`)",
+            "Team return relative to greedy (mean ± 95 % t interval over team seeds and run "
+            "seeds); `refused: ...` = refused up front, with the reason. Every run: `study.csv`.",
+        )
+        for system in dict.fromkeys(points["system"]):
+            md += paragraphs(f"{system_label(system)}:", dimension_table(points, dim, system))
+        md += paragraphs(image(written.get(f"{stem}_return"), f"Team return against the {label}"))
+        if f"{stem}_space" in written:
+            md += paragraphs(
+                "Learning space (log scale; solid: analytic dimension, dashed: entries visited, "
+                "dotted: network parameters), wall time and peak memory (RSS) per run:",
+                image(written[f"{stem}_space"], "Learning space against the team size"),
+                image(written[f"{stem}_cost"], "Wall time and memory against the team size"),
+            )
+        md += paragraphs(
+            f"Claims of the paper at each value of `{dim}` (runs without a partition bound):",
+            dimension_claims(runs, dim),
+        )
+    return "\n".join(md), files
+
+
+# ---------------------------------------------------------------- learning against the rules
+
+TITLE = "Learning against the rules"
+START_TITLE = "Does training beat its own start?"
+RULES = ("team_reserve", "rollout")  # the yardstick rules (fixed learners)
+GREEDY = "greedy"
+BEST_RESERVE = "team_reserve (best)"
+RESERVE_KEYS = ("reserve", "hold_level", "hold_scope", "grouping", "order")
+CSV_HEADER = ["system", "policy", "seeds", "mean", "ci95_seeds", "versus", "diff", "diff_ci95"]
+START_HEADER = ["system", "policy", "episodes", "untrained", "seeds", "trained", "trained_ci95"]
+START_HEADER += ["paired_diff", "paired_ci95", "seeds_diff", "seeds_ci95", "met"]
+
+
+@dataclass
+class Policy:
+    """One evaluated policy of one system: its runs' per-episode returns."""
+
+    name: str
+    learner: str
+    kind: str
+    returns: list[np.ndarray]
+    means: list[float]
+    note: str = ""
+    features: str = "paper"
+
+    @property
+    def per_episode(self) -> np.ndarray | None:
+        """Per-episode returns averaged over the runs, or None if a run lacks them."""
+        if not self.returns or any(len(r) == 0 for r in self.returns):
+            return None
+        return np.mean(self.returns, axis=0) if len({len(r) for r in self.returns}) == 1 else None
+
+    @property
+    def over_seeds(self) -> MeanCI:
+        """Mean evaluation return over the runs with its 95 % t interval."""
+        return mean_ci(self.means)
+
+
+def paired_difference(a: np.ndarray | None, b: np.ndarray | None) -> MeanCI:
+    """Mean of ``a - b`` over evaluation episodes with its 95 % t interval (NaN if unpaired)."""
+    if a is None or b is None or len(a) != len(b) or len(a) == 0:
+        return MeanCI(0, math.nan, math.nan, math.nan)
+    return mean_ci((a - b).tolist())
+
+
+def _per_episode(block: dict[str, Any]) -> np.ndarray:
+    values = (block.get("team_return") or {}).get("per_episode") or []
+    return np.array([math.nan if v is None else v for v in values], float)
+
+
+def with_reevaluation(run: RunRecord) -> RunRecord:
+    """The run scored on its re-evaluation (``eval_metrics.json``) if it has one."""
+    path = Path(run.run_dir) / EVAL_METRICS_FILE
+    if not path.is_file():
+        return run
+    again = read_json(path)
+    missing = [k for k in EVALUATION_BLOCKS if not isinstance(again, dict) or k not in again]
+    if missing:
+        raise ValueError(f"{path}: not a re-evaluation of scripts/evaluate.py, no {missing}")
+    return dataclasses.replace(
+        run, metrics={**run.metrics, **{k: again[k] for k in EVALUATION_BLOCKS}}
+    )
+
+
+def _kind(run: RunRecord) -> str:
+    """``"rule"`` (a fixed policy: no learning space), ``"untrained"`` or ``"trained"``."""
+    if not run.metrics.get("learning_space"):
+        return "rule"
+    return "trained" if (run.metrics.get("train") or {}).get("episodes", 0) > 0 else "untrained"
+
+
+def _features(run: RunRecord) -> str:
+    return str((run.config.get("learner") or {}).get("features", "paper"))
+
+
+def _check_same_streams(runs: Sequence[RunRecord], greedy: dict[str, RunRecord]) -> None:
+    """Refuse runs of as many episodes as the reference greedy but other task streams.
+
+    Every run also plays greedy (deterministic) on its evaluation episodes, so two runs were
+    evaluated on the same task streams exactly when their greedy returns agree episode by
+    episode; pairing runs on other streams (another ``eval.seed`` or ``eval.batch_size``) would
+    be silently wrong.
+    """
+    for run in runs:
+        reference = greedy[run.system]
+        ours = _per_episode(run.metrics["baseline_greedy"])
+        theirs = _per_episode(reference.metrics["baseline_greedy"])
+        if len(ours) == len(theirs) and not np.array_equal(ours, theirs, equal_nan=True):
+            raise UserError(
+                f"{run.run_dir} and {reference.run_dir} were evaluated on different task streams "
+                f"({len(ours)} episodes each, but their greedy baselines differ): evaluate both "
+                "with the same eval.seed and eval.batch_size (scripts/evaluate.py episodes=N "
+                "batch_size=N)"
+            )
+
+
+def _variant(run: RunRecord, kind: str, trained_variant: str) -> str:
+    """What makes a policy of a run: a rule's setting, or the encoding and other settings."""
+    if kind == "rule":
+        cfg = run.config.get("learner") or {}
+        keys = RESERVE_KEYS if run.name == "team_reserve" else ()
+        return ", ".join(f"{k}={cfg[k]}" for k in keys if k in cfg)
+    if kind == "untrained":
+        return _features(run)
+    # eval.* settings do not make a policy: each run is scored on its (re-)evaluation
+    rest = [t for t in trained_variant.split() if not t.startswith(("features=", "eval."))]
+    features = _features(run)
+    return " ".join([features] * (features != "paper") + rest) or "paper"
+
+
+def collect_policies(runs: Sequence[RunRecord]) -> dict[str, list[Policy]]:
+    """Per system: greedy, the best team_reserve, rollout, the learners (trained and untrained).
+
+    ``{}`` if the runs hold no yardstick rule and no untrained learner: nothing to compare.
+    """
+    if not any(r.name in RULES or _kind(r) == "untrained" for r in runs):
+        return {}
+    runs = [with_reevaluation(r) for r in runs]
+    # trained configurations are told apart among the trained runs only: the settings in which
+    # an untrained run differs (train.episodes, learning rates...) do not change its policy
+    trained = [r for r in runs if _kind(r) == "trained"]
+    plain = [dataclasses.replace(r, learner=r.name) for r in trained]
+    variants = dict(zip(map(id, trained), configuration_variants(plain), strict=True))
+    groups: dict[tuple[str, str, str, str], list[RunRecord]] = defaultdict(list)
+    greedy: dict[str, RunRecord] = {}
+    episodes = {id(r): len(_per_episode(r.metrics["baseline_greedy"])) for r in runs}
+    for run in runs:  # greedy of the run with the most evaluation episodes (the first on ties)
+        if run.system not in greedy or episodes[id(run)] > episodes[id(greedy[run.system])]:
+            greedy[run.system] = run
+        if run.name != GREEDY:
+            kind = _kind(run)
+            variant = _variant(run, kind, variants.get(id(run), ""))
+            groups[(run.system, run.name, kind, variant)].append(run)
+    _check_same_streams(runs, greedy)
+    out: dict[str, list[Policy]] = {}
+    for system, base in greedy.items():
+        block = base.metrics["baseline_greedy"]
+        means = [block["team_return"]["mean"]]
+        policies = [Policy(GREEDY, GREEDY, "greedy", [_per_episode(block)], means)]
+        reserve = [
+            (v, m) for (s, n, _, v), m in groups.items() if (s, n) == (system, "team_reserve")
+        ]
+        if reserve:
+            variant, members = max(reserve, key=lambda vm: np.mean([_mean(r) for r in vm[1]]))
+            policies.append(_policy(BEST_RESERVE, "rule", members, variant))
+        for (s, learner, kind, variant), members in sorted(groups.items(), key=_order):
+            if s != system or learner == "team_reserve":
+                continue
+            name = members[0].label
+            if kind != "rule":
+                name += " untrained" if kind == "untrained" else ""
+                name += f" [{variant}]" if variant != "paper" else ""
+            features = _features(members[0]) if kind != "rule" else "paper"
+            policies.append(_policy(name, kind, members, features=features))
+        out[system] = policies
+    return out
+
+
+def _order(item: tuple[tuple[str, str, str, str], list[RunRecord]]) -> tuple:
+    (system, learner, kind, variant), _ = item
+    rank = {"rule": 0, "untrained": 1, "trained": 2}[kind]
+    return (system, rank == 0 and learner != "rollout", learner, variant, rank)
+
+
+def _mean(run: RunRecord) -> float:
+    return float(run.metrics["eval"]["team_return"]["mean"])
+
+
+def _policy(
+    name: str, kind: str, runs: list[RunRecord], note: str = "", features="paper"
+) -> Policy:
+    returns = [_per_episode(r.metrics["eval"]) for r in runs]
+    return Policy(name, runs[0].name, kind, returns, [_mean(r) for r in runs], note, features)
+
+
+def _yardsticks(policies: list[Policy]) -> list[Policy]:
+    return [p for p in policies if p.kind in ("greedy", "rule")]
+
+
+def _starting(policy: Policy, policies: list[Policy]) -> Policy | None:
+    """The untrained policy of a trained one: same learner, same features if run, else any.
+
+    An untrained learner plays its prior (tabular) or its initial network's bias (neural),
+    which does not read the extra features, so one untrained run serves every encoding.
+    """
+    if policy.kind != "trained":
+        return None
+    starts = [p for p in policies if p.kind == "untrained" and p.learner == policy.learner]
+    same = [p for p in starts if p.features == policy.features]
+    return (same or starts or [None])[0]
+
+
+def _round(value: float) -> float | str:
+    return "" if math.isnan(value) else round(value, 3)
+
+
+def section_rows(by_system: dict[str, list[Policy]]) -> list[list[Any]]:
+    """CSV rows (:data:`CSV_HEADER`): each policy against its start and every yardstick."""
+    rows = []
+    for system, policies in by_system.items():
+        for p in policies:
+            stat, start = p.over_seeds, _starting(p, policies)
+            for other in [*([start] if start else []), *_yardsticks(policies)]:
+                if other is not p:
+                    diff = paired_difference(p.per_episode, other.per_episode)
+                    rows.append(
+                        [system, p.name, stat.n, round(stat.mean, 3), _round(stat.ci95)]
+                        + [other.name, _round(diff.mean), _round(diff.ci95)]
+                    )
+    return rows
+
+
+@dataclass(frozen=True)
+class StartComparison:
+    """A trained policy against its untrained start: paired over episodes, and over seeds."""
+
+    trained: Policy
+    start: Policy
+    paired: MeanCI
+    over_seeds: MeanCI
+
+    @property
+    def episodes(self) -> int:
+        """Evaluation episodes of the paired difference (0 if unpaired)."""
+        return self.paired.n
+
+    @property
+    def verdict(self) -> str:
+        """``yes`` (paired interval above zero), ``over seeds only``, ``no (below)`` or ``no``."""
+        if self.paired.low > 0:
+            return "yes"
+        if self.paired.high < 0:
+            return "no (below)"
+        return "over seeds only" if self.over_seeds.low > 0 else "no"
+
+
+def start_comparisons(by_system: dict[str, list[Policy]]) -> list[tuple[str, StartComparison]]:
+    """``(system, comparison)`` for every trained policy that has an untrained start."""
+    out = []
+    for system, policies in by_system.items():
+        for p in policies:
+            if (start := _starting(p, policies)) is not None:
+                untrained = float(np.mean(start.means))
+                paired = paired_difference(p.per_episode, start.per_episode)
+                seeds = mean_ci([m - untrained for m in p.means])
+                out.append((system, StartComparison(p, start, paired, seeds)))
+    return out
+
+
+def start_rows(by_system: dict[str, list[Policy]]) -> list[list[Any]]:
+    """CSV rows of :func:`start_comparisons` (:data:`START_HEADER`)."""
+    rows = []
+    for system, c in start_comparisons(by_system):
+        trained = c.trained.over_seeds
+        rows.append(
+            [system, c.trained.name, c.episodes, round(float(np.mean(c.start.means)), 3)]
+            + [trained.n, round(trained.mean, 3), _round(trained.ci95)]
+            + [_round(v) for v in (c.paired.mean, c.paired.ci95)]
+            + [_round(v) for v in (c.over_seeds.mean, c.over_seeds.ci95)]
+            + [c.verdict]
+        )
+    return rows
+
+
+def _fmt(diff: MeanCI) -> str:
+    if diff.n == 0:
+        return "–"
+    mark = " **↑**" if diff.low > 0 else (" ↓" if diff.high < 0 else "")
+    return f"{diff.mean:+.1f} ± {diff.ci95:.1f}{mark}"
+
+
+def section_markdown(
+    by_system: dict[str, list[Policy]], figure: Path | None, start_plot: Path | None = None
+) -> str:
+    """The section's text: one table per system, its figure, the start table and its figure."""
+    md = paragraphs(
+        f"## {TITLE}",
+        "Each policy against its untrained starting policy (`train.episodes=0`), greedy, the "
+        "best `team_reserve` setting among these runs and the `rollout` planner: mean paired "
+        "difference of the evaluation return over the shared evaluation episodes ± the "
+        "half-width of its 95 % t interval (**↑**: the interval is above zero, ↓: below). "
+        "`return` is the mean over training seeds ± its 95 % interval over seeds.",
+    )
+    for system, policies in by_system.items():
+        sticks = _yardsticks(policies)
+        header = ["policy", "seeds", "return", "vs untrained", *(f"vs {s.name}" for s in sticks)]
+        rows = []
+        for p in policies:
+            start = _starting(p, policies)
+            versus = [
+                "" if s is p else _fmt(paired_difference(p.per_episode, s.per_episode))
+                for s in sticks
+            ]
+            start_text = _fmt(paired_difference(p.per_episode, start.per_episode)) if start else ""
+            name = p.name + (f" ({p.note})" if p.note else "")
+            rows.append([name, len(p.means), p.over_seeds.format(1), start_text, *versus])
+        md += paragraphs(f"### {system_label(system)}", markdown_table(header, rows))
+    md += paragraphs(f"![{TITLE}]({figure.name})" if figure else "")
+    comparisons = start_comparisons(by_system)
+    if comparisons:
+        header = ["learner", "system", "untrained", "trained (seeds)"]
+        header += ["trained − untrained, paired over episodes", "over seeds", "met?"]
+        rows = [
+            [
+                c.trained.name,
+                system_label(system),
+                f"{np.mean(c.start.means):.1f}",
+                f"{c.trained.over_seeds.format(1)} ({len(c.trained.means)})",
+                f"{_fmt(c.paired)} ({c.episodes})" if c.episodes else "–",
+                signed(c.over_seeds),
+                c.verdict,
+            ]
+            for system, c in comparisons
+        ]
+        md += paragraphs(
+            f"### {START_TITLE}",
+            "Trained − untrained: paired over the evaluation episodes (their number in "
+            "parentheses), and over the training seeds (each seed's mean return minus the "
+            "untrained return); met: the paired interval is above zero.",
+            markdown_table(header, rows),
+        )
+    md += paragraphs(f"![{START_TITLE}]({start_plot.name})" if start_plot else "")
+    return "\n".join(md)
+
+
+def write_section(runs: Sequence[RunRecord], out_dir: Path) -> tuple[str, dict[str, Path]]:
+    """The section's markdown (``""`` if nothing to compare) and its CSV and PNG files."""
+    by_system = collect_policies(runs)
+    if not by_system:
+        return "", {}
+    files = {
+        stem: write_csv(out_dir / f"{stem}.csv", pd.DataFrame(rows(by_system), columns=header))
+        for stem, rows, header in (
+            ("yardsticks", section_rows, CSV_HEADER),
+            ("yardsticks_start", start_rows, START_HEADER),
+        )
+    }
+    panels = []
+    for system, policies in by_system.items():
+        ref = next((p for p in policies if p.name == BEST_RESERVE), policies[0])
+        others = [p for p in policies if p is not ref]
+        diffs = [(p.name, paired_difference(p.per_episode, ref.per_episode)) for p in others]
+        if diffs := [(n, d) for n, d in diffs if d.n]:
+            title = f"{system_label(system)}: {ref.name} = {ref.over_seeds.mean:.1f}"
+            xlabel = f"paired difference to {ref.name}\n(team return per episode)"
+            panels.append((title, xlabel, diffs))
+    figure = out_dir / "yardsticks.png" if panels else None
+    if figure is not None:
+        files["yardsticks_png"] = figures.difference_bars(panels, figure)
+    starts = [
+        (f"{c.trained.name}, {system_label(s)}", c.paired)
+        for s, c in start_comparisons(by_system)
+        if c.episodes
+    ]
+    start = out_dir / "yardsticks_start.png" if starts else None
+    if start is not None:
+        title = f"{START_TITLE} (95 % t intervals)"
+        xlabel = "trained − untrained, paired over the evaluation episodes\n(team return)"
+        files["yardsticks_start_png"] = figures.difference_bars([(title, xlabel, starts)], start)
+    return section_markdown(by_system, figure, start), files
