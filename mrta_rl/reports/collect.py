@@ -17,7 +17,8 @@ between them (the seed and the settings in :data:`NOT_CONFIGURATION` aside) make
 configuration of its own, named by what differs (``subg_reserve reserve=1 hold_level=0``; learner
 hyperparameters by their name, other settings by their dotted key). That name is the run's
 ``learner`` in the report, so each configuration is its own row; only the same configuration with
-the same seed is a duplicate.
+the same seed is a duplicate. Runs evaluated on different splits differ in ``eval.split``, so a
+table never averages test and validation runs together.
 """
 
 from __future__ import annotations
@@ -38,6 +39,7 @@ from omegaconf import OmegaConf
 
 from mrta_rl.config import UserError, declared_keywords
 from mrta_rl.run_files import METRICS_FILE, REFUSED_FILE, REFUSED_JOBS_FILE, read_metrics
+from mrta_rl.splits import DEFAULT_SPLIT, SPLIT_SEEDS
 
 logger = logging.getLogger(__name__)
 
@@ -208,7 +210,7 @@ def configuration_variants(records: Sequence[RunRecord]) -> list[str]:
         ``(learner, system)`` (seed and :data:`NOT_CONFIGURATION` aside), in config order;
         ``""`` when nothing differs.
     """
-    flat = [_flatten(_as_ran(r.config)) for r in records]
+    flat = [_flatten(_named_streams(_as_ran(r.config))) for r in records]
     variants = [""] * len(records)
     groups: dict[tuple[str, str], list[int]] = {}
     for i, record in enumerate(records):
@@ -231,6 +233,23 @@ def configuration_variants(records: Sequence[RunRecord]) -> list[str]:
                 f"{_setting_name(k)}={_format_value(flat[i].get(k))}" for k in differing
             )
     return variants
+
+
+def _named_streams(config: dict[str, Any]) -> dict[str, Any]:
+    """The config with its evaluation streams named by ``eval.split`` (``mrta_rl/splits.py``).
+
+    A run written before ``eval.split`` existed played the test split and records its seed as
+    ``eval.seed``; a later run records the split and ``eval.seed: null``. Both name the same
+    streams, so runs of different splits differ in ``eval.split`` and only there.
+    """
+    evaluation = config.get("eval")
+    if not isinstance(evaluation, dict):
+        return config
+    split = evaluation.get("split") or DEFAULT_SPLIT
+    named = {**evaluation, "split": split}
+    if evaluation.get("seed") == SPLIT_SEEDS.get(split):
+        named["seed"] = None
+    return {**config, "eval": named}
 
 
 def _as_ran(config: dict[str, Any]) -> dict[str, Any]:
