@@ -210,7 +210,7 @@ def configuration_variants(records: Sequence[RunRecord]) -> list[str]:
         ``(learner, system)`` (seed and :data:`NOT_CONFIGURATION` aside), in config order;
         ``""`` when nothing differs.
     """
-    flat = [_flatten(_named_streams(_as_ran(r.config))) for r in records]
+    flat = [_flatten(named_streams(_as_ran(r.config))) for r in records]
     variants = [""] * len(records)
     groups: dict[tuple[str, str], list[int]] = {}
     for i, record in enumerate(records):
@@ -235,7 +235,7 @@ def configuration_variants(records: Sequence[RunRecord]) -> list[str]:
     return variants
 
 
-def _named_streams(config: dict[str, Any]) -> dict[str, Any]:
+def named_streams(config: dict[str, Any]) -> dict[str, Any]:
     """The config with its evaluation streams named by ``eval.split`` (``mrta_rl/splits.py``).
 
     A run written before ``eval.split`` existed played the test split and records its seed as
@@ -243,8 +243,8 @@ def _named_streams(config: dict[str, Any]) -> dict[str, Any]:
     streams, so runs of different splits differ in ``eval.split`` and only there.
     """
     evaluation = config.get("eval")
-    if not isinstance(evaluation, dict):
-        return config
+    if not isinstance(evaluation, dict) or not {"seed", "split"} & set(evaluation):
+        return config  # no streams recorded (not written by scripts/train.py)
     split = evaluation.get("split") or DEFAULT_SPLIT
     named = {**evaluation, "split": split}
     if evaluation.get("seed") == SPLIT_SEEDS.get(split):

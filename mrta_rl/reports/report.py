@@ -35,13 +35,19 @@ from mrta_rl.reports.aggregate import (
     system_label,
 )
 from mrta_rl.reports.claims import FAILS, HOLDS, NOT_EVALUABLE, check_claims
-from mrta_rl.reports.collect import Collection, ReportInputError, RunRecord, collect_runs
+from mrta_rl.reports.collect import (
+    Collection,
+    ReportInputError,
+    RunRecord,
+    collect_runs,
+    named_streams,
+)
 
 logger = logging.getLogger(__name__)
 
 REPORT_FILE = "report.md"
 # run config keys shown in the report's setup section (dotted paths of conf/config.yaml)
-SETUP_KEYS = ("env.horizon", "train.episodes", "train.batch_size", "eval.episodes", "eval.seed")
+SETUP_KEYS = ("env.horizon", "train.episodes", "train.batch_size", "eval.episodes", "eval.split")
 
 
 @dataclass
@@ -79,7 +85,7 @@ def _setup_markdown(runs: Sequence[RunRecord]) -> str:
     """Run settings (distinct values over runs) and each learner's hyperparameters."""
     rows = []
     for key in SETUP_KEYS:
-        values = sorted({str(_config_value(r.config, key)) for r in runs})
+        values = sorted({str(_config_value(named_streams(r.config), key)) for r in runs})
         note = "" if len(values) == 1 else " (differs between runs!)"
         shown = ", ".join("spec default" if v == "None" else v for v in values)
         rows.append([f"`{key}`", shown + note])

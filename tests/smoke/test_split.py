@@ -15,6 +15,7 @@ from omegaconf import OmegaConf
 
 from mrta_rl.config import ConfigError
 from mrta_rl.envs import AuctionEnv
+from mrta_rl.reports import build_report
 from mrta_rl.reports.collect import collect_runs, configuration_variants, load_run
 from mrta_rl.runners import evaluate_policy
 from mrta_rl.runners import train as run_train
@@ -168,3 +169,17 @@ def test_tune_sweeps_on_validation(tmp_path):
         "team_reserve hold_level=1",
     ]
     assert {r.metrics["eval"]["split"] for r in collection.runs} == {"validation"}
+
+
+def test_a_report_names_the_split_of_every_row(tmp_path):
+    """A run written before splits and a validation run: two rows, the setup names both."""
+    for split in ("test", "validation"):
+        cfg = _compose(["learner=high_only", *RUN[1:], f"eval.split={split}"])
+        save_hydra_files(cfg, tmp_path / split, "high_only", "system1")
+        run_train(cfg, run_dir=tmp_path / split)
+    old_run(tmp_path / "test", tmp_path / "runs" / "old")
+    shutil.copytree(tmp_path / "validation", tmp_path / "runs" / "validation")
+    text = build_report([tmp_path / "runs"], tmp_path / "report").report.read_text()
+    assert "| `eval.split` | test, validation (differs between runs!) |" in text
+    assert "| System-I | high-only eval.split=test |" in text  # the team return table
+    assert "| System-I | high-only eval.split=validation |" in text
