@@ -76,6 +76,19 @@ def test_copy_b_plays_the_stream_of_an_env_seeded_the_splits_seed_plus_b(split, 
     }
 
 
+@pytest.mark.parametrize("learner", ["reserve_es", "rollout", "dql"])
+def test_every_learner_kind_is_evaluated_on_the_split(learner, runs, tmp_path):
+    """Policy search, the planner and a trained table: the same validation streams, recorded."""
+    cfg = _compose([f"learner={learner}", *RUN[1:], "eval.split=validation", "eval.episodes=1"])
+    save_hydra_files(cfg, tmp_path, learner, "system1")
+    result = run_train(cfg, run_dir=tmp_path)
+    assert metrics(tmp_path) == json.loads(json.dumps(result))
+    assert result["eval"]["split"] == "validation"
+    # greedy's return on copy 0 is the stream's: that of the validation run's copy 0
+    greedy = metrics(runs["validation"])["baseline_greedy"]["team_return"]["per_episode"]
+    assert result["baseline_greedy"]["team_return"]["per_episode"] == greedy[:1]
+
+
 def test_the_splits_play_different_streams(runs):
     test, validation = (metrics(runs[s])["baseline_greedy"] for s in ("test", "validation"))
     assert test["team_return"]["per_episode"] != validation["team_return"]["per_episode"]
