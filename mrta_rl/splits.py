@@ -8,9 +8,11 @@ plays seed ``s * SEED_STRIDE + b``. Evaluation copy ``b`` plays ``SPLIT_SEEDS[sp
 * ``validation`` (``2_000_000 + b``): the streams every choice is made on (a hyperparameter
   screen, a design choice, a best snapshot, an early stop).
 
-Each split owns :data:`SPLIT_WIDTH` seeds, so the two never share a stream, and both lie below
-``SEED_STRIDE``, past the copies of run seed 0 and before those of every other run seed.
-Every learner and run seed is evaluated on the same streams of a split.
+Each split owns :data:`SPLIT_WIDTH` seeds (``runners/validation.py`` refuses more evaluation
+copies), so the two never share a stream; both lie below ``SEED_STRIDE``, before the training
+copies of every run seed but 0, and past those of run seed 0 (a million training copies would not
+fit in memory: ``limits.memory_gb``). Every learner and run seed is evaluated on the same streams
+of a split.
 """
 
 from __future__ import annotations
