@@ -10,9 +10,9 @@ plays seed ``s * SEED_STRIDE + b``. Evaluation copy ``b`` plays ``SPLIT_SEEDS[sp
 
 Each split owns :data:`SPLIT_WIDTH` seeds (``runners/validation.py`` refuses more evaluation
 copies), so the two never share a stream; both lie below ``SEED_STRIDE``, before the training
-copies of every run seed but 0, and past those of run seed 0 (a million training copies would not
-fit in memory: ``limits.memory_gb``). Every learner and run seed is evaluated on the same streams
-of a split.
+copies of every run seed but 0, and past those of run seed 0 (it refuses more training copies
+than the test split's first seed). Every learner and run seed is evaluated on the same streams of
+a split.
 """
 
 from __future__ import annotations

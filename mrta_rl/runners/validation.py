@@ -161,15 +161,17 @@ def check_evaluate_config(cfg: DictConfig) -> dict[str, Any]:
     return args
 
 
-def check_eval_streams(evaluation: dict[str, Any]) -> None:
-    """Refuse evaluation copies outside their split's seeds (``mrta_rl/splits.py``).
+def check_streams(train: dict[str, Any], evaluation: dict[str, Any]) -> None:
+    """Refuse copies that would play another's task streams (``mrta_rl/splits.py``).
 
     Args:
+        train: The checked ``train`` block (:class:`TrainSettings`).
         evaluation: The checked ``eval`` block (:class:`EvalSettings`).
 
     Raises:
-        ConfigError: naming ``eval.seed`` and ``eval.split`` when they contradict each other, or
-            ``eval.batch_size`` when the copies would run into another split's seeds.
+        ConfigError: naming ``eval.seed`` and ``eval.split`` when they contradict each other,
+            ``eval.batch_size`` when the copies would run into another split's seeds, or
+            ``train.batch_size`` when run seed 0's copies would run into the test split's.
     """
     split, seed = evaluation.get("split", DEFAULT_SPLIT), evaluation.get("seed")
     if seed is not None:
@@ -186,6 +188,12 @@ def check_eval_streams(evaluation: dict[str, Any]) -> None:
         evaluation["batch_size"] <= SPLIT_WIDTH,
         f"eval.batch_size: must be <= {SPLIT_WIDTH} (the seeds of one split), "
         f"got {evaluation['batch_size']}",
+    )
+    first = min(SPLIT_SEEDS.values())
+    _check(
+        train["batch_size"] <= first,
+        f"train.batch_size: must be <= {first} (run seed 0's copies would play the evaluation "
+        f"streams), got {train['batch_size']}",
     )
 
 
@@ -395,7 +403,7 @@ def validate_config(cfg: DictConfig) -> CheckedConfig:
     check_fields(RunSettings, {"seed": _plain(cfg, "seed")}, "", require=True)
     train = _section(cfg, "train", TrainSettings)
     evaluation = _section(cfg, "eval", EvalSettings)
-    check_eval_streams(evaluation)
+    check_streams(train, evaluation)
     limits = check_fields(LimitSettings, _plain(cfg, "limits") or {}, "limits")
     bound = check_fields(PartitionSettings, _plain(cfg, "partition") or {}, "partition")
 

@@ -109,9 +109,10 @@ def test_misspelled_split_is_one_line_naming_the_key_and_the_choices(tmp_path):
         (["eval.split=validation", "eval.seed=1000000"], "contradicts eval.split=validation"),
         (["eval.seed=7"], "eval.seed: 7 contradicts eval.split=test"),
         (["eval.batch_size=1000001"], "eval.batch_size: must be <= 1000000"),
+        (["train.batch_size=1000001"], "train.batch_size: must be <= 1000000"),
     ],
 )
-def test_seed_that_contradicts_the_split_is_refused_naming_both(overrides, named, compose_cfg):
+def test_seeds_or_copies_that_would_play_other_streams_are_refused(overrides, named, compose_cfg):
     with pytest.raises(ConfigError, match=re.escape(named)):
         validate_config(compose_cfg(["system=system1", "debug=smoke", *overrides]))
 
