@@ -4,10 +4,10 @@ Evaluation plays ``eval.episodes`` episodes, ``eval.batch_size`` copies at a tim
 copy ``b`` is seeded ``s + b``, ``s`` the seed of the split ``eval.split`` (``mrta_rl/splits.py``:
 ``test`` 1,000,000, the streams the docs report; ``validation`` 2,000,000, the streams choices are
 made on); each round starts with a fresh reset, which advances every copy's episode counter
-deterministically. Task arrivals depend only on the seed and the episode
-counter, never on actions or active task sets, so the learner and the greedy baseline, and every
-learner and training seed, are scored on identical task streams. The learner acts with
-``explore=False`` and does not update.
+deterministically. Task arrivals depend only on the seed and the episode counter, never on
+actions or active task sets, so the learner and the greedy baseline, and every learner and
+training seed, are scored on identical task streams. The learner acts with ``explore=False`` and
+does not update.
 
 The greedy baseline is the plain auction: it runs on the *unpartitioned* system (every robot bids
 with its full task set ``Gamma_i``), even when the learner uses a subG partition's ``Lambda_i``.
