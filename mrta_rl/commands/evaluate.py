@@ -1,7 +1,7 @@
 """``mrta-evaluate``: re-evaluate a finished training run, write eval_metrics.json in its run dir.
 
 Usage: ``mrta-evaluate checkpoint=outputs/<date>/<time>_<learner>_<id> [episodes=50]
-[batch_size=50]`` (or ``python scripts/evaluate.py ...``).
+[batch_size=50] [eval.split=validation]`` (or ``python scripts/evaluate.py ...``).
 The run dir is read as data (``mrta_rl/runners/checkpoint.py``): a tampered config or damaged
 tables are refused with a message naming the key or file.
 """
@@ -21,7 +21,10 @@ from mrta_rl.runners.validation import check_evaluate_config
 def _task(cfg: DictConfig) -> None:
     args = check_evaluate_config(cfg)
     metrics = evaluate_checkpoint(
-        hydra.utils.to_absolute_path(args["checkpoint"]), args["episodes"], args["batch_size"]
+        hydra.utils.to_absolute_path(args["checkpoint"]),
+        args["episodes"],
+        args["batch_size"],
+        args["split"],
     )
     print(format_summary(metrics))
 

@@ -7,7 +7,8 @@ failed or never started is *missing*; without a multirun.yaml it is the product 
 learners, systems and seeds found. Runs are told apart by their whole configuration: among the
 runs of a learner on a system, every setting whose value differs (the seed and
 :data:`NOT_CONFIGURATION` aside) names a configuration of its own (``subg_reserve reserve=1``),
-so only the same configuration and seed is a duplicate.
+so only the same configuration and seed is a duplicate. Runs evaluated on different
+splits differ in ``eval.split``, so a table never averages test and validation runs together.
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ from mrta_rl.run_files import (
     REFUSED_JOBS_FILE,
     read_metrics,
 )
+from mrta_rl.splits import DEFAULT_SPLIT, SPLIT_SEEDS
 
 logger = logging.getLogger(__name__)
 
@@ -159,7 +161,7 @@ def configuration_variants(records: Sequence[RunRecord]) -> list[str]:
     Per run, ``"name=value ..."`` of the settings that differ among the runs of its ``(learner,
     system)`` (seed and :data:`NOT_CONFIGURATION` aside), in config order; ``""`` if none.
     """
-    flat = [_flatten(r.config) for r in records]
+    flat = [_flatten(named_streams(r.config)) for r in records]
     variants = [""] * len(records)
     groups: dict[tuple[str, str], list[int]] = {}
     for i, record in enumerate(records):
@@ -177,6 +179,23 @@ def configuration_variants(records: Sequence[RunRecord]) -> list[str]:
                 f"{_setting_name(k)}={_format_value(flat[i].get(k))}" for k in differing
             )
     return variants
+
+
+def named_streams(config: dict[str, Any]) -> dict[str, Any]:
+    """The config with its evaluation streams named by ``eval.split`` (``mrta_rl/splits.py``).
+
+    A run written before ``eval.split`` existed played the test split and records its seed as
+    ``eval.seed``; a later run records the split and ``eval.seed: null``. Both name the same
+    streams, so runs of different splits differ in ``eval.split`` and only there.
+    """
+    evaluation = config.get("eval")
+    if not isinstance(evaluation, dict) or not {"seed", "split"} & set(evaluation):
+        return config  # no streams recorded (not written by scripts/train.py)
+    split = evaluation.get("split") or DEFAULT_SPLIT
+    named = {**evaluation, "split": split}
+    if evaluation.get("seed") == SPLIT_SEEDS.get(split):
+        named["seed"] = None
+    return {**config, "eval": named}
 
 
 def _format_value(value: Any) -> str:

@@ -445,7 +445,7 @@ def _check_same_streams(runs: Sequence[RunRecord], greedy: dict[str, RunRecord])
 
     Every run also plays greedy (deterministic) on its evaluation episodes, so two runs were
     evaluated on the same task streams exactly when their greedy returns agree episode by
-    episode; pairing runs on other streams (another ``eval.seed`` or ``eval.batch_size``) would
+    episode; pairing runs on other streams (another ``eval.split`` or ``eval.batch_size``) would
     be silently wrong.
     """
     for run in runs:
@@ -456,7 +456,7 @@ def _check_same_streams(runs: Sequence[RunRecord], greedy: dict[str, RunRecord])
             raise UserError(
                 f"{run.run_dir} and {reference.run_dir} were evaluated on different task streams "
                 f"({len(ours)} episodes each, but their greedy baselines differ): evaluate both "
-                "with the same eval.seed and eval.batch_size (scripts/evaluate.py episodes=N "
+                "with the same eval.split and eval.batch_size (scripts/evaluate.py episodes=N "
                 "batch_size=N)"
             )
 

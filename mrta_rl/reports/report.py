@@ -24,6 +24,7 @@ from mrta_rl.reports.collect import (
     RunRecord,
     collect_runs,
     config_value,
+    named_streams,
 )
 from mrta_rl.reports.frame import long_table, summarize, summarize_curve, system_label
 from mrta_rl.reports.tables import (
@@ -43,7 +44,7 @@ logger = logging.getLogger(__name__)
 REPORT_FILE = "report.md"
 # run config keys shown in the report's setup section (dotted paths of conf/config.yaml)
 LEARNER_SETTINGS = "hyperparameters (conf/learner)"
-SETUP_KEYS = ("env.horizon", "train.episodes", "train.batch_size", "eval.episodes", "eval.seed")
+SETUP_KEYS = ("env.horizon", "train.episodes", "train.batch_size", "eval.episodes", "eval.split")
 
 
 @dataclass
@@ -68,7 +69,7 @@ def _setup_markdown(runs: Sequence[RunRecord], summary: pd.DataFrame) -> str:
     """Run settings (distinct values over runs) and each learner's hyperparameters."""
     rows = []
     for key in SETUP_KEYS:
-        values = sorted({str(config_value(r.config, key)) for r in runs})
+        values = sorted({str(config_value(named_streams(r.config), key)) for r in runs})
         note = "" if len(values) == 1 else " (differs between runs!)"
         values = ", ".join(v.replace("None", "spec default") for v in values)
         rows.append([f"`{key}`", values + note])

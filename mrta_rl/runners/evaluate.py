@@ -1,11 +1,13 @@
 """Shared evaluation of every learner kind, the greedy baseline, and the summary text.
 
 Evaluation plays ``eval.episodes`` episodes, ``eval.batch_size`` copies at a time, on an env whose
-copy ``b`` is seeded ``eval.seed + b``; each round starts with a fresh reset, which advances every
-copy's episode counter deterministically. Task arrivals depend only on the seed and the episode
-counter, never on actions or active task sets, so the learner and the greedy baseline, and every
-learner and training seed, are scored on identical task streams. The learner acts with
-``explore=False`` and does not update.
+copy ``b`` is seeded ``s + b``, ``s`` the seed of the split ``eval.split`` (``mrta_rl/splits.py``:
+``test`` 1,000,000, the streams the docs report; ``validation`` 2,000,000, the streams choices are
+made on); each round starts with a fresh reset, which advances every copy's episode counter
+deterministically. Task arrivals depend only on the seed and the episode counter, never on
+actions or active task sets, so the learner and the greedy baseline, and every learner and
+training seed, are scored on identical task streams. The learner acts with ``explore=False`` and
+does not update.
 
 The greedy baseline is the plain auction: it runs on the *unpartitioned* system (every robot bids
 with its full task set ``Gamma_i``), even when the learner uses a subG partition's ``Lambda_i``.
@@ -18,12 +20,13 @@ import math
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from mrta_rl.envs import AuctionEnv, EpisodeStats
 from mrta_rl.learners import GreedyLearner, Learner
 from mrta_rl.metrics import EpisodeSummary, format_percent, summarize
 from mrta_rl.partition import Partition
+from mrta_rl.splits import DEFAULT_SPLIT, split_seed
 
 if TYPE_CHECKING:
     from mrta_rl.runners.train import RunSetup
@@ -69,29 +72,38 @@ def evaluate_run(run: RunSetup, cfg: DictConfig) -> dict[str, Any]:
         cfg: The run config (``eval`` group, ``seed``).
 
     Returns:
-        ``{"eval": {...}, "baseline_greedy": {...}}``, each as :meth:`EpisodeSummary.to_json`.
+        ``{"eval": {...}, "baseline_greedy": {...}}``, each as :meth:`EpisodeSummary.to_json`;
+        ``eval`` also names the split played (``"split": "test"``).
     """
+    split = eval_split(cfg)
+    seed = split_seed(split)  # validate_config refused an eval.seed other than this one
     batch = min(cfg.eval.batch_size, cfg.eval.episodes)
     env = AuctionEnv(
-        run.system, run.params, batch_size=batch, active_tasks=run.active_tasks, seed=cfg.eval.seed
+        run.system, run.params, batch_size=batch, active_tasks=run.active_tasks, seed=seed
     )
-    learned = evaluate_policy(run.learner, env, cfg.eval.episodes, cfg.eval.seed)
+    learned = evaluate_policy(run.learner, env, cfg.eval.episodes, seed)
     # the plain auction uses the full task sets Gamma_i (active_tasks=None), see module docstring
-    plain_env = AuctionEnv(run.system, run.params, batch_size=batch, seed=cfg.eval.seed)
+    plain_env = AuctionEnv(run.system, run.params, batch_size=batch, seed=seed)
     greedy = GreedyLearner(env=plain_env, rng=np.random.default_rng(cfg.seed))
-    baseline = evaluate_policy(greedy, plain_env, cfg.eval.episodes, cfg.eval.seed)
+    baseline = evaluate_policy(greedy, plain_env, cfg.eval.episodes, seed)
     logger.info(
-        "eval team return %.1f (greedy %.1f) over %d episodes",
+        "eval team return %.1f (greedy %.1f) over %d episodes of the %s split",
         learned.team_return_mean,
         baseline.team_return_mean,
         learned.episodes,
+        split,
     )
-    results = {"eval": learned.to_json(), "baseline_greedy": baseline.to_json()}
+    results = {"eval": {**learned.to_json(), "split": split}, "baseline_greedy": baseline.to_json()}
     # the split adds up to the team return only if no task type is shared (partition size bound)
     if run.partition is not None and run.partition.types_disjoint():
         for summary in results.values():
             summary["return_by_group"] = return_by_group(summary, run.partition)
     return results
+
+
+def eval_split(cfg: DictConfig) -> str:
+    """The run's ``eval.split``; ``test`` for a run written before the key existed."""
+    return str(OmegaConf.select(cfg, "eval.split", default=None) or DEFAULT_SPLIT)
 
 
 def return_by_group(summary: dict[str, Any], partition: Partition) -> dict[str, dict[str, Any]]:
@@ -128,7 +140,8 @@ def format_summary(metrics: dict[str, Any]) -> str:
     width = max(len(name), 6)
     lines = [
         f"{name} on {metrics['system']} (seed {metrics['seed']}), {learned['episodes']} evaluation "
-        "episodes; baseline: greedy auction on the full task sets",
+        f"episodes of the {learned.get('split', DEFAULT_SPLIT)} split; baseline: greedy auction "
+        "on the full task sets",
         "",
         f"{'team return':<12} {name:>{width}} {_mean_std(learned['team_return'])}   "
         f"greedy {_mean_std(greedy['team_return'])}",

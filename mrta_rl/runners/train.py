@@ -6,9 +6,9 @@ training loop the learner class declares runs (``training_loop``), and the share
 (``runners/evaluate.py``) scores the learner and the greedy baseline on the same task streams.
 
 Seeds: the learner's generator is ``default_rng(seed)``; training copy ``b`` uses env seed
-``seed * 2**32 + b``, and evaluation copy ``b`` uses ``eval.seed + b`` (kept below ``2**32``), so
-training and evaluation task streams never coincide and every learner and run seed is evaluated
-on identical streams.
+``seed * 2**32 + b``, and evaluation copy ``b`` the seed of its split ``eval.split`` plus ``b``
+(``mrta_rl/splits.py``), so training and evaluation task streams never coincide and every learner
+and run seed is evaluated on identical streams.
 """
 
 from __future__ import annotations
@@ -272,7 +272,10 @@ def _check_resume_overrides() -> None:
 
 
 def evaluate_checkpoint(
-    checkpoint: Path | str, episodes: int | None = None, batch_size: int | None = None
+    checkpoint: Path | str,
+    episodes: int | None = None,
+    batch_size: int | None = None,
+    split: str | None = None,
 ) -> dict[str, Any]:
     """Re-evaluate a finished run: rebuild it from its ``.hydra/config.yaml``, load the learner.
 
@@ -287,6 +290,8 @@ def evaluate_checkpoint(
         batch_size: Copies per evaluation round; default: the run's ``eval.batch_size``. Episode
             ``b`` of one round of ``batch_size >= episodes`` copies is copy ``b``'s first episode,
             the layout of a run evaluated with ``eval.batch_size`` = ``eval.episodes``.
+        split: Evaluation streams, ``test`` or ``validation`` (``mrta_rl/splits.py``); default:
+            the run's ``eval.split``.
 
     Returns:
         The content of ``eval_metrics.json`` (as metrics.json, without the training block).
@@ -301,6 +306,10 @@ def evaluate_checkpoint(
         cfg.eval.episodes = int(episodes)
     if batch_size is not None:
         cfg.eval.batch_size = int(batch_size)
+    if split is not None:
+        with open_dict(cfg):  # a run written before eval.split existed has no such key
+            cfg.eval.split = str(split)
+            cfg.eval.seed = None  # the split names the streams, not the seed the run recorded
     choices = run_choices(run_dir)
     run = build_saved_run(cfg, run_dir, name=choices.get("learner"))
     if run.learner.trains():

@@ -28,7 +28,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from mrta_rl.config import ConfigError, Range, check_fields, check_keywords
+from mrta_rl.config import Choices, ConfigError, Range, check_fields, check_keywords
 from mrta_rl.envs import AuctionParams
 from mrta_rl.learners import Learner
 from mrta_rl.learners.base import learner_from_target
@@ -40,6 +40,7 @@ from mrta_rl.learners.memory import (
     team_floor_bytes,
 )
 from mrta_rl.partition import Partition, subg_partition
+from mrta_rl.splits import DEFAULT_SPLIT, SEED_STRIDE, SPLIT_SEEDS, SPLIT_WIDTH
 from mrta_rl.systems import (
     MAX_PAIRS,
     RobotSystem,
@@ -62,7 +63,6 @@ RUN_BLOCKS = (
     "partition",
     "logger",
 )
-SEED_STRIDE = 2**32  # training env seed = seed * SEED_STRIDE + copy; eval seeds stay below it
 MEMORY_FRACTION = 0.5  # default limits.memory_gb: this fraction of the machine's memory
 
 
@@ -97,7 +97,12 @@ class EvalSettings:
 
     episodes: Annotated[int, Range(1)]  # evaluation copy-episodes
     batch_size: Annotated[int, Range(1)]  # copies per round
-    seed: Annotated[int, Range(0, SEED_STRIDE - 1)]  # copy b uses seed + b, below SEED_STRIDE
+    # the streams played (mrta_rl/splits.py): test (reported) or validation (choices made on);
+    # absent from the configs of runs written before it existed, which played test
+    split: Annotated[str, Choices(*SPLIT_SEEDS)] = DEFAULT_SPLIT
+    # copy b plays seed + b; null: the split's seed. A value must be that seed (runs written
+    # before eval.split existed record it): the split names the streams
+    seed: Annotated[int | None, Range(0, SEED_STRIDE - 1)] = None
 
 
 @dataclass(frozen=True)
@@ -124,18 +129,72 @@ class EvaluateSettings:
     checkpoint: str  # run dir of scripts/train.py
     episodes: Annotated[int | None, Range(1)] = None  # null: the run's eval.episodes
     batch_size: Annotated[int | None, Range(1)] = None  # null: the run's eval.batch_size
+    eval: dict[str, Any] | None = None  # the streams, checked by EvaluateStreams
+
+
+@dataclass(frozen=True)
+class EvaluateStreams:
+    """``eval:`` of ``conf/evaluate.yaml``: which streams ``scripts/evaluate.py`` plays."""
+
+    split: Annotated[str | None, Choices(*SPLIT_SEEDS)] = None  # null: the run's eval.split
 
 
 def check_evaluate_config(cfg: DictConfig) -> dict[str, Any]:
     """The checked arguments of ``scripts/evaluate.py`` (:class:`EvaluateSettings`).
 
+    Returns:
+        The arguments, with ``eval`` replaced by its ``split`` (None: the run's own).
+
     Raises:
-        ConfigError: naming the argument (``checkpoint: missing; ...``).
+        ConfigError: naming the argument (``checkpoint: missing; ...``, ``eval.split: ...``).
     """
     values = {k: _plain(cfg, k) for k in cfg if k != "hydra" and not OmegaConf.is_missing(cfg, k)}
     if values.get("checkpoint") is None:  # conf/evaluate.yaml: ???
         values.pop("checkpoint", None)
-    return check_fields(EvaluateSettings, values, "", require=True)
+    args = check_fields(EvaluateSettings, values, "", require=True)
+    streams = args.pop("eval", None)
+    _check(
+        streams is None or isinstance(streams, dict),
+        f"eval: must be a mapping (eval.split=...), got {streams!r}",
+    )
+    args["split"] = check_fields(EvaluateStreams, streams or {}, "eval").get("split")
+    return args
+
+
+def check_streams(train: dict[str, Any], evaluation: dict[str, Any]) -> None:
+    """Refuse copies that would play another's task streams (``mrta_rl/splits.py``).
+
+    Args:
+        train: The checked ``train`` block (:class:`TrainSettings`).
+        evaluation: The checked ``eval`` block (:class:`EvalSettings`).
+
+    Raises:
+        ConfigError: naming ``eval.seed`` and ``eval.split`` when they contradict each other,
+            ``eval.batch_size`` when the copies would run into another split's seeds, or
+            ``train.batch_size`` when run seed 0's copies would run into the test split's.
+    """
+    split, seed = evaluation.get("split", DEFAULT_SPLIT), evaluation.get("seed")
+    if seed is not None:
+        _check(
+            seed + evaluation["batch_size"] <= SEED_STRIDE,
+            f"eval.seed: must be <= 2**32 - eval.batch_size, got {seed}",
+        )
+        _check(
+            seed == SPLIT_SEEDS[split],
+            f"eval.seed: {seed} contradicts eval.split={split}, whose copy b plays "
+            f"{SPLIT_SEEDS[split]} + b; drop eval.seed (eval.split names the streams)",
+        )
+    _check(
+        evaluation["batch_size"] <= SPLIT_WIDTH,
+        f"eval.batch_size: must be <= {SPLIT_WIDTH} (the seeds of one split), "
+        f"got {evaluation['batch_size']}",
+    )
+    first = min(SPLIT_SEEDS.values())
+    _check(
+        train["batch_size"] <= first,
+        f"train.batch_size: must be <= {first} (run seed 0's copies would play the evaluation "
+        f"streams), got {train['batch_size']}",
+    )
 
 
 class ResourceRefusal(ConfigError):
@@ -344,10 +403,7 @@ def validate_config(cfg: DictConfig) -> CheckedConfig:
     check_fields(RunSettings, {"seed": _plain(cfg, "seed")}, "", require=True)
     train = _section(cfg, "train", TrainSettings)
     evaluation = _section(cfg, "eval", EvalSettings)
-    _check(
-        evaluation["seed"] + evaluation["batch_size"] <= SEED_STRIDE,
-        f"eval.seed: must be <= 2**32 - eval.batch_size, got {evaluation['seed']}",
-    )
+    check_streams(train, evaluation)
     limits = check_fields(LimitSettings, _plain(cfg, "limits") or {}, "limits")
     bound = check_fields(PartitionSettings, _plain(cfg, "partition") or {}, "partition")
 
