@@ -90,7 +90,7 @@ SUMMARY = {
     "itr": {"*": OPTIONAL},
     "return_by_type?": {"*": OPTIONAL},  # absent from runs made before it existed
     "return_by_group?": {"*": {"types": [STR], "return": NUMBER}},
-    "split?": STR,  # the learner's block: eval.split played (absent before it existed: test)
+    "split?": STR,  # eval.split played
 }
 LEARNER = {"name": STR, "label": STR, "kind": STR}  # runners/train.py learner_record
 METRICS = {

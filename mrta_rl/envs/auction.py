@@ -11,7 +11,7 @@ Design notes:
 - **Counter-based randomness.** Every random number is a hash of (copy seed, episode number, tick,
   draw index), never a shared generator's stream. A copy's episode therefore depends only on its
   own seed and actions, not on the batch size or on when other copies reset, and a plain scalar
-  implementation drawing the same hashes reproduces it exactly (see ``tests/unit``).
+  implementation drawing the same hashes reproduces it exactly (see ``tests/envs/test_auction.py``).
 - **A tick is split at the decision.** ``reset`` and the end of ``step`` run spec steps 1-3 of the
   next tick (arrivals, queue order, slots) so that the caller sees the slots it decides on;
   ``step(actions)`` runs steps 4-8. Drops from step 2 (overflow) are paid in the reward of that

@@ -16,7 +16,7 @@ The runner refuses a run whose ``up_front`` passes ``limits.memory_gb`` and warn
 does (the bound is loose: a run visits far fewer states). The counts follow the learners' storage:
 ``tabular.qtable`` (per state, the conflict-free joint actions; int64 code, float64 Q, int64
 visits), the neural networks of ``learners/neural`` (float32; checked against built learners in
-``tests/unit/test_resources.py``) and the transitions their TorchRL replay buffer keeps.
+``tests/learners/test_memory.py``) and the transitions their TorchRL replay buffer keeps.
 
 Each learner class counts its own state (its ``estimate_memory`` classmethod, see
 ``learners/base.py``) with the helpers here (:func:`group_table_estimate`,
@@ -277,7 +277,7 @@ def neural_estimate(
     F, S = feature_sizes(env, settings)
     # one transition: observation, mask (and their next), state and next state; per robot the
     # action (int64), robot and group rewards (and their next), the invalid-action flags, the
-    # next team reward; flags (measured on the buffer, tests/unit/test_resources.py)
+    # next team reward; flags (measured on the buffer, tests/learners/test_memory.py)
     transition = 2 * (m * F * 4 + S * 4 + m * A) + m * (8 + 16 + 2 + 4) + 32
     parts = {
         "networks": weights * BYTES_PER_WEIGHT,

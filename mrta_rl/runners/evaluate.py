@@ -93,7 +93,10 @@ def evaluate_run(run: RunSetup, cfg: DictConfig) -> dict[str, Any]:
         learned.episodes,
         split,
     )
-    results = {"eval": {**learned.to_json(), "split": split}, "baseline_greedy": baseline.to_json()}
+    results = {  # both played the split's streams, and say so
+        "eval": {**learned.to_json(), "split": split},
+        "baseline_greedy": {**baseline.to_json(), "split": split},
+    }
     # the split adds up to the team return only if no task type is shared (partition size bound)
     if run.partition is not None and run.partition.types_disjoint():
         for summary in results.values():

@@ -1,1 +1,1 @@
-"""Learners outside the package, as a user writes them (tests/smoke/test_plugin_learner.py)."""
+"""Learners outside the package, as a user writes them (tests/learners/test_plugin_learner.py)."""

@@ -8,7 +8,7 @@ import pytest
 from mrta_rl.bench.threaded import ThreadedAuctionEnv
 from mrta_rl.envs import AuctionEnv, AuctionParams
 from mrta_rl.systems import build_system
-from tests.unit.test_auction_env import SYSTEM1, random_valid_actions
+from tests.envs.test_auction import SYSTEM1, random_valid_actions
 
 
 @pytest.mark.parametrize("threads", [2, 3])

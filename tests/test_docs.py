@@ -21,7 +21,7 @@ import yaml
 
 from mrta_rl.envs import AuctionParams
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[1]
 MARKDOWN = sorted([ROOT / "README.md", *(ROOT / "docs").rglob("*.md")])
 NOTEBOOK = ROOT / "docs" / "notebook.md"  # the lab notebook: history may stay there
 GENERATED = ROOT / "docs" / "results"  # reports written by scripts/report.py, reached by links

@@ -17,7 +17,7 @@ from mrta_rl.reports import build_report
 from mrta_rl.reports.collect import collect_runs
 from mrta_rl.reports.experiments import study_points, swept_dimensions
 from mrta_rl.reports.stats import iqm_ci, performance_profile, probability_of_improvement
-from tests.unit.test_reports import write_run
+from tests.reports.test_collect import write_run
 
 # --- statistics on small fixed arrays, against values computed independently -------------------
 

@@ -23,7 +23,7 @@ from mrta_rl.learners import GreedyLearner
 
 ROOT = Path(__file__).resolve().parents[2]
 MARKER = "MRTA_TEST_MARKER"
-HERE = "tests.smoke.test_cli"  # this module, as the subprocess imports it
+HERE = "tests.commands.test_cli"  # this module, as the subprocess imports it
 
 
 class SleepyLearner(GreedyLearner):

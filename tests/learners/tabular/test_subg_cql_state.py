@@ -21,11 +21,11 @@ from mrta_rl.partition import subg_partition
 from mrta_rl.runners.evaluate import evaluate_policy
 from mrta_rl.systems import build_system
 from tests.conftest import paper_system
-from tests.unit.tabular_tables import saved_tables
+from tests.learners.tabular.tabular_tables import saved_tables
 
 # the trio and its hand-made situation of semi-CQL's states: subg_partition keeps every type,
 # one sub-group G1 of all three robots, T_g = {T1, T2}; slot codes 2, 3, 3 (places 1, 5, 25)
-from tests.unit.test_semi_cql_state import SLOTS, TRIO, hand_made
+from tests.learners.tabular.test_semi_cql_state import SLOTS, TRIO, hand_made
 
 # R1 and R3 idle (R3 with a low battery), R2 busy; recency level 1
 HAND = {

@@ -19,9 +19,9 @@ from mrta_rl.config import UserError
 from mrta_rl.reports import build_report
 from mrta_rl.runners import train as run_train
 from mrta_rl.runners.validation import check_evaluate_config
+from tests.commands.test_cli import assert_user_error, script, train, write_system
 from tests.conftest import compose_config
-from tests.smoke.test_cli import assert_user_error, script, train, write_system
-from tests.smoke.test_run_dirs import save_hydra_files
+from tests.runners.test_checkpoint import save_hydra_files
 
 
 def billion_laughs() -> str:

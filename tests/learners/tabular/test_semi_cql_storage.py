@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tests.unit.tabular_tables import build, play_fused, saved_tables
+from tests.learners.tabular.tabular_tables import build, play_fused, saved_tables
 
 TICKS = 700  # 4 copies: 2,756 states met, past 1,024 rows (the first growth)
 # rows, visits and sum of Q after TICKS ticks of these seeds: a change of the update rule, a

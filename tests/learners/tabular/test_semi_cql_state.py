@@ -17,7 +17,7 @@ from mrta_rl.learners.memory import (
 from mrta_rl.learners.tabular.semi_cql import SemiCQLLearner
 from mrta_rl.systems import build_system
 from tests.conftest import paper_system
-from tests.unit.tabular_tables import saved_tables
+from tests.learners.tabular.tabular_tables import saved_tables
 
 TRIO = {"name": "trio", "robots": {"R1": ["T1", "T2"], "R2": ["T1"], "R3": ["T1", "T2"]}}
 # the hand-made situation below: slot codes 2, 3, 3 (places 1, 5, 25); 5^3 = 125 slot states

@@ -1,6 +1,6 @@
 """Tables of the four tabular learners after a few hundred training ticks, for regression tests.
 
-``python tests/unit/tabular_tables.py OUT.npz`` plays every learner of :data:`CASES` on
+``python tests/learners/tabular/tabular_tables.py OUT.npz`` plays every learner of :data:`CASES` on
 System-II and saves its tables (what ``learner.save`` writes, keys ``<case>/<array>``). The
 fixture ``data/tabular_tables_v1.npz`` holds these tables for these seeds, computed by an
 implementation of the learners in plain numpy and Python dicts (no compiled loops; git history
@@ -23,7 +23,7 @@ from mrta_rl.learners.tabular.base import Q_FILE, TabularLearner, read_npz
 from mrta_rl.partition import subg_partition
 from mrta_rl.systems import build_system
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 FIXTURE = Path(__file__).resolve().parent / "data" / "tabular_tables_v1.npz"
 CLASSES = {
     "subg_cql": "mrta_rl.learners.tabular.subg_cql:SubGCQLLearner",

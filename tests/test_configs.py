@@ -18,7 +18,7 @@ from mrta_rl.runners import build_run, validate_config
 from mrta_rl.runners.validation import check_evaluate_config
 from mrta_rl.systems import build_system
 
-CONF = Path(__file__).resolve().parents[2] / "conf"
+CONF = Path(__file__).resolve().parents[1] / "conf"
 GROUP_FILES = sorted(
     (group.name, path.stem)
     for group in CONF.iterdir()
@@ -76,7 +76,7 @@ def test_the_train_config_is_a_valid_run_of_its_default_learner_and_system(compo
 
 def test_the_evaluate_config_reads_a_checkpoint_and_writes_no_run_dir(compose_cfg):
     cfg = compose_cfg(["checkpoint=somewhere"], config_name="evaluate")
-    args = {"checkpoint": "somewhere", "episodes": None, "batch_size": None}
+    args = {"checkpoint": "somewhere", "episodes": None, "batch_size": None, "split": None}
     assert check_evaluate_config(cfg) == args
     assert (HydraConfig.get().run.dir, HydraConfig.get().output_subdir) == (".", None)
     with pytest.raises(ConfigError, match="checkpoint: missing"):

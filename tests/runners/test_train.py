@@ -20,7 +20,7 @@ from mrta_rl.systems import SystemConfigError
 ROOT = Path(__file__).resolve().parents[2]
 LEARNERS = sorted(path.stem for path in (ROOT / "conf" / "learner").glob("*.yaml"))
 SYSTEMS = {"system1": (6, 5), "system2": (10, 8)}  # robots, task types (paper Tables 1-2)
-EVAL_KEYS = {"episodes", "team_return", "ctr", "ctr_overall", "itr", "return_by_type"}
+EVAL_KEYS = {"episodes", "team_return", "ctr", "ctr_overall", "itr", "return_by_type", "split"}
 
 
 class PartitionedGreedy(GreedyLearner):
@@ -79,6 +79,7 @@ def check_metrics(metrics: dict, run_dir: Path, system: str, learner: str) -> No
     assert metrics["learner"]["name"] == learner and metrics["system"] == system
     m, n = SYSTEMS[system]
     partitioned = (run_dir / "partition.json").is_file()
+    assert metrics["eval"]["split"] == "test"  # the default streams, recorded
     for block in (metrics["eval"], metrics["baseline_greedy"]):
         assert set(block) == EVAL_KEYS | ({"return_by_group"} if partitioned else set())
         # every reward is a task's: the parts by type, and by sub-group, add up to the return

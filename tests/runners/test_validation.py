@@ -3,7 +3,7 @@
 The fuzz test throws random malformed overrides and system files at the
 validation layer (``runners/validation.py``): each is either accepted and then plays a smoke
 episode, or refused with a :class:`~mrta_rl.config.ConfigError` naming the key or culprit; any
-other exception fails the test. ``tests/smoke/test_cli.py`` sends a few through the real script.
+other exception fails the test. ``tests/commands/test_cli.py`` sends a few through the real script.
 """
 
 from __future__ import annotations

@@ -31,7 +31,7 @@ from mrta_rl.run_files import read_training_state
 from mrta_rl.runners import evaluate_checkpoint, train
 from mrta_rl.runners.checkpoint import TrainingCheckpoint
 from tests.conftest import compose_config
-from tests.smoke.test_run_dirs import save_hydra_files, without_timings
+from tests.runners.test_checkpoint import save_hydra_files, without_timings
 
 OVERRIDES = [
     "learner=subg_cql",

@@ -31,7 +31,7 @@ from mrta_rl.runners import build_run, evaluate_checkpoint, train
 from mrta_rl.runners.evaluate import evaluate_policy
 from mrta_rl.systems import build_system
 from tests.conftest import paper_system
-from tests.smoke.test_run_dirs import save_hydra_files
+from tests.runners.test_checkpoint import save_hydra_files
 
 SMALL = {"hidden": 16, "depth": 1, "batch_size": 32, "buffer_size": 1000}
 
@@ -490,7 +490,7 @@ def test_neural_budget_is_more_copies_for_the_same_frames_and_batches(name):
 
     from hydra import compose, initialize_config_dir
 
-    conf = str(Path(__file__).resolve().parents[2] / "conf")
+    conf = str(Path(__file__).resolve().parents[3] / "conf")
 
     def budget(*overrides: str) -> tuple[int, int, int | None]:
         with initialize_config_dir(config_dir=conf, version_base=None):

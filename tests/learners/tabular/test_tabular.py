@@ -29,7 +29,7 @@ from mrta_rl.rules import deconflict_actions as deconflict
 from mrta_rl.rules import greedy_actions, random_valid_actions, spread_actions
 from mrta_rl.systems import build_system
 from tests.conftest import paper_system
-from tests.unit.tabular_tables import (
+from tests.learners.tabular.tabular_tables import (
     CASES,
     EXPLORE,
     FIXTURE,

@@ -21,9 +21,9 @@ from mrta_rl.runners import evaluate_policy
 from mrta_rl.runners import train as run_train
 from mrta_rl.runners.train import build_run, evaluate_checkpoint
 from mrta_rl.runners.validation import validate_config
+from tests.commands.test_cli import assert_user_error, script, train
 from tests.conftest import compose_config
-from tests.smoke.test_cli import assert_user_error, script, train
-from tests.smoke.test_run_dirs import save_hydra_files
+from tests.runners.test_checkpoint import save_hydra_files
 
 FIRST_SEED = {"test": 1_000_000, "validation": 2_000_000}  # copy 0 of each split, by hand
 RUN = ["learner=team_reserve", "system=system1", "debug=smoke", "eval.episodes=3"]
