@@ -1,14 +1,9 @@
 """Collect finished runs (metrics.json, curve.csv) and the jobs a sweep expected but lost.
 
-A run is a folder with ``metrics.json``; a Hydra multirun dir has one per job. The expected grid
-of a multirun is rebuilt as Hydra's ``BasicSweeper`` builds its jobs (``hydra.sweeper.params``,
-then the command-line overrides, a later key winning, as a cartesian product), so a job that
-failed or never started is *missing*; without a multirun.yaml it is the product of the
-learners, systems and seeds found. Runs are told apart by their whole configuration: among the
-runs of a learner on a system, every setting whose value differs (the seed and
-:data:`NOT_CONFIGURATION` aside) names a configuration of its own (``subg_reserve reserve=1``),
-so only the same configuration and seed is a duplicate. Runs evaluated on different
-splits differ in ``eval.split``, so a table never averages test and validation runs together.
+The expected grid of a multirun is rebuilt as Hydra's ``BasicSweeper`` builds its jobs, so a
+job that failed or never started is *missing*. Every setting that differs among the runs of a
+learner on a system names a configuration of its own, so only the same configuration and seed
+is a duplicate, and test and validation runs are never averaged together.
 """
 
 from __future__ import annotations
@@ -156,11 +151,7 @@ def _setting_name(key: str) -> str:
 
 
 def configuration_variants(records: Sequence[RunRecord]) -> list[str]:
-    """What sets each run's configuration apart from the other runs of its learner and system.
-
-    Per run, ``"name=value ..."`` of the settings that differ among the runs of its ``(learner,
-    system)`` (seed and :data:`NOT_CONFIGURATION` aside), in config order; ``""`` if none.
-    """
+    """What sets each run's configuration apart from the other runs of its learner and system."""
     flat = [_flatten(named_streams(r.config)) for r in records]
     variants = [""] * len(records)
     groups: dict[tuple[str, str], list[int]] = {}
@@ -182,12 +173,7 @@ def configuration_variants(records: Sequence[RunRecord]) -> list[str]:
 
 
 def named_streams(config: dict[str, Any]) -> dict[str, Any]:
-    """The config with its evaluation streams named by ``eval.split`` (``mrta_rl/splits.py``).
-
-    A run written before ``eval.split`` existed played the test split and records its seed as
-    ``eval.seed``; a later run records the split and ``eval.seed: null``. Both name the same
-    streams, so runs of different splits differ in ``eval.split`` and only there.
-    """
+    """The config with its evaluation streams named by ``eval.split`` (``mrta_rl/splits.py``)."""
     evaluation = config.get("eval")
     if not isinstance(evaluation, dict) or not {"seed", "split"} & set(evaluation):
         return config  # no streams recorded (not written by scripts/train.py)
@@ -230,11 +216,7 @@ def refusal_reason(run_dir: Path) -> str | None:
 
 
 def refused_jobs(sweep_dir: Path) -> dict[frozenset[str], str]:
-    """``"refused: <reason>"`` of the sweep's jobs refused by validation, keyed by overrides.
-
-    Such a job leaves no run dir (``runners/cli.py`` removes it); the sweep dir keeps its
-    reason in ``refused_jobs.jsonl``. An unreadable line is skipped.
-    """
+    """``"refused: <reason>"`` of the sweep's jobs refused by validation, keyed by overrides."""
     path, out = sweep_dir / REFUSED_JOBS_FILE, {}
     for line in path.read_text(errors="replace").splitlines() if path.is_file() else []:
         try:
@@ -246,10 +228,7 @@ def refused_jobs(sweep_dir: Path) -> dict[frozenset[str], str]:
 
 
 def expected_sweep_jobs(multirun_yaml: Path) -> list[list[str]] | None:
-    """The job list Hydra's BasicSweeper built for a multirun, in job-number order.
-
-    None if another sweeper plugin ran the sweep: it builds its jobs differently.
-    """
+    """The job list Hydra's BasicSweeper built for a multirun, in job-number order."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
     cfg = OmegaConf.load(multirun_yaml)

@@ -1,19 +1,9 @@
 """The experiments' own sections of report.md: studies along a swept setting, and yardsticks.
 
-* **Studies** (:data:`DIMENSIONS`): runs that differ in the team size (``experiment=scaling``) or
-  the task-switch cost (``experiment=switch_cost``) get each learner's team return relative to
-  greedy against that setting (and for the team size, learning space, wall time and memory), the
-  paper's claims at every value, and runs refused up front as ``refused: <reason>``. Every report
-  also gets the statistics the field reports (rliable's IQM, probability of improvement and
-  performance profiles, computed with scipy in ``reports/stats.py``). A run's score is
-  ``(R - G) / |G|``, its gain over greedy on the same task streams: a plain ratio ``R / G`` would
-  flip its meaning where greedy's return is negative (large random teams). A *task*, the
-  bootstrap's stratum, is one team under one setting: system, swept values and team seed.
-* **Learning against the rules** (``experiment=yardsticks``): per system, each learner's trained
-  policy and its untrained start (``train.episodes=0``) next to greedy, the best ``team_reserve``
-  setting among the runs and the ``rollout`` planner. Differences are paired per evaluation
-  episode (every run plays episode ``e`` on the same task stream), as seeds are few; a run
-  re-evaluated by ``scripts/evaluate.py`` is scored on its ``eval_metrics.json``.
+A study scores a run as ``(R - G) / |G|``, its gain over greedy on the same task streams (a
+ratio ``R / G`` flips where greedy's return is negative); a *task*, the bootstrap's stratum, is
+one team under one setting. Yardstick differences are paired per evaluation episode, as seeds
+are few.
 """
 
 from __future__ import annotations
@@ -105,11 +95,7 @@ def _point(cell: tuple, config: dict[str, Any], metrics: dict[str, Any], refused
 
 
 def study_points(runs: Sequence[RunRecord], inputs: Sequence[Path]) -> pd.DataFrame:
-    """Every finished run and every refused run below the inputs, one row each.
-
-    A refused run is a dir with ``refused.json`` (``{"learner", "system", "seed", "reason"}``)
-    and no metrics.json; its swept values come from its ``.hydra/config.yaml``.
-    """
+    """Every finished run and every refused run below the inputs, one row each."""
     points = [_point((r.label, r.name, r.system, r.seed), r.config, r.metrics, "") for r in runs]
     found = {p.parent.resolve() for path in inputs for p in Path(path).rglob(REFUSED_FILE)}
     found |= {Path(p).resolve() for p in inputs if (Path(p) / REFUSED_FILE).is_file()}
@@ -220,11 +206,7 @@ def dimension_figures(points: pd.DataFrame, dim: str, out: Path, colors: dict) -
 
 
 def dimension_claims(runs: Sequence[RunRecord], dim: str) -> str:
-    """Markdown: for each claim and system, the values of ``dim`` where it holds or not.
-
-    Runs with a partition bound are left out: the claims are about the paper's subG-CQL. The
-    runs of a learner at one value (team seeds and run seeds) make one cell.
-    """
+    """Markdown: per claim and system, the values of ``dim`` where it holds (paper runs only)."""
     by_value: dict[Any, list[RunRecord]] = {}
     for run in runs:
         value = config_value(run.config, dim)
@@ -443,10 +425,7 @@ def _features(run: RunRecord) -> str:
 def _check_same_streams(runs: Sequence[RunRecord], greedy: dict[str, RunRecord]) -> None:
     """Refuse runs of as many episodes as the reference greedy but other task streams.
 
-    Every run also plays greedy (deterministic) on its evaluation episodes, so two runs were
-    evaluated on the same task streams exactly when their greedy returns agree episode by
-    episode; pairing runs on other streams (another ``eval.split`` or ``eval.batch_size``) would
-    be silently wrong.
+    Greedy is deterministic: two runs played the same streams iff their greedy returns agree.
     """
     for run in runs:
         reference = greedy[run.system]
@@ -476,10 +455,7 @@ def _variant(run: RunRecord, kind: str, trained_variant: str) -> str:
 
 
 def collect_policies(runs: Sequence[RunRecord]) -> dict[str, list[Policy]]:
-    """Per system: greedy, the best team_reserve, rollout, the learners (trained and untrained).
-
-    ``{}`` if the runs hold no yardstick rule and no untrained learner: nothing to compare.
-    """
+    """Per system: greedy, the best team_reserve, rollout, the learners (trained and untrained)."""
     if not any(r.name in RULES or _kind(r) == "untrained" for r in runs):
         return {}
     runs = [with_reevaluation(r) for r in runs]
@@ -545,11 +521,7 @@ def _yardsticks(policies: list[Policy]) -> list[Policy]:
 
 
 def _starting(policy: Policy, policies: list[Policy]) -> Policy | None:
-    """The untrained policy of a trained one: same learner, same features if run, else any.
-
-    An untrained learner plays its prior (tabular) or its initial network's bias (neural),
-    which does not read the extra features, so one untrained run serves every encoding.
-    """
+    """The untrained start of a trained policy (an untrained policy reads no extra features)."""
     if policy.kind != "trained":
         return None
     starts = [p for p in policies if p.kind == "untrained" and p.learner == policy.learner]

@@ -1,9 +1,4 @@
-"""Build the experiment report: collect runs, aggregate over seeds, write report.md, CSVs, PNGs.
-
-Output files, flat in ``out_dir``: ``report.md`` (tables, linked figures, the paper's claims,
-missing jobs), the CSV tables (``runs.csv`` holds every run), ``marl_eval.json`` and the PNG
-figures; the experiments' own sections and files come from ``reports/experiments.py``.
-"""
+"""Build the experiment report: collect runs, aggregate over seeds, write report.md, CSVs, PNGs."""
 
 from __future__ import annotations
 

@@ -104,11 +104,7 @@ def _cell_sorted(rows: pd.DataFrame) -> pd.DataFrame:
 
 
 def learning_space_table(frame: pd.DataFrame, summary: pd.DataFrame) -> pd.DataFrame:
-    """Per cell and key (``analytic``, ``visited``, ``parameters``): exact, min, max, mean, ci95.
-
-    ``exact`` is the value when every seed agrees (the analytic size), else empty; integers are
-    written as text (exact beyond 2**63).
-    """
+    """Per cell and key (``analytic``, ``visited``, ``parameters``): exact, min, max, mean, ci95."""
     space = frame[frame["metric"] == "learning_space"]
     rows = []
     for system, learner in dict.fromkeys(zip(summary["system"], summary["learner"], strict=True)):
@@ -169,11 +165,7 @@ def team_return_markdown(summary: pd.DataFrame, table: pd.DataFrame) -> str:
 
 
 def group_return_markdown(summary: pd.DataFrame) -> str:
-    """Per sub-group, the return its task types earn: each partitioned learner, then greedy.
-
-    The summary must be of one system and its learners on the same partition (subG learners on
-    one system share it). Empty string if no cell ran on a partition.
-    """
+    """Per sub-group, the return its task types earn: each partitioned learner, then greedy."""
     groups = _metric(summary, "group_return")
     if groups.empty:
         return ""
