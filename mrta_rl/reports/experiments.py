@@ -375,9 +375,8 @@ class Policy:
     @property
     def per_episode(self) -> np.ndarray | None:
         """Per-episode returns averaged over the runs, or None if a run lacks them."""
-        if not self.returns or any(len(r) == 0 for r in self.returns):
-            return None
-        return np.mean(self.returns, axis=0) if len({len(r) for r in self.returns}) == 1 else None
+        lengths = {len(r) for r in self.returns}
+        return np.mean(self.returns, axis=0) if len(lengths) == 1 and 0 not in lengths else None
 
     @property
     def over_seeds(self) -> MeanCI:
@@ -406,9 +405,8 @@ def with_reevaluation(run: RunRecord) -> RunRecord:
     missing = [k for k in EVALUATION_BLOCKS if not isinstance(again, dict) or k not in again]
     if missing:
         raise ValueError(f"{path}: not a re-evaluation of scripts/evaluate.py, no {missing}")
-    return dataclasses.replace(
-        run, metrics={**run.metrics, **{k: again[k] for k in EVALUATION_BLOCKS}}
-    )
+    blocks = {k: again[k] for k in EVALUATION_BLOCKS}
+    return dataclasses.replace(run, metrics={**run.metrics, **blocks})
 
 
 def _kind(run: RunRecord) -> str:
@@ -509,9 +507,7 @@ def _mean(run: RunRecord) -> float:
     return float(run.metrics["eval"]["team_return"]["mean"])
 
 
-def _policy(
-    name: str, kind: str, runs: list[RunRecord], note: str = "", features="paper"
-) -> Policy:
+def _policy(name: str, kind: str, runs: list, note: str = "", features="paper") -> Policy:
     returns = [_per_episode(r.metrics["eval"]) for r in runs]
     return Policy(name, runs[0].name, kind, returns, [_mean(r) for r in runs], note, features)
 
@@ -522,11 +518,9 @@ def _yardsticks(policies: list[Policy]) -> list[Policy]:
 
 def _starting(policy: Policy, policies: list[Policy]) -> Policy | None:
     """The untrained start of a trained policy (an untrained policy reads no extra features)."""
-    if policy.kind != "trained":
-        return None
     starts = [p for p in policies if p.kind == "untrained" and p.learner == policy.learner]
     same = [p for p in starts if p.features == policy.features]
-    return (same or starts or [None])[0]
+    return (same or starts or [None])[0] if policy.kind == "trained" else None
 
 
 def _round(value: float) -> float | str:
@@ -538,15 +532,20 @@ def section_rows(by_system: dict[str, list[Policy]]) -> list[list[Any]]:
     rows = []
     for system, policies in by_system.items():
         for p in policies:
-            stat, start = p.over_seeds, _starting(p, policies)
-            for other in [*([start] if start else []), *_yardsticks(policies)]:
-                if other is not p:
-                    diff = paired_difference(p.per_episode, other.per_episode)
-                    rows.append(
-                        [system, p.name, stat.n, round(stat.mean, 3), _round(stat.ci95)]
-                        + [other.name, _round(diff.mean), _round(diff.ci95)]
-                    )
+            stat = p.over_seeds
+            for other, diff in _versus(p, policies):
+                rows.append(
+                    [system, p.name, stat.n, round(stat.mean, 3), _round(stat.ci95)]
+                    + [other.name, _round(diff.mean), _round(diff.ci95)]
+                )
     return rows
+
+
+def _versus(p: Policy, policies: list[Policy]) -> list[tuple[Policy, MeanCI]]:
+    """Paired differences of a policy to its untrained start, then to every other yardstick."""
+    start = _starting(p, policies)
+    others = [o for o in [*([start] if start else []), *_yardsticks(policies)] if o is not p]
+    return [(o, paired_difference(p.per_episode, o.per_episode)) for o in others]
 
 
 @dataclass(frozen=True)
@@ -566,10 +565,8 @@ class StartComparison:
     @property
     def verdict(self) -> str:
         """``yes`` (paired interval above zero), ``over seeds only``, ``no (below)`` or ``no``."""
-        if self.paired.low > 0:
-            return "yes"
-        if self.paired.high < 0:
-            return "no (below)"
+        if self.paired.low > 0 or self.paired.high < 0:
+            return "yes" if self.paired.low > 0 else "no (below)"
         return "over seeds only" if self.over_seeds.low > 0 else "no"
 
 
@@ -625,14 +622,11 @@ def section_markdown(
         header = ["policy", "seeds", "return", "vs untrained", *(f"vs {s.name}" for s in sticks)]
         rows = []
         for p in policies:
-            start = _starting(p, policies)
-            versus = [
-                "" if s is p else _fmt(paired_difference(p.per_episode, s.per_episode))
-                for s in sticks
-            ]
-            start_text = _fmt(paired_difference(p.per_episode, start.per_episode)) if start else ""
+            diffs = {id(o): _fmt(d) for o, d in _versus(p, policies)}
+            start = diffs.get(id(_starting(p, policies)), "")
             name = p.name + (f" ({p.note})" if p.note else "")
-            rows.append([name, len(p.means), p.over_seeds.format(1), start_text, *versus])
+            row = [name, len(p.means), p.over_seeds.format(1), start]
+            rows.append(row + [diffs.get(id(s), "") for s in sticks])
         md += paragraphs(f"### {system_label(system)}", markdown_table(header, rows))
     md += paragraphs(f"![{TITLE}]({figure.name})" if figure else "")
     comparisons = start_comparisons(by_system)
@@ -640,15 +634,10 @@ def section_markdown(
         header = ["learner", "system", "untrained", "trained (seeds)"]
         header += ["trained − untrained, paired over episodes", "over seeds", "met?"]
         rows = [
-            [
-                c.trained.name,
-                system_label(system),
-                f"{np.mean(c.start.means):.1f}",
-                f"{c.trained.over_seeds.format(1)} ({len(c.trained.means)})",
-                f"{_fmt(c.paired)} ({c.episodes})" if c.episodes else "–",
-                signed(c.over_seeds),
-                c.verdict,
-            ]
+            [c.trained.name, system_label(system), f"{np.mean(c.start.means):.1f}"]
+            + [f"{c.trained.over_seeds.format(1)} ({len(c.trained.means)})"]
+            + [f"{_fmt(c.paired)} ({c.episodes})" if c.episodes else "–"]
+            + [signed(c.over_seeds), c.verdict]
             for system, c in comparisons
         ]
         md += paragraphs(

@@ -242,9 +242,7 @@ def _report_markdown(
     for system, rows in systems.items():
         label = system_label(system)
         md += paragraphs(
-            f"### {label}",
-            itr_markdown(rows),
-            image(fig(f"itr_{system}"), f"{label} ITR"),
+            f"### {label}", itr_markdown(rows), image(fig(f"itr_{system}"), f"{label} ITR")
         )
     md += paragraphs(
         "## Learning space (paper Table 9)",
