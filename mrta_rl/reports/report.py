@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import os
 from collections.abc import Iterable, Sequence
@@ -114,11 +113,9 @@ def build_report(inputs: Iterable[Path | str], out_dir: Path | str | None = None
 
     colors = figures.learner_colors(list(dict.fromkeys(summary["learner"])))
     for system, rows in summary.groupby("system", sort=False):
-        for stem, part in (("L", rows["priority"] == "L"), ("H", rows["priority"] == "H")):
-            stem = f"ctr_{system}_{stem}"
-            files.figures[stem] = figures.grouped_bars(rows[part], "ctr", _png(out, stem), colors)
-        stem = f"itr_{system}"
-        files.figures[stem] = figures.grouped_bars(rows, "itr", _png(out, stem), colors)
+        bars = {f"ctr_{system}_{p}": ("ctr", rows[rows["priority"] == p]) for p in "LH"}
+        for stem, (metric, part) in (bars | {f"itr_{system}": ("itr", rows)}).items():
+            files.figures[stem] = figures.grouped_bars(part, metric, _png(out, stem), colors)
         lines, line_colors = {}, {}
         for learner, label in dict(zip(rows["learner"], rows["label"], strict=True)).items():
             mine = [r for r in collection.runs if r.system == system and r.learner == learner]
@@ -131,9 +128,8 @@ def build_report(inputs: Iterable[Path | str], out_dir: Path | str | None = None
             greedy = [s for s in rows[rows["metric"] == "greedy_team_return"]["stat"] if s.n]
             title = f"{system_label(system)}: learning curves (mean and 95% CI band over seeds)"
             xlabel = "training env ticks (ticks x parallel copies)"
-            panel = figures.Panel(title, lines, xlabel, "team return per episode")
-            if greedy:
-                panel = dataclasses.replace(panel, hline=(greedy[0].mean, "greedy (evaluation)"))
+            hline = (greedy[0].mean, "greedy (evaluation)") if greedy else None
+            panel = figures.Panel(title, lines, xlabel, "team return per episode", hline=hline)
             png, stem = _png(out, f"curve_{system}"), f"curve_{system}"
             files.figures[stem] = figures.line_figure([panel], png, line_colors, (7.5, 4.6))
     png = out / "team_return.png"
