@@ -75,15 +75,9 @@ class Cells:
         return f"missing: {', '.join(gone)}" if gone else ""
 
 
-def _separated(a: MeanCI, b: MeanCI) -> bool:
-    """True if the two 95 % intervals are disjoint (False when an interval is undefined)."""
-    if math.isnan(a.ci95) or math.isnan(b.ci95):
-        return False
-    return a.high < b.low or b.high < a.low
-
-
 def _separation(pairs: Sequence[tuple[MeanCI, MeanCI]]) -> str:
-    return "clear" if all(_separated(a, b) for a, b in pairs) else "CIs overlap"
+    """``clear`` if each pair's 95 % intervals are disjoint (an undefined one compares False)."""
+    return "clear" if all(a.high < b.low or b.high < a.low for a, b in pairs) else "CIs overlap"
 
 
 def _verdict(ok: bool) -> str:

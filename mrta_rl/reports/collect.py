@@ -145,11 +145,6 @@ def _flatten(config: Any, prefix: str = "") -> dict[str, Any]:
     return out
 
 
-def _setting_name(key: str) -> str:
-    """``learner.reserve`` -> ``reserve``; other settings keep their dotted key."""
-    return key.removeprefix("learner.") if key.count(".") == 1 else key
-
-
 def configuration_variants(records: Sequence[RunRecord]) -> list[str]:
     """What sets each run's configuration apart from the other runs of its learner and system."""
     flat = [_flatten(named_streams(r.config)) for r in records]
@@ -165,10 +160,9 @@ def configuration_variants(records: Sequence[RunRecord]) -> list[str]:
             if k not in NOT_CONFIGURATION
             and len({json.dumps(flat[i].get(k), sort_keys=True) for i in members}) > 1
         ]
+        names = {k: k.removeprefix("learner.") if k.count(".") == 1 else k for k in differing}
         for i in members:
-            variants[i] = " ".join(
-                f"{_setting_name(k)}={_format_value(flat[i].get(k))}" for k in differing
-            )
+            variants[i] = " ".join(f"{names[k]}={_format_value(flat[i].get(k))}" for k in differing)
     return variants
 
 
@@ -264,22 +258,6 @@ def _job_identity(job: Sequence[str], cfg: Any) -> tuple[str, str, int | None]:
     return learner, system, seed
 
 
-def _find_run_dirs(path: Path) -> list[Path]:
-    """Folders holding a metrics.json at or below ``path``, sorted."""
-    if (path / METRICS_FILE).is_file():
-        return [path]
-    return sorted(p.parent for p in path.rglob(METRICS_FILE))
-
-
-def _job_dirs(sweep_dir: Path) -> dict[frozenset[str], Path]:
-    """Job dirs of a sweep (any ``.hydra/overrides.yaml`` below it), keyed by their overrides."""
-    found: dict[frozenset[str], Path] = {}
-    for path in sorted(sweep_dir.rglob("overrides.yaml")):
-        if path.parent.name == ".hydra":
-            found[frozenset(str(o) for o in _load_yaml(path) or [])] = path.parent.parent
-    return found
-
-
 def collect_runs(inputs: Iterable[Path | str]) -> Collection:
     """Gather the runs below the inputs and list the expected jobs that left no results."""
     paths = [Path(p) for p in inputs]
@@ -288,7 +266,10 @@ def collect_runs(inputs: Iterable[Path | str]) -> Collection:
             raise ReportInputError(f"no such run or sweep dir: {path}")
     collection = Collection(inputs=paths)
     by_key: dict[tuple[str, str, int], RunRecord] = {}
-    records = [load_run(d) for d in sorted({d.resolve() for p in paths for d in _find_run_dirs(p)})]
+    # a run dir holds a metrics.json: an input itself, else every folder below it
+    tops = [p / METRICS_FILE for p in paths]
+    found = [[t] if t.is_file() else t.parent.rglob(METRICS_FILE) for t in tops]
+    records = [load_run(d) for d in sorted({m.parent.resolve() for ms in found for m in ms})]
     variants = configuration_variants(records)
     for record, variant in zip(records, variants, strict=True):
         if variant:
@@ -312,7 +293,11 @@ def collect_runs(inputs: Iterable[Path | str]) -> Collection:
         collection.sweep_source = ", ".join(str(s) for s in sweeps)
         collection.expected_jobs += len(jobs)
         cfg = OmegaConf.load(multirun_yaml)
-        dirs = _job_dirs(multirun_yaml.parent)
+        dirs = {  # job dirs of the sweep by their overrides
+            frozenset(str(o) for o in _load_yaml(p) or []): p.parent.parent
+            for p in sorted(multirun_yaml.parent.rglob("overrides.yaml"))
+            if p.parent.name == ".hydra"
+        }
         refused = refused_jobs(multirun_yaml.parent)
         for job in jobs:
             job_dir = dirs.get(frozenset(job))
