@@ -50,6 +50,8 @@ DIMENSIONS: dict[str, tuple[str, str, bool]] = {
 }
 BOUND_KEY = "partition.max_group_size"
 TEAM_SEED_KEY = "system.seed"
+# learning space columns of the study drawn as lines, with the suffix of their series
+SPACE_LINES = {"space_analytic": "", "space_visited": " (visited)", "parameters": " (parameters)"}
 PROFILE_POINTS = 101  # thresholds of a performance profile
 STUDY_COLUMNS = ["series", "learner", "system", *DIMENSIONS, "team_seed", "seed"]
 STUDY_COLUMNS += ["return_vs_greedy", "team_return", "space_analytic", "space_visited"]
@@ -181,9 +183,7 @@ def dimension_figures(points: pd.DataFrame, dim: str, out: Path, colors: dict) -
     if dim != "system.n_robots":
         return written
     space = {}
-    for column, suffix in (("space_analytic", ""), ("space_visited", " (visited)")) + (
-        ("parameters", " (parameters)"),
-    ):
+    for column, suffix in SPACE_LINES.items():
         finished[f"log_{column}"] = [
             math.log10(int(v)) if v != "" and int(v) > 0 else math.nan for v in finished[column]
         ]

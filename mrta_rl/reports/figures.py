@@ -61,10 +61,8 @@ def grouped_bars(rows: pd.DataFrame, metric: str, path: Path, colors: Colors) ->
     if metric == "ctr":
         rows = rows.sort_values("item", key=lambda s: s == "all", kind="stable")
         title = f"{system}: CTR of {PRIORITY_LABELS[rows['priority'].iloc[0]]} tasks"
-        xlabel, ylabel = (
-            "task type (* all = counts pooled over types)",
-            "completed task ratio CTR (%)",
-        )
+        xlabel = "task type (* all = counts pooled over types)"
+        ylabel = "completed task ratio CTR (%)"
     else:
         title = f"{system}: idle time ratio per robot"
         xlabel, ylabel = "robot (* mean = mean over robots)", "idle time ratio ITR (% of ticks)"

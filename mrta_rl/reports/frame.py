@@ -155,11 +155,7 @@ def summarize(frame: pd.DataFrame) -> pd.DataFrame:
 
 def stat(summary: pd.DataFrame, metric: str, item: str = "", priority: str = "") -> MeanCI:
     """The :class:`MeanCI` of one metric value in a summary of one cell (empty if absent)."""
-    rows = summary[
-        (summary["metric"] == metric)
-        & (summary["item"] == item)
-        & (summary["priority"] == priority)
-    ]
+    rows = summary[summary[["metric", "item", "priority"]].eq([metric, item, priority]).all(axis=1)]
     return rows["stat"].iloc[0] if len(rows) else MeanCI(0, math.nan, math.nan, math.nan)
 
 
