@@ -46,11 +46,8 @@ class MeanCI:
 
     def format(self, digits: int = 1) -> str:
         """``"74.3 ± 2.1"``; ``"74.3"`` for a single seed; ``"–"`` without any value."""
-        if self.n == 0:
-            return "–"
-        if self.n < 2:
-            return f"{self.mean:.{digits}f}"
-        return f"{self.mean:.{digits}f} ± {self.ci95:.{digits}f}"
+        spread = f" ± {self.ci95:.{digits}f}" if self.n >= 2 else ""
+        return f"{self.mean:.{digits}f}{spread}" if self.n else "–"
 
 
 def mean_ci(values: Iterable[float | None]) -> MeanCI:

@@ -70,11 +70,10 @@ def csv_tables(frame: pd.DataFrame, summary: pd.DataFrame) -> dict[str, pd.DataF
     cells = _metric(summary, "team_return").set_index(["system", "learner"])
 
     parts = [cells[["seeds"]].rename(columns={"seeds": "n_seeds"})]
-    for metric, prefix in (("team_return", "team_return_"), ("greedy_team_return", "greedy_")):
+    for metric, prefix in zip(TEAM_METRICS, ("team_return_", "greedy_", "gain_"), strict=True):
         rows = _metric(summary, metric).set_index(["system", "learner"])[["mean", "ci95"]]
         parts.append(rows.reindex(cells.index).add_prefix(prefix))
-    rows = _metric(summary, "gain").set_index(["system", "learner"])[["mean", "ci95"]]
-    team_return = pd.concat([*parts, rows.reindex(cells.index).add_prefix("gain_")], axis=1)
+    team_return = pd.concat(parts, axis=1)
     team_return["gain_percent"] = [
         100.0 * gain / abs(base) if base and not math.isnan(base) else math.nan
         for gain, base in zip(team_return["gain_mean"], team_return["greedy_mean"], strict=True)
