@@ -9,6 +9,7 @@ are few.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 from collections import defaultdict
 from collections.abc import Sequence
@@ -68,6 +69,7 @@ def _point(cell: tuple, config: dict[str, Any], metrics: dict[str, Any], refused
         ((metrics.get(k) or {}).get("team_return") or {}).get("mean") for k in EVALUATION_BLOCKS
     )
     greedy = None if greedy is None else float(greedy)
+    score = (float(ret) - greedy) / abs(greedy) if ret is not None and greedy else math.nan
     resources = metrics.get("resources") or {}
     wall = resources.get("wall_s", (metrics.get("train") or {}).get("wall_s"))
     space = {k: int(v) for k, v in (metrics.get("learning_space") or {}).items()}
@@ -82,9 +84,7 @@ def _point(cell: tuple, config: dict[str, Any], metrics: dict[str, Any], refused
         **settings,
         "team_seed": team_seed,
         "seed": seed,
-        "return_vs_greedy": (float(ret) - greedy) / abs(greedy)
-        if ret is not None and greedy
-        else math.nan,
+        "return_vs_greedy": score,
         "team_return": math.nan if ret is None else float(ret),
         "space_analytic": str(space["analytic"]) if "analytic" in space else "",
         "space_visited": space.get("visited", ""),
@@ -236,14 +236,10 @@ def field_statistics(points: pd.DataFrame) -> pd.DataFrame:
         for s in names
     }
     rows = [("iqm", s, "", iqm_ci(by_series[s].tolist())) for s in names]
-    for x in names:
-        for y in names:
-            if x != y:
-                common = [t for t in by_series[x].index if t in by_series[y].index]
-                estimate = probability_of_improvement(
-                    [by_series[x][t] for t in common], [by_series[y][t] for t in common]
-                )
-                rows.append(("probability_of_improvement", x, y, estimate))
+    for x, y in itertools.permutations(names, 2):
+        common = [t for t in by_series[x].index if t in by_series[y].index]
+        xs, ys = ([by_series[s][t] for t in common] for s in (x, y))
+        rows.append(("probability_of_improvement", x, y, probability_of_improvement(xs, ys)))
     return pd.DataFrame(
         [(k, x, y, e.value, e.low, e.high, e.n, e) for k, x, y, e in rows],
         columns=[*FIELD_STATS_HEADER, "estimate"],
