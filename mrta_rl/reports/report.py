@@ -73,12 +73,9 @@ def _setup_markdown(runs: Sequence[RunRecord], summary: pd.DataFrame) -> str:
         text = ", ".join(f"{k}={v}" for k, v in cfg.items() if not k.startswith("_"))
         settings.setdefault(r.learner, set()).add(text)
     labels = dict(zip(summary["learner"], summary["label"], strict=True))
-    learners = [
-        [labels[n], " / ".join(sorted(settings[n])) or "–"]
-        for n in dict.fromkeys(summary["learner"])
-    ]
-    settings_table = markdown_table(["setting", "value"], rows)
-    return settings_table + "\n\n" + markdown_table(["learner", LEARNER_SETTINGS], learners)
+    learners = [[label, " / ".join(sorted(settings[n])) or "–"] for n, label in labels.items()]
+    learners_table = markdown_table(["learner", LEARNER_SETTINGS], learners)
+    return markdown_table(["setting", "value"], rows) + "\n\n" + learners_table
 
 
 def build_report(inputs: Iterable[Path | str], out_dir: Path | str | None = None) -> ReportFiles:
