@@ -167,7 +167,11 @@ def configuration_variants(records: Sequence[RunRecord]) -> list[str]:
 
 
 def named_streams(config: dict[str, Any]) -> dict[str, Any]:
-    """The config with its evaluation streams named by ``eval.split`` (``mrta_rl/splits.py``)."""
+    """The config with its evaluation streams named by ``eval.split`` (``mrta_rl/splits.py``).
+
+    A run from before ``eval.split`` records the test split's seed as ``eval.seed``: both forms
+    name the same streams, so runs differ in ``eval.split`` only when their streams differ.
+    """
     evaluation = config.get("eval")
     if not isinstance(evaluation, dict) or not {"seed", "split"} & set(evaluation):
         return config  # no streams recorded (not written by scripts/train.py)
@@ -210,7 +214,10 @@ def refusal_reason(run_dir: Path) -> str | None:
 
 
 def refused_jobs(sweep_dir: Path) -> dict[frozenset[str], str]:
-    """``"refused: <reason>"`` of the sweep's jobs refused by validation, keyed by overrides."""
+    """``"refused: <reason>"`` of the sweep's jobs refused by validation, keyed by overrides.
+
+    Such a job leaves no run dir, so its reason is kept in the sweep dir.
+    """
     path, out = sweep_dir / REFUSED_JOBS_FILE, {}
     for line in path.read_text(errors="replace").splitlines() if path.is_file() else []:
         try:
@@ -222,7 +229,7 @@ def refused_jobs(sweep_dir: Path) -> dict[frozenset[str], str]:
 
 
 def expected_sweep_jobs(multirun_yaml: Path) -> list[list[str]] | None:
-    """The job list Hydra's BasicSweeper built for a multirun, in job-number order."""
+    """The job list Hydra's BasicSweeper built for a multirun (None: another sweeper ran it)."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
     cfg = OmegaConf.load(multirun_yaml)

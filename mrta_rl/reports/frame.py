@@ -171,7 +171,10 @@ class CurveSummary:
 
 
 def summarize_curve(runs: Sequence[RunRecord]) -> CurveSummary | None:
-    """Mean and 95 % band of the training curves of some seeds."""
+    """Mean and 95 % band of the training curves of some seeds, over their common prefix.
+
+    An interrupted run logs fewer points: the prefix makes every point average the same seeds.
+    """
     curves = [r.curve for r in runs if r.curve]
     if not curves:
         return None

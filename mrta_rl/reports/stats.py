@@ -152,7 +152,10 @@ def probability_of_improvement(
     reps: int = BOOTSTRAP_REPS,
     seed: int = BOOTSTRAP_SEED,
 ) -> Estimate:
-    """P(X > Y): the chance that a run of X beats a run of Y on a task, averaged over tasks."""
+    """P(X > Y): the chance that a run of X beats a run of Y on a task, averaged over tasks.
+
+    Ties count one half (rliable's Mann-Whitney U divided by ``n * m``).
+    """
     if len(x_by_task) != len(y_by_task):
         raise ValueError(f"X has {len(x_by_task)} tasks but Y has {len(y_by_task)}")
     pairs = [(_tasks([x]), _tasks([y])) for x, y in zip(x_by_task, y_by_task, strict=True)]
