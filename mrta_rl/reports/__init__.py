@@ -1,9 +1,6 @@
-"""Experiment reports: collect the runs of a sweep into one long table, summarise, tabulate, plot.
+"""Experiment reports: a sweep's run dirs in, report.md, CSVs, PNGs and marl-eval JSON out.
 
-``build_report(inputs, out_dir)`` turns a Hydra multirun dir (or run dirs) into ``report.md``,
-CSV files, PNG figures and the marl-eval JSON: the analogues of paper Tables 5-9 and Figures 1-6,
-learning curves, team return against the greedy auction, and a check of the claims of paper
-Section 6. The package reads run dirs only: it imports no runner, learner or torch.
+The package reads run dirs only: it imports no runner, learner or torch.
 """
 
 from __future__ import annotations

@@ -1,11 +1,7 @@
 """The claims of paper Section 6 as data, checked on the summary: one verdict per system.
 
-Each claim is a statement of §6.1 (CTR), §6.2 (ITR) or §6.3 (learning space) turned into a test
-on the means over seeds; the verdict is ``holds``, ``does not hold`` or ``not evaluable`` (a
-learner it needs is missing), with the numbers. ``separation`` says whether the 95 % intervals of
-the compared means are disjoint (``clear``) or overlap (``CIs overlap``: the ordering of the means
-may be noise). Vague words get a stated threshold: "a bit lower" = lower by at most
-:data:`A_BIT_PP` percentage points.
+``separation`` says whether the 95 % intervals of the compared means are disjoint (``clear``):
+with overlapping intervals the ordering of the means may be noise.
 """
 
 from __future__ import annotations
@@ -79,15 +75,9 @@ class Cells:
         return f"missing: {', '.join(gone)}" if gone else ""
 
 
-def _separated(a: MeanCI, b: MeanCI) -> bool:
-    """True if the two 95 % intervals are disjoint (False when an interval is undefined)."""
-    if math.isnan(a.ci95) or math.isnan(b.ci95):
-        return False
-    return a.high < b.low or b.high < a.low
-
-
 def _separation(pairs: Sequence[tuple[MeanCI, MeanCI]]) -> str:
-    return "clear" if all(_separated(a, b) for a, b in pairs) else "CIs overlap"
+    """``clear`` if each pair's 95 % intervals are disjoint (an undefined one compares False)."""
+    return "clear" if all(a.high < b.low or b.high < a.low for a, b in pairs) else "CIs overlap"
 
 
 def _verdict(ok: bool) -> str:
@@ -292,11 +282,7 @@ def claims_table(results: Sequence[ClaimResult]) -> pd.DataFrame:
 
 
 def claims_along(summaries: Mapping[Any, pd.DataFrame]) -> pd.DataFrame:
-    """Per claim and system, the values of a swept parameter where it holds, fails or cannot tell.
-
-    ``summaries`` maps each value to the summary of its runs; the columns ``holds_at``,
-    ``fails_at`` and ``not_evaluable_at`` hold ascending tuples.
-    """
+    """Per claim and system, the values of a swept setting where it holds, fails, cannot tell."""
     table = pd.concat(
         [claims_table(check_claims(summaries[v])).assign(value=v) for v in sorted(summaries)]
     )

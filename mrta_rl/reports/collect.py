@@ -1,14 +1,9 @@
 """Collect finished runs (metrics.json, curve.csv) and the jobs a sweep expected but lost.
 
-A run is a folder with ``metrics.json``; a Hydra multirun dir has one per job. The expected grid
-of a multirun is rebuilt as Hydra's ``BasicSweeper`` builds its jobs (``hydra.sweeper.params``,
-then the command-line overrides, a later key winning, as a cartesian product), so a job that
-failed or never started is *missing*; without a multirun.yaml it is the product of the
-learners, systems and seeds found. Runs are told apart by their whole configuration: among the
-runs of a learner on a system, every setting whose value differs (the seed and
-:data:`NOT_CONFIGURATION` aside) names a configuration of its own (``subg_reserve reserve=1``),
-so only the same configuration and seed is a duplicate. Runs evaluated on different
-splits differ in ``eval.split``, so a table never averages test and validation runs together.
+The expected grid of a multirun is rebuilt as Hydra's ``BasicSweeper`` builds its jobs, so a
+job that failed or never started is *missing*. Every setting that differs among the runs of a
+learner on a system names a configuration of its own, so only the same configuration and seed
+is a duplicate, and test and validation runs are never averaged together.
 """
 
 from __future__ import annotations
@@ -150,17 +145,8 @@ def _flatten(config: Any, prefix: str = "") -> dict[str, Any]:
     return out
 
 
-def _setting_name(key: str) -> str:
-    """``learner.reserve`` -> ``reserve``; other settings keep their dotted key."""
-    return key.removeprefix("learner.") if key.count(".") == 1 else key
-
-
 def configuration_variants(records: Sequence[RunRecord]) -> list[str]:
-    """What sets each run's configuration apart from the other runs of its learner and system.
-
-    Per run, ``"name=value ..."`` of the settings that differ among the runs of its ``(learner,
-    system)`` (seed and :data:`NOT_CONFIGURATION` aside), in config order; ``""`` if none.
-    """
+    """What sets each run's configuration apart from the other runs of its learner and system."""
     flat = [_flatten(named_streams(r.config)) for r in records]
     variants = [""] * len(records)
     groups: dict[tuple[str, str], list[int]] = {}
@@ -174,19 +160,17 @@ def configuration_variants(records: Sequence[RunRecord]) -> list[str]:
             if k not in NOT_CONFIGURATION
             and len({json.dumps(flat[i].get(k), sort_keys=True) for i in members}) > 1
         ]
+        names = {k: k.removeprefix("learner.") if k.count(".") == 1 else k for k in differing}
         for i in members:
-            variants[i] = " ".join(
-                f"{_setting_name(k)}={_format_value(flat[i].get(k))}" for k in differing
-            )
+            variants[i] = " ".join(f"{names[k]}={_format_value(flat[i].get(k))}" for k in differing)
     return variants
 
 
 def named_streams(config: dict[str, Any]) -> dict[str, Any]:
     """The config with its evaluation streams named by ``eval.split`` (``mrta_rl/splits.py``).
 
-    A run written before ``eval.split`` existed played the test split and records its seed as
-    ``eval.seed``; a later run records the split and ``eval.seed: null``. Both name the same
-    streams, so runs of different splits differ in ``eval.split`` and only there.
+    A run from before ``eval.split`` records the test split's seed as ``eval.seed``: both forms
+    name the same streams, so runs differ in ``eval.split`` only when their streams differ.
     """
     evaluation = config.get("eval")
     if not isinstance(evaluation, dict) or not {"seed", "split"} & set(evaluation):
@@ -232,8 +216,7 @@ def refusal_reason(run_dir: Path) -> str | None:
 def refused_jobs(sweep_dir: Path) -> dict[frozenset[str], str]:
     """``"refused: <reason>"`` of the sweep's jobs refused by validation, keyed by overrides.
 
-    Such a job leaves no run dir (``runners/cli.py`` removes it); the sweep dir keeps its
-    reason in ``refused_jobs.jsonl``. An unreadable line is skipped.
+    Such a job leaves no run dir, so its reason is kept in the sweep dir.
     """
     path, out = sweep_dir / REFUSED_JOBS_FILE, {}
     for line in path.read_text(errors="replace").splitlines() if path.is_file() else []:
@@ -246,10 +229,7 @@ def refused_jobs(sweep_dir: Path) -> dict[frozenset[str], str]:
 
 
 def expected_sweep_jobs(multirun_yaml: Path) -> list[list[str]] | None:
-    """The job list Hydra's BasicSweeper built for a multirun, in job-number order.
-
-    None if another sweeper plugin ran the sweep: it builds its jobs differently.
-    """
+    """The job list Hydra's BasicSweeper built for a multirun (None: another sweeper ran it)."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
     cfg = OmegaConf.load(multirun_yaml)
@@ -285,22 +265,6 @@ def _job_identity(job: Sequence[str], cfg: Any) -> tuple[str, str, int | None]:
     return learner, system, seed
 
 
-def _find_run_dirs(path: Path) -> list[Path]:
-    """Folders holding a metrics.json at or below ``path``, sorted."""
-    if (path / METRICS_FILE).is_file():
-        return [path]
-    return sorted(p.parent for p in path.rglob(METRICS_FILE))
-
-
-def _job_dirs(sweep_dir: Path) -> dict[frozenset[str], Path]:
-    """Job dirs of a sweep (any ``.hydra/overrides.yaml`` below it), keyed by their overrides."""
-    found: dict[frozenset[str], Path] = {}
-    for path in sorted(sweep_dir.rglob("overrides.yaml")):
-        if path.parent.name == ".hydra":
-            found[frozenset(str(o) for o in _load_yaml(path) or [])] = path.parent.parent
-    return found
-
-
 def collect_runs(inputs: Iterable[Path | str]) -> Collection:
     """Gather the runs below the inputs and list the expected jobs that left no results."""
     paths = [Path(p) for p in inputs]
@@ -309,7 +273,10 @@ def collect_runs(inputs: Iterable[Path | str]) -> Collection:
             raise ReportInputError(f"no such run or sweep dir: {path}")
     collection = Collection(inputs=paths)
     by_key: dict[tuple[str, str, int], RunRecord] = {}
-    records = [load_run(d) for d in sorted({d.resolve() for p in paths for d in _find_run_dirs(p)})]
+    # a run dir holds a metrics.json: an input itself, else every folder below it
+    tops = [p / METRICS_FILE for p in paths]
+    found = [[t] if t.is_file() else t.parent.rglob(METRICS_FILE) for t in tops]
+    records = [load_run(d) for d in sorted({m.parent.resolve() for ms in found for m in ms})]
     variants = configuration_variants(records)
     for record, variant in zip(records, variants, strict=True):
         if variant:
@@ -333,7 +300,11 @@ def collect_runs(inputs: Iterable[Path | str]) -> Collection:
         collection.sweep_source = ", ".join(str(s) for s in sweeps)
         collection.expected_jobs += len(jobs)
         cfg = OmegaConf.load(multirun_yaml)
-        dirs = _job_dirs(multirun_yaml.parent)
+        dirs = {  # job dirs of the sweep by their overrides
+            frozenset(str(o) for o in _load_yaml(p) or []): p.parent.parent
+            for p in sorted(multirun_yaml.parent.rglob("overrides.yaml"))
+            if p.parent.name == ".hydra"
+        }
         refused = refused_jobs(multirun_yaml.parent)
         for job in jobs:
             job_dir = dirs.get(frozenset(job))

@@ -1,24 +1,15 @@
 """The experiments' own sections of report.md: studies along a swept setting, and yardsticks.
 
-* **Studies** (:data:`DIMENSIONS`): runs that differ in the team size (``experiment=scaling``) or
-  the task-switch cost (``experiment=switch_cost``) get each learner's team return relative to
-  greedy against that setting (and for the team size, learning space, wall time and memory), the
-  paper's claims at every value, and runs refused up front as ``refused: <reason>``. Every report
-  also gets the statistics the field reports (rliable's IQM, probability of improvement and
-  performance profiles, computed with scipy in ``reports/stats.py``). A run's score is
-  ``(R - G) / |G|``, its gain over greedy on the same task streams: a plain ratio ``R / G`` would
-  flip its meaning where greedy's return is negative (large random teams). A *task*, the
-  bootstrap's stratum, is one team under one setting: system, swept values and team seed.
-* **Learning against the rules** (``experiment=yardsticks``): per system, each learner's trained
-  policy and its untrained start (``train.episodes=0``) next to greedy, the best ``team_reserve``
-  setting among the runs and the ``rollout`` planner. Differences are paired per evaluation
-  episode (every run plays episode ``e`` on the same task stream), as seeds are few; a run
-  re-evaluated by ``scripts/evaluate.py`` is scored on its ``eval_metrics.json``.
+A study scores a run as ``(R - G) / |G|``, its gain over greedy on the same task streams (a
+ratio ``R / G`` flips where greedy's return is negative); a *task*, the bootstrap's stratum, is
+one team under one setting. Yardstick differences are paired per evaluation episode, as seeds
+are few.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 from collections import defaultdict
 from collections.abc import Sequence
@@ -60,6 +51,8 @@ DIMENSIONS: dict[str, tuple[str, str, bool]] = {
 }
 BOUND_KEY = "partition.max_group_size"
 TEAM_SEED_KEY = "system.seed"
+# learning space columns of the study drawn as lines, with the suffix of their series
+SPACE_LINES = {"space_analytic": "", "space_visited": " (visited)", "parameters": " (parameters)"}
 PROFILE_POINTS = 101  # thresholds of a performance profile
 STUDY_COLUMNS = ["series", "learner", "system", *DIMENSIONS, "team_seed", "seed"]
 STUDY_COLUMNS += ["return_vs_greedy", "team_return", "space_analytic", "space_visited"]
@@ -76,6 +69,7 @@ def _point(cell: tuple, config: dict[str, Any], metrics: dict[str, Any], refused
         ((metrics.get(k) or {}).get("team_return") or {}).get("mean") for k in EVALUATION_BLOCKS
     )
     greedy = None if greedy is None else float(greedy)
+    score = (float(ret) - greedy) / abs(greedy) if ret is not None and greedy else math.nan
     resources = metrics.get("resources") or {}
     wall = resources.get("wall_s", (metrics.get("train") or {}).get("wall_s"))
     space = {k: int(v) for k, v in (metrics.get("learning_space") or {}).items()}
@@ -90,9 +84,7 @@ def _point(cell: tuple, config: dict[str, Any], metrics: dict[str, Any], refused
         **settings,
         "team_seed": team_seed,
         "seed": seed,
-        "return_vs_greedy": (float(ret) - greedy) / abs(greedy)
-        if ret is not None and greedy
-        else math.nan,
+        "return_vs_greedy": score,
         "team_return": math.nan if ret is None else float(ret),
         "space_analytic": str(space["analytic"]) if "analytic" in space else "",
         "space_visited": space.get("visited", ""),
@@ -105,11 +97,7 @@ def _point(cell: tuple, config: dict[str, Any], metrics: dict[str, Any], refused
 
 
 def study_points(runs: Sequence[RunRecord], inputs: Sequence[Path]) -> pd.DataFrame:
-    """Every finished run and every refused run below the inputs, one row each.
-
-    A refused run is a dir with ``refused.json`` (``{"learner", "system", "seed", "reason"}``)
-    and no metrics.json; its swept values come from its ``.hydra/config.yaml``.
-    """
+    """Every finished run and every refused run below the inputs, one row each."""
     points = [_point((r.label, r.name, r.system, r.seed), r.config, r.metrics, "") for r in runs]
     found = {p.parent.resolve() for path in inputs for p in Path(path).rglob(REFUSED_FILE)}
     found |= {Path(p).resolve() for p in inputs if (Path(p) / REFUSED_FILE).is_file()}
@@ -195,9 +183,7 @@ def dimension_figures(points: pd.DataFrame, dim: str, out: Path, colors: dict) -
     if dim != "system.n_robots":
         return written
     space = {}
-    for column, suffix in (("space_analytic", ""), ("space_visited", " (visited)")) + (
-        ("parameters", " (parameters)"),
-    ):
+    for column, suffix in SPACE_LINES.items():
         finished[f"log_{column}"] = [
             math.log10(int(v)) if v != "" and int(v) > 0 else math.nan for v in finished[column]
         ]
@@ -220,11 +206,7 @@ def dimension_figures(points: pd.DataFrame, dim: str, out: Path, colors: dict) -
 
 
 def dimension_claims(runs: Sequence[RunRecord], dim: str) -> str:
-    """Markdown: for each claim and system, the values of ``dim`` where it holds or not.
-
-    Runs with a partition bound are left out: the claims are about the paper's subG-CQL. The
-    runs of a learner at one value (team seeds and run seeds) make one cell.
-    """
+    """Markdown: per claim and system, the values of ``dim`` where it holds (paper runs only)."""
     by_value: dict[Any, list[RunRecord]] = {}
     for run in runs:
         value = config_value(run.config, dim)
@@ -254,14 +236,10 @@ def field_statistics(points: pd.DataFrame) -> pd.DataFrame:
         for s in names
     }
     rows = [("iqm", s, "", iqm_ci(by_series[s].tolist())) for s in names]
-    for x in names:
-        for y in names:
-            if x != y:
-                common = [t for t in by_series[x].index if t in by_series[y].index]
-                estimate = probability_of_improvement(
-                    [by_series[x][t] for t in common], [by_series[y][t] for t in common]
-                )
-                rows.append(("probability_of_improvement", x, y, estimate))
+    for x, y in itertools.permutations(names, 2):
+        common = [t for t in by_series[x].index if t in by_series[y].index]
+        xs, ys = ([by_series[s][t] for t in common] for s in (x, y))
+        rows.append(("probability_of_improvement", x, y, probability_of_improvement(xs, ys)))
     return pd.DataFrame(
         [(k, x, y, e.value, e.low, e.high, e.n, e) for k, x, y, e in rows],
         columns=[*FIELD_STATS_HEADER, "estimate"],
@@ -393,9 +371,8 @@ class Policy:
     @property
     def per_episode(self) -> np.ndarray | None:
         """Per-episode returns averaged over the runs, or None if a run lacks them."""
-        if not self.returns or any(len(r) == 0 for r in self.returns):
-            return None
-        return np.mean(self.returns, axis=0) if len({len(r) for r in self.returns}) == 1 else None
+        lengths = {len(r) for r in self.returns}
+        return np.mean(self.returns, axis=0) if len(lengths) == 1 and 0 not in lengths else None
 
     @property
     def over_seeds(self) -> MeanCI:
@@ -424,9 +401,8 @@ def with_reevaluation(run: RunRecord) -> RunRecord:
     missing = [k for k in EVALUATION_BLOCKS if not isinstance(again, dict) or k not in again]
     if missing:
         raise ValueError(f"{path}: not a re-evaluation of scripts/evaluate.py, no {missing}")
-    return dataclasses.replace(
-        run, metrics={**run.metrics, **{k: again[k] for k in EVALUATION_BLOCKS}}
-    )
+    blocks = {k: again[k] for k in EVALUATION_BLOCKS}
+    return dataclasses.replace(run, metrics={**run.metrics, **blocks})
 
 
 def _kind(run: RunRecord) -> str:
@@ -443,10 +419,7 @@ def _features(run: RunRecord) -> str:
 def _check_same_streams(runs: Sequence[RunRecord], greedy: dict[str, RunRecord]) -> None:
     """Refuse runs of as many episodes as the reference greedy but other task streams.
 
-    Every run also plays greedy (deterministic) on its evaluation episodes, so two runs were
-    evaluated on the same task streams exactly when their greedy returns agree episode by
-    episode; pairing runs on other streams (another ``eval.split`` or ``eval.batch_size``) would
-    be silently wrong.
+    Greedy is deterministic: two runs played the same streams iff their greedy returns agree.
     """
     for run in runs:
         reference = greedy[run.system]
@@ -476,10 +449,7 @@ def _variant(run: RunRecord, kind: str, trained_variant: str) -> str:
 
 
 def collect_policies(runs: Sequence[RunRecord]) -> dict[str, list[Policy]]:
-    """Per system: greedy, the best team_reserve, rollout, the learners (trained and untrained).
-
-    ``{}`` if the runs hold no yardstick rule and no untrained learner: nothing to compare.
-    """
+    """Per system: greedy, the best team_reserve, rollout, the learners (trained and untrained)."""
     if not any(r.name in RULES or _kind(r) == "untrained" for r in runs):
         return {}
     runs = [with_reevaluation(r) for r in runs]
@@ -533,9 +503,7 @@ def _mean(run: RunRecord) -> float:
     return float(run.metrics["eval"]["team_return"]["mean"])
 
 
-def _policy(
-    name: str, kind: str, runs: list[RunRecord], note: str = "", features="paper"
-) -> Policy:
+def _policy(name: str, kind: str, runs: list, note: str = "", features="paper") -> Policy:
     returns = [_per_episode(r.metrics["eval"]) for r in runs]
     return Policy(name, runs[0].name, kind, returns, [_mean(r) for r in runs], note, features)
 
@@ -545,16 +513,10 @@ def _yardsticks(policies: list[Policy]) -> list[Policy]:
 
 
 def _starting(policy: Policy, policies: list[Policy]) -> Policy | None:
-    """The untrained policy of a trained one: same learner, same features if run, else any.
-
-    An untrained learner plays its prior (tabular) or its initial network's bias (neural),
-    which does not read the extra features, so one untrained run serves every encoding.
-    """
-    if policy.kind != "trained":
-        return None
+    """The untrained start of a trained policy (an untrained policy reads no extra features)."""
     starts = [p for p in policies if p.kind == "untrained" and p.learner == policy.learner]
     same = [p for p in starts if p.features == policy.features]
-    return (same or starts or [None])[0]
+    return (same or starts or [None])[0] if policy.kind == "trained" else None
 
 
 def _round(value: float) -> float | str:
@@ -566,15 +528,20 @@ def section_rows(by_system: dict[str, list[Policy]]) -> list[list[Any]]:
     rows = []
     for system, policies in by_system.items():
         for p in policies:
-            stat, start = p.over_seeds, _starting(p, policies)
-            for other in [*([start] if start else []), *_yardsticks(policies)]:
-                if other is not p:
-                    diff = paired_difference(p.per_episode, other.per_episode)
-                    rows.append(
-                        [system, p.name, stat.n, round(stat.mean, 3), _round(stat.ci95)]
-                        + [other.name, _round(diff.mean), _round(diff.ci95)]
-                    )
+            stat = p.over_seeds
+            for other, diff in _versus(p, policies):
+                rows.append(
+                    [system, p.name, stat.n, round(stat.mean, 3), _round(stat.ci95)]
+                    + [other.name, _round(diff.mean), _round(diff.ci95)]
+                )
     return rows
+
+
+def _versus(p: Policy, policies: list[Policy]) -> list[tuple[Policy, MeanCI]]:
+    """Paired differences of a policy to its untrained start, then to every other yardstick."""
+    start = _starting(p, policies)
+    others = [o for o in [*([start] if start else []), *_yardsticks(policies)] if o is not p]
+    return [(o, paired_difference(p.per_episode, o.per_episode)) for o in others]
 
 
 @dataclass(frozen=True)
@@ -594,10 +561,8 @@ class StartComparison:
     @property
     def verdict(self) -> str:
         """``yes`` (paired interval above zero), ``over seeds only``, ``no (below)`` or ``no``."""
-        if self.paired.low > 0:
-            return "yes"
-        if self.paired.high < 0:
-            return "no (below)"
+        if self.paired.low > 0 or self.paired.high < 0:
+            return "yes" if self.paired.low > 0 else "no (below)"
         return "over seeds only" if self.over_seeds.low > 0 else "no"
 
 
@@ -653,14 +618,11 @@ def section_markdown(
         header = ["policy", "seeds", "return", "vs untrained", *(f"vs {s.name}" for s in sticks)]
         rows = []
         for p in policies:
-            start = _starting(p, policies)
-            versus = [
-                "" if s is p else _fmt(paired_difference(p.per_episode, s.per_episode))
-                for s in sticks
-            ]
-            start_text = _fmt(paired_difference(p.per_episode, start.per_episode)) if start else ""
+            diffs = {id(o): _fmt(d) for o, d in _versus(p, policies)}
+            start = diffs.get(id(_starting(p, policies)), "")
             name = p.name + (f" ({p.note})" if p.note else "")
-            rows.append([name, len(p.means), p.over_seeds.format(1), start_text, *versus])
+            row = [name, len(p.means), p.over_seeds.format(1), start]
+            rows.append(row + [diffs.get(id(s), "") for s in sticks])
         md += paragraphs(f"### {system_label(system)}", markdown_table(header, rows))
     md += paragraphs(f"![{TITLE}]({figure.name})" if figure else "")
     comparisons = start_comparisons(by_system)
@@ -668,15 +630,10 @@ def section_markdown(
         header = ["learner", "system", "untrained", "trained (seeds)"]
         header += ["trained − untrained, paired over episodes", "over seeds", "met?"]
         rows = [
-            [
-                c.trained.name,
-                system_label(system),
-                f"{np.mean(c.start.means):.1f}",
-                f"{c.trained.over_seeds.format(1)} ({len(c.trained.means)})",
-                f"{_fmt(c.paired)} ({c.episodes})" if c.episodes else "–",
-                signed(c.over_seeds),
-                c.verdict,
-            ]
+            [c.trained.name, system_label(system), f"{np.mean(c.start.means):.1f}"]
+            + [f"{c.trained.over_seeds.format(1)} ({len(c.trained.means)})"]
+            + [f"{_fmt(c.paired)} ({c.episodes})" if c.episodes else "–"]
+            + [signed(c.over_seeds), c.verdict]
             for system, c in comparisons
         ]
         md += paragraphs(

@@ -55,19 +55,14 @@ def _seed_note(summary: pd.DataFrame) -> str:
 
 
 def grouped_bars(rows: pd.DataFrame, metric: str, path: Path, colors: Colors) -> Path:
-    """Paper Figures 1-6: CTR per task type or ITR per robot of one system, bars per learner.
-
-    ``rows`` is the summary of one system (and one priority for CTR).
-    """
+    """Paper Figures 1-6: CTR per task type or ITR per robot of one system, bars per learner."""
     rows = rows[rows["metric"] == metric]
     system = system_label(rows["system"].iloc[0])
     if metric == "ctr":
         rows = rows.sort_values("item", key=lambda s: s == "all", kind="stable")
         title = f"{system}: CTR of {PRIORITY_LABELS[rows['priority'].iloc[0]]} tasks"
-        xlabel, ylabel = (
-            "task type (* all = counts pooled over types)",
-            "completed task ratio CTR (%)",
-        )
+        xlabel = "task type (* all = counts pooled over types)"
+        ylabel = "completed task ratio CTR (%)"
     else:
         title = f"{system}: idle time ratio per robot"
         xlabel, ylabel = "robot (* mean = mean over robots)", "idle time ratio ITR (% of ticks)"
@@ -117,11 +112,7 @@ def team_return_figure(summary: pd.DataFrame, path: Path, colors: Colors) -> Pat
 
 @dataclass(frozen=True)
 class Panel:
-    """One panel of lines with 95 % bands: per series a table ``x, mean, low, high``.
-
-    A series named ``... (visited)`` is drawn dashed, ``... (parameters)`` dotted; ``hline`` and
-    ``vline`` are a dashed reference (greedy's return) and its legend label.
-    """
+    """One panel of lines with 95 % bands: per series a table ``x, mean, low, high``."""
 
     title: str
     lines: dict[str, pd.DataFrame]
@@ -167,10 +158,7 @@ def line_figure(panels: Sequence[Panel], path: Path, colors: Colors, size=(6.5, 
 def difference_bars(
     panels: Sequence[tuple[str, str, list[tuple[str, MeanCI]]]], path: Path
 ) -> Path:
-    """Horizontal bars of paired differences with 95 % intervals: green above zero, red below.
-
-    One panel per ``(title, x label, [(bar label, difference)])``.
-    """
+    """Horizontal bars of paired differences with 95 % intervals: green above zero, red below."""
     height = max(len(items) for _, _, items in panels) * 0.45 + 1.4
     # long labels (``semi-CQL [state=slots ...]``) need room: about 0.065 inch a character
     label_inches = 0.065 * max(len(name) for _, _, items in panels for name, _ in items)

@@ -1,14 +1,7 @@
 """The runs as one long table (run x config x metric), and its summary over seeds.
 
-One row per run and metric value: the run's columns (``learner`` = its configuration name,
-``name``, ``label``, ``kind``, ``system``, ``seed``, ``variant``, ``run_dir``) and the metric's
-(``metric``, ``item``, ``priority``, ``value``; ``types``: the task types of a subG
-sub-group, for the return split by sub-group). The values are the evaluation block of each run's
-metrics.json (spec "Metrics": CTR pooled over the evaluation episodes of that seed, ITR eq. 9),
-the greedy baseline on the same streams, the learning space (exact Python ints: CQL on System-II
-exceeds 2**63) and the training counters. :func:`summarize` aggregates every metric of a
-``(system, learner)`` cell over its seeds: the mean with a 95 % t interval (``reports/stats.py``).
-Every table of the report is a pivot of these two frames.
+Every table of the report is a pivot of these two frames. Values stay Python objects: the
+learning space of CQL on System-II exceeds 2**63.
 """
 
 from __future__ import annotations
@@ -141,12 +134,7 @@ def _derived(frame: pd.DataFrame) -> pd.DataFrame:
 
 
 def summarize(frame: pd.DataFrame) -> pd.DataFrame:
-    """Mean and 95 % t interval over seeds of every metric of every ``(system, learner)`` cell.
-
-    One row per cell and metric value: the cell's columns, ``seeds``, the metric's, the
-    :data:`STATS`, ``first`` (the first seed's value: an exact int for the learning space) and
-    ``stat`` (the :class:`MeanCI`); cells by system, then :func:`order_learners`.
-    """
+    """Mean and 95 % t interval over seeds of every metric of every ``(system, learner)`` cell."""
     full = pd.concat([frame, _derived(frame)], ignore_index=True)
     systems = order_systems(full["system"])
     learners = order_learners(full["learner"])
@@ -167,11 +155,7 @@ def summarize(frame: pd.DataFrame) -> pd.DataFrame:
 
 def stat(summary: pd.DataFrame, metric: str, item: str = "", priority: str = "") -> MeanCI:
     """The :class:`MeanCI` of one metric value in a summary of one cell (empty if absent)."""
-    rows = summary[
-        (summary["metric"] == metric)
-        & (summary["item"] == item)
-        & (summary["priority"] == priority)
-    ]
+    rows = summary[summary[["metric", "item", "priority"]].eq([metric, item, priority]).all(axis=1)]
     return rows["stat"].iloc[0] if len(rows) else MeanCI(0, math.nan, math.nan, math.nan)
 
 
@@ -187,10 +171,9 @@ class CurveSummary:
 
 
 def summarize_curve(runs: Sequence[RunRecord]) -> CurveSummary | None:
-    """Mean and 95 % band of the training curves of some seeds.
+    """Mean and 95 % band of the training curves of some seeds, over their common prefix.
 
-    Seeds of one config log at the same env ticks; if their lengths differ (an interrupted run),
-    the common prefix is kept so every point averages the same seeds.
+    An interrupted run logs fewer points: the prefix makes every point average the same seeds.
     """
     curves = [r.curve for r in runs if r.curve]
     if not curves:

@@ -1,13 +1,7 @@
-"""Build the experiment report: collect runs, aggregate over seeds, write report.md, CSVs, PNGs.
-
-Output files, flat in ``out_dir``: ``report.md`` (tables, linked figures, the paper's claims,
-missing jobs), the CSV tables (``runs.csv`` holds every run), ``marl_eval.json`` and the PNG
-figures; the experiments' own sections and files come from ``reports/experiments.py``.
-"""
+"""Build the experiment report: collect runs, aggregate over seeds, write report.md, CSVs, PNGs."""
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import os
 from collections.abc import Iterable, Sequence
@@ -79,12 +73,9 @@ def _setup_markdown(runs: Sequence[RunRecord], summary: pd.DataFrame) -> str:
         text = ", ".join(f"{k}={v}" for k, v in cfg.items() if not k.startswith("_"))
         settings.setdefault(r.learner, set()).add(text)
     labels = dict(zip(summary["learner"], summary["label"], strict=True))
-    learners = [
-        [labels[n], " / ".join(sorted(settings[n])) or "–"]
-        for n in dict.fromkeys(summary["learner"])
-    ]
-    settings_table = markdown_table(["setting", "value"], rows)
-    return settings_table + "\n\n" + markdown_table(["learner", LEARNER_SETTINGS], learners)
+    learners = [[label, " / ".join(sorted(settings[n])) or "–"] for n, label in labels.items()]
+    learners_table = markdown_table(["learner", LEARNER_SETTINGS], learners)
+    return markdown_table(["setting", "value"], rows) + "\n\n" + learners_table
 
 
 def build_report(inputs: Iterable[Path | str], out_dir: Path | str | None = None) -> ReportFiles:
@@ -119,11 +110,9 @@ def build_report(inputs: Iterable[Path | str], out_dir: Path | str | None = None
 
     colors = figures.learner_colors(list(dict.fromkeys(summary["learner"])))
     for system, rows in summary.groupby("system", sort=False):
-        for stem, part in (("L", rows["priority"] == "L"), ("H", rows["priority"] == "H")):
-            stem = f"ctr_{system}_{stem}"
-            files.figures[stem] = figures.grouped_bars(rows[part], "ctr", _png(out, stem), colors)
-        stem = f"itr_{system}"
-        files.figures[stem] = figures.grouped_bars(rows, "itr", _png(out, stem), colors)
+        bars = {f"ctr_{system}_{p}": ("ctr", rows[rows["priority"] == p]) for p in "LH"}
+        for stem, (metric, part) in (bars | {f"itr_{system}": ("itr", rows)}).items():
+            files.figures[stem] = figures.grouped_bars(part, metric, _png(out, stem), colors)
         lines, line_colors = {}, {}
         for learner, label in dict(zip(rows["learner"], rows["label"], strict=True)).items():
             mine = [r for r in collection.runs if r.system == system and r.learner == learner]
@@ -136,9 +125,8 @@ def build_report(inputs: Iterable[Path | str], out_dir: Path | str | None = None
             greedy = [s for s in rows[rows["metric"] == "greedy_team_return"]["stat"] if s.n]
             title = f"{system_label(system)}: learning curves (mean and 95% CI band over seeds)"
             xlabel = "training env ticks (ticks x parallel copies)"
-            panel = figures.Panel(title, lines, xlabel, "team return per episode")
-            if greedy:
-                panel = dataclasses.replace(panel, hline=(greedy[0].mean, "greedy (evaluation)"))
+            hline = (greedy[0].mean, "greedy (evaluation)") if greedy else None
+            panel = figures.Panel(title, lines, xlabel, "team return per episode", hline=hline)
             png, stem = _png(out, f"curve_{system}"), f"curve_{system}"
             files.figures[stem] = figures.line_figure([panel], png, line_colors, (7.5, 4.6))
     png = out / "team_return.png"
@@ -247,9 +235,7 @@ def _report_markdown(
     for system, rows in systems.items():
         label = system_label(system)
         md += paragraphs(
-            f"### {label}",
-            itr_markdown(rows),
-            image(fig(f"itr_{system}"), f"{label} ITR"),
+            f"### {label}", itr_markdown(rows), image(fig(f"itr_{system}"), f"{label} ITR")
         )
     md += paragraphs(
         "## Learning space (paper Table 9)",

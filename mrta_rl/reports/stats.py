@@ -1,14 +1,6 @@
 """Statistics over seeds: mean and 95 % t interval; IQM, probability of improvement, profiles.
 
-A report aggregates one number per training seed (e.g. the evaluation CTR of T1_H of each of the
-five seeds of CQL on System-I). The interval is the usual two-sided t interval of the mean,
-``mean ± t_{0.975, n-1} * s / sqrt(n)`` with ``s`` the sample standard deviation (``ddof=1``):
-seeds are few (the paper uses one run, we use five), so the normal quantile 1.96 would be too
-narrow (``t_{0.975, 4} = 2.776``).
-
-The second half of the module reports results as the field does (rliable): the interquartile
-mean with a stratified bootstrap interval, the probability of improvement between two learners,
-and performance profiles (see the comment above :class:`Estimate`).
+Seeds are few, so intervals use the t quantile (``t_{0.975, 4} = 2.776``), not 1.96.
 """
 
 from __future__ import annotations
@@ -54,11 +46,8 @@ class MeanCI:
 
     def format(self, digits: int = 1) -> str:
         """``"74.3 ± 2.1"``; ``"74.3"`` for a single seed; ``"–"`` without any value."""
-        if self.n == 0:
-            return "–"
-        if self.n < 2:
-            return f"{self.mean:.{digits}f}"
-        return f"{self.mean:.{digits}f} ± {self.ci95:.{digits}f}"
+        spread = f" ± {self.ci95:.{digits}f}" if self.n >= 2 else ""
+        return f"{self.mean:.{digits}f}{spread}" if self.n else "–"
 
 
 def mean_ci(values: Iterable[float | None]) -> MeanCI:
@@ -74,14 +63,9 @@ def mean_ci(values: Iterable[float | None]) -> MeanCI:
     return MeanCI(n, mean, t_quantile(n - 1) * std / math.sqrt(n), std)
 
 
-# --- statistics as the field reports them (Agarwal et al. 2021, "Deep RL at the edge of the
-# statistical precipice"; the rliable library, used by BenchMARL and marl-eval) ----------------
-#
-# Scores are grouped by *task* (here: a system, i.e. a robot team), one value per run (seed) of a
-# task. The resampling is scipy's bootstrap with one sample per task, resampled independently:
-# that is the stratified bootstrap of rliable (runs are resampled within each task, tasks are
-# kept). rliable itself is not a dependency: rliable 1.2 imports ``arch``, ``statsmodels``,
-# ``pandas`` and ``seaborn``, and ``arch`` 7.2 fails to import under pandas 3.
+# --- as the field reports them (Agarwal et al. 2021; rliable): scipy's bootstrap with one
+# sample per task is rliable's stratified bootstrap. rliable is no dependency: its ``arch``
+# fails to import under pandas 3.
 
 BOOTSTRAP_REPS = 2000  # bootstrap resamples of every interval
 BOOTSTRAP_SEED = 0  # fixed, so a report is reproducible
@@ -170,9 +154,7 @@ def probability_of_improvement(
 ) -> Estimate:
     """P(X > Y): the chance that a run of X beats a run of Y on a task, averaged over tasks.
 
-    Ties count one half (rliable ``probability_of_improvement``, the Mann-Whitney U statistic
-    divided by ``n * m``). The interval resamples the runs of X and of Y independently within
-    each task.
+    Ties count one half (rliable's Mann-Whitney U divided by ``n * m``).
     """
     if len(x_by_task) != len(y_by_task):
         raise ValueError(f"X has {len(x_by_task)} tasks but Y has {len(y_by_task)}")

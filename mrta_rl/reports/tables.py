@@ -70,11 +70,10 @@ def csv_tables(frame: pd.DataFrame, summary: pd.DataFrame) -> dict[str, pd.DataF
     cells = _metric(summary, "team_return").set_index(["system", "learner"])
 
     parts = [cells[["seeds"]].rename(columns={"seeds": "n_seeds"})]
-    for metric, prefix in (("team_return", "team_return_"), ("greedy_team_return", "greedy_")):
+    for metric, prefix in zip(TEAM_METRICS, ("team_return_", "greedy_", "gain_"), strict=True):
         rows = _metric(summary, metric).set_index(["system", "learner"])[["mean", "ci95"]]
         parts.append(rows.reindex(cells.index).add_prefix(prefix))
-    rows = _metric(summary, "gain").set_index(["system", "learner"])[["mean", "ci95"]]
-    team_return = pd.concat([*parts, rows.reindex(cells.index).add_prefix("gain_")], axis=1)
+    team_return = pd.concat(parts, axis=1)
     team_return["gain_percent"] = [
         100.0 * gain / abs(base) if base and not math.isnan(base) else math.nan
         for gain, base in zip(team_return["gain_mean"], team_return["greedy_mean"], strict=True)
@@ -104,11 +103,7 @@ def _cell_sorted(rows: pd.DataFrame) -> pd.DataFrame:
 
 
 def learning_space_table(frame: pd.DataFrame, summary: pd.DataFrame) -> pd.DataFrame:
-    """Per cell and key (``analytic``, ``visited``, ``parameters``): exact, min, max, mean, ci95.
-
-    ``exact`` is the value when every seed agrees (the analytic size), else empty; integers are
-    written as text (exact beyond 2**63).
-    """
+    """Per cell and key (``analytic``, ``visited``, ``parameters``): exact, min, max, mean, ci95."""
     space = frame[frame["metric"] == "learning_space"]
     rows = []
     for system, learner in dict.fromkeys(zip(summary["system"], summary["learner"], strict=True)):
@@ -169,11 +164,7 @@ def team_return_markdown(summary: pd.DataFrame, table: pd.DataFrame) -> str:
 
 
 def group_return_markdown(summary: pd.DataFrame) -> str:
-    """Per sub-group, the return its task types earn: each partitioned learner, then greedy.
-
-    The summary must be of one system and its learners on the same partition (subG learners on
-    one system share it). Empty string if no cell ran on a partition.
-    """
+    """Per sub-group, the return its task types earn: each partitioned learner, then greedy."""
     groups = _metric(summary, "group_return")
     if groups.empty:
         return ""
