@@ -29,8 +29,8 @@ $(STAMP): pyproject.toml
 train: $(STAMP)  ## train the reference learner (subG-CQL) on System-II: make train ARGS="learner=cql system=system1"
 	$(BIN)/python scripts/train.py $(ARGS)
 
-test: $(STAMP)  ## the test suite (fast tests; slow and gpu markers excluded)
-	$(BIN)/python -m pytest $(ARGS)
+test: $(STAMP)  ## the test suite on every core, in random order (fast tests; slow and gpu markers excluded)
+	$(BIN)/python -m pytest -n auto $(ARGS)
 
 bench: $(STAMP)  ## env throughput table, written to bench_env.json
 	$(BIN)/python scripts/bench_env.py $(ARGS)
