@@ -22,7 +22,7 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, ClassVar, Literal
+from typing import TYPE_CHECKING, Any, ClassVar, Literal, NamedTuple
 
 import numpy as np
 
@@ -42,6 +42,18 @@ LearnerKind = Literal["fixed", "tabular", "neural", "search"]
 TICK_LOOP = "mrta_rl.runners.tick_loop:train_loop"  # numpy learners: one update per tick
 TORCHRL_LOOP = "mrta_rl.runners.torchrl:train_loop"  # TorchRL Collector, replay, target nets
 NO_TRAINING = "mrta_rl.runners.tick_loop:skip_training"  # fixed policies: evaluated as they are
+
+
+class MemoryQuery(NamedTuple):
+    """What a learner's memory estimate depends on, asked before the learner is built."""
+
+    env: AuctionEnv  # a probe env of the run's team and parameters
+    partition: Partition | None  # the subG partition, for learners that need one
+    settings: dict[str, Any]  # the learner's hyperparameters from the run config
+    decisions: int  # copy-ticks of training: the most states a table can meet
+    copies: int  # training copies (collector batch of the neural learners)
+
+
 # what every concrete learner class answers for (besides its own ``label``, see Learner)
 FACTS = ("kind", "training_loop", "estimate_memory", "learning_space_dimension")
 
@@ -67,7 +79,7 @@ class Learner(ABC):
       in metrics.json;
     * ``training_loop``: the runner's loop that trains it (:data:`TICK_LOOP`,
       :data:`TORCHRL_LOOP`, :data:`NO_TRAINING` or ``"module:function"`` of one's own);
-    * ``estimate_memory(env, partition, settings, *, decisions, copies)``: a classmethod
+    * ``estimate_memory(query)``: a classmethod, given a :class:`MemoryQuery`,
       returning the :class:`~mrta_rl.learners.memory.ResourceEstimate` of its own state
       (tables, networks, buffers) before it is built; the env copies are counted by
       :func:`~mrta_rl.learners.memory.estimate_resources`, which calls it;
@@ -271,15 +283,7 @@ class FixedLearner(Learner, abstract=True):
     training_loop: ClassVar[str] = NO_TRAINING
 
     @classmethod
-    def estimate_memory(
-        cls,
-        env: AuctionEnv,
-        partition: Partition | None,
-        settings: dict[str, Any],
-        *,
-        decisions: int,
-        copies: int,
-    ) -> ResourceEstimate:
+    def estimate_memory(cls, query: MemoryQuery) -> ResourceEstimate:
         """Nothing beyond the env copies (counted by ``estimate_resources``)."""
         from mrta_rl.learners.memory import ResourceEstimate
 

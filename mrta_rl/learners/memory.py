@@ -35,6 +35,7 @@ from typing import Any
 from mrta_rl.config import declared_keywords
 from mrta_rl.envs import AuctionEnv, AuctionParams
 from mrta_rl.envs.encodings import global_feature_size, local_feature_size
+from mrta_rl.learners.base import MemoryQuery
 from mrta_rl.partition import Partition, subg_partition
 from mrta_rl.systems import RobotSystem
 
@@ -219,7 +220,7 @@ def estimate_resources(
     env = probe_env(system, params, active)
     decisions = max(1, episodes * batch_size * env.params.horizon)
     try:
-        estimate = cls.estimate_memory(env, partition, hp, decisions=decisions, copies=batch_size)
+        estimate = cls.estimate_memory(MemoryQuery(env, partition, hp, decisions, batch_size))
     except Unfit as unfit:
         estimate = ResourceEstimate(cls.__name__, reason=unfit.reason, advice=unfit.advice)
     copies = (batch_size + eval_batch_size) * env_copy_bytes(env, params.queue_capacity)

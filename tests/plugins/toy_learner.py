@@ -15,7 +15,7 @@ import numpy as np
 
 from mrta_rl.config import Range
 from mrta_rl.envs import AuctionEnv, StepResult
-from mrta_rl.learners.base import TICK_LOOP, Learner
+from mrta_rl.learners.base import TICK_LOOP, Learner, MemoryQuery
 from mrta_rl.learners.memory import ResourceEstimate
 from mrta_rl.partition import Partition
 
@@ -53,16 +53,9 @@ class ToyLearner(Learner):
         self.updates = 0
 
     @classmethod
-    def estimate_memory(
-        cls,
-        env: AuctionEnv,
-        partition: Partition | None,
-        settings: dict[str, Any],
-        *,
-        decisions: int,
-        copies: int,
-    ) -> ResourceEstimate:
+    def estimate_memory(cls, query: MemoryQuery) -> ResourceEstimate:
         """One bid rate per robot."""
+        env, partition, settings, decisions, copies = query
         rates = RATE_BYTES * env.n_robots
         return ResourceEstimate(cls.__name__, rates, rates, {"bid rates": rates})
 

@@ -64,7 +64,7 @@ from torchrl.objectives import HardUpdate, LossModule, SoftUpdate
 from mrta_rl.config import Choices, Range
 from mrta_rl.envs import AuctionEnv, encodings
 from mrta_rl.envs.torchrl_env import PRIOR_KEY, prior_one_hot
-from mrta_rl.learners.base import FACTS, TORCHRL_LOOP, Learner, LearnerKind
+from mrta_rl.learners.base import FACTS, TORCHRL_LOOP, Learner, LearnerKind, MemoryQuery
 from mrta_rl.learners.fixed import HOLD_SCOPES, HoldLevel, Reserve
 from mrta_rl.learners.memory import (
     NEURAL_ADVICE,
@@ -224,20 +224,13 @@ class NeuralLearner(Learner, abstract=True):
     memory_advice: ClassVar[str] = NEURAL_ADVICE  # what to change when it does not fit
 
     @classmethod
-    def estimate_memory(
-        cls,
-        env: AuctionEnv,
-        partition: Partition | None,
-        settings: dict[str, Any],
-        *,
-        decisions: int,
-        copies: int,
-    ) -> ResourceEstimate:
+    def estimate_memory(cls, query: MemoryQuery) -> ResourceEstimate:
         """Networks (with target copies, gradients, Adam), replay buffer and collector batch.
 
         Raises:
             Unfit: if the networks cannot be built on the system (``network_weights``).
         """
+        env, partition, settings, decisions, copies = query
         weights = cls.network_weights(env, partition, settings)
         return neural_estimate(cls.__name__, env, settings, weights, copies, cls.memory_advice)
 

@@ -46,7 +46,7 @@ from mrta_rl import rules
 from mrta_rl.config import Range
 from mrta_rl.envs import AuctionEnv, StepResult
 from mrta_rl.envs.encodings import N_RECENCY_LEVELS, free_level, queue_level, recency_level
-from mrta_rl.learners.base import TICK_LOOP, Learner, LearnerKind
+from mrta_rl.learners.base import TICK_LOOP, Learner, LearnerKind, MemoryQuery
 from mrta_rl.learners.memory import ResourceEstimate
 from mrta_rl.partition import Partition
 
@@ -140,16 +140,9 @@ class ReserveESLearner(Learner):
     training_loop: ClassVar[str] = TICK_LOOP  # policy search on the numpy tick loop
 
     @classmethod
-    def estimate_memory(
-        cls,
-        env: AuctionEnv,
-        partition: Partition | None,
-        settings: dict[str, Any],
-        *,
-        decisions: int,
-        copies: int,
-    ) -> ResourceEstimate:
+    def estimate_memory(cls, query: MemoryQuery) -> ResourceEstimate:
         """Nothing beyond the env copies: a few weights and their Adam moments."""
+        env, partition, settings, decisions, copies = query
         return ResourceEstimate(cls.__name__)
 
     @classmethod

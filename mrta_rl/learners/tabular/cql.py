@@ -14,6 +14,7 @@ import numpy as np
 from mrta_rl.config import Choices
 from mrta_rl.envs import AuctionEnv, StepResult
 from mrta_rl.envs.encodings import FEATURES, group_state_count
+from mrta_rl.learners.base import MemoryQuery
 from mrta_rl.learners.memory import ResourceEstimate, group_table_estimate
 from mrta_rl.learners.tabular.subg_cql import GroupQLearner
 from mrta_rl.metrics.learning_space import centralized_dimension
@@ -43,20 +44,13 @@ class CQLLearner(GroupQLearner):
     label: ClassVar[str] = "CQL"
 
     @classmethod
-    def estimate_memory(
-        cls,
-        env: AuctionEnv,
-        partition: Partition | None,
-        settings: dict[str, Any],
-        *,
-        decisions: int,
-        copies: int,
-    ) -> ResourceEstimate:
+    def estimate_memory(cls, query: MemoryQuery) -> ResourceEstimate:
         """One joint Q-table of the whole-system states met (:mod:`~.memory`).
 
         Raises:
             Unfit: if the team's joint actions or states pass the int64 codes.
         """
+        env, partition, settings, decisions, copies = query
         features = settings.get("features", "paper")
 
         def states(robots: list[int]) -> int:

@@ -18,6 +18,7 @@ import numpy as np
 from mrta_rl.config import Choices, Range
 from mrta_rl.envs import AuctionEnv, StepResult
 from mrta_rl.envs.encodings import FEATURES, local_state_count
+from mrta_rl.learners.base import MemoryQuery
 from mrta_rl.learners.fixed import HOLD_SCOPES, HoldLevel, Reserve
 from mrta_rl.learners.memory import TABLE_ENTRY_BYTES, ResourceEstimate, Unfit
 from mrta_rl.learners.tabular import robot_kernels as kernels
@@ -284,20 +285,13 @@ class DQLLearner(RobotQLearner):
     label: ClassVar[str] = "DQL"
 
     @classmethod
-    def estimate_memory(
-        cls,
-        env: AuctionEnv,
-        partition: Partition | None,
-        settings: dict[str, Any],
-        *,
-        decisions: int,
-        copies: int,
-    ) -> ResourceEstimate:
+    def estimate_memory(cls, query: MemoryQuery) -> ResourceEstimate:
         """Dense tables ``[m, max_i |S_i|, K + 1]`` of Q and visits, allocated when built.
 
         Raises:
             Unfit: if a local state index passes int64.
         """
+        env, partition, settings, decisions, copies = query
         try:
             stride = max(local_state_count(env, settings.get("features", "paper")))
         except OverflowError as err:

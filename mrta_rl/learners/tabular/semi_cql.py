@@ -17,6 +17,7 @@ import numpy as np
 from mrta_rl.config import Choices, Range
 from mrta_rl.envs import AuctionEnv, StepResult
 from mrta_rl.envs.encodings import FEATURES
+from mrta_rl.learners.base import MemoryQuery
 from mrta_rl.learners.memory import (
     GROWTH,
     INT64_CODES,
@@ -61,20 +62,13 @@ class SemiCQLLearner(RobotQLearner):
     label: ClassVar[str] = "semi-CQL"
 
     @classmethod
-    def estimate_memory(
-        cls,
-        env: AuctionEnv,
-        partition: Partition | None,
-        settings: dict[str, Any],
-        *,
-        decisions: int,
-        copies: int,
-    ) -> ResourceEstimate:
+    def estimate_memory(cls, query: MemoryQuery) -> ResourceEstimate:
         """Rows of the shared states met, ``m (K + 1)`` Q and visits each, in a growable table.
 
         Raises:
             Unfit: if the shared state's index passes int64.
         """
+        env, partition, settings, decisions, copies = query
         states = system_state_count(env, settings["state"], settings.get("features", "paper"))
         if states >= INT64_CODES:
             reason = f"{states:.3g} whole-system states do not fit in int64"

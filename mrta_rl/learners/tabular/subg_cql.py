@@ -20,6 +20,7 @@ import numpy as np
 from mrta_rl.config import Choices, Range
 from mrta_rl.envs import AuctionEnv, StepResult
 from mrta_rl.envs.encodings import FEATURES
+from mrta_rl.learners.base import MemoryQuery
 from mrta_rl.learners.memory import ResourceEstimate, group_table_estimate, robot_groups
 from mrta_rl.learners.tabular import group_kernels as kernels
 from mrta_rl.learners.tabular.base import NO_UNIFORMS, TabularLearner
@@ -417,20 +418,13 @@ class SubGCQLLearner(GroupQLearner):
     default_prior_order: ClassVar[str] = "fewest_types"
 
     @classmethod
-    def estimate_memory(
-        cls,
-        env: AuctionEnv,
-        partition: Partition | None,
-        settings: dict[str, Any],
-        *,
-        decisions: int,
-        copies: int,
-    ) -> ResourceEstimate:
+    def estimate_memory(cls, query: MemoryQuery) -> ResourceEstimate:
         """A joint Q-table of the group states met per sub-group (:mod:`~.memory`).
 
         Raises:
             Unfit: if a sub-group's joint actions or states pass the int64 codes.
         """
+        env, partition, settings, decisions, copies = query
         features, state = settings.get("features", "paper"), settings.get("state", "group")
 
         def states(robots: list[int]) -> int:
