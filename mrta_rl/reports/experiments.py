@@ -348,6 +348,8 @@ def study_sections(
 TITLE = "Learning against the rules"
 START_TITLE = "Does training beat its own start?"
 RULES = ("team_reserve", "rollout")  # the yardstick rules (fixed learners)
+# the learner every new learner must beat: its trained runs are a yardstick column too
+BEST_LEARNER = "reserve_es"
 GREEDY = "greedy"
 BEST_RESERVE = "team_reserve (best)"
 RESERVE_KEYS = ("reserve", "hold_level", "hold_scope", "grouping", "order")
@@ -509,7 +511,9 @@ def _policy(name: str, kind: str, runs: list, note: str = "", features="paper") 
 
 
 def _yardsticks(policies: list[Policy]) -> list[Policy]:
-    return [p for p in policies if p.kind in ("greedy", "rule")]
+    """Greedy, the rules, and the trained runs of :data:`BEST_LEARNER`."""
+    learned = [p for p in policies if p.kind == "trained" and p.learner == BEST_LEARNER]
+    return [p for p in policies if p.kind in ("greedy", "rule")] + learned
 
 
 def _starting(policy: Policy, policies: list[Policy]) -> Policy | None:
@@ -608,7 +612,8 @@ def section_markdown(
     md = paragraphs(
         f"## {TITLE}",
         "Each policy against its untrained starting policy (`train.episodes=0`), greedy, the "
-        "best `team_reserve` setting among these runs and the `rollout` planner: mean paired "
+        "best `team_reserve` setting among these runs, the `rollout` planner and the trained "
+        f"`{BEST_LEARNER}` runs: mean paired "
         "difference of the evaluation return over the shared evaluation episodes ± the "
         "half-width of its 95 % t interval (**↑**: the interval is above zero, ↓: below). "
         "`return` is the mean over training seeds ± its 95 % interval over seeds.",

@@ -21,7 +21,12 @@ from mrta_rl.reports.experiments import (
 from mrta_rl.reports.stats import t_quantile
 
 GREEDY = [10.0, 20.0, 30.0]  # per evaluation episode, shared by every run
-LABELS = {"subg_cql": "subG-CQL", "cql": "CQL", "qmix": "QMIX"}  # metrics.json's learner block
+LABELS = {
+    "subg_cql": "subG-CQL",
+    "cql": "CQL",
+    "qmix": "QMIX",
+    "reserve_es": "reserve-ES",
+}  # metrics.json's learner block
 
 
 def record(learner, seed, returns, *, episodes=0, space=None, learner_cfg=None):
@@ -83,6 +88,21 @@ def test_policies_and_paired_differences_by_hand(tmp_path):
         if r["policy"] == "subG-CQL [time_to_free]" and r["versus"] == "subG-CQL untrained"
     )
     assert float(ttf["diff"]) == pytest.approx((3 + 4 + 6) / 3, abs=1e-3)
+
+
+def test_trained_reserve_es_is_a_yardstick_of_every_policy(tmp_path):
+    runs = [
+        *RUNS,
+        record("reserve_es", 0, [13.0, 22.0, 35.0], episodes=100),
+        record("reserve_es", 1, [13.0, 24.0, 35.0], episodes=100),
+    ]
+    md, files = write_section(runs, tmp_path)
+    assert "vs reserve-ES" in md
+    rows = list(csv.DictReader(files["yardsticks"].open()))
+    row = next(r for r in rows if r["policy"] == "rollout" and r["versus"] == "reserve-ES")
+    # rollout (14, 26, 36) against the mean of the two seeds (13, 23, 35): (1, 3, 1)
+    assert float(row["diff"]) == pytest.approx(5 / 3, abs=1e-3)
+    assert not [r for r in rows if r["policy"] == r["versus"]]  # never against itself
 
 
 def test_no_section_without_rules_or_untrained_runs(tmp_path):
