@@ -272,6 +272,8 @@ class RolloutPlanner(FixedLearner):
     def decision_time(self) -> dict[str, float]:
         """Mean wall time per decision (``encode`` and ``act``: candidates, rollouts) and total.
 
+        A decision is one tick of all the env's copies at once (evaluation: ``eval.batch_size``).
+
         Returns:
             ``{"ms_per_tick", "total_s", "ticks", "planned_ticks"}``; ``planned_ticks``: the
             ticks at which some copy had differing candidates to roll out. ``{}`` before any.
