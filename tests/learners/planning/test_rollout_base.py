@@ -15,6 +15,7 @@ import pytest
 
 from mrta_rl.envs import AuctionEnv, AuctionParams
 from mrta_rl.learners.planning.rollout import RolloutPlanner
+from mrta_rl.run_files import read_metrics
 from mrta_rl.runners import train as run_train
 from mrta_rl.runners.train import load_run
 from tests.commands.test_cli import assert_user_error, train
@@ -74,6 +75,7 @@ def test_a_run_with_a_trained_base_records_its_decision_time(base_run, tmp_path)
     overrides += ["learner.horizon=3", "learner.samples=1"]
     run_dir = finished_run(tmp_path / "run", overrides, "rollout", "system1")
     evaluation = json.loads((run_dir / "metrics.json").read_text())["eval"]
+    assert read_metrics(run_dir / "metrics.json")["eval"] == evaluation  # reports read it
     timing = evaluation["decision_time"]
     assert timing["ticks"] == 50  # debug=smoke: one round of 2 copies, a horizon of 50 ticks
     assert timing["ms_per_tick"] > 0 and timing["total_s"] > 0
