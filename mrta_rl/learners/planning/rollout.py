@@ -139,7 +139,7 @@ class RolloutPlanner(FixedLearner):
         Raises:
             ConfigError: naming ``learner.base`` and the culprit.
         """
-        # a lazy import: the runner wires learners, and this learner is built by it
+        # imported here: learner modules do not import the runners; only a run dir base needs them
         from mrta_rl.runners.learner_files import team_record
         from mrta_rl.runners.train import load_run
 
