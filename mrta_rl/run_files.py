@@ -91,6 +91,8 @@ SUMMARY = {
     "return_by_type?": {"*": OPTIONAL},  # absent from runs made before it existed
     "return_by_group?": {"*": {"types": [STR], "return": NUMBER}},
     "split?": STR,  # eval.split played
+    # a planner's decision time in evaluation (Learner.decision_time: ms_per_tick, total_s...)
+    "decision_time?": {"*": NUMBER},
 }
 LEARNER = {"name": STR, "label": STR, "kind": STR}  # runners/train.py learner_record
 METRICS = {

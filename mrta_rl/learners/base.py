@@ -227,6 +227,17 @@ class Learner(ABC):
         """
         return {}
 
+    def decision_time(self) -> dict[str, float]:
+        """Wall time of the decisions made so far, for a learner whose decisions cost time.
+
+        Evaluation writes it into the ``eval`` block of ``metrics.json`` (``decision_time``).
+
+        Returns:
+            ``{"ms_per_tick": ..., "total_s": ..., "ticks": ...}``; ``{}`` (the default) for
+            a policy whose decision takes no time worth reporting.
+        """
+        return {}
+
     def save(self, directory: Path) -> None:  # noqa: B027 - optional hook, deliberately a no-op
         """Write the learner's state to ``directory`` in safe formats (npz without pickle, json).
 

@@ -354,6 +354,8 @@ GREEDY = "greedy"
 BEST_RESERVE = "team_reserve (best)"
 RESERVE_KEYS = ("reserve", "hold_level", "hold_scope", "grouping", "order")
 CSV_HEADER = ["system", "policy", "seeds", "mean", "ci95_seeds", "versus", "diff", "diff_ci95"]
+CSV_HEADER += ["decision_ms_per_tick"]  # a planner's decision time (eval.decision_time); else empty
+PLANNERS = ("rollout", "subg_rollout")  # rules whose learner.base may be a trained run's dir
 START_HEADER = ["system", "policy", "episodes", "untrained", "seeds", "trained", "trained_ci95"]
 START_HEADER += ["paired_diff", "paired_ci95", "seeds_diff", "seeds_ci95", "met"]
 
@@ -369,6 +371,7 @@ class Policy:
     means: list[float]
     note: str = ""
     features: str = "paper"
+    decision_ms: float | None = None  # mean decision time per tick over the runs that report it
 
     @property
     def per_episode(self) -> np.ndarray | None:
@@ -436,10 +439,27 @@ def _check_same_streams(runs: Sequence[RunRecord], greedy: dict[str, RunRecord])
             )
 
 
+def _base_label(base: str) -> str:
+    """The learner label of a planner's base run (its ``metrics.json``), else its dir's name."""
+    path = Path(base) / METRICS_FILE
+    try:
+        return str(read_json(path)["learner"]["label"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return Path(base).name
+
+
 def _variant(run: RunRecord, kind: str, trained_variant: str) -> str:
-    """What makes a policy of a run: a rule's setting, or the encoding and other settings."""
+    """What makes a policy of a run: a rule's setting, or the encoding and other settings.
+
+    A planner whose base is a trained run (``learner.base=<run dir>``, a path) is another
+    policy than with a rule base: ``base=<the base run's learner label>``, so the planners on
+    the runs of several seeds of one learner form one policy.
+    """
     if kind == "rule":
         cfg = run.config.get("learner") or {}
+        base = str(cfg.get("base", ""))
+        if run.name in PLANNERS and "/" in base:
+            return f"base={_base_label(base)}"
         keys = RESERVE_KEYS if run.name == "team_reserve" else ()
         return ", ".join(f"{k}={cfg[k]}" for k in keys if k in cfg)
     if kind == "untrained":
@@ -486,6 +506,8 @@ def collect_policies(runs: Sequence[RunRecord]) -> dict[str, list[Policy]]:
             if s != system or learner == "team_reserve":
                 continue
             name = members[0].label
+            if kind == "rule" and variant.startswith("base="):
+                name += f" [{variant}]"
             if kind != "rule":
                 name += " untrained" if kind == "untrained" else ""
                 name += f" [{variant}]" if variant != "paper" else ""
@@ -507,7 +529,14 @@ def _mean(run: RunRecord) -> float:
 
 def _policy(name: str, kind: str, runs: list, note: str = "", features="paper") -> Policy:
     returns = [_per_episode(r.metrics["eval"]) for r in runs]
-    return Policy(name, runs[0].name, kind, returns, [_mean(r) for r in runs], note, features)
+    times = [
+        float(r.metrics["eval"]["decision_time"]["ms_per_tick"])
+        for r in runs
+        if "ms_per_tick" in (r.metrics["eval"].get("decision_time") or {})
+    ]
+    decision = float(np.mean(times)) if times else None
+    means = [_mean(r) for r in runs]
+    return Policy(name, runs[0].name, kind, returns, means, note, features, decision)
 
 
 def _yardsticks(policies: list[Policy]) -> list[Policy]:
@@ -537,6 +566,7 @@ def section_rows(by_system: dict[str, list[Policy]]) -> list[list[Any]]:
                 rows.append(
                     [system, p.name, stat.n, round(stat.mean, 3), _round(stat.ci95)]
                     + [other.name, _round(diff.mean), _round(diff.ci95)]
+                    + ["" if p.decision_ms is None else round(p.decision_ms, 3)]
                 )
     return rows
 
@@ -616,18 +646,24 @@ def section_markdown(
         f"`{BEST_LEARNER}` runs: mean paired "
         "difference of the evaluation return over the shared evaluation episodes ± the "
         "half-width of its 95 % t interval (**↑**: the interval is above zero, ↓: below). "
-        "`return` is the mean over training seeds ± its 95 % interval over seeds.",
+        "`return` is the mean over training seeds ± its 95 % interval over seeds; `ms per "
+        "tick`: a planner's mean decision time per tick in evaluation (a rollout with "
+        "`[base=...]` plans on a trained run of that learner).",
     )
     for system, policies in by_system.items():
         sticks = _yardsticks(policies)
         header = ["policy", "seeds", "return", "vs untrained", *(f"vs {s.name}" for s in sticks)]
+        timed = any(p.decision_ms is not None for p in policies)
+        header += ["ms per tick"] * timed
         rows = []
         for p in policies:
             diffs = {id(o): _fmt(d) for o, d in _versus(p, policies)}
             start = diffs.get(id(_starting(p, policies)), "")
             name = p.name + (f" ({p.note})" if p.note else "")
             row = [name, len(p.means), p.over_seeds.format(1), start]
-            rows.append(row + [diffs.get(id(s), "") for s in sticks])
+            row += [diffs.get(id(s), "") for s in sticks]
+            ms = "" if p.decision_ms is None else f"{p.decision_ms:.1f}"
+            rows.append(row + [ms] * timed)
         md += paragraphs(f"### {system_label(system)}", markdown_table(header, rows))
     md += paragraphs(f"![{TITLE}]({figure.name})" if figure else "")
     comparisons = start_comparisons(by_system)

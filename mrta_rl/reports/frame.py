@@ -28,6 +28,7 @@ PRIORITY_LABELS: dict[str, str] = {"L": "low-priority", "H": "high-priority"}
 RUN_COLUMNS = ("learner", "label", "name", "kind", "system", "seed", "variant", "run_dir")
 # metrics that are columns of runs.csv (``<metric>_<item>_<priority>``); the rest is derived
 RUNS_CSV_METRICS = ("team_return", "greedy_team_return", "ctr", "itr", "learning_space", "train")
+RUNS_CSV_METRICS += ("decision_time",)  # a planner's decision time (ms_per_tick, total_s...)
 STATS = ("n", "mean", "ci95", "std", "low", "high")
 
 
@@ -71,6 +72,8 @@ def _rows(run: RunRecord) -> Iterable[tuple[Any, ...]]:
     train = run.metrics.get("train") or {}
     for key in ("wall_s", "env_ticks", "episodes"):
         yield "train", key, "", train.get(key)
+    for key, value in (e.get("decision_time") or {}).items():  # a planner's, in evaluation
+        yield "decision_time", key, "", value
     for block, metric in ((e, "group_return"), (greedy, "greedy_group_return")):
         for group, part in (block.get("return_by_group") or {}).items():
             yield metric, group, "", part["return"], " ".join(part["types"])

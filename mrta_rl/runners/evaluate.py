@@ -73,7 +73,8 @@ def evaluate_run(run: RunSetup, cfg: DictConfig) -> dict[str, Any]:
 
     Returns:
         ``{"eval": {...}, "baseline_greedy": {...}}``, each as :meth:`EpisodeSummary.to_json`;
-        ``eval`` also names the split played (``"split": "test"``).
+        ``eval`` also names the split played (``"split": "test"``) and, for a learner that
+        reports one (:meth:`~mrta_rl.learners.Learner.decision_time`), its decision time.
     """
     split = eval_split(cfg)
     seed = split_seed(split)  # validate_config refused an eval.seed other than this one
@@ -93,8 +94,21 @@ def evaluate_run(run: RunSetup, cfg: DictConfig) -> dict[str, Any]:
         learned.episodes,
         split,
     )
+    # a learner whose decisions cost time (a planner) reports it, measured over this evaluation
+    timing = run.learner.decision_time()
+    if timing:
+        logger.info(
+            "decision time %.2f ms per tick (%d ticks, %.1f s in all)",
+            timing["ms_per_tick"],
+            timing["ticks"],
+            timing["total_s"],
+        )
     results = {  # both played the split's streams, and say so
-        "eval": {**learned.to_json(), "split": split},
+        "eval": {
+            **learned.to_json(),
+            "split": split,
+            **({"decision_time": timing} if timing else {}),
+        },
         "baseline_greedy": {**baseline.to_json(), "split": split},
     }
     # the split adds up to the team return only if no task type is shared (partition size bound)

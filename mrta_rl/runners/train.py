@@ -271,6 +271,32 @@ def _check_resume_overrides() -> None:
         raise ConfigError(f"resume= continues a run with its own config; drop {other}")
 
 
+def load_run(run_dir: Path | str, cfg: DictConfig | None = None) -> RunSetup:
+    """A finished run rebuilt from its config, read as data, with its saved learner state.
+
+    Re-evaluation (:func:`evaluate_checkpoint`) and a planner playing a trained run as its base
+    policy (``learner.base=<run dir>`` of ``rollout``) load a run this one way.
+
+    Args:
+        run_dir: The run dir of ``scripts/train.py`` (holding ``.hydra/`` and ``learner/``).
+        cfg: The run's config as :func:`~mrta_rl.runners.run_config.read_run_config` read it,
+            possibly with its ``eval`` settings changed; default: read here.
+
+    Returns:
+        The run, its learner trained as saved (built on a training env of the run's team).
+
+    Raises:
+        RunDirError: on a missing, tampered or damaged run dir (a ``ValueError``), or a setting
+            of its config that is refused (naming ``.hydra/config.yaml``).
+    """
+    run_dir = Path(run_dir)
+    cfg = read_run_config(run_dir) if cfg is None else cfg
+    run = build_saved_run(cfg, run_dir, name=run_choices(run_dir).get("learner"))
+    if run.learner.trains():
+        load_learner(run.learner, run_dir / LEARNER_DIR)
+    return run
+
+
 def evaluate_checkpoint(
     checkpoint: Path | str,
     episodes: int | None = None,
@@ -311,9 +337,7 @@ def evaluate_checkpoint(
             cfg.eval.split = str(split)
             cfg.eval.seed = None  # the split names the streams, not the seed the run recorded
     choices = run_choices(run_dir)
-    run = build_saved_run(cfg, run_dir, name=choices.get("learner"))
-    if run.learner.trains():
-        load_learner(run.learner, run_dir / LEARNER_DIR)
+    run = load_run(run_dir, cfg)
     metrics = {
         "learner": learner_record(run),
         "system": choices.get("system", run.system.name),

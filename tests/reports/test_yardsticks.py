@@ -18,6 +18,7 @@ from mrta_rl.reports.experiments import (
     start_comparisons,
     write_section,
 )
+from mrta_rl.reports.frame import long_table, runs_wide
 from mrta_rl.reports.stats import t_quantile
 
 GREEDY = [10.0, 20.0, 30.0]  # per evaluation episode, shared by every run
@@ -220,3 +221,46 @@ def test_runs_on_other_task_streams_are_refused(tmp_path):
     other.metrics["baseline_greedy"]["team_return"]["per_episode"] = [10.0, 20.0, 31.0]
     with pytest.raises(ValueError, match=r"different task streams.*eval.batch_size"):
         collect_policies([*RUNS, other])
+
+
+def test_a_planner_on_a_trained_base_is_its_own_policy_with_its_decision_time(tmp_path):
+    """Two seeds' rollouts on reserve_es runs form one policy; ms per tick is their mean."""
+    planners = []
+    for seed, (returns, ms) in enumerate([([15.0, 27.0, 36.0], 30.0), ([13.0, 25.0, 36.0], 50.0)]):
+        base = tmp_path / f"reserve_es{seed}"
+        base.mkdir()
+        (base / "metrics.json").write_text(json.dumps({"learner": {"label": "reserve_es"}}))
+        run = record("rollout", seed, returns, learner_cfg={"base": str(base)})
+        run.metrics["eval"]["decision_time"] = {"ms_per_tick": ms, "total_s": ms, "ticks": 1000}
+        planners.append(run)
+    policies = collect_policies([*RUNS, *planners])["system2"]
+    learned = next(p for p in policies if p.name == "rollout [base=reserve_es]")
+    assert learned.decision_ms == 40.0 and len(learned.means) == 2
+    assert next(p for p in policies if p.name == "rollout").decision_ms is None
+    md, files = write_section([*RUNS, *planners], tmp_path)
+    rows = list(csv.DictReader(files["yardsticks"].open()))
+    row = next(r for r in rows if r["policy"] == "rollout [base=reserve_es]")
+    assert float(row["decision_ms_per_tick"]) == 40.0
+    # per episode: mean of the seeds (14, 26, 36) - rollout's (14, 26, 36) = 0
+    versus = next(
+        r for r in rows if r["policy"] == "rollout [base=reserve_es]" and r["versus"] == "rollout"
+    )
+    assert float(versus["diff"]) == 0.0
+    assert "| ms per tick |" in md and "| 40.0 |" in md
+
+
+def test_the_decision_time_is_a_metric_of_the_long_table_and_runs_csv():
+    rule, planner = record("team_reserve", 0, [11.0]), record("rollout", 0, [14.0])
+    for run in (rule, planner):
+        run.metrics["eval"].update(ctr_overall={}, ctr={}, itr={})
+    planner.metrics["eval"]["decision_time"] = {"ms_per_tick": 12.5, "total_s": 25.0, "ticks": 2000}
+    frame = long_table([rule, planner])
+    rows = frame[frame["metric"] == "decision_time"]
+    assert list(rows["run"]) == [1, 1, 1]  # the planner's only: the rule reports none
+    assert dict(zip(rows["item"], rows["value"], strict=True)) == {
+        "ms_per_tick": 12.5,
+        "total_s": 25.0,
+        "ticks": 2000,
+    }
+    wide = runs_wide(frame)
+    assert wide.loc[1, "decision_time_ms_per_tick"] == 12.5

@@ -3,13 +3,23 @@
 At each decision point it takes, per copy, the joint actions of a few candidate rules (greedy,
 spread, reserve or hold variants, see :data:`CANDIDATES`) and scores each by rolling copies of the
 env forward ``horizon`` ticks: the candidate's action at the current tick, then the ``base``
-rule, under ``samples`` sampled futures of the arrivals. The candidate with the highest mean
-rollout return is played (ties to the base rule). Every candidate is scored on the same sampled
+policy, under ``samples`` sampled futures of the arrivals. The candidate with the highest mean
+rollout return is played (ties to the base policy). Every candidate is scored on the same sampled
 futures (common random numbers), so their differences are not drowned by arrival noise.
+
+The base policy is a rule of :data:`CANDIDATES` (``base=hold_group``) or a trained run
+(``base=<run dir>``: a path, a run dir of ``scripts/train.py`` on the same team). A run is
+rebuilt from its own config, read as data, with its saved learner state, as re-evaluation does
+(``mrta_rl.runners.train.load_run``), and plays on the rollout copies through its own ``encode``
+/ ``act`` without exploration. Its own action at the current tick is then one more candidate,
+``base``, scored first (ties go to it), so planning can only improve on the learned policy in
+expectation. A value that names a rule is the rule: write ``./hold`` for a run dir named ``hold``.
 
 This is a reference, not a learner: it reads the full env state (queue, busy times, batteries),
 which no learner's observation holds, and it knows the arrival process of the spec. It has no
-training (``kind = "fixed"``). ``horizon=0`` or a single candidate plays the base rule.
+training (``kind = "fixed"``). ``horizon=0`` or a single candidate plays the base policy. Its
+decision time per tick (candidates and rollouts) goes into ``metrics.json``
+(:meth:`RolloutPlanner.decision_time`).
 
 Copies are snapshot, restored and re-seeded with the env's own exact ``AuctionEnv.get_state`` /
 ``set_state`` / ``reseed`` (docs/spec/auction_env.md); ``reseed`` draws the future arrivals of a
@@ -20,11 +30,12 @@ from __future__ import annotations
 
 import logging
 import time
+from pathlib import Path
 from typing import Annotated, Any, ClassVar
 
 import numpy as np
 
-from mrta_rl.config import Choices, Range
+from mrta_rl.config import Choices, ConfigError, Range, UserError
 from mrta_rl.envs import AuctionEnv
 from mrta_rl.learners.base import FixedLearner, Learner
 from mrta_rl.learners.fixed import GreedyLearner, TeamReserveLearner
@@ -50,6 +61,14 @@ CANDIDATES: dict[str, dict[str, Any] | None] = {
 }
 
 
+BASE_RUN = "base"  # the candidate name of a trained base policy's own action
+
+
+def is_rule(base: str) -> bool:
+    """True if ``learner.base`` names a rule of :data:`CANDIDATES`, not a run dir."""
+    return base in CANDIDATES
+
+
 def restore(env: AuctionEnv, state: dict[str, np.ndarray], rows: np.ndarray) -> None:
     """Load copy ``rows[i]`` of ``state`` (``AuctionEnv.get_state``) into copy ``i`` of ``env``.
 
@@ -64,13 +83,17 @@ class RolloutPlanner(FixedLearner):
     Args:
         samples: Sampled futures of the arrivals per candidate (common to all candidates).
         horizon: Ticks rolled forward per rollout (the candidate's tick included); 0 = no planning.
-        candidates: Names of candidate rules (:data:`CANDIDATES`); the base rule is always one.
-        base: Name of the rule that plays after the first tick of a rollout, and on ties.
+        candidates: Names of candidate rules (:data:`CANDIDATES`); the base policy is always one.
+        base: The policy that plays after the first tick of a rollout, and on ties: the name of
+            a rule of :data:`CANDIDATES`, or a run dir of ``scripts/train.py`` on the same team
+            (module docstring).
         gamma: Discount per tick of the rollout return (1 = plain sum).
         **kwargs: Env, generator and partition of :class:`~mrta_rl.learners.base.Learner`.
 
     Raises:
-        ConfigError: on a setting outside its declaration (an unknown rule name included).
+        ConfigError: on a setting outside its declaration, or a ``base`` that is neither a rule
+            nor a usable run dir (missing, not a run dir, refused, or of another team), naming
+            ``learner.base``.
     """
 
     label: ClassVar[str] = "rollout"
@@ -86,20 +109,61 @@ class RolloutPlanner(FixedLearner):
         # (docs/notebook.md, "Learning against the rules")
         candidates: Annotated[tuple[str, ...], Choices(*CANDIDATES)] = tuple(CANDIDATES),
         # hold_group, not the best rule (hold): planning over a base that holds more finds more
-        # (docs/notebook.md, "Learning against the rules")
-        base: Annotated[str, Choices(*CANDIDATES)] = "hold_group",
+        # (docs/notebook.md, "Learning against the rules"); or a trained run's dir
+        base: str = "hold_group",
         gamma: Annotated[float, Range(0, 1, low_open=True)] = 1.0,
         **kwargs,
     ) -> None:
         super().__init__(**kwargs)  # types and ranges: the annotations (mrta_rl.config)
-        names = [base, *(c for c in candidates if c != base)]  # the base rule first: ties go to it
         self.samples, self.horizon, self.gamma = samples, horizon, gamma
+        if is_rule(base):
+            self.base_run = None
+            names = [base, *(c for c in candidates if c != base)]  # the base first: ties to it
+            self._rules = [self._rule(CANDIDATES[name]) for name in names]
+        else:
+            self.base_run = Path(base)
+            names = [BASE_RUN, *candidates]  # the learned action first: ties go to it
+            learned = self._trained_base(self.base_run)
+            self._rules = [learned, *(self._rule(CANDIDATES[name]) for name in candidates)]
         self.names = names
-        self._rules = [self._rule(CANDIDATES[name]) for name in names]
         self._base = self._rules[0]
         self._rollout_envs: dict[int, AuctionEnv] = {}  # batch size -> env
         self.decisions = 0  # ticks at which some copy had candidates to compare
         self.planning_s = 0.0  # wall time spent in those decisions
+        self.ticks = 0  # decisions made (calls of act)
+        self.decision_s = 0.0  # wall time of encode and act: candidates and rollouts
+
+    def _trained_base(self, run_dir: Path) -> Learner:
+        """The trained learner of ``run_dir``, checked to be of the planner's team.
+
+        Raises:
+            ConfigError: naming ``learner.base`` and the culprit.
+        """
+        # imported here: learner modules do not import the runners; only a run dir base needs them
+        from mrta_rl.runners.learner_files import team_record
+        from mrta_rl.runners.train import load_run
+
+        key = "learner.base"
+        if not run_dir.exists() and len(run_dir.parts) == 1:  # a bare word: a misspelt rule
+            rules = ", ".join(repr(name) for name in CANDIDATES)
+            raise ConfigError(
+                f"{key}: must be one of {rules} or a run dir of scripts/train.py, got "
+                f"{str(run_dir)!r}"
+            )
+        if not run_dir.is_dir():
+            raise ConfigError(f"{key}: no such run dir: {run_dir}")
+        try:
+            learner = load_run(run_dir).learner
+        except UserError as err:
+            raise ConfigError(f"{key}: {err}") from None
+        theirs, ours = team_record(learner), team_record(self)
+        for part in ("robots", "task_types", "willingness"):
+            if theirs[part] != ours[part]:
+                raise ConfigError(
+                    f"{key}: {run_dir} is a run of another team: its {part} "
+                    f"{theirs[part]!r} are not the planner's system's {ours[part]!r}"
+                )
+        return learner
 
     def _rule(self, settings: dict[str, Any] | None) -> Learner:
         """The fixed policy of a candidate's settings, on the planner's env and partition."""
@@ -111,11 +175,14 @@ class RolloutPlanner(FixedLearner):
 
     def encode(self, env: AuctionEnv) -> tuple[Any, np.ndarray]:
         """A snapshot of every copy and the candidates' joint actions ``[C, B, m]``."""
+        start = time.perf_counter()
         mask = env.action_mask
         actions = np.stack(
             [rule.act(rule.encode(env), mask, explore=False) for rule in self._rules]
         )
-        return env.get_state(), actions
+        state = env.get_state()
+        self.decision_s += time.perf_counter() - start
+        return state, actions
 
     def act(self, view: tuple[Any, np.ndarray], mask: np.ndarray, *, explore: bool) -> np.ndarray:
         """The candidate with the best mean rollout return, per copy.
@@ -128,8 +195,16 @@ class RolloutPlanner(FixedLearner):
         Returns:
             ``[B, m]`` int64 actions.
         """
+        start = time.perf_counter()
+        chosen = self._plan(view)
+        self.ticks += 1
+        self.decision_s += time.perf_counter() - start
+        return chosen
+
+    def _plan(self, view: tuple[Any, np.ndarray]) -> np.ndarray:
+        """:meth:`act` itself (timed there)."""
         state, actions = view
-        chosen = actions[0].copy()  # the base rule
+        chosen = actions[0].copy()  # the base policy
         # copies where some candidate differs from the base rule: only they need planning
         plan = np.flatnonzero((actions != actions[0]).any(axis=(0, 2)))
         if self.horizon == 0 or len(actions) == 1 or len(plan) == 0:
@@ -150,7 +225,7 @@ class RolloutPlanner(FixedLearner):
         returns = self._roll(env, actions[cand, plan[copy]])
         score = np.full((n_plan, n_cand), -np.inf)
         score[pairs[:, 0], pairs[:, 1]] = returns.reshape(len(pairs), S).mean(axis=1)
-        best = score.argmax(axis=1)  # first maximum: ties go to the base rule (index 0)
+        best = score.argmax(axis=1)  # first maximum: ties go to the base policy (index 0)
         chosen[plan] = actions[best, plan]
         self.decisions += 1
         self.planning_s += time.perf_counter() - start
@@ -164,7 +239,7 @@ class RolloutPlanner(FixedLearner):
         return chosen
 
     def _roll(self, env: AuctionEnv, first: np.ndarray) -> np.ndarray:
-        """Play ``first``, then the base rule, up to ``horizon`` ticks; returns ``[N]``."""
+        """Play ``first``, then the base policy, up to ``horizon`` ticks; returns ``[N]``."""
         returns = np.zeros(env.batch_size)
         discount = 1.0
         actions = first
@@ -191,8 +266,26 @@ class RolloutPlanner(FixedLearner):
         return env
 
     def learning_space(self) -> dict[str, int]:
-        """No table: ``{}`` (a fixed policy); decision time is logged at the end of evaluation."""
+        """No table: ``{}`` (a fixed policy)."""
         return {}
+
+    def decision_time(self) -> dict[str, float]:
+        """Mean wall time per decision (``encode`` and ``act``: candidates, rollouts) and total.
+
+        A decision is one tick of all the env's copies at once (evaluation: ``eval.batch_size``).
+
+        Returns:
+            ``{"ms_per_tick", "total_s", "ticks", "planned_ticks"}``; ``planned_ticks``: the
+            ticks at which some copy had differing candidates to roll out. ``{}`` before any.
+        """
+        if not self.ticks:
+            return {}
+        return {
+            "ms_per_tick": round(1000 * self.decision_s / self.ticks, 4),
+            "total_s": round(self.decision_s, 4),
+            "ticks": self.ticks,
+            "planned_ticks": self.decisions,
+        }
 
 
 class SubGRolloutPlanner(RolloutPlanner):
@@ -207,7 +300,7 @@ class SubGRolloutPlanner(RolloutPlanner):
     Args:
         candidates: As :class:`RolloutPlanner`; the default keeps six of the nine (all nine
             do worse on System-I, docs/notebook.md).
-        base: As :class:`RolloutPlanner`, default ``hold_group``.
+        base: As :class:`RolloutPlanner` (a rule or a run dir), default ``hold_group``.
         **kwargs: The other settings of :class:`RolloutPlanner`.
     """
 
@@ -226,7 +319,7 @@ class SubGRolloutPlanner(RolloutPlanner):
             "reserve1",
             "high_only",
         ),
-        base: Annotated[str, Choices(*CANDIDATES)] = "hold_group",
+        base: str = "hold_group",
         **kwargs,
     ) -> None:
         super().__init__(candidates=candidates, base=base, **kwargs)
