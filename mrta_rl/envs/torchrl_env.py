@@ -187,6 +187,8 @@ class AuctionTorchRLEnv(EnvBase):
         features: ``encodings.FEATURES``: the encoding of ``observation`` and ``state``
             (a neural learner's ``features``).
         set_inputs: Also write the set network's inputs (see Observation Space).
+        local_features: Write ``(group, "observation")``; False leaves it out, for learners
+            that read only the set inputs (its robot-id one-hot grows with the team).
     """
 
     batch_locked = True
@@ -200,6 +202,7 @@ class AuctionTorchRLEnv(EnvBase):
         prior: PriorActions | None = None,
         features: str = "paper",
         set_inputs: bool = False,
+        local_features: bool = True,
     ) -> None:
         if torch.device(device).type != "cpu":
             raise ValueError("AuctionTorchRLEnv runs on cpu (the dynamics are numpy)")
@@ -208,6 +211,7 @@ class AuctionTorchRLEnv(EnvBase):
         self.invalid_action = invalid_action
         self.prior = prior
         self.set_inputs = set_inputs
+        self.local_features = local_features
         super().__init__(device="cpu", batch_size=torch.Size([env.batch_size]))
         self.auction = env
         self.group_map = resolve_group_map(env.system.robots, group_map)
@@ -238,8 +242,9 @@ class AuctionTorchRLEnv(EnvBase):
         obs, act, rew = {}, {}, {}
         for group, idx in self._group_index.items():
             shape = torch.Size([B, len(idx)])
+            local = {"observation": Bounded(0.0, 1.0, (*shape, F), dtype=torch.float32)}
             obs[group] = Composite(
-                observation=Bounded(0.0, 1.0, shape=(*shape, F), dtype=torch.float32),
+                **(local if self.local_features else {}),
                 action_mask=Binary(n=A, shape=(*shape, A), dtype=torch.bool),
                 robot_reward=Unbounded(shape=(*shape, 1)),
                 group_reward=Unbounded(shape=(*shape, 1)),
@@ -303,7 +308,9 @@ class AuctionTorchRLEnv(EnvBase):
         """
         core, cpu = self.auction, self.device
         B = core.batch_size
-        local = torch.from_numpy(encodings.local_features(core, self.features))  # [B, m, F]
+        local = None  # [B, m, F]
+        if self.local_features:
+            local = torch.from_numpy(encodings.local_features(core, self.features))
         mask = torch.from_numpy(core.action_mask)  # [B, m, K + 1], a view of the core's buffer
         out = TensorDict(
             {"state": torch.from_numpy(encodings.global_features(core, self.features))},
@@ -322,8 +329,8 @@ class AuctionTorchRLEnv(EnvBase):
             n_g = len(self._group_index[group])
             whole = self._whole[group]
             group_robot = robot[:, cols].unsqueeze(-1)  # [B, n_g, 1]
-            leaves = {
-                "observation": local if whole else local[:, cols],
+            leaves = {} if local is None else {"observation": local if whole else local[:, cols]}
+            leaves |= {
                 # the mask is copied: the core overwrites its buffer next tick
                 "action_mask": mask.clone() if whole else mask[:, cols].clone(),
                 "robot_reward": group_robot,

@@ -252,3 +252,36 @@ class SetNetwork(nn.Module):
         if action_mask is None:
             return out
         return out.masked_fill(~action_mask, MASKED)
+
+
+class SetQ(nn.Module):
+    """Per-robot Q-values ``[*, m, K + 1]``: the set network plus the prior's bonus.
+
+    The Q-learners' ``network=set`` (``learners/neural/common.py``): the set network's output
+    layers start at zero, so an untrained network plays the prior, as ``PerRobotQ`` does.
+    """
+
+    def __init__(self, *, auction_prior: float, **settings) -> None:
+        """Build the set network.
+
+        Args:
+            auction_prior: Bonus of the prior's action in Q-units.
+            **settings: Keyword settings of :class:`SetNetwork`.
+        """
+        super().__init__()
+        self.net = SetNetwork(**settings)
+        self.auction_prior = auction_prior
+
+    def forward(
+        self,
+        robots: torch.Tensor,
+        robot_types: torch.Tensor,
+        slots: torch.Tensor,
+        slot_type: torch.Tensor,
+        types: torch.Tensor,
+        action_mask: torch.Tensor,
+        prior_action: torch.Tensor,
+    ) -> torch.Tensor:
+        """Masked Q-values; ``prior_action`` ``[*, m, K + 1]``: one-hot of the prior's action."""
+        values = self.net(robots, robot_types, slots, slot_type, types, action_mask)
+        return values + self.auction_prior * prior_action.to(values.dtype)

@@ -8,9 +8,16 @@ import torch
 
 from mrta_rl.envs import AuctionEnv, AuctionParams
 from mrta_rl.envs.torchrl_env import set_input_tensors
+from mrta_rl.learners.memory import BYTES_PER_WEIGHT, estimate_resources
+from mrta_rl.learners.neural import IQLLearner, QMIXLearner, VDNLearner
 from mrta_rl.learners.neural.set_network import MASKED, SET_INPUT_KEYS, SetNetwork
+from mrta_rl.runners.evaluate import evaluate_policy
+from mrta_rl.runners.validation import validate_config
 from mrta_rl.systems import random_system
+from tests.commands.test_cli import assert_user_error
+from tests.commands.test_cli import train as train_script
 from tests.conftest import paper_system
+from tests.learners.neural.test_neural import collect, make
 
 
 @pytest.fixture(autouse=True)
@@ -120,3 +127,81 @@ def test_a_team_with_more_task_types_than_the_embedding_is_refused():
     with pytest.raises(ValueError, match=r"learner.max_task_types=8 .* 9 task types"):
         SetNetwork(max_task_types=8)(*x, mask)
     assert np.isfinite(SetNetwork(max_task_types=9)(*x, mask).detach().numpy()).all()
+
+
+# ---------------------------------------------------------------------------------- learners
+SET = {"network": "set", "embed_dim": 16, "heads": 2}
+TEAMS = {
+    "system1": paper_system("system1"),
+    "system2": paper_system("system2"),
+    "random200": random_system(200, 20, density=0.15, seed=0),
+}
+
+
+@pytest.mark.parametrize("cls", [VDNLearner, QMIXLearner, IQLLearner])
+def test_untrained_set_network_is_the_plain_auction(cls):
+    """Zero output layers + the auction prior: an untrained network=set bids like greedy."""
+    learner, env = make(cls, paper_system("system2"), batch=4, **SET)
+    assert learner.set_inputs and "robots" in learner.encode(env)["agents"].keys()
+    for _ in range(30):
+        mask = env.action_mask.copy()
+        actions = learner.act(learner.encode(env), mask, explore=False)
+        bids = mask[..., 1:]
+        np.testing.assert_array_equal(actions, np.where(bids.any(-1), bids.argmax(-1) + 1, 0))
+        env.step(actions)
+
+
+@pytest.mark.parametrize("cls", [QMIXLearner, IQLLearner])
+def test_set_network_trains_and_reloads_to_identical_evaluation(cls, tmp_path):
+    torch.manual_seed(0)
+    system = paper_system("system1")
+    learner, env = make(cls, system, lr=1e-2, target_update="hard", **SET)
+    batch = collect(learner, env, view=learner.view_options)
+    assert ("agents", "observation") not in batch.keys(True)  # the set inputs only
+    before = learner.train_step(batch)["train/loss"]
+    for _ in range(15):
+        after = learner.train_step(batch)["train/loss"]
+    assert after < before
+    learner.save(tmp_path)
+    fresh, _ = make(cls, system, seed=7, **SET)  # another init: must not matter after load
+    fresh.load(tmp_path)
+    eval_env = AuctionEnv(system, env.params, batch_size=3, seed=5)
+    a = evaluate_policy(learner, eval_env, 3, seed=5).to_json()
+    b = evaluate_policy(fresh, eval_env, 3, seed=5).to_json()
+    assert a == b
+    other, _ = make(cls, system)  # network=mlp
+    with pytest.raises(ValueError, match="trained with network=set, this run's learner has net"):
+        other.load(tmp_path)
+
+
+def test_set_network_weights_do_not_depend_on_the_team():
+    """Counted by the memory estimate: the same for every team with set, growing with mlp."""
+
+    def networks(system, network):
+        hp = {"network": network}
+        estimate = estimate_resources(VDNLearner, system, AuctionParams(), None, hp)
+        return estimate.parts["networks"] // BYTES_PER_WEIGHT
+
+    assert len({networks(system, "set") for system in TEAMS.values()}) == 1
+    assert len({networks(system, "mlp") for system in TEAMS.values()}) == 3
+    learner, _ = make(VDNLearner, TEAMS["system1"], network="set")
+    assert learner.learning_space()["parameters"] == networks(TEAMS["system2"], "set")
+
+
+def test_200_robot_qmix_with_the_set_network_passes_validation(compose_cfg):
+    """The robot-id one-hot made QMIX's replay buffer grow with m^2; the set inputs do not."""
+    args = ["learner=qmix", "system=random", "system.n_robots=200", "debug=smoke"]
+    checked = validate_config(compose_cfg([*args, "learner.network=set"]))
+    assert checked.system.n_robots == 200
+    with pytest.raises(ValueError, match=r"qmix on system random \(200 robots\): needs about"):
+        validate_config(compose_cfg([*args, "learner.network=mlp"]))
+
+
+def test_a_team_with_more_task_types_than_max_task_types_is_refused_before_any_work(tmp_path):
+    run_dir = tmp_path / "run"
+    code, _, err = train_script(
+        run_dir, "learner=qmix", "system=system2", "learner.network=set", "learner.max_task_types=4"
+    )
+    assert_user_error(code, err, "learner.max_task_types: 4", "8 task types", "system2")
+    assert err.count("\n") == 1  # one line
+    assert not run_dir.exists()
