@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import signal
+
 import numpy as np
 import pytest
 import torch
@@ -205,3 +207,27 @@ def test_a_team_with_more_task_types_than_max_task_types_is_refused_before_any_w
     assert_user_error(code, err, "learner.max_task_types: 4", "8 task types", "system2")
     assert err.count("\n") == 1  # one line
     assert not run_dir.exists()
+
+
+@pytest.mark.slow  # about 10 s: two processes starting torch, as the other neural resume cases
+def test_a_killed_set_network_run_resumes_to_the_same_end(compose_cfg, tmp_path):
+    from tests.runners import test_checkpoint as ckpt
+
+    args = [
+        "learner=qmix",
+        "learner.network=set",
+        "learner.embed_dim=16",
+        "system=system1",
+        "debug=smoke",
+        *ckpt.BUDGETS["neural"],
+    ]
+    full_dir, cut_dir = tmp_path / "full", tmp_path / "cut"
+    cut = ckpt.script("scripts/train.py", *args, f"hydra.run.dir={cut_dir}")
+    killed_after = ckpt.wait_for_checkpoint(cut, cut_dir / "train.log", 2)
+    cut.send_signal(signal.SIGKILL)
+    cut.wait()
+    assert not (cut_dir / "metrics.json").exists()
+    resumed = ckpt.script("scripts/train.py", f"resume={cut_dir}")
+    ckpt.train(compose_cfg(args), run_dir=full_dir)
+    assert killed_after <= ckpt.resumed_run(resumed, cut_dir) < 6
+    ckpt.assert_same_run(full_dir, cut_dir)
