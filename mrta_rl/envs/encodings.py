@@ -770,7 +770,7 @@ def set_inputs(env: AuctionEnv) -> SetInputs:
     idle = env.idle  # [B, m]
     free = free_level(env)  # [B, m]
     soon = free <= 1  # idle or free within FREE_SOON ticks
-    counts = queue_counts(env)  # [B, n, 2]: L, H
+    counts = queue_counts(env).astype(np.float32)  # [B, n, 2]: L, H
     # robots covering each type: idle, idle or soon free, all
     idle_cover = idle.astype(np.float32) @ active_f  # [B, n]
     soon_cover = soon.astype(np.float32) @ active_f  # [B, n]
@@ -782,14 +782,15 @@ def set_inputs(env: AuctionEnv) -> SetInputs:
     robots[..., r["time_to_free"]] = _scaled(np.maximum(env.busy_until - t + 1, 0), TIME_SCALE)
     robots[..., r["battery"]] = env.battery / env.params.battery_capacity
     robots[..., r["battery_low"]] = battery_level(env)
-    recency = recency_level(env, active)  # [B, m]
+    # a set's recency level is its types' least (the latest H arrival among them)
+    type_recency = recency_level(env, _eye(n))  # [B, n]
+    recency = np.where(active, type_recency[:, None], N_RECENCY_LEVELS - 1).min(-1)  # [B, m]
     np.put_along_axis(robots, (r["recency_0"] + recency)[..., None], 1.0, axis=-1)
-    own = np.einsum("bnp,mn->bmp", counts, active_f)  # queued per robot over Lambda_i: L, H
+    own = active_f @ counts  # [B, m, 2] queued per robot over Lambda_i: L, H
     robots[..., r["queued_high"]] = _scaled(own[..., 1], COUNT_SCALES["high"])
     robots[..., r["queued_low"]] = _scaled(own[..., 0], COUNT_SCALES["low"])
-    levels = queue_level(env, active, counts)  # [B, m, 2]: H, L
-    robots[..., r["queue_level_high"]] = levels[..., 0] / 2
-    robots[..., r["queue_level_low"]] = levels[..., 1] / 2
+    robots[..., r["queue_level_high"]] = _level(own[..., 1], "H") / 2
+    robots[..., r["queue_level_low"]] = _level(own[..., 0], "L") / 2
     # others covering each of robot i's types: the type's count minus robot i itself
     others_idle = np.where(active, idle_cover[:, None] - (idle[..., None] & active), np.inf)
     others_soon = np.where(active, soon_cover[:, None] - (soon[..., None] & active), np.inf)
@@ -817,11 +818,8 @@ def set_inputs(env: AuctionEnv) -> SetInputs:
     y = {name: k for k, name in enumerate(TYPE_FEATURES)}
     types[..., y["queued_high"]] = _scaled(counts[..., 1], COUNT_SCALES["high"])
     types[..., y["queued_low"]] = _scaled(counts[..., 0], COUNT_SCALES["low"])
-    eye = _eye(n)
-    type_levels = queue_level(env, eye, counts)  # [B, n, 2]: H, L
-    types[..., y["queue_level_high"]] = type_levels[..., 0] / 2
-    types[..., y["queue_level_low"]] = type_levels[..., 1] / 2
-    type_recency = recency_level(env, eye)  # [B, n]
+    types[..., y["queue_level_high"]] = _level(counts[..., 1], "H") / 2
+    types[..., y["queue_level_low"]] = _level(counts[..., 0], "L") / 2
     np.put_along_axis(types, (y["recency_0"] + type_recency)[..., None], 1.0, axis=-1)
     types[..., y["since_high"]] = _scaled(t - env.last_high_arrival, TIME_SCALE)
     types[..., y["idle_robots"]] = _scaled(idle_cover, COUNT_SCALES["robots"])
@@ -829,6 +827,12 @@ def set_inputs(env: AuctionEnv) -> SetInputs:
     types[..., y["robots"]] = _scaled(active_f.sum(0), COUNT_SCALES["team"])
     robot_types = np.broadcast_to(active, (B, m, n))
     return SetInputs(robots, robot_types, slots, slot_type, types)
+
+
+def _level(count: np.ndarray, priority: str) -> np.ndarray:
+    """:func:`queue_level`'s levels of counts already summed over the types (0, 1 or 2)."""
+    low, high = QUEUE_THRESHOLDS[priority]
+    return (count > low).astype(np.float32) + (count > high)
 
 
 _EYE: dict[int, np.ndarray] = {}

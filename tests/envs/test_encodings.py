@@ -359,9 +359,16 @@ def test_set_inputs_hand_checked(quiet_env):
 def test_set_inputs_widths_do_not_depend_on_the_team():
     widths = set()
     for system in (load_system("system1"), load_system("system2"), random_system(60, 12, seed=1)):
-        env = AuctionEnv(system, AuctionParams(horizon=20), batch_size=2)
-        for _ in random_rollout(env, 5):
+        env = AuctionEnv(system, AuctionParams(horizon=50), batch_size=2)
+        for _ in random_rollout(env, 40):
             x = ob.set_inputs(env)
             assert all(((a >= 0) & (a <= 1)).all() for a in (x.robots, x.slots, x.types))
+            # the levels agree with the coarse encodings' own helpers
+            at = {name: k for k, name in enumerate(ob.ROBOT_FEATURES)}
+            levels = ob.queue_level(env, env.active_tasks)  # [B, m, 2]: H, L
+            np.testing.assert_array_equal(x.robots[..., at["queue_level_high"]], levels[..., 0] / 2)
+            np.testing.assert_array_equal(x.robots[..., at["queue_level_low"]], levels[..., 1] / 2)
+            recency = x.robots[..., at["recency_0"] : at["recency_2"] + 1].argmax(-1)
+            np.testing.assert_array_equal(recency, ob.recency_level(env, env.active_tasks))
         widths.add((x.robots.shape[-1], x.slots.shape[-1], x.types.shape[-1]))
     assert widths == {(ob.ROBOT_TOKEN_SIZE, ob.SLOT_TOKEN_SIZE, ob.TYPE_TOKEN_SIZE)}
