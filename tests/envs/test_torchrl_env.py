@@ -373,3 +373,8 @@ def test_set_inputs_keys_have_specs_and_match_the_core(kind):
             np.testing.assert_array_equal(types[0].numpy(), core.active_tasks[idx])
         td = env.step(to_td(env, random_valid(core.action_mask, rng)))["next"]
     assert "slots" not in make(load_system("system1"), kind, 2).reset().keys()
+    only_set = make(load_system("system1"), kind, 2, set_inputs=True, local_features=False)
+    check_env_specs(only_set, break_when_any_done="both")
+    group = next(iter(only_set.group_map))
+    assert "observation" not in only_set.reset().get(group).keys()
+    assert "robots" in only_set.reset().get(group).keys()
