@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from mrta_rl.config import ConfigError
 from mrta_rl.envs import AuctionEnv, AuctionParams
 from mrta_rl.envs.torchrl_env import set_input_tensors
 from mrta_rl.learners.memory import BYTES_PER_WEIGHT, estimate_resources
@@ -140,10 +141,14 @@ TEAMS = {
 }
 
 
-@pytest.mark.parametrize("cls", [VDNLearner, QMIXLearner, IQLLearner])
-def test_untrained_set_network_is_the_plain_auction(cls):
+@pytest.mark.parametrize(
+    ("cls", "attention"),
+    [(VDNLearner, "full"), (QMIXLearner, "full"), (IQLLearner, "full"), (QMIXLearner, "pooled")],
+)
+def test_untrained_set_network_is_the_plain_auction(cls, attention):
     """Zero output layers + the auction prior: an untrained network=set bids like greedy."""
-    learner, env = make(cls, paper_system("system2"), batch=4, **SET)
+    system = paper_system("system2")
+    learner, env = make(cls, system, batch=4, robot_attention=attention, **SET)
     assert learner.set_inputs and "robots" in learner.encode(env)["agents"].keys()
     for _ in range(30):
         mask = env.action_mask.copy()
@@ -197,6 +202,15 @@ def test_200_robot_qmix_with_the_set_network_passes_validation(compose_cfg):
     assert checked.system.n_robots == 200
     with pytest.raises(ValueError, match=r"qmix on system random \(200 robots\): needs about"):
         validate_config(compose_cfg([*args, "learner.network=mlp"]))
+
+
+def test_set_settings_that_cannot_work_are_refused_by_name(compose_cfg):
+    args = ["learner=vdn", "system=system1", "debug=smoke", "learner.network=set"]
+    with pytest.raises(ConfigError, match=r"learner.embed_dim: 30 must be a multiple of learner.h"):
+        validate_config(compose_cfg([*args, "learner.embed_dim=30", "learner.heads=4"]))
+    with pytest.raises(ConfigError, match="learner.prior_in_state: needs network=mlp"):
+        validate_config(compose_cfg([*args, "learner.prior=hold", "learner.prior_in_state=true"]))
+    validate_config(compose_cfg([*args, "learner.embed_dim=32", "learner.heads=4"]))
 
 
 def test_a_team_with_more_task_types_than_max_task_types_is_refused_before_any_work(tmp_path):
