@@ -34,7 +34,13 @@ from typing import Any
 
 from mrta_rl.config import declared_keywords
 from mrta_rl.envs import AuctionEnv, AuctionParams
-from mrta_rl.envs.encodings import global_feature_size, local_feature_size
+from mrta_rl.envs.encodings import (
+    ROBOT_TOKEN_SIZE,
+    SLOT_TOKEN_SIZE,
+    TYPE_TOKEN_SIZE,
+    global_feature_size,
+    local_feature_size,
+)
 from mrta_rl.learners.base import MemoryQuery
 from mrta_rl.partition import Partition, subg_partition
 from mrta_rl.systems import RobotSystem
@@ -266,7 +272,8 @@ def neural_estimate(
         name: The learner class's name.
         env: The probe env (sizes).
         settings: The learner's settings, declared defaults filled in (``buffer_size``,
-            ``collect_ticks``, ``features``).
+            ``collect_ticks``, ``features``, ``network``: ``set`` stores the set inputs instead
+            of the local features).
         weights: Its trainable weights (the class counts them).
         copies: Training copies (``train.batch_size``).
         advice: What to change when it does not fit.
@@ -276,10 +283,15 @@ def neural_estimate(
     """
     m, A = env.n_robots, env.n_actions
     F, S = feature_sizes(env, settings)
+    robot, root = F * 4, 0  # observation bytes per robot and at the root
+    if settings.get("network", "mlp") == "set":  # the set inputs instead (encodings.set_inputs)
+        n, K = env.n_task_types, env.n_slots
+        robot = ROBOT_TOKEN_SIZE * 4 + n  # robots (float32), robot_types (bool)
+        root = K * (SLOT_TOKEN_SIZE * 4 + 8) + n * TYPE_TOKEN_SIZE * 4  # slots, slot_type, types
     # one transition: observation, mask (and their next), state and next state; per robot the
     # action (int64), robot and group rewards (and their next), the invalid-action flags, the
     # next team reward; flags (measured on the buffer, tests/learners/test_memory.py)
-    transition = 2 * (m * F * 4 + S * 4 + m * A) + m * (8 + 16 + 2 + 4) + 32
+    transition = 2 * (m * robot + root + S * 4 + m * A) + m * (8 + 16 + 2 + 4) + 32
     parts = {
         "networks": weights * BYTES_PER_WEIGHT,
         "replay buffer": int(settings["buffer_size"]) * transition,

@@ -74,13 +74,10 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     warmup = min(int(hp["warmup_frames"]), total_frames // 2)
     # the learners play masked actions only: an invalid one is a bug, so it must raise
     # with prior=hold the env view also writes the rule's action of every robot (common.py)
-    # and builds the observations in the learner's features (paper or time_to_free)
+    # and builds the observations in the learner's features (paper or time_to_free), or the
+    # set inputs (network=set)
     env = AuctionTorchRLEnv(
-        run.env,
-        group_map=learner.group_map,
-        invalid_action="raise",
-        prior=learner.rule,
-        features=learner.features,
+        run.env, group_map=learner.group_map, invalid_action="raise", **learner.view_options
     )
     team_group = next(iter(learner.group_map))
     buffer = TensorDictReplayBuffer(

@@ -86,13 +86,17 @@ def test_dense_dql_tables_are_counted_exactly(features, rng):
     assert estimate.parts["tables"] == learner.q.nbytes + learner.visits.nbytes
 
 
-@pytest.mark.parametrize("learner", ["iql", "vdn", "qmix", "subg_dqn"])
-def test_network_and_transition_sizes_match_built_learners(learner, compose_cfg):
+@pytest.mark.parametrize(
+    ("learner", "network"),
+    [("iql", "mlp"), ("vdn", "mlp"), ("qmix", "mlp"), ("subg_dqn", None), ("qmix", "set")],
+)
+def test_network_and_transition_sizes_match_built_learners(learner, network, compose_cfg):
     from torchrl.collectors import Collector
 
     from mrta_rl.envs.torchrl_env import AuctionTorchRLEnv
 
-    cfg = compose_cfg([f"learner={learner}", "system=system1", "debug=smoke"])
+    choice = [] if network is None else [f"learner.network={network}"]
+    cfg = compose_cfg([f"learner={learner}", "system=system1", "debug=smoke", *choice])
     run = build_run(cfg)
     hp = run.learner.hp
     estimate = estimate_resources(
@@ -101,10 +105,7 @@ def test_network_and_transition_sizes_match_built_learners(learner, compose_cfg)
     weights = sum(p.numel() for p in run.learner.networks.parameters())
     assert estimate.parts["networks"] == weights * BYTES_PER_WEIGHT
     env = AuctionTorchRLEnv(  # as the runner builds it
-        run.env,
-        group_map=run.learner.group_map,
-        prior=run.learner.rule,
-        features=run.learner.features,
+        run.env, group_map=run.learner.group_map, **run.learner.view_options
     )
     collector = Collector(
         env,

@@ -43,6 +43,13 @@ Inputs (``features``, :data:`~mrta_rl.envs.encodings.FEATURES`): ``paper`` (defa
 "Features"). The networks are built for that encoding's sizes; the training runner builds the
 TorchRL view with it and :meth:`NeuralLearner.encode` uses it in evaluation, and checkpoints
 record it (``learner.json``), so a re-evaluation rebuilds the same inputs.
+
+Network (``network``, :data:`NETWORKS`, QMIX, VDN and IQL): ``mlp`` (default) is the per-robot
+MLP over the local features above, robot-id one-hot included; ``set`` is the shared robot-set
+network (``set_network.py``) over the team-size independent set inputs
+(:func:`~mrta_rl.envs.encodings.set_inputs`): one set of weights whatever the team, no robot id,
+the local features left out of the env view and the replay buffer. QMIX's mixer keeps reading
+the global ``state``.
 """
 
 from __future__ import annotations
@@ -61,9 +68,15 @@ from torchrl.envs.utils import ExplorationType, exploration_type, set_exploratio
 from torchrl.modules import QValueModule
 from torchrl.objectives import HardUpdate, LossModule, SoftUpdate
 
-from mrta_rl.config import Choices, Range
+from mrta_rl.config import Choices, ConfigError, Range
 from mrta_rl.envs import AuctionEnv, encodings
-from mrta_rl.envs.torchrl_env import PRIOR_KEY, prior_one_hot
+from mrta_rl.envs.torchrl_env import (
+    GROUP_SET_KEYS,
+    PRIOR_KEY,
+    ROOT_SET_KEYS,
+    prior_one_hot,
+    set_inputs_td,
+)
 from mrta_rl.learners.base import FACTS, TORCHRL_LOOP, Learner, LearnerKind, MemoryQuery
 from mrta_rl.learners.fixed import HOLD_SCOPES, HoldLevel, Reserve
 from mrta_rl.learners.memory import (
@@ -74,6 +87,7 @@ from mrta_rl.learners.memory import (
     neural_estimate,
 )
 from mrta_rl.learners.neural.networks import PerRobotQ, joint_decode, joint_encode
+from mrta_rl.learners.neural.set_network import ROBOT_ATTENTION, SetNetwork, SetQ
 from mrta_rl.learners.tabular.priors import HOLD_PRIORS, GreedyPrior, HoldRule, SpreadWaitPrior
 from mrta_rl.partition import Partition
 from mrta_rl.types import GroupMap
@@ -119,6 +133,7 @@ def observation_td(
     mask: np.ndarray,
     prior: Prior | None = None,
     features: str = "paper",
+    set_inputs: bool = False,
 ) -> TensorDict:
     """The TorchRL observation of the env's decision point, as ``AuctionTorchRLEnv`` writes it.
 
@@ -128,24 +143,37 @@ def observation_td(
         mask: ``[B, m, K + 1]`` bool valid actions (copied, the core reuses its buffer).
         prior: The prior (module docstring), or None (no ``prior_action`` key).
         features: ``encodings.FEATURES``: the encoding of ``observation`` and ``state``.
+        set_inputs: The set network's inputs instead of the local features (``AuctionTorchRLEnv``
+            with ``set_inputs=True, local_features=False``).
 
     Returns:
         TensorDict of batch ``[B]``: ``state`` ``[B, G]`` and per group ``observation``
-        ``[B, n_g, F]``, ``action_mask`` ``[B, n_g, K + 1]`` [and ``prior_action``, same shape].
+        ``[B, n_g, F]``, ``action_mask`` ``[B, n_g, K + 1]`` [and ``prior_action``, same shape];
+        with ``set_inputs``, ``slots``, ``slot_type``, ``types`` and per group ``robots``,
+        ``robot_types`` instead of ``observation``.
     """
-    local = torch.from_numpy(encodings.local_features(env, features))  # [B, m, F]
-    mask_t = torch.from_numpy(np.ascontiguousarray(mask, dtype=bool))  # [B, m, K + 1]
-    B = mask_t.shape[0]
-    out: dict[str, Any] = {"state": torch.from_numpy(encodings.global_features(env, features))}
-    prior_t = None if prior is None else prior_one_hot(prior(env, mask), env.n_actions)
     robots = env.system.robots
-    for group, ids in group_map.items():
-        idx = torch.tensor([robots.index(r) for r in ids], dtype=torch.int64)
-        leaves = {"observation": local[:, idx], "action_mask": mask_t[:, idx].clone()}
-        if prior_t is not None:
-            leaves[PRIOR_KEY] = prior_t[:, idx]
-        out[group] = TensorDict(leaves, batch_size=(B, len(idx)))
-    return TensorDict(out, batch_size=(B,))
+    index = {g: torch.tensor([robots.index(r) for r in ids]) for g, ids in group_map.items()}
+    if set_inputs:
+        td = set_inputs_td(env, group_map, mask)
+    else:
+        local = torch.from_numpy(encodings.local_features(env, features))  # [B, m, F]
+        mask_t = torch.from_numpy(np.ascontiguousarray(mask, dtype=bool))  # [B, m, K + 1]
+        B = mask_t.shape[0]
+        leaves = {
+            group: TensorDict(
+                {"observation": local[:, idx], "action_mask": mask_t[:, idx].clone()},
+                batch_size=(B, len(idx)),
+            )
+            for group, idx in index.items()
+        }
+        td = TensorDict(leaves, batch_size=(B,))
+    td.set("state", torch.from_numpy(encodings.global_features(env, features)))
+    if prior is not None:
+        prior_t = prior_one_hot(prior(env, mask), env.n_actions)
+        for group, idx in index.items():
+            td.set((group, PRIOR_KEY), prior_t[:, idx])
+    return td
 
 
 # ---------------------------------------------------------------------------------- exploration
@@ -405,15 +433,11 @@ class NeuralLearner(Learner, abstract=True):
         self.egreedy.append(module)
         return module
 
-    def _per_robot_policy(
-        self, group: str, share_params: bool
-    ) -> tuple[TensorDictSequential, TensorDictSequential]:
-        """Greedy and exploring policies of one group over the same per-robot Q-network.
+    def _q_network(self, group: str, share_params: bool) -> tuple[nn.Module, list]:
+        """The per-robot Q-network of a group and the keys it reads, in its arguments' order.
 
         Returns:
-            ``(policy, explore_policy)``: Q-network + ``QValueModule`` (masked argmax; the
-            losses' value network, and the greedy policy), and Q-network +
-            :class:`EpsilonGreedy` (the collection policy, writing ``(group, "action")``).
+            A :class:`PerRobotQ` over ``(group, "observation")`` and ``(group, "prior_action")``.
         """
         qnet = PerRobotQ(
             self.n_features,
@@ -426,8 +450,20 @@ class NeuralLearner(Learner, abstract=True):
             device=self.device,
             prior_in_state=self.prior_in_state,
         )
+        return qnet, [(group, "observation"), (group, PRIOR_KEY)]
+
+    def _per_robot_policy(
+        self, group: str, share_params: bool
+    ) -> tuple[TensorDictSequential, TensorDictSequential]:
+        """Greedy and exploring policies of one group over the same per-robot Q-network.
+
+        Returns:
+            ``(policy, explore_policy)``: Q-network + ``QValueModule`` (masked argmax; the
+            losses' value network, and the greedy policy), and Q-network +
+            :class:`EpsilonGreedy` (the collection policy, writing ``(group, "action")``).
+        """
+        qnet, in_keys = self._q_network(group, share_params)
         self.networks[group] = qnet
-        in_keys = [(group, "observation"), (group, PRIOR_KEY)]
         value = TensorDictModule(qnet, in_keys=in_keys, out_keys=[(group, "action_value")])
         policy = TensorDictSequential(
             value,
@@ -516,13 +552,34 @@ class NeuralLearner(Learner, abstract=True):
         """The inputs' encoding (``hp``): the env view builds the observations with it."""
         return self.hp["features"]
 
+    @property
+    def set_inputs(self) -> bool:
+        """The networks read the set inputs instead of the local features (``network=set``)."""
+        return self.hp.get("network") == "set"
+
+    @property
+    def view_options(self) -> dict[str, Any]:
+        """What the TorchRL view must write for these networks (``AuctionTorchRLEnv``'s keywords).
+
+        The prior's action, the features' encoding, and the set inputs instead of the local
+        features with ``network=set``.
+        """
+        return {
+            "prior": self.rule,
+            "features": self.features,
+            "set_inputs": self.set_inputs,
+            "local_features": not self.set_inputs,
+        }
+
     def encode(self, env: AuctionEnv) -> TensorDict:
         """Observation TensorDict of the decision point (:func:`observation_td`, copied arrays).
 
         With ``prior=hold`` it carries the rule's action, computed under the env's mask (the
         runner's evaluation passes that same mask to :meth:`act`).
         """
-        return observation_td(env, self.group_map, env.action_mask, self.rule, self.features)
+        return observation_td(
+            env, self.group_map, env.action_mask, self.rule, self.features, self.set_inputs
+        )
 
     def act(self, view: TensorDict, mask: np.ndarray, *, explore: bool) -> np.ndarray:
         """Greedy (or epsilon-greedy) actions of the TorchRL policy, valid under ``mask``.
@@ -603,6 +660,12 @@ class NeuralLearner(Learner, abstract=True):
             raise ValueError(
                 f"{meta_path}: trained with prior {saved_prior}, this run's learner has "
                 f"{self.prior_settings} (the prior is part of the Q-function)"
+            )
+        saved_network = meta["hyperparameters"].get("network", "mlp")
+        if saved_network != self.hp.get("network", "mlp"):
+            raise ValueError(
+                f"{meta_path}: trained with network={saved_network}, this run's learner has "
+                f"network={self.hp.get('network', 'mlp')} (the networks differ)"
             )
         if saved_features != self.features:
             raise ValueError(
@@ -689,8 +752,117 @@ def check_state_dict(state: Any, expected: dict[str, torch.Tensor], path: Path) 
             raise ValueError(f"{path}: tensor {name} holds NaN or infinite values")
 
 
-class MixedQLearner(NeuralLearner, abstract=True):
-    """Per-robot Q-network (shared parameters, robot-id input) mixed into a team Q (VDN, QMIX).
+NETWORKS = ("mlp", "set")  # the per-robot Q-network: local-feature MLP or the robot-set network
+
+
+class PerRobotQLearner(NeuralLearner, abstract=True):
+    """One Q-value per robot and action (VDN, QMIX, IQL); ``network`` chooses the network.
+
+    ``network=mlp`` is :class:`~mrta_rl.learners.neural.networks.PerRobotQ` over the local
+    features; ``network=set`` is the shared robot-set network
+    (:class:`~mrta_rl.learners.neural.set_network.SetQ`, one set of weights for every robot and
+    any team, no robot id) with the same prior bonus. The ``embed_dim``, ``heads``, ``layers``,
+    ``max_task_types`` and ``robot_attention`` settings are the set network's (``mlp`` ignores
+    them; ``hidden`` and ``depth`` are the MLP's).
+    """
+
+    @classmethod
+    def set_settings(cls, settings: dict[str, Any]) -> dict[str, Any]:
+        """The :class:`SetNetwork` keywords among a learner's settings."""
+        keys = ("embed_dim", "heads", "layers", "max_task_types", "robot_attention")
+        return {key: settings[key] for key in keys}
+
+    @classmethod
+    def check_set_network(cls, env: AuctionEnv, settings: dict[str, Any]) -> int:
+        """Check the set network's settings against the team; its trainable weights.
+
+        Raises:
+            ConfigError: naming the key: ``learner.max_task_types`` below the team's task
+                types, ``learner.embed_dim`` not a multiple of ``learner.heads``, or
+                ``learner.prior_in_state`` (the set network has no such input).
+        """
+        n, most = env.n_task_types, int(settings["max_task_types"])
+        if n > most:
+            raise ConfigError(
+                f"learner.max_task_types: {most} is smaller than the team's {n} task types "
+                f"(system {env.system.name}): set learner.max_task_types>={n}"
+            )
+        if int(settings["embed_dim"]) % int(settings["heads"]):
+            raise ConfigError(
+                f"learner.embed_dim: {settings['embed_dim']} must be a multiple of "
+                f"learner.heads={settings['heads']}"
+            )
+        if settings.get("prior_in_state"):
+            raise ConfigError("learner.prior_in_state: needs network=mlp (no such set input)")
+        net = SetNetwork(**cls.set_settings(settings), device="meta")
+        return sum(p.numel() for p in net.parameters())
+
+    def __init__(
+        self,
+        *,
+        network: Annotated[str, Choices(*NETWORKS)] = "mlp",
+        embed_dim: Annotated[int, Range(1)] = 32,
+        heads: Annotated[int, Range(1)] = 4,
+        layers: Annotated[int, Range(1)] = 1,
+        max_task_types: Annotated[int, Range(1)] = 32,
+        robot_attention: Annotated[str, Choices(*ROBOT_ATTENTION)] = "full",
+        **hyperparameters: Any,
+    ) -> None:
+        """Keep the network's settings, then build as every neural learner.
+
+        Args:
+            network: ``mlp`` (local features, robot-id one-hot) or ``set`` (module docstring).
+            embed_dim: ``network=set``: token width (a multiple of ``heads``).
+            heads: ``network=set``: attention heads.
+            layers: ``network=set``: attention blocks.
+            max_task_types: ``network=set``: rows of the task-type embedding, the most task
+                types a team may have.
+            robot_attention: ``network=set``: ``full`` (robots attend to each other) or
+                ``pooled`` (to the mean robot token: memory linear in the robots).
+            **hyperparameters: Those of :class:`NeuralLearner`.
+
+        Raises:
+            ConfigError: on set settings that cannot fit the team (:meth:`check_set_network`).
+        """
+        settings = {
+            "network": network,
+            "embed_dim": embed_dim,
+            "heads": heads,
+            "layers": layers,
+            "max_task_types": max_task_types,
+            "robot_attention": robot_attention,
+        }
+        if network == "set":
+            env = hyperparameters["env"]
+            prior_in_state = hyperparameters.get("prior_in_state", False)
+            self.check_set_network(env, {**settings, "prior_in_state": prior_in_state})
+        self._network_settings = settings  # _build reads them, before NeuralLearner sets hp
+        super().__init__(**hyperparameters)
+        self.hp |= settings  # saved with the weights: load() checks the network
+
+    @classmethod
+    def robot_network_weights(cls, env: AuctionEnv, settings: dict[str, Any]) -> int | None:
+        """Weights of the shared set network with ``network=set``, else None (the MLP's)."""
+        if settings.get("network", "mlp") != "set":
+            return None
+        return cls.check_set_network(env, settings)
+
+    def _q_network(self, group: str, share_params: bool) -> tuple[nn.Module, list]:
+        """With ``network=set``: :class:`SetQ` over the set inputs, the mask and the prior."""
+        settings = self._network_settings
+        if settings["network"] != "set":
+            return super()._q_network(group, share_params)
+        qnet = SetQ(
+            auction_prior=self.hp["auction_prior"],
+            device=self.device,
+            **self.set_settings(settings),
+        )
+        keys = [(group, key) for key in GROUP_SET_KEYS] + list(ROOT_SET_KEYS)
+        return qnet, [*keys, (group, "action_mask"), (group, PRIOR_KEY)]
+
+
+class MixedQLearner(PerRobotQLearner, abstract=True):
+    """Per-robot Q-network (shared parameters) mixed into a team Q (VDN, QMIX).
 
     One TorchRL group ``"agents"`` holds every robot; their chosen Q-values are mixed by
     :meth:`_mixer` and trained on the team reward (spec step 8) with TorchRL's ``QMixerLoss``.
@@ -702,6 +874,9 @@ class MixedQLearner(NeuralLearner, abstract=True):
         cls, env: AuctionEnv, partition: Partition | None, settings: dict[str, Any]
     ) -> int:
         """One network shared by the robots (a mixer with weights adds its own)."""
+        shared = cls.robot_network_weights(env, settings)
+        if shared is not None:
+            return shared
         n_in, _ = feature_sizes(env, settings)
         return mlp_weights(n_in, env.n_actions, int(settings["depth"]), int(settings["hidden"]))
 

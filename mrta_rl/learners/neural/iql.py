@@ -9,19 +9,22 @@ from torchrl.objectives import DQNLoss
 
 from mrta_rl.envs import AuctionEnv
 from mrta_rl.learners.memory import feature_sizes, mlp_weights
-from mrta_rl.learners.neural.common import NeuralLearner
+from mrta_rl.learners.neural.common import PerRobotQLearner
 from mrta_rl.partition import Partition
 
 GROUP = "agents"
 
 
-class IQLLearner(NeuralLearner):
-    """Each robot learns its own Q-network on its local view and its individual reward.
+class IQLLearner(PerRobotQLearner):
+    """Each robot learns its Q-values on its own individual reward.
 
-    One TorchRL group holds every robot, but with ``share_params=False`` its ``MultiAgentMLP``
-    holds one independent network per robot (vectorised), so this is ``m`` independent DQNs:
-    TorchRL's ``DQNLoss`` on the per-robot reward ``(agents, "robot_reward")`` (spec step 8)
-    with the episode flags repeated per robot.
+    One TorchRL group holds every robot. With ``network=mlp`` (default) its ``MultiAgentMLP``
+    (``share_params=False``) holds one independent network per robot over its local view
+    (vectorised), so this is ``m`` independent DQNs. With ``network=set`` the robots share the
+    parameters of one robot-set network (``set_network.py``), which also lets each robot's
+    Q-values read the other robots' tokens: parameter-shared independent learners. Either way
+    TorchRL's ``DQNLoss`` trains on the per-robot reward ``(agents, "robot_reward")`` (spec step
+    8) with the episode flags repeated per robot.
     """
 
     label: ClassVar[str] = "IQL"
@@ -30,7 +33,10 @@ class IQLLearner(NeuralLearner):
     def network_weights(
         cls, env: AuctionEnv, partition: Partition | None, settings: dict[str, Any]
     ) -> int:
-        """One network per robot."""
+        """One network per robot (``mlp``), or one set network shared by all (``set``)."""
+        shared = cls.robot_network_weights(env, settings)
+        if shared is not None:
+            return shared
         n_in, _ = feature_sizes(env, settings)
         depth, hidden = int(settings["depth"]), int(settings["hidden"])
         return env.n_robots * mlp_weights(n_in, env.n_actions, depth, hidden)

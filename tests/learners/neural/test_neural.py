@@ -77,11 +77,13 @@ def randomize(learner, scale=3.0, seed=0):
             p.copy_(torch.randn(p.shape, generator=gen) * scale)
 
 
-def collect(learner, env, frames=100):
-    """One collector batch of the learner's exploring policy, as replay transitions."""
-    view = AuctionTorchRLEnv(
-        env, group_map=learner.group_map, prior=learner.rule, features=learner.features
-    )  # as the runner builds it
+def collect(learner, env, frames=100, view=None):
+    """One collector batch of the learner's exploring policy, as replay transitions.
+
+    ``view``: the view's keywords (default: the prior and features, as the runner builds it).
+    """
+    view = view or {"prior": learner.rule, "features": learner.features}
+    view = AuctionTorchRLEnv(env, group_map=learner.group_map, **view)
     collector = Collector(
         view,
         learner.explore_policy,
