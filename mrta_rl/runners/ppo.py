@@ -107,10 +107,12 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     if total_frames == 0:
         instantiate(cfg.logger)(run_dir=run_dir).close()
         return {"env_ticks": 0, "wall_s": 0.0, "episodes": 0, "gradient_steps": 0}
+    # a run shorter than one batch (a benchmark's warm-up) trains once, on all of it
+    per_batch = min(int(learner.hp["frames_per_batch"]), total_frames)
     collector = Collector(
         env,
         learner.actor,
-        frames_per_batch=int(learner.hp["frames_per_batch"]),
+        frames_per_batch=per_batch,
         total_frames=total_frames - frames,
         env_device="cpu",
         policy_device=learner.device,

@@ -343,7 +343,8 @@ class PPOLearner(Learner, abstract=True):
         """One PPO update on a collected batch: GAE, then ``epochs`` passes of minibatches.
 
         Each epoch shuffles the batch's frames (torch's generator, which the runner seeds) and
-        takes a gradient step on every whole minibatch of ``minibatch_size`` frames.
+        takes a gradient step on every whole minibatch of ``minibatch_size`` frames (the whole
+        batch, if it is smaller: a run shorter than ``frames_per_batch``).
 
         Args:
             data: ``[B, T]`` collector output.
@@ -353,7 +354,8 @@ class PPOLearner(Learner, abstract=True):
             ``train/loss_entropy``, ``train/entropy``.
         """
         data = self.advantages(data.exclude("collector").to(self.device)).reshape(-1)
-        size, n = int(self.hp["minibatch_size"]), data.shape[0]
+        n = data.shape[0]
+        size = min(int(self.hp["minibatch_size"]), n)  # a batch cut short by the run's end
         params = list(self.loss.parameters())
         sums: dict[str, float] = {}
         steps = 0
