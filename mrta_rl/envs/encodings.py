@@ -69,17 +69,37 @@ Neural features:
       bit; recency one-hot (3); robot-id one-hot (m).
     * :func:`global_features` ``[B, G]`` with ``G = K (1 + 2n) + m + m + 3n``: per slot a one-hot
       over ``1 + 2n`` codes; idle bits; battery-low bits; per task type a recency one-hot (3).
+
+Set inputs (:func:`set_inputs`, team-size independent, for the shared robot-set network of
+``learners/neural/set_network.py``): tokens whose widths depend on no ``m``, ``K`` or ``n``, so one
+network runs on any team. Every float lies in ``[0, 1]``; counts are divided by a scale and cut at
+1 (:data:`COUNT_SCALES`), times by :data:`TIME_SCALE` ticks.
+    * ``robots`` ``[B, m, R]`` (:data:`ROBOT_FEATURES`): idle, free soon (free level 1), time to
+      free, battery fraction, battery low, recency one-hot over ``Lambda_i`` (3), queued H and L
+      over ``Lambda_i`` (scaled counts and levels / 2), for its least-covered type whether no
+      other robot is idle, the other idle robots and the other idle or soon-free robots (scaled),
+      and ``|Lambda_i| / n``. No robot id.
+    * ``robot_types`` ``[B, m, n]`` bool: ``Lambda_i`` as a multi-hot.
+    * ``slots`` ``[B, K, S]`` (:data:`SLOT_FEATURES`): present, high, ticks since due (scaled),
+      round 2 (the task is dropped if nobody wins it now, spec step 6), duration (scaled), idle
+      robots that may bid for it (scaled). An empty slot is all zeros.
+    * ``slot_type`` ``[B, K]`` int64: the slot task's type, 0 for an empty slot.
+    * ``types`` ``[B, n, T]`` (:data:`TYPE_FEATURES`): queued H and L (scaled counts and levels /
+      2), recency one-hot (3), ticks since the last H arrival (scaled), idle robots and idle or
+      soon-free robots covering it (scaled), robots whose ``Lambda`` holds it (scaled).
 """
 
 from __future__ import annotations
 
 import weakref
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import numpy as np
 
 from mrta_rl.envs import state_codes
 from mrta_rl.envs.auction import AuctionEnv
+from mrta_rl.envs.tasks import task_due, task_duration, task_round
 
 RECENCY_THRESHOLDS: tuple[int, int] = (3, 10)  # recency level 0: delta <= 3, 1: delta <= 10, else 2
 N_RECENCY_LEVELS = 3
@@ -120,6 +140,14 @@ __all__ = [
     "local_state_count",
     "local_state_index",
     "recency_level",
+    "ROBOT_FEATURES",
+    "ROBOT_TOKEN_SIZE",
+    "SLOT_FEATURES",
+    "SLOT_TOKEN_SIZE",
+    "SetInputs",
+    "TYPE_FEATURES",
+    "TYPE_TOKEN_SIZE",
+    "set_inputs",
 ]
 
 
@@ -654,3 +682,160 @@ def global_features(env: AuctionEnv, features: str = "paper") -> np.ndarray:
         np.put_along_axis(one_hot, queue[..., None], 1.0, axis=-1)
         out[:, end + N_FREE_LEVELS * m :] = one_hot.reshape(B, -1)
     return out
+
+
+# ---------------------------------------------------------------------------------- set inputs
+ROBOT_FEATURES = (
+    "idle",
+    "free_soon",  # busy, idle again within FREE_SOON ticks
+    "time_to_free",  # ticks until idle / TIME_SCALE, 0 when idle
+    "battery",  # battery / battery_capacity
+    "battery_low",  # battery_level
+    "recency_0",  # recency level over Lambda_i, one-hot
+    "recency_1",
+    "recency_2",
+    "queued_high",  # queued H tasks of Lambda_i's types / COUNT_SCALES["high"]
+    "queued_low",  # queued L tasks of Lambda_i's types / COUNT_SCALES["low"]
+    "queue_level_high",  # queue_level H over Lambda_i / 2
+    "queue_level_low",  # queue_level L over Lambda_i / 2
+    "sole_idle",  # no other robot is idle for one of its types
+    "others_idle",  # other idle robots for its least-covered type / COUNT_SCALES["robots"]
+    "others_soon",  # other idle or soon-free robots for its least-covered type, scaled
+    "versatility",  # |Lambda_i| / n
+)
+SLOT_FEATURES = (
+    "present",
+    "high",
+    "waiting",  # ticks since the task's due tick / TIME_SCALE
+    "round_2",  # dropped if nobody wins it this tick (spec step 6)
+    "duration",  # duration / TIME_SCALE
+    "bidders",  # idle robots whose Lambda holds its type / COUNT_SCALES["robots"]
+)
+TYPE_FEATURES = (
+    "queued_high",  # / COUNT_SCALES["high"]
+    "queued_low",  # / COUNT_SCALES["low"]
+    "queue_level_high",  # / 2
+    "queue_level_low",  # / 2
+    "recency_0",  # recency level of the type, one-hot
+    "recency_1",
+    "recency_2",
+    "since_high",  # ticks since the last H arrival / TIME_SCALE (never: 1)
+    "idle_robots",  # idle robots whose Lambda holds it / COUNT_SCALES["robots"]
+    "soon_robots",  # idle or soon-free robots whose Lambda holds it, scaled
+    "robots",  # robots whose Lambda holds it / COUNT_SCALES["team"]
+)
+ROBOT_TOKEN_SIZE = len(ROBOT_FEATURES)  # R
+SLOT_TOKEN_SIZE = len(SLOT_FEATURES)  # S
+TYPE_TOKEN_SIZE = len(TYPE_FEATURES)  # T
+TIME_SCALE = 24.0  # ticks: longer than the longest default task (12) plus a recharge (10)
+COUNT_SCALES = {"high": 4.0, "low": 16.0, "robots": 4.0, "team": 8.0}  # a count / scale, cut at 1
+
+
+class SetInputs(NamedTuple):
+    """The set network's inputs of every copy (module docstring, "Set inputs").
+
+    Attributes:
+        robots: ``[B, m, R]`` float32 robot features (:data:`ROBOT_FEATURES`).
+        robot_types: ``[B, m, n]`` bool ``Lambda_i`` multi-hot (a read-only broadcast view).
+        slots: ``[B, K, S]`` float32 slot features (:data:`SLOT_FEATURES`).
+        slot_type: ``[B, K]`` int64 slot task types, 0 for an empty slot.
+        types: ``[B, n, T]`` float32 task-type features (:data:`TYPE_FEATURES`).
+    """
+
+    robots: np.ndarray
+    robot_types: np.ndarray
+    slots: np.ndarray
+    slot_type: np.ndarray
+    types: np.ndarray
+
+
+def _scaled(count: np.ndarray, scale: float) -> np.ndarray:
+    return np.minimum(count / scale, 1.0)
+
+
+def set_inputs(env: AuctionEnv) -> SetInputs:
+    """The set network's inputs of the env's decision point (module docstring, "Set inputs").
+
+    Args:
+        env: The auction environment.
+
+    Returns:
+        :class:`SetInputs` of batch ``B``; widths :data:`ROBOT_TOKEN_SIZE`,
+        :data:`SLOT_TOKEN_SIZE` and :data:`TYPE_TOKEN_SIZE` whatever the team.
+    """
+    B, m, n = env.batch_size, env.n_robots, env.n_task_types
+    active = env.active_tasks  # Lambda_i, [m, n]
+    active_f = active.astype(np.float32)
+    t = env.t[:, None]  # [B, 1]
+    idle = env.idle  # [B, m]
+    free = free_level(env)  # [B, m]
+    soon = free <= 1  # idle or free within FREE_SOON ticks
+    counts = queue_counts(env)  # [B, n, 2]: L, H
+    # robots covering each type: idle, idle or soon free, all
+    idle_cover = idle.astype(np.float32) @ active_f  # [B, n]
+    soon_cover = soon.astype(np.float32) @ active_f  # [B, n]
+
+    robots = np.zeros((B, m, ROBOT_TOKEN_SIZE), np.float32)
+    r = {name: k for k, name in enumerate(ROBOT_FEATURES)}
+    robots[..., r["idle"]] = idle
+    robots[..., r["free_soon"]] = free == 1
+    robots[..., r["time_to_free"]] = _scaled(np.maximum(env.busy_until - t + 1, 0), TIME_SCALE)
+    robots[..., r["battery"]] = env.battery / env.params.battery_capacity
+    robots[..., r["battery_low"]] = battery_level(env)
+    recency = recency_level(env, active)  # [B, m]
+    np.put_along_axis(robots, (r["recency_0"] + recency)[..., None], 1.0, axis=-1)
+    own = np.einsum("bnp,mn->bmp", counts, active_f)  # queued per robot over Lambda_i: L, H
+    robots[..., r["queued_high"]] = _scaled(own[..., 1], COUNT_SCALES["high"])
+    robots[..., r["queued_low"]] = _scaled(own[..., 0], COUNT_SCALES["low"])
+    levels = queue_level(env, active, counts)  # [B, m, 2]: H, L
+    robots[..., r["queue_level_high"]] = levels[..., 0] / 2
+    robots[..., r["queue_level_low"]] = levels[..., 1] / 2
+    # others covering each of robot i's types: the type's count minus robot i itself
+    others_idle = np.where(active, idle_cover[:, None] - (idle[..., None] & active), np.inf)
+    others_soon = np.where(active, soon_cover[:, None] - (soon[..., None] & active), np.inf)
+    least_idle, least_soon = others_idle.min(-1), others_soon.min(-1)  # [B, m]
+    robots[..., r["sole_idle"]] = idle & (least_idle == 0)
+    robots[..., r["others_idle"]] = _scaled(least_idle, COUNT_SCALES["robots"])
+    robots[..., r["others_soon"]] = _scaled(least_soon, COUNT_SCALES["robots"])
+    robots[..., r["versatility"]] = active.sum(1) / n
+
+    K = env.n_slots
+    slots = np.zeros((B, K, SLOT_TOKEN_SIZE), np.float32)
+    present = env.slot_type >= 0  # [B, K]
+    keys = env._state["slot_keys"]  # [B, K] packed slot tasks (envs/tasks.py)
+    slot_type = np.where(present, env.slot_type, 0)
+    s = {name: k for k, name in enumerate(SLOT_FEATURES)}
+    slots[..., s["present"]] = present
+    slots[..., s["high"]] = env.slot_high == 1
+    slots[..., s["waiting"]] = np.where(present, _scaled(t - task_due(keys), TIME_SCALE), 0)
+    slots[..., s["round_2"]] = present & (task_round(keys) == 2)
+    slots[..., s["duration"]] = np.where(present, _scaled(task_duration(keys), TIME_SCALE), 0)
+    bidders = np.take_along_axis(idle_cover, slot_type, axis=1)  # [B, K]
+    slots[..., s["bidders"]] = np.where(present, _scaled(bidders, COUNT_SCALES["robots"]), 0)
+
+    types = np.zeros((B, n, TYPE_TOKEN_SIZE), np.float32)
+    y = {name: k for k, name in enumerate(TYPE_FEATURES)}
+    types[..., y["queued_high"]] = _scaled(counts[..., 1], COUNT_SCALES["high"])
+    types[..., y["queued_low"]] = _scaled(counts[..., 0], COUNT_SCALES["low"])
+    eye = _eye(n)
+    type_levels = queue_level(env, eye, counts)  # [B, n, 2]: H, L
+    types[..., y["queue_level_high"]] = type_levels[..., 0] / 2
+    types[..., y["queue_level_low"]] = type_levels[..., 1] / 2
+    type_recency = recency_level(env, eye)  # [B, n]
+    np.put_along_axis(types, (y["recency_0"] + type_recency)[..., None], 1.0, axis=-1)
+    types[..., y["since_high"]] = _scaled(t - env.last_high_arrival, TIME_SCALE)
+    types[..., y["idle_robots"]] = _scaled(idle_cover, COUNT_SCALES["robots"])
+    types[..., y["soon_robots"]] = _scaled(soon_cover, COUNT_SCALES["robots"])
+    types[..., y["robots"]] = _scaled(active_f.sum(0), COUNT_SCALES["team"])
+    robot_types = np.broadcast_to(active, (B, m, n))
+    return SetInputs(robots, robot_types, slots, slot_type, types)
+
+
+_EYE: dict[int, np.ndarray] = {}
+
+
+def _eye(n: int) -> np.ndarray:
+    """``[n, n]`` bool identity: one set of types per type (cached, read every tick)."""
+    if n not in _EYE:
+        _EYE[n] = np.eye(n, dtype=bool)
+    return _EYE[n]

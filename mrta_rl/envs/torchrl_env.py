@@ -30,6 +30,49 @@ GroupMapArg = Mapping[str, Sequence[str | int]] | MarlGroupMapType | str | None
 # a prior policy read from the core env: ``[B, m]`` int64 actions (``learners.tabular.priors``)
 PriorActions = Callable[[AuctionEnv], np.ndarray]
 PRIOR_KEY = "prior_action"  # (group, PRIOR_KEY): one-hot of the prior's action per robot
+GROUP_SET_KEYS = ("robots", "robot_types")  # set inputs per group: (group, key) [B, n_g, ...]
+ROOT_SET_KEYS = ("slots", "slot_type", "types")  # set inputs at the root: [B, K, ...], [B, n, T]
+
+
+def set_input_tensors(env: AuctionEnv) -> dict[str, torch.Tensor]:
+    """:func:`~mrta_rl.envs.encodings.set_inputs` of the env as fresh tensors, by name.
+
+    Returns:
+        ``robots`` ``[B, m, R]``, ``robot_types`` ``[B, m, n]`` bool, ``slots`` ``[B, K, S]``,
+        ``slot_type`` ``[B, K]`` int64 and ``types`` ``[B, n, T]``.
+    """
+    inputs = encodings.set_inputs(env)._asdict()
+    out = {k: torch.from_numpy(v) for k, v in inputs.items() if k != "robot_types"}
+    out["robot_types"] = torch.from_numpy(env.active_tasks).expand(inputs["robot_types"].shape)
+    return out
+
+
+def set_inputs_td(env: AuctionEnv, group_map: GroupMap, mask: np.ndarray) -> TensorDict:
+    """The set inputs of the env's decision point, as ``AuctionTorchRLEnv(set_inputs=True)``.
+
+    What ``learners.neural.common.observation_td`` is for the local features: evaluation on the
+    core env sees the inputs that training saw.
+
+    Args:
+        env: The core env at a decision point (any batch size ``B``).
+        group_map: ``{group: [robot ids]}``.
+        mask: ``[B, m, K + 1]`` bool valid actions (copied).
+
+    Returns:
+        TensorDict of batch ``[B]``: root ``slots``, ``slot_type``, ``types``; per group
+        ``robots``, ``robot_types`` and ``action_mask``.
+    """
+    tensors = set_input_tensors(env)
+    mask_t = torch.from_numpy(np.ascontiguousarray(mask, dtype=bool))
+    B = mask_t.shape[0]
+    out: dict[str, object] = {k: tensors[k] for k in ROOT_SET_KEYS}
+    robots = env.system.robots
+    for group, ids in group_map.items():
+        idx = torch.tensor([robots.index(r) for r in ids], dtype=torch.int64)
+        leaves = {k: tensors[k][:, idx] for k in GROUP_SET_KEYS}
+        leaves["action_mask"] = mask_t[:, idx].clone()
+        out[group] = TensorDict(leaves, batch_size=(B, len(idx)))
+    return TensorDict(out, batch_size=(B,))
 
 
 def prior_one_hot(actions: np.ndarray, n_actions: int) -> torch.Tensor:
@@ -115,7 +158,12 @@ class AuctionTorchRLEnv(EnvBase):
         breakdowns ride along as observations of the step (zero after a reset):
         ``(group, "robot_reward")`` ``[B, n_g, 1]``, each robot's individual reward, and
         ``(group, "group_reward")`` ``[B, n_g, 1]``, the sub-group reward (sum of its robots'
-        rewards, spec step 8) repeated for every robot of the group.
+        rewards, spec step 8) repeated for every robot of the group. With ``set_inputs`` the
+        team-size independent inputs of the set network
+        (:func:`~mrta_rl.envs.encodings.set_inputs`) ride along: per group ``(group,
+        "robots")`` float32 ``[B, n_g, R]`` and ``(group, "robot_types")`` bool ``[B, n_g,
+        n]``, at the root ``"slots"`` float32 ``[B, K, S]``, ``"slot_type"`` int64 ``[B, K]``
+        and ``"types"`` float32 ``[B, n, T]``.
 
     Reward:
         TorchRL's multi-agent convention (VMAS, BenchMARL): the only reward key of a group is
@@ -138,6 +186,7 @@ class AuctionTorchRLEnv(EnvBase):
             observation ``(group, "prior_action")`` (see Observation Space).
         features: ``encodings.FEATURES``: the encoding of ``observation`` and ``state``
             (a neural learner's ``features``).
+        set_inputs: Also write the set network's inputs (see Observation Space).
     """
 
     batch_locked = True
@@ -150,6 +199,7 @@ class AuctionTorchRLEnv(EnvBase):
         invalid_action: InvalidAction = DEFAULT_INVALID_ACTION,
         prior: PriorActions | None = None,
         features: str = "paper",
+        set_inputs: bool = False,
     ) -> None:
         if torch.device(device).type != "cpu":
             raise ValueError("AuctionTorchRLEnv runs on cpu (the dynamics are numpy)")
@@ -157,6 +207,7 @@ class AuctionTorchRLEnv(EnvBase):
         self.features = encodings.check_features(features)
         self.invalid_action = invalid_action
         self.prior = prior
+        self.set_inputs = set_inputs
         super().__init__(device="cpu", batch_size=torch.Size([env.batch_size]))
         self.auction = env
         self.group_map = resolve_group_map(env.system.robots, group_map)
@@ -179,6 +230,7 @@ class AuctionTorchRLEnv(EnvBase):
     # ------------------------------------------------------------------ specs
     def _make_specs(self) -> None:
         B, A = self.auction.batch_size, self.auction.n_actions
+        n, K = self.auction.n_task_types, self.auction.n_slots
         F, G = (
             encodings.local_feature_size(self.auction, self.features),
             encodings.global_feature_size(self.auction, self.features),
@@ -195,6 +247,10 @@ class AuctionTorchRLEnv(EnvBase):
             )
             if self.prior is not None:
                 obs[group][PRIOR_KEY] = Binary(n=A, shape=(*shape, A), dtype=torch.bool)
+            if self.set_inputs:
+                R = encodings.ROBOT_TOKEN_SIZE
+                obs[group]["robots"] = Bounded(0.0, 1.0, shape=(*shape, R), dtype=torch.float32)
+                obs[group]["robot_types"] = Binary(n=n, shape=(*shape, n), dtype=torch.bool)
             if self.invalid_action == "wait":
                 obs[group]["invalid_action"] = Binary(n=1, shape=(*shape, 1), dtype=torch.bool)
             act[group] = Composite(
@@ -202,9 +258,13 @@ class AuctionTorchRLEnv(EnvBase):
                 shape=shape,
             )
             rew[group] = Composite(reward=Unbounded(shape=(*shape, 1)), shape=shape)
-        self.observation_spec = Composite(
-            **obs, state=Bounded(0.0, 1.0, shape=(B, G), dtype=torch.float32), shape=(B,)
-        )
+        root = {"state": Bounded(0.0, 1.0, shape=(B, G), dtype=torch.float32)}
+        if self.set_inputs:
+            S, T = encodings.SLOT_TOKEN_SIZE, encodings.TYPE_TOKEN_SIZE
+            root["slots"] = Bounded(0.0, 1.0, shape=(B, K, S), dtype=torch.float32)
+            root["slot_type"] = Categorical(n, shape=(B, K), dtype=torch.int64)
+            root["types"] = Bounded(0.0, 1.0, shape=(B, n, T), dtype=torch.float32)
+        self.observation_spec = Composite(**obs, **root, shape=(B,))
         self.action_spec = Composite(**act, shape=(B,))
         self.reward_spec = Composite(**rew, shape=(B,))
         self.done_spec = Composite(
@@ -255,6 +315,9 @@ class AuctionTorchRLEnv(EnvBase):
         if invalid is None and self.invalid_action == "wait":
             invalid = torch.zeros(B, core.n_robots, dtype=torch.bool)
         prior = None if self.prior is None else prior_one_hot(self.prior(core), core.n_actions)
+        tensors = set_input_tensors(core) if self.set_inputs else {}
+        for key in ROOT_SET_KEYS if self.set_inputs else ():
+            out.set(key, tensors[key])
         for group, cols in self._columns.items():
             n_g = len(self._group_index[group])
             whole = self._whole[group]
@@ -270,6 +333,9 @@ class AuctionTorchRLEnv(EnvBase):
                 leaves["invalid_action"] = invalid[:, cols].unsqueeze(-1)
             if prior is not None:
                 leaves[PRIOR_KEY] = prior if whole else prior[:, cols]
+            for key in GROUP_SET_KEYS if self.set_inputs else ():
+                # robot_types is an expanded view of the team's Lambda: copied per group
+                leaves[key] = tensors[key][:, cols].clone()
             if team is not None:
                 leaves["reward"] = team.reshape(B, 1, 1).expand(B, n_g, 1).clone()
             out.set(group, TensorDict(leaves, batch_size=(B, n_g), device=cpu))

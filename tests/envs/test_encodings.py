@@ -292,3 +292,76 @@ def test_time_to_free_neural_features(played_env):
     np.testing.assert_array_equal(free.argmax(-1), ob.free_level(env))
     queue = glob[:, base + 3 * m :].reshape(8, n, 2, 3)
     np.testing.assert_array_equal(queue.argmax(-1), ob.queue_level(env, np.eye(n, dtype=bool)))
+
+
+def named(row: np.ndarray, names: tuple[str, ...]) -> dict[str, float]:
+    return {name: round(float(v), 6) for name, v in zip(names, row, strict=True)}
+
+
+def test_set_inputs_hand_checked(quiet_env):
+    env = quiet_env
+    # slots: T1 H, T2 L in its second round, T3 L; T1 L (id 3) stays queued behind them
+    env.inject_tasks(0, [task(0, 1, 0), task(1, 0, 1, rnd=2), task(2, 0, 2), task(0, 0, 3)])
+    state = env.get_state()
+    state["battery"][0, 0] = 50.0
+    state["busy_until"][0, 2] = 1  # R3 idle again at tick 2: "free soon"
+    state["last_high_arrival"][0] = [-3, -100, -(1 << 30)]  # a T1 H three ticks ago (t = 0)
+    env.set_state(state)
+    x = ob.set_inputs(env)
+    assert x.robots.shape == (2, 3, ob.ROBOT_TOKEN_SIZE) and x.robots.dtype == np.float32
+    assert x.slots.shape == (2, 3, ob.SLOT_TOKEN_SIZE)
+    assert x.types.shape == (2, 3, ob.TYPE_TOKEN_SIZE)
+    np.testing.assert_array_equal(x.robot_types[1], env.active_tasks)
+    r1, r2, r3 = (named(x.robots[0, i], ob.ROBOT_FEATURES) for i in range(3))
+    # R1 {T1, T3}: idle, battery 50/100 (low below 20 + 12), T1 H 3 ticks ago: recency 0;
+    # queued over its types: 1 H (level 1), 2 L (level 0); no other idle robot for T1 or T3,
+    # and none idle or free soon for T3
+    assert r1 == {
+        "idle": 1, "free_soon": 0, "time_to_free": 0, "battery": 0.5, "battery_low": 0,
+        "recency_0": 1, "recency_1": 0, "recency_2": 0,
+        "queued_high": 0.25, "queued_low": 0.125, "queue_level_high": 0.5, "queue_level_low": 0,
+        "sole_idle": 1, "others_idle": 0, "others_soon": 0, "versatility": round(2 / 3, 6),
+    }  # fmt: skip
+    # R2 {T2}: no H of T2 for 100 ticks (recency 2), 1 L queued; R3 is free soon for T2
+    assert r2 == {
+        "idle": 1, "free_soon": 0, "time_to_free": 0, "battery": 1, "battery_low": 0,
+        "recency_0": 0, "recency_1": 0, "recency_2": 1,
+        "queued_high": 0, "queued_low": 0.0625, "queue_level_high": 0, "queue_level_low": 0,
+        "sole_idle": 1, "others_idle": 0, "others_soon": 0.25, "versatility": round(1 / 3, 6),
+    }  # fmt: skip
+    # R3 {T1, T2}: busy until tick 1, idle in 2 ticks; R1 idle for T1, R2 for T2
+    assert r3 == {
+        "idle": 0, "free_soon": 1, "time_to_free": round(2 / 24, 6), "battery": 1,
+        "battery_low": 0, "recency_0": 1, "recency_1": 0, "recency_2": 0,
+        "queued_high": 0.25, "queued_low": 0.125, "queue_level_high": 0.5, "queue_level_low": 0,
+        "sole_idle": 0, "others_idle": 0.25, "others_soon": 0.25, "versatility": round(2 / 3, 6),
+    }  # fmt: skip
+    slots = [named(x.slots[0, k], ob.SLOT_FEATURES) for k in range(3)]
+    same = {"present": 1, "waiting": 0, "duration": round(5 / 24, 6), "bidders": 0.25}
+    assert slots == [
+        {**same, "high": 1, "round_2": 0},
+        {**same, "high": 0, "round_2": 1},
+        {**same, "high": 0, "round_2": 0},
+    ]
+    assert x.slot_type[0].tolist() == [0, 1, 2]
+    t1, t2, t3 = (named(x.types[0, j], ob.TYPE_FEATURES) for j in range(3))
+    assert t1 == {
+        "queued_high": 0.25, "queued_low": 0.0625, "queue_level_high": 0.5, "queue_level_low": 0,
+        "recency_0": 1, "recency_1": 0, "recency_2": 0, "since_high": 0.125,
+        "idle_robots": 0.25, "soon_robots": 0.5, "robots": 0.25,
+    }  # fmt: skip
+    assert t2["recency_2"] == 1 and t2["since_high"] == 1 and t2["soon_robots"] == 0.5
+    assert t3["since_high"] == 1 and t3["soon_robots"] == 0.25 and t3["robots"] == 0.125
+    # copy 1 has no task: empty slots are all zeros, type 0
+    assert not x.slots[1].any() and x.slot_type[1].tolist() == [0, 0, 0]
+
+
+def test_set_inputs_widths_do_not_depend_on_the_team():
+    widths = set()
+    for system in (load_system("system1"), load_system("system2"), random_system(60, 12, seed=1)):
+        env = AuctionEnv(system, AuctionParams(horizon=20), batch_size=2)
+        for _ in random_rollout(env, 5):
+            x = ob.set_inputs(env)
+            assert all(((a >= 0) & (a <= 1)).all() for a in (x.robots, x.slots, x.types))
+        widths.add((x.robots.shape[-1], x.slots.shape[-1], x.types.shape[-1]))
+    assert widths == {(ob.ROBOT_TOKEN_SIZE, ob.SLOT_TOKEN_SIZE, ob.TYPE_TOKEN_SIZE)}

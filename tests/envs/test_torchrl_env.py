@@ -15,7 +15,7 @@ from torchrl.envs.utils import check_env_specs
 
 from mrta_rl.envs import AuctionEnv, AuctionParams
 from mrta_rl.envs import encodings as ob
-from mrta_rl.envs.torchrl_env import AuctionTorchRLEnv, resolve_group_map
+from mrta_rl.envs.torchrl_env import AuctionTorchRLEnv, resolve_group_map, set_inputs_td
 from mrta_rl.partition import subg_partition
 from mrta_rl.rules import greedy_actions
 from mrta_rl.systems import RobotSystem, build_system
@@ -346,3 +346,30 @@ def test_action_mask_transform():
     check_env_specs(env)
     data = env.rollout(8)
     assert not data["next", "agents", "invalid_action"].any()
+
+
+@pytest.mark.parametrize("kind", GROUP_MAPS)
+def test_set_inputs_keys_have_specs_and_match_the_core(kind):
+    """set_inputs=True: the set network's tokens under each group and at the root, specs checked,
+    and the same TensorDict as set_inputs_td builds from the core env (evaluation's inputs)."""
+    env = make(load_system("system2"), kind, 3, horizon=4, set_inputs=True)
+    check_env_specs(env, break_when_any_done="both")
+    core = env.auction
+    n, K = core.n_task_types, core.n_slots
+    assert env.observation_spec["slots"].shape == (3, K, ob.SLOT_TOKEN_SIZE)
+    assert env.observation_spec["types"].shape == (3, n, ob.TYPE_TOKEN_SIZE)
+    td = env.reset()
+    rng = np.random.default_rng(0)
+    for _ in range(3):
+        expected = set_inputs_td(core, env.group_map, core.action_mask)
+        for key in ("slots", "slot_type", "types"):
+            torch.testing.assert_close(td.get(key), expected.get(key))
+        for group, idx in group_index(env).items():
+            robots = td.get((group, "robots"))
+            assert robots.shape == (3, len(idx), ob.ROBOT_TOKEN_SIZE)
+            for key in ("robots", "robot_types", "action_mask"):
+                torch.testing.assert_close(td.get((group, key)), expected.get((group, key)))
+            types = td.get((group, "robot_types"))
+            np.testing.assert_array_equal(types[0].numpy(), core.active_tasks[idx])
+        td = env.step(to_td(env, random_valid(core.action_mask, rng)))["next"]
+    assert "slots" not in make(load_system("system1"), kind, 2).reset().keys()

@@ -1,0 +1,254 @@
+"""The shared robot-set network: one set of weights for any team, masked scores over {wait, slot k}.
+
+Inputs are the team-size independent tokens of :func:`mrta_rl.envs.encodings.set_inputs`
+(``encodings`` module docstring, "Set inputs"): a token per robot, per slot and per task type.
+
+* **Type tokens** ``[*, n, d]``: a learned embedding of the type (``nn.Embedding(max_task_types,
+  d)``) plus an MLP of the type's features (queues, recency, robots covering it).
+* **Robot tokens** ``[*, m, d]``: an MLP of the robot's features plus the mean of the type tokens
+  of its types ``Lambda_i`` (its multi-hot): robots are told apart by what they can do and what
+  state they are in, never by an id, so permuting the robots permutes the outputs.
+* **Slot tokens** ``[*, K, d]``: an MLP of the slot's features plus the type token of its task.
+* ``layers`` pre-norm blocks: slots attend to the robots (who could take them), robots attend to
+  the present slots and, with ``robot_attention="full"``, to each other (memory ``m^2`` per copy
+  and head: 160 kB of float32 attention weights per copy and head at 200 robots), or with
+  ``"pooled"`` to one team token, the mean of the robot tokens (memory linear in ``m``: the
+  setting for teams of a thousand robots); then a feed-forward layer on each token.
+* **Heads**: per robot a wait score from its token, per (robot, slot) a pair score
+  ``w . relu(A h_i + B s_k)``; outputs ``[*, m, K + 1]``, column 0 wait, column ``k`` slot ``k``.
+  The output layers start at zero, so an untrained network scores every action 0 and the auction
+  prior bonus of the Q-learners (``learners/neural/networks.py``) decides alone. Invalid actions
+  score :data:`MASKED` (finite, so a softmax or a max over them never gives NaN; waiting is
+  always valid, spec step 4).
+
+Its parameter count depends only on its settings (``embed_dim``, ``heads``, ``layers``,
+``max_task_types``), not on the team's ``m``, ``K`` or ``n``. A team with more task types than
+``max_task_types`` cannot be embedded (:func:`check_task_types`).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Literal
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from mrta_rl.envs.encodings import ROBOT_TOKEN_SIZE, SLOT_TOKEN_SIZE, TYPE_TOKEN_SIZE
+
+MASKED = -1e9  # the score of an invalid action: far below any Q-value or logit, and finite
+ROBOT_ATTENTION = ("full", "pooled")  # robots attend to each other, or to a pooled team token
+SET_INPUT_KEYS = ("robots", "robot_types", "slots", "slot_type", "types")  # forward's order
+
+
+def check_task_types(n_task_types: int, max_task_types: int) -> None:
+    """Refuse a team whose task types do not fit the type embedding.
+
+    Args:
+        n_task_types: The team's ``n``.
+        max_task_types: The network's ``max_task_types``.
+
+    Raises:
+        ValueError: naming ``learner.max_task_types`` and ``n``.
+    """
+    if n_task_types > max_task_types:
+        raise ValueError(
+            f"learner.max_task_types={max_task_types} is smaller than the team's "
+            f"{n_task_types} task types: set learner.max_task_types >= {n_task_types}"
+        )
+
+
+def _mlp(n_in: int, d: int) -> nn.Sequential:
+    return nn.Sequential(nn.Linear(n_in, d), nn.ReLU(), nn.Linear(d, d))
+
+
+class Attention(nn.Module):
+    """Multi-head attention of queries over keys (``scaled_dot_product_attention``)."""
+
+    def __init__(self, d: int, heads: int) -> None:
+        """Projections of ``d`` units, ``heads`` heads (``d`` must be a multiple of ``heads``)."""
+        super().__init__()
+        self.heads = heads
+        self.q, self.kv, self.out = nn.Linear(d, d), nn.Linear(d, 2 * d), nn.Linear(d, d)
+
+    def forward(
+        self, queries: torch.Tensor, keys: torch.Tensor, key_mask: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """``[N, Lq, d]`` queries over ``[N, Lk, d]`` keys; ``key_mask`` ``[N, Lk]`` True = seen.
+
+        Every query must see at least one key (the callers always leave the robots unmasked).
+        """
+        N, Lq, d = queries.shape
+        h = self.heads
+        q = self.q(queries).view(N, Lq, h, d // h).transpose(1, 2)  # [N, h, Lq, dh]
+        k, v = self.kv(keys).view(N, keys.shape[1], 2, h, d // h).permute(2, 0, 3, 1, 4)
+        mask = None if key_mask is None else key_mask[:, None, None, :]
+        out = F.scaled_dot_product_attention(q, k, v, attn_mask=mask)
+        return self.out(out.transpose(1, 2).reshape(N, Lq, d))
+
+
+class Block(nn.Module):
+    """Slots attend to robots; robots attend to slots and robots (or a team token); feed-forward."""
+
+    def __init__(self, d: int, heads: int, robot_attention: str) -> None:
+        """Layers of one block (module docstring)."""
+        super().__init__()
+        self.robot_attention = robot_attention
+        self.norm_s, self.norm_r, self.norm_keys = nn.LayerNorm(d), nn.LayerNorm(d), nn.LayerNorm(d)
+        self.slot_attention = Attention(d, heads)
+        self.attention = Attention(d, heads)
+        self.norm_ff_r, self.norm_ff_s = nn.LayerNorm(d), nn.LayerNorm(d)
+        self.ff_r, self.ff_s = _mlp(d, d), _mlp(d, d)
+
+    def forward(
+        self, robots: torch.Tensor, slots: torch.Tensor, present: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``robots`` ``[N, m, d]``, ``slots`` ``[N, K, d]``, ``present`` ``[N, K]`` bool."""
+        r = self.norm_r(robots)
+        slots = slots + self.slot_attention(self.norm_s(slots), r)
+        s = self.norm_keys(slots)
+        if self.robot_attention == "full":
+            others = r
+        else:  # one pooled team token: memory linear in the robots
+            others = r.mean(1, keepdim=True)
+        keys = torch.cat([s, others], 1)
+        seen = torch.cat([present, present.new_ones(others.shape[:2])], 1)
+        robots = robots + self.attention(r, keys, seen)
+        robots = robots + self.ff_r(self.norm_ff_r(robots))
+        slots = slots + self.ff_s(self.norm_ff_s(slots))
+        return robots, slots
+
+
+class SetNetwork(nn.Module):
+    """Masked per-robot scores over {wait, slot k} from set tokens (module docstring).
+
+    Args:
+        embed_dim: Token width ``d`` (a multiple of ``heads``).
+        heads: Attention heads.
+        layers: Attention blocks.
+        max_task_types: Rows of the type embedding: the most task types a team may have.
+        robot_attention: ``"full"`` (robots attend to each other, ``m^2`` per copy) or
+            ``"pooled"`` (to the mean robot token, linear in ``m``).
+        device: Parameter device.
+
+    Raises:
+        ValueError: if ``embed_dim`` is not a multiple of ``heads`` or ``robot_attention`` unknown.
+    """
+
+    def __init__(
+        self,
+        *,
+        embed_dim: int = 64,
+        heads: int = 4,
+        layers: int = 2,
+        max_task_types: int = 32,
+        robot_attention: Literal["full", "pooled"] = "full",
+        device: torch.device | str | None = None,
+    ) -> None:
+        super().__init__()
+        if embed_dim % heads:
+            raise ValueError(f"embed_dim={embed_dim} must be a multiple of heads={heads}")
+        if robot_attention not in ROBOT_ATTENTION:
+            raise ValueError(f"robot_attention must be one of {ROBOT_ATTENTION}")
+        d = embed_dim
+        self.embed_dim, self.max_task_types = d, max_task_types
+        self.robot_in = _mlp(ROBOT_TOKEN_SIZE, d)
+        self.slot_in = _mlp(SLOT_TOKEN_SIZE, d)
+        self.type_in = _mlp(TYPE_TOKEN_SIZE, d)
+        self.type_embedding = nn.Embedding(max_task_types, d)
+        self.blocks = nn.ModuleList(Block(d, heads, robot_attention) for _ in range(layers))
+        self.norm = nn.LayerNorm(d)
+        self.wait_head = nn.Sequential(nn.Linear(d, d), nn.ReLU(), nn.Linear(d, 1))
+        self.pair_robot, self.pair_slot = nn.Linear(d, d), nn.Linear(d, d, bias=False)
+        self.pair_out = nn.Linear(d, 1)
+        with torch.no_grad():  # untrained outputs are 0: the prior bonus alone decides
+            for layer in (self.wait_head[-1], self.pair_out):
+                layer.weight.zero_()
+                layer.bias.zero_()
+        nn.init.normal_(self.type_embedding.weight, std=1.0 / math.sqrt(d))
+        self.to(device)
+
+    def _tokens(
+        self,
+        robots: torch.Tensor,
+        robot_types: torch.Tensor,
+        slots: torch.Tensor,
+        slot_type: torch.Tensor,
+        types: torch.Tensor,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Robot and slot tokens after the blocks, flattened: ``[N, m, d]``, ``[N, K, d]``."""
+        n = types.shape[-2]
+        check_task_types(n, self.max_task_types)
+        m, K = robots.shape[-2], slots.shape[-2]
+        robots = robots.reshape(-1, m, robots.shape[-1])
+        N = robots.shape[0]
+        robot_types = robot_types.reshape(N, m, n).to(robots.dtype)
+        slots = slots.reshape(N, K, slots.shape[-1])
+        slot_type = slot_type.reshape(N, K)
+        type_tokens = self.type_embedding.weight[:n] + self.type_in(types.reshape(N, n, -1))
+        # the mean type token of each robot's Lambda_i (every robot has a type)
+        own = robot_types / robot_types.sum(-1, keepdim=True).clamp(min=1)
+        h = self.robot_in(robots) + own @ type_tokens  # [N, m, d]
+        slot_tokens = torch.gather(
+            type_tokens, 1, slot_type.unsqueeze(-1).expand(N, K, self.embed_dim)
+        )
+        s = self.slot_in(slots) + slot_tokens  # [N, K, d]
+        present = slots[..., 0] > 0  # SLOT_FEATURES[0]: "present"
+        for block in self.blocks:
+            h, s = block(h, s, present)
+        return self.norm(h), self.norm(s)
+
+    def embed(
+        self,
+        robots: torch.Tensor,
+        robot_types: torch.Tensor,
+        slots: torch.Tensor,
+        slot_type: torch.Tensor,
+        types: torch.Tensor,
+        action_mask: torch.Tensor | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Robot embeddings ``[*, m, d]`` and the team embedding ``[*, d]`` (their mean).
+
+        For value heads: a centralized critic reads the team embedding. ``action_mask`` is not
+        read (it is accepted so that ``embed`` takes the same keys as :meth:`forward`).
+        """
+        lead = robots.shape[:-2]
+        h, _ = self._tokens(robots, robot_types, slots, slot_type, types)
+        h = h.reshape(*lead, *h.shape[-2:])
+        return h, h.mean(-2)
+
+    def forward(
+        self,
+        robots: torch.Tensor,
+        robot_types: torch.Tensor,
+        slots: torch.Tensor,
+        slot_type: torch.Tensor,
+        types: torch.Tensor,
+        action_mask: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """Masked scores ``[*, m, K + 1]`` (wait, slot 1..K) of the inputs ``[*, ...]``.
+
+        Args:
+            robots: ``[*, m, R]`` float robot features.
+            robot_types: ``[*, m, n]`` bool ``Lambda_i``.
+            slots: ``[*, K, S]`` float slot features.
+            slot_type: ``[*, K]`` int64 slot types (0 when empty).
+            types: ``[*, n, T]`` float type features.
+            action_mask: ``[*, m, K + 1]`` bool valid actions; None leaves every score unmasked.
+
+        Returns:
+            Scores (logits or Q-values); invalid actions at :data:`MASKED`.
+
+        Raises:
+            ValueError: if ``n`` exceeds ``max_task_types``.
+        """
+        lead = robots.shape[:-2]
+        h, s = self._tokens(robots, robot_types, slots, slot_type, types)
+        wait = self.wait_head(h)  # [N, m, 1]
+        pair = F.relu(self.pair_robot(h).unsqueeze(2) + self.pair_slot(s).unsqueeze(1))
+        bids = self.pair_out(pair).squeeze(-1)  # [N, m, K]
+        out = torch.cat([wait, bids], -1).reshape(*lead, h.shape[1], -1)
+        if action_mask is None:
+            return out
+        return out.masked_fill(~action_mask, MASKED)
