@@ -84,6 +84,7 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         invalid_action="raise",
         prior=learner.rule,
         features=learner.features,
+        set_inputs=learner.set_inputs,
     )
     # resuming (checkpoints are taken where every copy is between episodes): counters, curve and
     # torch's generator from the checkpoint, checked before anything is built or written; the

@@ -5,12 +5,17 @@ Both learners are TorchRL's multi-agent PPO (Yu et al. 2022, de Witt et al. 2020
 and parameter sharing:
 
 * the actor is a ``ProbabilisticActor`` over a ``MaskedCategorical`` whose mask is the env's
-  ``("agents", "action_mask")``: the logits ``[*, m, K + 1]`` come from the per-robot network
-  (:class:`~mrta_rl.learners.neural.networks.PerRobotQ`, one network shared by the robots) on
-  ``("agents", "observation")``; invalid actions get probability zero, so none is ever sampled,
-  and evaluation (``ExplorationType.DETERMINISTIC``) plays the masked mode;
-* the critic gives a value per robot ``("agents", "state_value")`` ``[*, m, 1]``: MAPPO's reads
-  the robot's inputs and the global ``state`` (centralised), IPPO's only the robot's own inputs;
+  ``("agents", "action_mask")``: the logits ``[*, m, K + 1]`` come from one network shared by
+  the robots, ``network=set`` the shared robot-set network
+  (:class:`~mrta_rl.learners.neural.set_network.SetNetwork` on the set inputs: robots attend to
+  the slots and to each other, no robot id) or ``network=mlp`` the per-robot MLP
+  (:class:`~mrta_rl.learners.neural.networks.PerRobotQ` on ``("agents", "observation")``);
+  invalid actions get probability zero, so none is ever sampled, and evaluation
+  (``ExplorationType.DETERMINISTIC``) plays the masked mode;
+* the critic gives a value per robot ``("agents", "state_value")`` ``[*, m, 1]``. MAPPO's is
+  centralised: with ``set`` a head on the robot's embedding and the pooled team embedding of its
+  own set network, with ``mlp`` the robot's features and the global ``state``. IPPO's reads only
+  the robot's own inputs (its token features, or its local features): no attention, no pooling;
 * the advantages and value targets are TorchRL's ``MultiAgentGAE`` on the team reward
   ``("agents", "reward")`` (spec step 8, the same for every robot) with the root ``done`` and
   ``terminated`` flags broadcast over the robots; the horizon is a truncation (``terminated`` is
@@ -44,7 +49,7 @@ from torchrl.objectives.multiagent import MAPPOLoss
 
 from mrta_rl.config import Choices, Range
 from mrta_rl.envs import AuctionEnv, encodings
-from mrta_rl.envs.torchrl_env import PRIOR_KEY
+from mrta_rl.envs.torchrl_env import GROUP_SET_KEYS, PRIOR_KEY, ROOT_SET_KEYS, set_inputs_td
 from mrta_rl.learners.base import Learner, LearnerKind, MemoryQuery
 from mrta_rl.learners.memory import BYTES_PER_WEIGHT, ResourceEstimate, feature_sizes, mlp_weights
 from mrta_rl.learners.neural.common import (
@@ -56,6 +61,7 @@ from mrta_rl.learners.neural.common import (
     require_torchrl,
 )
 from mrta_rl.learners.neural.networks import PerRobotQ
+from mrta_rl.learners.neural.set_network import ROBOT_ATTENTION, SetNetwork
 from mrta_rl.learners.tabular.priors import GreedyPrior
 from mrta_rl.partition import Partition
 from mrta_rl.types import GroupMap
@@ -66,7 +72,9 @@ GROUP = "agents"  # the one TorchRL group of all robots
 ACTION = (GROUP, "action")
 LOG_PROB = (GROUP, "action_log_prob")
 VALUE = (GROUP, "state_value")
-NETWORKS = ("mlp",)  # the actor's and critic's body (the robot-set network joins here)
+NETWORKS = ("set", "mlp")  # the actor's and critic's body: robot-set network or per-robot MLP
+SET_KEYS = [*((GROUP, key) for key in GROUP_SET_KEYS), *ROOT_SET_KEYS]  # SetNetwork's order
+SET_SETTINGS = ("embed_dim", "heads", "layers", "max_task_types", "robot_attention")
 PPO_ADVICE = "lower learner.frames_per_batch or learner.hidden, or use a smaller system"
 
 
@@ -108,6 +116,56 @@ class PerRobotValue(nn.Module):
         return self.mlp(observation)
 
 
+class SetLogits(nn.Module):
+    """Masked logits ``[*, m, K + 1]``: the set network plus the auction prior's bonus.
+
+    The set network's output layers start at zero, so the untrained logits are the bonus alone
+    (module docstring), as :class:`~mrta_rl.learners.neural.networks.PerRobotQ`'s are.
+    """
+
+    def __init__(self, *, auction_prior: float, **settings: Any) -> None:
+        """Build the set network (``settings``: its keywords) and keep the bonus."""
+        super().__init__()
+        self.net = SetNetwork(**settings)
+        self.auction_prior = auction_prior
+
+    def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
+        """Logits of the set inputs (:data:`SET_KEYS`), ``action_mask`` and ``prior_action``."""
+        *tokens, action_mask, prior_action = inputs
+        logits = self.net(*tokens, action_mask)
+        return logits + self.auction_prior * prior_action.to(logits.dtype)
+
+
+class SetValue(nn.Module):
+    """Value per robot ``[*, m, 1]`` from the set inputs.
+
+    ``centralized=True`` (MAPPO): an MLP on the robot's embedding and the pooled team embedding of
+    its own set network (``SetNetwork.embed``). ``False`` (IPPO): an MLP on the robot's own token
+    features, without attention or pooling.
+    """
+
+    def __init__(self, *, centralized: bool, hidden: int, depth: int, **settings: Any) -> None:
+        """Build the value head (and, centralised, the set network: ``settings``)."""
+        super().__init__()
+        self.net = SetNetwork(**settings) if centralized else None
+        n_in = 2 * settings["embed_dim"] if centralized else encodings.ROBOT_TOKEN_SIZE
+        self.mlp = MLP(
+            in_features=n_in,
+            out_features=1,
+            depth=depth,
+            num_cells=hidden,
+            activation_class=nn.Tanh,
+            device=settings.get("device"),
+        )
+
+    def forward(self, *tokens: torch.Tensor) -> torch.Tensor:
+        """Values of the set inputs (:data:`SET_KEYS`)."""
+        if self.net is None:
+            return self.mlp(tokens[0])  # robots [*, m, R]
+        robots, team = self.net.embed(*tokens)  # [*, m, d], [*, d]
+        return self.mlp(torch.cat([robots, team.unsqueeze(-2).expand_as(robots)], -1))
+
+
 class PPOLearner(Learner, abstract=True):
     """Base of ``mappo`` and ``ippo`` (module docstring); subclasses set :attr:`centralized_critic`.
 
@@ -129,9 +187,20 @@ class PPOLearner(Learner, abstract=True):
     def network_weights(
         cls, env: AuctionEnv, partition: Partition | None, settings: dict[str, Any]
     ) -> int:
-        """Actor (robot features -> K + 1 logits) and critic (-> 1 value), shared by the robots."""
+        """Actor (-> K + 1 logits per robot) and critic (-> 1 value per robot)."""
         F, S = feature_sizes(env, settings)
         depth, hidden = int(settings["depth"]), int(settings["hidden"])
+        if settings["network"] == "set":
+            learner = {key: settings[key] for key in SET_SETTINGS}
+            actor = SetLogits(auction_prior=0.0, device="meta", **learner)
+            critic = SetValue(
+                centralized=cls.centralized_critic,
+                hidden=hidden,
+                depth=depth,
+                device="meta",
+                **learner,
+            )
+            return sum(p.numel() for net in (actor, critic) for p in net.parameters())
         critic_in = F + (S if cls.centralized_critic else 0)
         actor = mlp_weights(F, env.n_actions, depth, hidden)
         return actor + mlp_weights(critic_in, 1, depth, hidden)
@@ -165,7 +234,12 @@ class PPOLearner(Learner, abstract=True):
         env: AuctionEnv,
         rng: np.random.Generator,
         partition: Partition | None = None,
-        network: Annotated[str, Choices(*NETWORKS)] = "mlp",
+        network: Annotated[str, Choices(*NETWORKS)] = "set",
+        embed_dim: Annotated[int, Range(1)] = 32,
+        heads: Annotated[int, Range(1)] = 4,
+        layers: Annotated[int, Range(1)] = 1,
+        max_task_types: Annotated[int, Range(1)] = 32,
+        robot_attention: Annotated[str, Choices(*ROBOT_ATTENTION)] = "full",
         hidden: Annotated[int, Range(1)] = 128,
         depth: Annotated[int, Range(1)] = 2,
         features: Annotated[str, Choices(*encodings.FEATURES)] = "time_to_free",
@@ -189,9 +263,17 @@ class PPOLearner(Learner, abstract=True):
             env: The training env (its copies set the collector's batch).
             rng: Generator; seeds the network initialisation.
             partition: Unused (one group of all robots).
-            network: The actor's and critic's body: ``mlp`` (per-robot MLP, shared by the robots).
-            hidden: Units per hidden layer.
-            depth: Hidden layers.
+            network: The actor's and critic's body: ``set`` (the robot-set network) or ``mlp``
+                (per-robot MLP on the local features, with their robot-id one-hot).
+            embed_dim: ``network=set``: token width (a multiple of ``heads``).
+            heads: ``network=set``: attention heads.
+            layers: ``network=set``: attention blocks.
+            max_task_types: ``network=set``: rows of the type embedding (at least the team's
+                task types).
+            robot_attention: ``network=set``: ``full`` (robots attend to each other) or
+                ``pooled`` (to the mean robot token: memory linear in the robots).
+            hidden: Units per hidden layer of the MLPs (``mlp`` actor, critic heads).
+            depth: Hidden layers of the MLPs.
             features: The inputs' encoding (``encodings.FEATURES``).
             auction_prior: Logit bonus of the plain auction's action (module docstring).
             lr: Adam learning rate (actor and critic).
@@ -210,7 +292,7 @@ class PPOLearner(Learner, abstract=True):
 
         Raises:
             ValueError: naming the setting, if the batch does not fit the copies or the
-                minibatch, or the device is unavailable.
+                minibatch, the set network does not fit the team, or the device is unavailable.
         """
         require_torchrl()
         super().__init__(env=env, rng=rng, partition=partition)
@@ -225,11 +307,23 @@ class PPOLearner(Learner, abstract=True):
                 f"minibatch_size={minibatch_size} is larger than frames_per_batch="
                 f"{frames_per_batch} (a minibatch is drawn from one collected batch)"
             )
+        if network == "set" and env.n_task_types > max_task_types:
+            raise ValueError(
+                f"max_task_types={max_task_types} is smaller than the team's {env.n_task_types} "
+                f"task types: set learner.max_task_types>={env.n_task_types}"
+            )
+        if network == "set" and embed_dim % heads:
+            raise ValueError(f"embed_dim={embed_dim} is not a multiple of heads={heads}")
         if torch.device(device).type == "cuda" and not torch.cuda.is_available():
             raise ValueError("device=cuda but CUDA is not available")
         self.device = torch.device(device)
         self.hp = {
             "network": network,
+            "embed_dim": embed_dim,
+            "heads": heads,
+            "layers": layers,
+            "max_task_types": max_task_types,
+            "robot_attention": robot_attention,
             "hidden": hidden,
             "depth": depth,
             "features": features,  # saved with the weights: load() checks it
@@ -260,39 +354,50 @@ class PPOLearner(Learner, abstract=True):
 
     def _build(self) -> None:
         hp = self.hp
-        logits = PerRobotQ(
-            self.n_features,
-            self.n_robots,
-            self.n_actions,
-            share_params=True,
-            hidden=hp["hidden"],
-            depth=hp["depth"],
-            auction_prior=hp["auction_prior"],
-            device=self.device,
-        )
-        value = PerRobotValue(
-            self.n_features,
-            self.state_size,
-            centralized=self.centralized_critic,
-            hidden=hp["hidden"],
-            depth=hp["depth"],
-        ).to(self.device)
+        if hp["network"] == "set":
+            settings: dict[str, Any] = {key: hp[key] for key in SET_SETTINGS}
+            logits: nn.Module = SetLogits(
+                auction_prior=hp["auction_prior"], device=self.device, **settings
+            )
+            value: nn.Module = SetValue(
+                centralized=self.centralized_critic,
+                hidden=hp["hidden"],
+                depth=hp["depth"],
+                device=self.device,
+                **settings,
+            )
+            actor_keys = [*SET_KEYS, (GROUP, "action_mask"), (GROUP, PRIOR_KEY)]
+            critic_keys = list(SET_KEYS)
+        else:
+            logits = PerRobotQ(
+                self.n_features,
+                self.n_robots,
+                self.n_actions,
+                share_params=True,
+                hidden=hp["hidden"],
+                depth=hp["depth"],
+                auction_prior=hp["auction_prior"],
+                device=self.device,
+            )
+            value = PerRobotValue(
+                self.n_features,
+                self.state_size,
+                centralized=self.centralized_critic,
+                hidden=hp["hidden"],
+                depth=hp["depth"],
+            ).to(self.device)
+            actor_keys = [(GROUP, "observation"), (GROUP, PRIOR_KEY)]
+            critic_keys = [(GROUP, "observation"), "state"]
         self.networks = nn.ModuleDict({"actor": logits, "critic": value})
         self.actor = ProbabilisticActor(
-            TensorDictModule(
-                logits,
-                in_keys=[(GROUP, "observation"), (GROUP, PRIOR_KEY)],
-                out_keys=[(GROUP, "logits")],
-            ),
+            TensorDictModule(logits, in_keys=actor_keys, out_keys=[(GROUP, "logits")]),
             in_keys={"logits": (GROUP, "logits"), "mask": (GROUP, "action_mask")},
             out_keys=[ACTION],
             distribution_class=MaskedCategorical,
             return_log_prob=True,
             log_prob_key=LOG_PROB,
         )
-        self.critic = TensorDictModule(
-            value, in_keys=[(GROUP, "observation"), "state"], out_keys=[VALUE]
-        )
+        self.critic = TensorDictModule(value, in_keys=critic_keys, out_keys=[VALUE])
         self.loss = self.loss_class(
             self.actor,
             self.critic,
@@ -318,6 +423,11 @@ class PPOLearner(Learner, abstract=True):
     def features(self) -> str:
         """The inputs' encoding (``hp``): the env view builds the observations with it."""
         return self.hp["features"]
+
+    @property
+    def set_inputs(self) -> bool:
+        """Whether the networks read the set inputs (``network=set``): the env view writes them."""
+        return self.hp["network"] == "set"
 
     def advantages(self, data: TensorDictBase) -> TensorDictBase:
         """Scale the team reward, then write ``MultiAgentGAE``'s advantages and value targets.
@@ -377,7 +487,10 @@ class PPOLearner(Learner, abstract=True):
     # -------------------------------------------------------------- Learner interface
     def encode(self, env: AuctionEnv) -> TensorDict:
         """Observation TensorDict of the decision point, as the env view writes it."""
-        return observation_td(env, self.group_map, env.action_mask, self.rule, self.features)
+        td = observation_td(env, self.group_map, env.action_mask, self.rule, self.features)
+        if self.set_inputs:
+            td.update(set_inputs_td(env, self.group_map, env.action_mask))
+        return td
 
     def act(self, view: TensorDict, mask: np.ndarray, *, explore: bool) -> np.ndarray:
         """Sampled (``explore``) or masked-mode actions of the actor, valid under ``mask``.
