@@ -47,7 +47,7 @@ from torchrl.modules import MLP, MaskedCategorical, ProbabilisticActor
 from torchrl.objectives import ValueEstimators
 from torchrl.objectives.multiagent import MAPPOLoss
 
-from mrta_rl.config import Choices, Range
+from mrta_rl.config import Choices, ConfigError, Range
 from mrta_rl.envs import AuctionEnv, encodings
 from mrta_rl.envs.torchrl_env import GROUP_SET_KEYS, PRIOR_KEY, ROOT_SET_KEYS, set_inputs_td
 from mrta_rl.learners.base import Learner, LearnerKind, MemoryQuery
@@ -191,6 +191,7 @@ class PPOLearner(Learner, abstract=True):
         F, S = feature_sizes(env, settings)
         depth, hidden = int(settings["depth"]), int(settings["hidden"])
         if settings["network"] == "set":
+            cls.check_set_network(env, settings)
             learner = {key: settings[key] for key in SET_SETTINGS}
             actor = SetLogits(auction_prior=0.0, device="meta", **learner)
             critic = SetValue(
@@ -204,6 +205,26 @@ class PPOLearner(Learner, abstract=True):
         critic_in = F + (S if cls.centralized_critic else 0)
         actor = mlp_weights(F, env.n_actions, depth, hidden)
         return actor + mlp_weights(critic_in, 1, depth, hidden)
+
+    @classmethod
+    def check_set_network(cls, env: AuctionEnv, settings: dict[str, Any]) -> None:
+        """Refuse set-network settings that cannot fit the team (``network=set``).
+
+        Raises:
+            ConfigError: naming ``learner.max_task_types`` (below the team's task types) or
+                ``learner.embed_dim`` (not a multiple of ``learner.heads``).
+        """
+        n, most = env.n_task_types, int(settings["max_task_types"])
+        if n > most:
+            raise ConfigError(
+                f"learner.max_task_types: {most} is smaller than the team's {n} task types "
+                f"(system {env.system.name}): set learner.max_task_types>={n}"
+            )
+        if int(settings["embed_dim"]) % int(settings["heads"]):
+            raise ConfigError(
+                f"learner.embed_dim: {settings['embed_dim']} is not a multiple of "
+                f"learner.heads={settings['heads']}"
+            )
 
     @classmethod
     def estimate_memory(cls, query: MemoryQuery) -> ResourceEstimate:
@@ -307,13 +328,9 @@ class PPOLearner(Learner, abstract=True):
                 f"minibatch_size={minibatch_size} is larger than frames_per_batch="
                 f"{frames_per_batch} (a minibatch is drawn from one collected batch)"
             )
-        if network == "set" and env.n_task_types > max_task_types:
-            raise ValueError(
-                f"max_task_types={max_task_types} is smaller than the team's {env.n_task_types} "
-                f"task types: set learner.max_task_types>={env.n_task_types}"
-            )
-        if network == "set" and embed_dim % heads:
-            raise ValueError(f"embed_dim={embed_dim} is not a multiple of heads={heads}")
+        if network == "set":
+            settings = {"max_task_types": max_task_types, "embed_dim": embed_dim, "heads": heads}
+            self.check_set_network(env, settings)
         if torch.device(device).type == "cuda" and not torch.cuda.is_available():
             raise ValueError("device=cuda but CUDA is not available")
         self.device = torch.device(device)

@@ -17,7 +17,12 @@ from mrta_rl.learners.neural import IPPOLearner, MAPPOLearner
 from mrta_rl.runners import train
 from tests.conftest import ROOT, paper_system
 
-SMALL = {"hidden": 16, "depth": 1, "frames_per_batch": 40, "minibatch_size": 20}
+SMALL = {"hidden": 16, "depth": 1, "frames_per_batch": 40, "minibatch_size": 20, "embed_dim": 8}
+CASES = [
+    (cls, network)
+    for cls in (MAPPOLearner, IPPOLearner)
+    for network in ("set", "mlp")  # the robot-set network and the per-robot MLP
+]
 
 
 @pytest.fixture(autouse=True)
@@ -37,10 +42,10 @@ def make(cls, batch=4, seed=0, **hp):
 
 
 # ---------------------------------------------------------------------------------- masking
-@pytest.mark.parametrize("cls", [MAPPOLearner, IPPOLearner])
-def test_no_invalid_action_is_ever_sampled_even_where_the_logits_favour_one(cls):
+@pytest.mark.parametrize(("cls", "network"), CASES)
+def test_no_invalid_action_is_ever_sampled_even_where_the_logits_favour_one(cls, network):
     """Most actions masked, and the prior's logit bonus put on a masked one: never sampled."""
-    learner, env = make(cls, batch=8, auction_prior=20.0)
+    learner, env = make(cls, batch=8, auction_prior=20.0, network=network)
     view = learner.encode(env)
     B, m, A = env.action_mask.shape
     gen = np.random.default_rng(1)
@@ -64,10 +69,10 @@ def test_no_invalid_action_is_ever_sampled_even_where_the_logits_favour_one(cls)
     assert (mode[0] == 0).all()
 
 
-@pytest.mark.parametrize("cls", [MAPPOLearner, IPPOLearner])
-def test_evaluation_plays_the_masked_mode_the_untrained_policy_is_greedy(cls):
+@pytest.mark.parametrize(("cls", "network"), CASES)
+def test_evaluation_plays_the_masked_mode_the_untrained_policy_is_greedy(cls, network):
     """Untrained (last layer zero), the logits are the prior's bonus: the mode is greedy's bid."""
-    learner, env = make(cls, batch=4, auction_prior=1.0)
+    learner, env = make(cls, batch=4, auction_prior=1.0, network=network)
     for _ in range(20):
         mask = env.action_mask.copy()
         greedy = env.fixed_actions("greedy")
@@ -87,7 +92,9 @@ def test_multiagent_gae_on_the_team_reward_against_a_hand_computed_case():
     * A_t = delta_t + gamma lambda A_{t+1}, cut after a done tick and at the batch's end;
     * value target = A_t + v_t.
     """
-    learner, _ = make(IPPOLearner, gamma=0.9, lmbda=0.8, reward_scale=1.0, depth=1, hidden=4)
+    learner, _ = make(
+        IPPOLearner, network="mlp", gamma=0.9, lmbda=0.8, reward_scale=1.0, depth=1, hidden=4
+    )
     critic = learner.networks["critic"].mlp
     with torch.no_grad():
         for p in critic.parameters():
@@ -155,6 +162,8 @@ def test_multiagent_gae_on_the_team_reward_against_a_hand_computed_case():
         ("learner.frames_per_batch=102", "frames_per_batch"),  # smoke: 4 copies
         ("learner.epochs=0", "epochs"),
         ("learner.network=sets", "network"),
+        ("learner.max_task_types=2", "max_task_types"),  # System-I has 5 task types
+        ("learner.embed_dim=10", "embed_dim"),  # 4 heads
     ],
 )
 def test_bad_settings_are_named_before_any_run_dir(compose_cfg, tmp_path, override, key):
