@@ -12,10 +12,10 @@ and parameter sharing:
   (:class:`~mrta_rl.learners.neural.networks.PerRobotQ` on ``("agents", "observation")``);
   invalid actions get probability zero, so none is ever sampled, and evaluation
   (``ExplorationType.DETERMINISTIC``) plays the masked mode;
-* the critic gives a value per robot ``("agents", "state_value")`` ``[*, m, 1]``. MAPPO's is
-  centralised: with ``set`` a head on the robot's embedding and the pooled team embedding of its
-  own set network, with ``mlp`` the robot's features and the global ``state``. IPPO's reads only
-  the robot's own inputs (its token features, or its local features): no attention, no pooling;
+* the critic gives a value per robot ``("agents", "state_value")`` ``[*, m, 1]``, an MLP shared
+  by the robots. MAPPO's is centralised: it reads the robot's inputs (its set-token features,
+  or its local features with ``mlp``) and the global ``state``. IPPO's reads only the robot's
+  own inputs: no state, no attention, no pooling;
 * the advantages and value targets are TorchRL's ``MultiAgentGAE`` on the team reward
   ``("agents", "reward")`` (spec step 8, the same for every robot) with the root ``done`` and
   ``terminated`` flags broadcast over the robots; the horizon is a truncation (``terminated`` is
@@ -137,33 +137,37 @@ class SetLogits(nn.Module):
 
 
 class SetValue(nn.Module):
-    """Value per robot ``[*, m, 1]`` from the set inputs.
+    """Value per robot ``[*, m, 1]``: an MLP on the robot's own token features [and the state].
 
-    ``centralized=True`` (MAPPO): an MLP on the robot's embedding and the pooled team embedding of
-    its own set network (``SetNetwork.embed``). ``False`` (IPPO): an MLP on the robot's own token
-    features, without attention or pooling.
+    ``centralized=True`` (MAPPO) concatenates the global ``state`` to the robot's token features
+    (``SET_KEYS``' robots), so the value sees the whole team; ``False`` (IPPO) reads the robot's
+    own token features only, without attention or pooling. A critic with its own set network
+    (the pooled team embedding) doubles the cost of a PPO update, for a value that is only read
+    in training.
     """
 
-    def __init__(self, *, centralized: bool, hidden: int, depth: int, **settings: Any) -> None:
-        """Build the value head (and, centralised, the set network: ``settings``)."""
+    def __init__(
+        self, state_size: int, *, centralized: bool, hidden: int, depth: int, device: Any = None
+    ) -> None:
+        """Build the MLP (``state_size``: ``G``, read when centralised)."""
         super().__init__()
-        self.net = SetNetwork(**settings) if centralized else None
-        n_in = 2 * settings["embed_dim"] if centralized else encodings.ROBOT_TOKEN_SIZE
+        self.centralized = centralized
+        n_in = encodings.ROBOT_TOKEN_SIZE + (state_size if centralized else 0)
         self.mlp = MLP(
             in_features=n_in,
             out_features=1,
             depth=depth,
             num_cells=hidden,
             activation_class=nn.Tanh,
-            device=settings.get("device"),
+            device=device,
         )
 
-    def forward(self, *tokens: torch.Tensor) -> torch.Tensor:
-        """Values of the set inputs (:data:`SET_KEYS`)."""
-        if self.net is None:
-            return self.mlp(tokens[0])  # robots [*, m, R]
-        robots, team = self.net.embed(*tokens)  # [*, m, d], [*, d]
-        return self.mlp(torch.cat([robots, team.unsqueeze(-2).expand_as(robots)], -1))
+    def forward(self, robots: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
+        """Values of the robots' token features ``[*, m, R]`` (and ``state`` ``[*, G]``)."""
+        if self.centralized:
+            team = state.unsqueeze(-2).expand(*robots.shape[:-1], state.shape[-1])
+            robots = torch.cat([robots, team], -1)
+        return self.mlp(robots)
 
 
 class PPOLearner(Learner, abstract=True):
@@ -194,14 +198,9 @@ class PPOLearner(Learner, abstract=True):
             cls.check_set_network(env, settings)
             learner = {key: settings[key] for key in SET_SETTINGS}
             actor = SetLogits(auction_prior=0.0, device="meta", **learner)
-            critic = SetValue(
-                centralized=cls.centralized_critic,
-                hidden=hidden,
-                depth=depth,
-                device="meta",
-                **learner,
-            )
-            return sum(p.numel() for net in (actor, critic) for p in net.parameters())
+            actor_weights = sum(p.numel() for p in actor.parameters())
+            critic_in = encodings.ROBOT_TOKEN_SIZE + (S if cls.centralized_critic else 0)
+            return actor_weights + mlp_weights(critic_in, 1, depth, hidden)
         critic_in = F + (S if cls.centralized_critic else 0)
         actor = mlp_weights(F, env.n_actions, depth, hidden)
         return actor + mlp_weights(critic_in, 1, depth, hidden)
@@ -377,14 +376,14 @@ class PPOLearner(Learner, abstract=True):
                 auction_prior=hp["auction_prior"], device=self.device, **settings
             )
             value: nn.Module = SetValue(
+                self.state_size,
                 centralized=self.centralized_critic,
                 hidden=hp["hidden"],
                 depth=hp["depth"],
                 device=self.device,
-                **settings,
             )
             actor_keys = [*SET_KEYS, (GROUP, "action_mask"), (GROUP, PRIOR_KEY)]
-            critic_keys = list(SET_KEYS)
+            critic_keys = [(GROUP, "robots"), "state"]
         else:
             logits = PerRobotQ(
                 self.n_features,
@@ -433,7 +432,11 @@ class PPOLearner(Learner, abstract=True):
             done="done",  # root [*, 1]: MultiAgentGAE broadcasts it over the robots
             terminated="terminated",
         )
-        self.loss.make_value_estimator(ValueEstimators.MAGAE, gamma=hp["gamma"], lmbda=hp["lmbda"])
+        # the values of the states and of their next states in two plain calls: vmap over the
+        # two has no batching rule for the set network's attention (a slow per-item fallback)
+        self.loss.make_value_estimator(
+            ValueEstimators.MAGAE, gamma=hp["gamma"], lmbda=hp["lmbda"], deactivate_vmap=True
+        )
 
     # -------------------------------------------------------------- training
     @property
