@@ -234,6 +234,11 @@ class PPOLearner(Learner, abstract=True):
         # one frame (copy-tick): observation, mask, prior one-hot, state (and their next), per
         # robot action, log-probability, value, advantage, target, reward; flags
         frame = 2 * (m * F * 4 + S * 4 + 2 * m * A) + m * (8 + 5 * 4) + 32
+        if settings["network"] == "set":  # the set inputs too: robot, slot and type tokens
+            n, K = env.n_task_types, A - 1
+            robots = m * (encodings.ROBOT_TOKEN_SIZE * 4 + n)  # float32 features, bool types
+            slots = K * (encodings.SLOT_TOKEN_SIZE * 4 + 8)  # float32 features, int64 type
+            frame += 2 * (robots + slots + n * encodings.TYPE_TOKEN_SIZE * 4)
         parts = {
             "networks": cls.network_weights(env, partition, settings) * BYTES_PER_WEIGHT,
             "collector batch": int(settings["frames_per_batch"]) * frame,
