@@ -269,7 +269,7 @@ class PPOLearner(Learner, abstract=True):
         depth: Annotated[int, Range(1)] = 2,
         features: Annotated[str, Choices(*encodings.FEATURES)] = "time_to_free",
         auction_prior: Annotated[float, Range(0)] = 2.0,
-        lr: Annotated[float, Range(0, low_open=True)] = 3e-4,
+        lr: Annotated[float, Range(0, low_open=True)] = 1e-3,
         gamma: Annotated[float, Range(0, 1, low_open=True, high_open=True)] = 0.95,
         lmbda: Annotated[float, Range(0, 1)] = 0.95,
         clip_epsilon: Annotated[float, Range(0, 1, low_open=True)] = 0.2,
@@ -278,7 +278,7 @@ class PPOLearner(Learner, abstract=True):
         reward_scale: Annotated[float, Range(0, low_open=True)] = 0.1,
         frames_per_batch: Annotated[int, Range(1)] = 4_000,
         epochs: Annotated[int, Range(1)] = 4,
-        minibatch_size: Annotated[int, Range(1)] = 1_000,
+        minibatch_size: Annotated[int, Range(1)] = 2_000,
         max_grad_norm: Annotated[float, Range(0, low_open=True)] = 1.0,
         device: Annotated[str, Choices("cpu", "cuda")] = "cpu",
     ) -> None:
