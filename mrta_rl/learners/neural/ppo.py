@@ -276,9 +276,9 @@ class PPOLearner(Learner, abstract=True):
         entropy_coeff: Annotated[float, Range(0)] = 0.01,
         critic_coeff: Annotated[float, Range(0, low_open=True)] = 1.0,
         reward_scale: Annotated[float, Range(0, low_open=True)] = 0.1,
-        frames_per_batch: Annotated[int, Range(1)] = 4_000,
+        frames_per_batch: Annotated[int, Range(1)] = 2_400,
         epochs: Annotated[int, Range(1)] = 4,
-        minibatch_size: Annotated[int, Range(1)] = 2_000,
+        minibatch_size: Annotated[int, Range(1)] = 1_200,
         max_grad_norm: Annotated[float, Range(0, low_open=True)] = 1.0,
         device: Annotated[str, Choices("cpu", "cuda")] = "cpu",
     ) -> None:
