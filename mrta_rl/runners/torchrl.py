@@ -29,6 +29,7 @@ from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
 from mrta_rl.envs.torchrl_env import AuctionTorchRLEnv
+from mrta_rl.runners.episodes import EpisodeReturns
 from mrta_rl.runners.progress import progress_bar
 from mrta_rl.runners.replay import (
     REPLAY_FILE,
@@ -107,7 +108,7 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     for _ in range(episodes):
         run.env.reset()
     seconds = {"collect": 0.0, "train": 0.0}
-    running = torch.zeros(batch)  # [B] team return of the current episode, per copy
+    returns = EpisodeReturns(batch, team_group, episodes)
     loss_info: dict[str, float] = {}
     start = time.perf_counter()
     if total_frames == 0:
@@ -146,29 +147,16 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         for row in rows:
             curve.log(row)
         scalars = curve.torchrl_logger  # the run's tracker (logger=csv|tensorboard|wandb|mlflow)
-        recent = "-"  # last episode's mean team return, for the progress bar
         tick = time.perf_counter()
         for data in collector:  # [B, T]
             seconds["collect"] += time.perf_counter() - tick
             n_frames = data.numel()
+            finished, boundary = returns.add(data, frames)
             frames += n_frames
-            # [B, T] team reward: every group's (group, "reward") is the team reward, per robot
-            reward = data.get(("next", team_group, "reward"))[..., 0, 0].reshape(batch, -1).cpu()
-            done = data.get(("next", "done")).reshape(batch, -1).cpu()  # [B, T]
-            for t in range(reward.shape[1]):
-                running += reward[:, t]
-                if done[:, t].all():  # copies share the horizon: they finish together
-                    episodes += 1
-                    team_return = float(running.mean())
-                    recent = f"{team_return:.1f}"
-                    row = {
-                        "env_ticks": frames - n_frames + (t + 1) * batch,
-                        "episode": episodes,
-                        "team_return_mean": team_return,
-                    }
-                    curve.log(row)
-                    rows.append(row)
-                    running.zero_()
+            episodes = returns.episodes
+            for row in finished:
+                curve.log(row)
+                rows.append(row)
             buffer.extend(learner.transitions(data))
             learner.anneal(n_frames)
             tick = time.perf_counter()
@@ -189,13 +177,13 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
             bar.update(n_frames)
             bar.set_postfix(
                 {
-                    "return": recent,
+                    "return": returns.recent,
                     "eps": f"{learner.epsilon:.3f}",
                     "fps": f"{fps_collection:.0f}/{fps_training:.0f}",
                 },
                 refresh=False,
             )
-            if ckpt and done[:, -1].all():  # the batch ends between episodes: resumable here
+            if ckpt and boundary:  # the batch ends between episodes: resumable here
                 loop = {"episode": episodes, "frames": frames, "replayed": replayed, "curve": rows}
                 ckpt.episode_end(loop, last=frames >= total_frames, files=save_files)
             tick = time.perf_counter()

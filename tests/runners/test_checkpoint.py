@@ -263,8 +263,23 @@ def learner_kind(name: str) -> str:
     ).kind
 
 
+def learner_loop(name: str) -> str:
+    """The ``training_loop`` of the learner class ``conf/learner/<name>.yaml`` builds."""
+    return learner_class(
+        yaml.safe_load((ROOT / "conf" / "learner" / f"{name}.yaml").read_text())
+    ).training_loop
+
+
 KINDS = {path.stem: learner_kind(path.stem) for path in (ROOT / "conf" / "learner").glob("*.yaml")}
 TRAINED = sorted(name for name, kind in KINDS.items() if kind != "fixed")
+ON_POLICY = "mrta_rl.runners.ppo:train_loop"  # the neural learners without a replay buffer
+
+
+def budget(name: str) -> list[str]:
+    """The kill-and-resume budget of a learner: its kind's, or the on-policy loop's."""
+    return BUDGETS["on_policy" if learner_loop(name) == ON_POLICY else KINDS[name]]
+
+
 # budgets per kind: long enough that a kill lands well before the end, short enough for seconds
 # (a smoke episode takes a few ms on the numpy loop, a few hundred ms on the TorchRL loop)
 BUDGETS = {
@@ -280,6 +295,8 @@ BUDGETS = {
         "learner.hidden=32",
         "learner.batch_size=64",
     ],
+    # mappo, ippo: a PPO update every 25 ticks of the smoke horizon (debug_learner/smoke)
+    "on_policy": ["train.episodes=6", "train.checkpoint_every=1"],
 }
 
 
@@ -349,12 +366,7 @@ def test_sigkill_after_a_random_checkpoint_then_resume_ends_like_an_uninterrupte
 
     The uninterrupted run trains in this process while the resumed one starts up beside it.
     """
-    args = [
-        f"learner={learner}",
-        "system=system1",
-        "debug=smoke",
-        *BUDGETS[KINDS[learner]],
-    ]
+    args = [f"learner={learner}", "system=system1", "debug=smoke", *budget(learner)]
     episodes, every = setting(args, "train.episodes"), setting(args, "train.checkpoint_every")
     # the checkpoint to kill after, at random, seeded by the case: one in the first two thirds
     target = random.Random(learner).randrange(every, 2 * episodes // 3, every)
