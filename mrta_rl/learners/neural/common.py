@@ -87,7 +87,7 @@ from mrta_rl.learners.memory import (
     neural_estimate,
 )
 from mrta_rl.learners.neural.networks import PerRobotQ, joint_decode, joint_encode
-from mrta_rl.learners.neural.set_network import ROBOT_ATTENTION, SetNetwork, SetQ
+from mrta_rl.learners.neural.set_network import ROBOT_ATTENTION, SetNetwork, SetWithPrior
 from mrta_rl.learners.tabular.priors import HOLD_PRIORS, GreedyPrior, HoldRule, SpreadWaitPrior
 from mrta_rl.partition import Partition
 from mrta_rl.types import GroupMap
@@ -760,10 +760,10 @@ class PerRobotQLearner(NeuralLearner, abstract=True):
 
     ``network=mlp`` is :class:`~mrta_rl.learners.neural.networks.PerRobotQ` over the local
     features; ``network=set`` is the shared robot-set network
-    (:class:`~mrta_rl.learners.neural.set_network.SetQ`, one set of weights for every robot and
-    any team, no robot id) with the same prior bonus. The ``embed_dim``, ``heads``, ``layers``,
-    ``max_task_types`` and ``robot_attention`` settings are the set network's (``mlp`` ignores
-    them; ``hidden`` and ``depth`` are the MLP's).
+    (:class:`~mrta_rl.learners.neural.set_network.SetWithPrior`, one set of weights for every
+    robot and any team, no robot id) with the same prior bonus. The ``embed_dim``, ``heads``,
+    ``layers``, ``max_task_types`` and ``robot_attention`` settings are the set network's
+    (``mlp`` ignores them; ``hidden`` and ``depth`` are the MLP's).
     """
 
     @classmethod
@@ -848,11 +848,11 @@ class PerRobotQLearner(NeuralLearner, abstract=True):
         return cls.check_set_network(env, settings)
 
     def _q_network(self, group: str, share_params: bool) -> tuple[nn.Module, list]:
-        """With ``network=set``: :class:`SetQ` over the set inputs, the mask and the prior."""
+        """With ``network=set``: :class:`SetWithPrior` over the set inputs, mask and prior."""
         settings = self._network_settings
         if settings["network"] != "set":
             return super()._q_network(group, share_params)
-        qnet = SetQ(
+        qnet = SetWithPrior(
             auction_prior=self.hp["auction_prior"],
             device=self.device,
             **self.set_settings(settings),

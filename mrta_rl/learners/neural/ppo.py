@@ -61,7 +61,7 @@ from mrta_rl.learners.neural.common import (
     require_torchrl,
 )
 from mrta_rl.learners.neural.networks import PerRobotQ
-from mrta_rl.learners.neural.set_network import ROBOT_ATTENTION, SetNetwork
+from mrta_rl.learners.neural.set_network import ROBOT_ATTENTION, SetWithPrior
 from mrta_rl.learners.tabular.priors import GreedyPrior
 from mrta_rl.partition import Partition
 from mrta_rl.types import GroupMap
@@ -114,26 +114,6 @@ class PerRobotValue(nn.Module):
             team = state.unsqueeze(-2).expand(*observation.shape[:-1], state.shape[-1])
             observation = torch.cat([observation, team], -1)
         return self.mlp(observation)
-
-
-class SetLogits(nn.Module):
-    """Masked logits ``[*, m, K + 1]``: the set network plus the auction prior's bonus.
-
-    The set network's output layers start at zero, so the untrained logits are the bonus alone
-    (module docstring), as :class:`~mrta_rl.learners.neural.networks.PerRobotQ`'s are.
-    """
-
-    def __init__(self, *, auction_prior: float, **settings: Any) -> None:
-        """Build the set network (``settings``: its keywords) and keep the bonus."""
-        super().__init__()
-        self.net = SetNetwork(**settings)
-        self.auction_prior = auction_prior
-
-    def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
-        """Logits of the set inputs (:data:`SET_KEYS`), ``action_mask`` and ``prior_action``."""
-        *tokens, action_mask, prior_action = inputs
-        logits = self.net(*tokens, action_mask)
-        return logits + self.auction_prior * prior_action.to(logits.dtype)
 
 
 class SetValue(nn.Module):
@@ -197,7 +177,7 @@ class PPOLearner(Learner, abstract=True):
         if settings["network"] == "set":
             cls.check_set_network(env, settings)
             learner = {key: settings[key] for key in SET_SETTINGS}
-            actor = SetLogits(auction_prior=0.0, device="meta", **learner)
+            actor = SetWithPrior(auction_prior=0.0, device="meta", **learner)
             actor_weights = sum(p.numel() for p in actor.parameters())
             critic_in = encodings.ROBOT_TOKEN_SIZE + (S if cls.centralized_critic else 0)
             return actor_weights + mlp_weights(critic_in, 1, depth, hidden)
@@ -377,7 +357,7 @@ class PPOLearner(Learner, abstract=True):
         hp = self.hp
         if hp["network"] == "set":
             settings: dict[str, Any] = {key: hp[key] for key in SET_SETTINGS}
-            logits: nn.Module = SetLogits(
+            logits: nn.Module = SetWithPrior(
                 auction_prior=hp["auction_prior"], device=self.device, **settings
             )
             value: nn.Module = SetValue(

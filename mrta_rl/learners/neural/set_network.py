@@ -254,18 +254,20 @@ class SetNetwork(nn.Module):
         return out.masked_fill(~action_mask, MASKED)
 
 
-class SetQ(nn.Module):
-    """Per-robot Q-values ``[*, m, K + 1]``: the set network plus the prior's bonus.
+class SetWithPrior(nn.Module):
+    """Per-robot scores ``[*, m, K + 1]``: the set network plus the prior's bonus.
 
-    The Q-learners' ``network=set`` (``learners/neural/common.py``): the set network's output
-    layers start at zero, so an untrained network plays the prior, as ``PerRobotQ`` does.
+    The Q-values of the Q-learners' ``network=set`` (``learners/neural/common.py``) and the
+    logits of the policy-gradient learners' actor (``learners/neural/ppo.py``): the set
+    network's output layers start at zero, so an untrained network plays the prior, as
+    ``PerRobotQ`` does.
     """
 
     def __init__(self, *, auction_prior: float, **settings) -> None:
         """Build the set network.
 
         Args:
-            auction_prior: Bonus of the prior's action in Q-units.
+            auction_prior: Bonus of the prior's action (Q-units or logits).
             **settings: Keyword settings of :class:`SetNetwork`.
         """
         super().__init__()
@@ -282,6 +284,6 @@ class SetQ(nn.Module):
         action_mask: torch.Tensor,
         prior_action: torch.Tensor,
     ) -> torch.Tensor:
-        """Masked Q-values; ``prior_action`` ``[*, m, K + 1]``: one-hot of the prior's action."""
+        """Masked scores; ``prior_action`` ``[*, m, K + 1]``: one-hot of the prior's action."""
         values = self.net(robots, robot_types, slots, slot_type, types, action_mask)
         return values + self.auction_prior * prior_action.to(values.dtype)
