@@ -281,6 +281,13 @@ BUDGETS = {
         "learner.batch_size=64",
     ],
 }
+# learners whose kind trains on another loop than the kind's usual one: net_es is a network
+# trained by policy search on the numpy tick loop, so it takes the search budget
+LOOP_BUDGETS = {"net_es": BUDGETS["search"]}
+
+
+def budget(learner: str) -> list[str]:
+    return LOOP_BUDGETS.get(learner) or BUDGETS[KINDS[learner]]
 
 
 def setting(args: list[str], key: str) -> int:
@@ -340,7 +347,7 @@ def resumed_run(resumed: subprocess.Popen, cut_dir: Path) -> int:
 @pytest.mark.parametrize(
     "learner",
     # the TorchRL loop's cases take about 10 s each (two processes starting torch)
-    [pytest.param(n, marks=[pytest.mark.slow] * (KINDS[n] == "neural")) for n in TRAINED],
+    [pytest.param(n, marks=[pytest.mark.slow] * (budget(n) is BUDGETS["neural"])) for n in TRAINED],
 )
 def test_sigkill_after_a_random_checkpoint_then_resume_ends_like_an_uninterrupted_run(
     compose_cfg, tmp_path, learner
@@ -353,7 +360,7 @@ def test_sigkill_after_a_random_checkpoint_then_resume_ends_like_an_uninterrupte
         f"learner={learner}",
         "system=system1",
         "debug=smoke",
-        *BUDGETS[KINDS[learner]],
+        *budget(learner),
     ]
     episodes, every = setting(args, "train.episodes"), setting(args, "train.checkpoint_every")
     # the checkpoint to kill after, at random, seeded by the case: one in the first two thirds

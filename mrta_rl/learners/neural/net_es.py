@@ -286,7 +286,7 @@ def network_shapes(hidden: int) -> tuple[tuple[int, ...], ...]:
 
 
 class NetESLearner(ReserveESLearner):
-    """``reserve_es``'s rule plus a network over richer pair inputs, trained by ES (module docstring).
+    """``reserve_es``'s rule plus a network over richer pair inputs, trained by ES (module doc).
 
     Args:
         hidden: Hidden units of the network.
