@@ -23,6 +23,7 @@ members) and Adam takes the step.
 
 from __future__ import annotations
 
+import inspect
 from pathlib import Path
 from typing import Annotated, Any, ClassVar
 
@@ -308,15 +309,18 @@ class NetESLearner(ReserveESLearner):
 
     @classmethod
     def estimate_memory(cls, query: MemoryQuery) -> ResourceEstimate:
-        """Nothing beyond the env copies: a few hundred weights and their Adam moments."""
-        return ResourceEstimate(cls.__name__)
+        """The weights of every training copy's member, the weights and Adam's two moments."""
+        env, partition, settings, decisions, copies = query
+        weights = cls.learning_space_dimension(env, partition, settings)
+        size = (copies + 3) * weights * np.dtype(np.float64).itemsize
+        return ResourceEstimate(cls.__name__, up_front=size, worst=size, parts={"weights": size})
 
     @classmethod
     def learning_space_dimension(
         cls, env: AuctionEnv, partition: Partition | None, settings: dict[str, Any]
     ) -> int:
         """The weights of the rule and the network (no table)."""
-        hidden = settings.get("hidden", 16)
+        hidden = settings.get("hidden", inspect.signature(cls).parameters["hidden"].default)
         return N_FEATURES + sum(int(np.prod(shape)) for shape in network_shapes(hidden))
 
     def __init__(

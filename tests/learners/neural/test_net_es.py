@@ -123,3 +123,12 @@ def test_save_and_load_round_trip(tmp_path):
     _, smaller = make("system1", hidden=4)
     with pytest.raises(ValueError, match="weights"):
         smaller.load(tmp_path)
+
+
+def test_size_does_not_depend_on_the_team():
+    """20 rule weights + 18 x 16 + 16 + 16 x 2 + 2 network weights, for either system."""
+    for system_name in ("system1", "system2"):
+        _, learner = make(system_name)
+        assert learner.theta.size == 358
+        assert NetESLearner.learning_space_dimension(learner.env, None, {}) == 358
+    assert NetESLearner.learning_space_dimension(learner.env, None, {"hidden": 4}) == 106
