@@ -6,9 +6,9 @@ with a :class:`RunDirError` naming the file and the key, so that a
 damaged file is never half-used and never ends in a traceback:
 
 * ``training.json`` of a training checkpoint (:func:`read_training_state`): the training loop's
-  ``loop`` block (``episode`` in ``[0, train.episodes]``, the counters of the learner's kind,
-  one curve row per episode played) and the learner's ``checkpoint_state`` (a mapping; the
-  learner checks its content in ``restore_state``);
+  ``loop`` block (``episode`` in ``[0, train.episodes]``, the counters of the learner's
+  ``training_loop``, one curve row per episode played) and the learner's ``checkpoint_state``
+  (a mapping; the learner checks its content in ``restore_state``);
 * ``metrics.json`` of a finished run (:func:`read_metrics`), as the reports read it;
 * ``.hydra/config.yaml`` is read by :func:`~mrta_rl.runners.run_config.read_run_config`.
 
@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from mrta_rl.config import UserError
+from mrta_rl.learners.base import TICK_LOOP, TORCHRL_LOOP
 
 # the files of a run dir, written by the runners and read by the runners and the reports
 CONFIG_FILE = Path(".hydra") / "config.yaml"
@@ -71,12 +72,11 @@ def write_json(path: Path, payload: dict[str, Any], *, exclusive: bool = False) 
 
 
 MAX_JSON_BYTES = 256 * 2**20  # a training.json holds one curve row (~80 bytes) per episode
-# counters of the training loop of each learner kind, besides ``episode`` and ``curve``
-# (runners/tabular.py and runners/torchrl.py write them)
+# counters of each training loop (a learner's ``training_loop``), besides ``episode`` and
+# ``curve`` (runners/tick_loop.py and runners/torchrl.py write them)
 LOOP_COUNTERS: dict[str, tuple[str, ...]] = {
-    "tabular": ("env_ticks",),
-    "search": ("env_ticks",),
-    "neural": ("frames", "replayed"),
+    TICK_LOOP: ("env_ticks",),
+    TORCHRL_LOOP: ("frames", "replayed"),
 }
 CURVE_ROW = ("env_ticks", "episode", "team_return_mean")  # metrics.CURVE_COLUMNS
 # metrics.json as train() writes it (EpisodeSummary.to_json): "*" = any key; a key ending in
@@ -154,13 +154,13 @@ def _refuse(path: Path, key: str, what: str, value: Any) -> RunDirError:
     return RunDirError(f"{path}: {key}: must be {what}, got {shown[:80]}")
 
 
-def check_loop(loop: Any, path: Path, kind: str, episodes: int) -> dict[str, Any]:
+def check_loop(loop: Any, path: Path, training_loop: str, episodes: int) -> dict[str, Any]:
     """Check the ``loop`` block of a ``training.json``.
 
     Args:
         loop: The block.
         path: The file, for messages.
-        kind: The learner's kind (its loop's counters: :data:`LOOP_COUNTERS`).
+        training_loop: The learner's ``training_loop`` (its counters: :data:`LOOP_COUNTERS`).
         episodes: The run's ``train.episodes`` (the most episodes a checkpoint can follow).
 
     Returns:
@@ -176,7 +176,7 @@ def check_loop(loop: Any, path: Path, kind: str, episodes: int) -> dict[str, Any
         raise _refuse(
             path, "loop.episode", f"an integer in [0, {episodes}] (train.episodes)", episode
         )
-    for key in LOOP_COUNTERS.get(kind, ()):
+    for key in LOOP_COUNTERS.get(training_loop, ()):
         if not _is_int(loop.get(key)) or loop[key] < 0:
             raise _refuse(path, f"loop.{key}", "an integer >= 0", loop.get(key, "nothing"))
     curve = loop.get("curve")
@@ -199,12 +199,14 @@ def check_loop(loop: Any, path: Path, kind: str, episodes: int) -> dict[str, Any
     return loop
 
 
-def read_training_state(path: Path, kind: str, episodes: int) -> tuple[dict[str, Any], dict]:
+def read_training_state(
+    path: Path, training_loop: str, episodes: int
+) -> tuple[dict[str, Any], dict]:
     """Read and check a checkpoint's ``training.json``.
 
     Args:
         path: The file.
-        kind: The learner's kind.
+        training_loop: The learner's ``training_loop`` (``"module:function"``).
         episodes: The run's ``train.episodes``.
 
     Returns:
@@ -224,7 +226,7 @@ def read_training_state(path: Path, kind: str, episodes: int) -> tuple[dict[str,
         raise _refuse(
             path, "learner", "a mapping (the learner's checkpoint state)", state["learner"]
         )
-    return check_loop(state["loop"], path, kind, episodes), state["learner"]
+    return check_loop(state["loop"], path, training_loop, episodes), state["learner"]
 
 
 def check_schema(value: Any, schema: Any, path: Path, key: str) -> None:

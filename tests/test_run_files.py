@@ -25,6 +25,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from mrta_rl.config import UserError
+from mrta_rl.learners.base import TORCHRL_LOOP
 from mrta_rl.learners.neural.common import check_state_dict
 from mrta_rl.reports import build_report
 from mrta_rl.run_files import read_training_state
@@ -170,12 +171,12 @@ def test_truncated_training_json_is_refused(pristine, tmp_path):
     assert refused_or_right(run_dir, lambda: resume(run_dir), None, str(path), "not valid JSON")
 
 
-def test_neural_training_json_without_frames_is_refused(tmp_path):
+def test_torchrl_loop_training_json_without_frames_is_refused(tmp_path):
     path = tmp_path / "training.json"
     loop = {"episode": 0, "replayed": 0, "curve": []}
     path.write_text(json.dumps({"loop": loop, "learner": {}}))
     with pytest.raises(UserError, match=r"training.json: loop.frames: must be an integer >= 0"):
-        read_training_state(path, "neural", episodes=4)
+        read_training_state(path, TORCHRL_LOOP, episodes=4)
 
 
 def test_undamaged_checkpoint_resumes_to_the_same_end(pristine, tmp_path):

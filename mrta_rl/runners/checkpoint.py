@@ -152,7 +152,9 @@ class TrainingCheckpoint:
         state_path = version / STATE_FILE
         from mrta_rl.run_files import read_training_state  # it imports this module
 
-        loop, learner_state = read_training_state(state_path, self.learner.kind, self.episodes)
+        loop, learner_state = read_training_state(
+            state_path, self.learner.training_loop, self.episodes
+        )
         load_learner(self.learner, version / LEARNER_DIR)
         try:
             self.learner.restore_state(learner_state, version)

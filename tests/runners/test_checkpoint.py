@@ -275,9 +275,18 @@ TRAINED = sorted(name for name, kind in KINDS.items() if kind != "fixed")
 ON_POLICY = "mrta_rl.runners.ppo:train_loop"  # the neural learners without a replay buffer
 
 
+TICK_LOOP = "mrta_rl.runners.tick_loop:train_loop"  # numpy learners, net_es's network included
+
+
 def budget(name: str) -> list[str]:
-    """The kill-and-resume budget of a learner: its kind's, or the on-policy loop's."""
-    return BUDGETS["on_policy" if learner_loop(name) == ON_POLICY else KINDS[name]]
+    """The kill-and-resume budget of a learner: its loop's, then its kind's.
+
+    A network trained by policy search on the tick loop (net_es) takes the search budget.
+    """
+    loop, kind = learner_loop(name), KINDS[name]
+    if loop == ON_POLICY:
+        return BUDGETS["on_policy"]
+    return BUDGETS["search" if loop == TICK_LOOP and kind == "neural" else kind]
 
 
 # budgets per kind: long enough that a kill lands well before the end, short enough for seconds
@@ -357,7 +366,7 @@ def resumed_run(resumed: subprocess.Popen, cut_dir: Path) -> int:
 @pytest.mark.parametrize(
     "learner",
     # the TorchRL loop's cases take about 10 s each (two processes starting torch)
-    [pytest.param(n, marks=[pytest.mark.slow] * (KINDS[n] == "neural")) for n in TRAINED],
+    [pytest.param(n, marks=[pytest.mark.slow] * (budget(n) is BUDGETS["neural"])) for n in TRAINED],
 )
 def test_sigkill_after_a_random_checkpoint_then_resume_ends_like_an_uninterrupted_run(
     compose_cfg, tmp_path, learner

@@ -188,7 +188,7 @@ class ReserveESLearner(Learner):
     def _draw(self) -> None:
         """New perturbations and the per-copy weights of the next training episode."""
         self._rng_before_draw = self.rng.bit_generator.state  # a fresh dict: resuming redraws
-        self.perturbations = eps = self.rng.standard_normal((self.pairs, N_FEATURES))
+        self.perturbations = eps = self.rng.standard_normal((self.pairs, self.theta.size))
         members = np.concatenate([self.theta + self.sigma * eps, self.theta - self.sigma * eps])
         self.copy_theta = np.repeat(members, self.copies, axis=0)  # [B, P], member-major
         self._returns = np.zeros(self.env.batch_size)
@@ -288,7 +288,7 @@ class ReserveESLearner(Learner):
         diff = fitness[: self.pairs] - fitness[self.pairs :]  # F+_j - F-_j, same streams
         scale = diff.std()
         eps = self.perturbations
-        grad = (diff / scale) @ eps / self.pairs if scale > 0 else np.zeros(N_FEATURES)
+        grad = (diff / scale) @ eps / self.pairs if scale > 0 else np.zeros_like(self.theta)
         beta1, beta2 = ADAM_BETAS
         self.steps += 1
         self._adam_m = beta1 * self._adam_m + (1 - beta1) * grad
