@@ -88,6 +88,12 @@ class RolloutPlanner(FixedLearner):
             a rule of :data:`CANDIDATES`, or a run dir of ``scripts/train.py`` on the same team
             (module docstring).
         gamma: Discount per tick of the rollout return (1 = plain sum).
+        margin: A candidate replaces the base policy's action only where its mean rollout
+            return beats the base's by more than ``margin`` standard errors of their paired
+            difference over the samples (the futures are common to both); among those, the
+            highest lower bound ``mean - margin * se`` wins. 0: the highest mean return wins.
+            A learned base is already good: its rollouts' noise, not their mean, then decides
+            most switches, and a margin keeps them out.
         **kwargs: Env, generator and partition of :class:`~mrta_rl.learners.base.Learner`.
 
     Raises:
@@ -112,10 +118,11 @@ class RolloutPlanner(FixedLearner):
         # (docs/notebook.md, "Learning against the rules"); or a trained run's dir
         base: str = "hold_group",
         gamma: Annotated[float, Range(0, 1, low_open=True)] = 1.0,
+        margin: Annotated[float, Range(0)] = 0.0,
         **kwargs,
     ) -> None:
         super().__init__(**kwargs)  # types and ranges: the annotations (mrta_rl.config)
-        self.samples, self.horizon, self.gamma = samples, horizon, gamma
+        self.samples, self.horizon, self.gamma, self.margin = samples, horizon, gamma, margin
         if is_rule(base):
             self.base_run = None
             names = [base, *(c for c in candidates if c != base)]  # the base first: ties to it
@@ -223,9 +230,7 @@ class RolloutPlanner(FixedLearner):
         restore(env, state, plan[copy])
         env.reseed(None, seeds[copy, np.tile(np.arange(S), len(pairs))])
         returns = self._roll(env, actions[cand, plan[copy]])
-        score = np.full((n_plan, n_cand), -np.inf)
-        score[pairs[:, 0], pairs[:, 1]] = returns.reshape(len(pairs), S).mean(axis=1)
-        best = score.argmax(axis=1)  # first maximum: ties go to the base policy (index 0)
+        best = self._choose(returns.reshape(len(pairs), S), pairs, n_plan, n_cand)
         chosen[plan] = actions[best, plan]
         self.decisions += 1
         self.planning_s += time.perf_counter() - start
@@ -237,6 +242,34 @@ class RolloutPlanner(FixedLearner):
                 n_plan,
             )
         return chosen
+
+    def _choose(
+        self, returns: np.ndarray, pairs: np.ndarray, n_plan: int, n_cand: int
+    ) -> np.ndarray:
+        """The chosen candidate per planned copy (``margin`` in the class docstring).
+
+        Args:
+            returns: ``[len(pairs), S]`` rollout returns of each rolled (copy, candidate) pair.
+            pairs: ``[(p, c)]`` the rolled pairs; every copy's base (``c = 0``) is among them.
+            n_plan: Planned copies.
+            n_cand: Candidates.
+
+        Returns:
+            ``[n_plan]`` candidate indices; ties go to the base policy (index 0).
+        """
+        score = np.full((n_plan, n_cand), -np.inf)
+        if self.margin == 0:
+            score[pairs[:, 0], pairs[:, 1]] = returns.mean(axis=1)
+            return score.argmax(axis=1)  # first maximum: ties go to the base policy (index 0)
+        base = np.empty((n_plan, returns.shape[1]))
+        is_base = pairs[:, 1] == 0
+        base[pairs[is_base, 0]] = returns[is_base]
+        diff = returns - base[pairs[:, 0]]  # paired over the common futures
+        se = diff.std(axis=1, ddof=1) / np.sqrt(diff.shape[1]) if diff.shape[1] > 1 else 0.0
+        lower = diff.mean(axis=1) - self.margin * se
+        score[pairs[:, 0], pairs[:, 1]] = np.where(is_base | (lower > 0), lower, -np.inf)
+        score[:, 0] = 0.0  # the base: a candidate must beat it by the margin
+        return score.argmax(axis=1)
 
     def _roll(self, env: AuctionEnv, first: np.ndarray) -> np.ndarray:
         """Play ``first``, then the base policy, up to ``horizon`` ticks; returns ``[N]``."""

@@ -53,6 +53,22 @@ def test_no_planning_plays_the_base_rule(hp):
     assert planner.decisions == 0
 
 
+def test_a_margin_keeps_the_base_more_often():
+    """A candidate must beat the base by ``margin`` standard errors: fewer switches as it grows.
+
+    Even an unreachable margin lets through a candidate that every sampled future prefers by
+    the same amount (a paired difference without spread).
+    """
+    switches = []
+    for margin in (0.0, 2.0, 1e9):
+        planner, env = make(samples=3, horizon=5, margin=margin)
+        base = TeamReserveLearner(env=env, rng=np.random.default_rng(1), hold_scope="group")
+        ours, theirs = play(planner, env, base)
+        assert planner.decisions > 0  # candidates were rolled out at every margin
+        switches.append(int((ours != theirs).any(axis=-1).sum()))
+    assert switches[0] > switches[1] >= switches[2]
+
+
 @pytest.mark.parametrize("system", ["system1", "system2"])
 def test_subg_rollout_without_planning_is_subg_reserve(system):
     partition = subg_partition(paper_system(system))
