@@ -304,12 +304,12 @@ class PPOLearner(Learner, abstract=True):
         copies = env.batch_size
         if frames_per_batch % copies:
             raise ValueError(
-                f"frames_per_batch={frames_per_batch} is not a multiple of the {copies} training "
-                "copies (train.batch_size): a batch is whole ticks of every copy"
+                f"learner.frames_per_batch={frames_per_batch} is not a multiple of the {copies} "
+                "training copies (train.batch_size): a batch is whole ticks of every copy"
             )
         if minibatch_size > frames_per_batch:
             raise ValueError(
-                f"minibatch_size={minibatch_size} is larger than frames_per_batch="
+                f"learner.minibatch_size={minibatch_size} is larger than learner.frames_per_batch="
                 f"{frames_per_batch} (a minibatch is drawn from one collected batch)"
             )
         if network == "set":

@@ -158,8 +158,8 @@ def test_multiagent_gae_on_the_team_reward_against_a_hand_computed_case():
 @pytest.mark.parametrize(
     ("override", "key"),
     [
-        ("learner.minibatch_size=101", "minibatch_size"),  # smoke: 100 frames per batch
-        ("learner.frames_per_batch=102", "frames_per_batch"),  # smoke: 4 copies
+        ("learner.minibatch_size=101", "learner.minibatch_size"),  # smoke: 100 frames per batch
+        ("learner.frames_per_batch=102", "learner.frames_per_batch"),  # smoke: 4 copies
         ("learner.epochs=0", "epochs"),
         ("learner.network=sets", "network"),
         ("learner.max_task_types=2", "max_task_types"),  # System-I has 5 task types
@@ -192,5 +192,5 @@ def test_the_script_prints_one_error_line_naming_the_key(tmp_path):
     assert run.returncode != 0
     assert "Traceback" not in run.stderr + run.stdout
     lines = [line for line in run.stderr.splitlines() if line.startswith("error:")]
-    assert len(lines) == 1 and "minibatch_size=1000" in lines[0], run.stderr
+    assert len(lines) == 1 and "learner.minibatch_size=1000" in lines[0], run.stderr
     assert not (tmp_path / "run").exists()
