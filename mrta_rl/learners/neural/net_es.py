@@ -24,6 +24,7 @@ members) and Adam takes the step.
 from __future__ import annotations
 
 import inspect
+from collections import namedtuple
 from pathlib import Path
 from typing import Annotated, Any, ClassVar
 
@@ -78,6 +79,20 @@ N_HEADS = 2  # f_L, f_H
 SOON = 3  # ticks of "free soon" and "due soon"
 ENDING = 12  # ticks before the horizon from which holding a robot back cannot pay
 STATE_FILE = "net_es.npz"
+
+# The compiled policy's arguments, as named records (numba namedtuples):
+# the env's decision point (per copy), refreshed every tick by :meth:`NetESLearner.encode`
+TickView = namedtuple(
+    "TickView",
+    "queue queue_len t busy_until battery last_high idle mask slot_high",
+)
+# what does not change while the learner plays one team: Lambda_i, the rule's robot order and
+# its hold margins, the encodings' thresholds, and battery capacity, drain, threshold, horizon
+TeamFacts = namedtuple(
+    "TeamFacts", "active order margin recency_thresholds queue_thresholds scalars"
+)
+# the members' weights: copy b plays theta[b // group]; the network has n_hidden units
+MemberWeights = namedtuple("MemberWeights", "theta group n_hidden")
 # the rule's weights that depend on the bids placed so far in the tick (reserve_es.DYNAMIC)
 NO_OTHER_IDLE, ONE_OTHER_IDLE, SLOT_CONTESTED = (
     FEATURES.index(name) for name in ("no_other_idle", "one_other_idle", "slot_contested")
@@ -103,32 +118,22 @@ def _network(x, theta, n_hidden, heads):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def policy_actions(
-    queue,
-    queue_len,
-    t,
-    busy_until,
-    battery,
-    last_high,
-    idle,
-    mask,
-    slot_high,
-    active,
-    order,
-    margin,
-    recency_thresholds,
-    queue_thresholds,
-    scalars,
-    theta,
-    group,
-    n_hidden,
-    out,
-):  # pragma: no cover - compiled
+def policy_actions(view, team, weights, out):  # pragma: no cover - compiled
     """The actions ``out`` ``[B, m]`` of the policy of the module docstring.
 
-    Copy ``b`` plays the weights ``theta[b // group]``. ``scalars`` holds battery capacity, drain
-    per tick, battery threshold and horizon.
+    Args:
+        view: :data:`TickView`, the decision point of every copy.
+        team: :data:`TeamFacts`; ``scalars`` holds battery capacity, drain per tick, battery
+            threshold and horizon.
+        weights: :data:`MemberWeights`: copy ``b`` plays ``theta[b // group]``.
+        out: ``[B, m]`` int64, the actions written.
     """
+    queue, queue_len, t, busy_until = view.queue, view.queue_len, view.t, view.busy_until
+    battery, last_high, idle, mask = view.battery, view.last_high, view.idle, view.mask
+    slot_high = view.slot_high
+    active, order, margin, scalars = team.active, team.order, team.margin, team.scalars
+    recency_thresholds, queue_thresholds = team.recency_thresholds, team.queue_thresholds
+    theta, group, n_hidden = weights.theta, weights.group, weights.n_hidden
     capacity, drain, threshold, horizon = scalars[0], scalars[1], scalars[2], scalars[3]
     n_copies, m, n_actions = mask.shape
     n_slots = n_actions - 1
@@ -377,7 +382,7 @@ class NetESLearner(ReserveESLearner):
         else:
             theta, group = self.theta[None], batch
         actions = np.zeros(mask.shape[:2], np.int64)
-        policy_actions(
+        tick = TickView(
             view["queue"],
             view["queue_len"],
             view["t"],
@@ -387,17 +392,17 @@ class NetESLearner(ReserveESLearner):
             view["idle"],
             np.ascontiguousarray(mask, bool),
             view["slot_high"],
+        )
+        team = TeamFacts(
             self.env.active_tasks,
             self._order,
             self._margin,
             RECENCY_THRESHOLDS_ARRAY,
             QUEUE_THRESHOLDS_ARRAY,
             self._scalars,
-            np.ascontiguousarray(theta, np.float64),
-            group,
-            self.hidden,
-            actions,
         )
+        members = MemberWeights(np.ascontiguousarray(theta, np.float64), group, self.hidden)
+        policy_actions(tick, team, members, actions)
         return actions
 
     # ------------------------------------------------------------------ learning
