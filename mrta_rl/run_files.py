@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from mrta_rl.config import UserError
-from mrta_rl.learners.base import TICK_LOOP, TORCHRL_LOOP
+from mrta_rl.loops import LOOP_COUNTERS
 
 # the files of a run dir, written by the runners and read by the runners and the reports
 CONFIG_FILE = Path(".hydra") / "config.yaml"
@@ -72,12 +72,6 @@ def write_json(path: Path, payload: dict[str, Any], *, exclusive: bool = False) 
 
 
 MAX_JSON_BYTES = 256 * 2**20  # a training.json holds one curve row (~80 bytes) per episode
-# counters of each training loop (a learner's ``training_loop``), besides ``episode`` and
-# ``curve`` (runners/tick_loop.py and runners/torchrl.py write them)
-LOOP_COUNTERS: dict[str, tuple[str, ...]] = {
-    TICK_LOOP: ("env_ticks",),
-    TORCHRL_LOOP: ("frames", "replayed"),
-}
 CURVE_ROW = ("env_ticks", "episode", "team_return_mean")  # metrics.CURVE_COLUMNS
 # metrics.json as train() writes it (EpisodeSummary.to_json): "*" = any key; a key ending in
 # "?" may be absent; INT, NUMBER (finite), OPTIONAL (finite or null), STR, ANY are leaves

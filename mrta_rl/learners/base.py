@@ -28,20 +28,13 @@ import numpy as np
 
 from mrta_rl.config import RUNNER_ARGUMENTS, ConfigError, check_keywords
 from mrta_rl.envs import AuctionEnv, StepResult
+from mrta_rl.loops import NO_TRAINING, PPO_LOOP, TICK_LOOP, TORCHRL_LOOP  # noqa: F401 - for plugins
 from mrta_rl.partition import Partition
 
 if TYPE_CHECKING:  # memory.py imports the encodings, which import the learners package
     from mrta_rl.learners.memory import ResourceEstimate
 
 LearnerKind = Literal["fixed", "tabular", "neural", "search"]
-
-# The training loops of ``mrta_rl.runners`` as ``"module:function"``: a learner names its loop
-# without importing the runners (they import the learners); the runner imports it when used. A
-# loop has the signature ``loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict`` and
-# returns ``{"env_ticks": int, "wall_s": float, "episodes": int}``; it writes curve.csv.
-TICK_LOOP = "mrta_rl.runners.tick_loop:train_loop"  # numpy learners: one update per tick
-TORCHRL_LOOP = "mrta_rl.runners.torchrl:train_loop"  # TorchRL Collector, replay, target nets
-NO_TRAINING = "mrta_rl.runners.tick_loop:skip_training"  # fixed policies: evaluated as they are
 
 
 class MemoryQuery(NamedTuple):
@@ -77,8 +70,9 @@ class Learner(ABC):
       subclass is another learner, never silently labelled as its parent);
     * ``kind``: the family, ``"fixed"``, ``"tabular"``, ``"neural"`` or ``"search"``, recorded
       in metrics.json;
-    * ``training_loop``: the runner's loop that trains it (:data:`TICK_LOOP`,
-      :data:`TORCHRL_LOOP`, :data:`NO_TRAINING` or ``"module:function"`` of one's own);
+    * ``training_loop``: the runner's loop that trains it (``TICK_LOOP``, ``TORCHRL_LOOP``,
+      ``PPO_LOOP``, ``NO_TRAINING`` of ``mrta_rl/loops.py``, or ``"module:function"`` of one's
+      own);
     * ``estimate_memory(query)``: a classmethod, given a :class:`MemoryQuery`,
       returning the :class:`~mrta_rl.learners.memory.ResourceEstimate` of its own state
       (tables, networks, buffers) before it is built; the env copies are counted by

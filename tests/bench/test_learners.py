@@ -8,7 +8,8 @@ from tests.conftest import ROOT
 
 def test_the_benchmarked_learners_are_the_shipped_ones_that_train():
     trained = trained_learners()
-    tabular, neural = ["cql", "dql", "semi_cql", "subg_cql"], ["iql", "qmix", "subg_dqn", "vdn"]
+    tabular = ["cql", "dql", "semi_cql", "subg_cql"]
+    neural = ["ippo", "iql", "mappo", "qmix", "subg_dqn", "vdn"]
     assert trained == sorted([*tabular, *neural, "net_es", "reserve_es"])  # no fixed policy
     assert learners_in(ROOT, trained) == trained
 

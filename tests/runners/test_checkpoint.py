@@ -25,6 +25,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from omegaconf import OmegaConf, open_dict
 
+from mrta_rl.loops import PPO_LOOP, TICK_LOOP
 from mrta_rl.run_files import RunDirError
 from mrta_rl.runners import build_run, evaluate_checkpoint, train
 from mrta_rl.runners.checkpoint import latest_checkpoint
@@ -272,10 +273,6 @@ def learner_loop(name: str) -> str:
 
 KINDS = {path.stem: learner_kind(path.stem) for path in (ROOT / "conf" / "learner").glob("*.yaml")}
 TRAINED = sorted(name for name, kind in KINDS.items() if kind != "fixed")
-ON_POLICY = "mrta_rl.runners.ppo:train_loop"  # the neural learners without a replay buffer
-
-
-TICK_LOOP = "mrta_rl.runners.tick_loop:train_loop"  # numpy learners, net_es's network included
 
 
 def budget(name: str) -> list[str]:
@@ -284,7 +281,7 @@ def budget(name: str) -> list[str]:
     A network trained by policy search on the tick loop (net_es) takes the search budget.
     """
     loop, kind = learner_loop(name), KINDS[name]
-    if loop == ON_POLICY:
+    if loop == PPO_LOOP:
         return BUDGETS["on_policy"]
     return BUDGETS["search" if loop == TICK_LOOP and kind == "neural" else kind]
 

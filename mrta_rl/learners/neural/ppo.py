@@ -50,7 +50,7 @@ from torchrl.objectives.multiagent import MAPPOLoss
 from mrta_rl.config import Choices, ConfigError, Range
 from mrta_rl.envs import AuctionEnv, encodings
 from mrta_rl.envs.torchrl_env import GROUP_SET_KEYS, PRIOR_KEY, ROOT_SET_KEYS, set_inputs_td
-from mrta_rl.learners.base import Learner, LearnerKind, MemoryQuery
+from mrta_rl.learners.base import PPO_LOOP, Learner, LearnerKind, MemoryQuery
 from mrta_rl.learners.memory import BYTES_PER_WEIGHT, ResourceEstimate, feature_sizes, mlp_weights
 from mrta_rl.learners.neural.common import (
     META_FILE,
@@ -66,7 +66,6 @@ from mrta_rl.learners.tabular.priors import GreedyPrior
 from mrta_rl.partition import Partition
 from mrta_rl.types import GroupMap
 
-PPO_LOOP = "mrta_rl.runners.ppo:train_loop"  # on-policy: collect a batch, GAE, PPO epochs
 TRAINING_FILE = "training.pt"  # optimizer state (training checkpoints)
 GROUP = "agents"  # the one TorchRL group of all robots
 ACTION = (GROUP, "action")
