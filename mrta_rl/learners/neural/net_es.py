@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import inspect
 from collections import namedtuple
-from pathlib import Path
 from typing import Annotated, Any, ClassVar
 
 import numpy as np
@@ -311,6 +310,8 @@ class NetESLearner(ReserveESLearner):
 
     label: ClassVar[str] = "net-ES"
     kind: ClassVar[LearnerKind] = "neural"
+    state_file: ClassVar[str] = STATE_FILE  # net_es.npz: the rule's weights, then the network's
+    weight_names: ClassVar[tuple[str, ...]] = WEIGHT_NAMES + INPUTS
 
     @classmethod
     def estimate_memory(cls, query: MemoryQuery) -> ResourceEstimate:
@@ -409,31 +410,3 @@ class NetESLearner(ReserveESLearner):
     def learning_space(self) -> dict[str, int]:
         """The weights learned (no table)."""
         return {"analytic": self.theta.size, "visited": self.theta.size}
-
-    # ------------------------------------------------------------------ persistence
-    def save(self, directory: Path) -> None:
-        """``net_es.npz``: the weights, Adam's moments, the step count and the input names."""
-        directory.mkdir(parents=True, exist_ok=True)
-        np.savez(
-            directory / STATE_FILE,
-            theta=self.theta,
-            adam_m=self._adam_m,
-            adam_v=self._adam_v,
-            steps=np.int64(self.steps),
-            features=np.asarray(WEIGHT_NAMES + INPUTS),
-        )
-
-    def load(self, directory: Path) -> None:
-        """Restore :meth:`save`'s file; refuse one made for other inputs or another size."""
-        path = directory / STATE_FILE
-        with np.load(path, allow_pickle=False) as saved:
-            names = tuple(saved["features"].tolist())
-            if names != WEIGHT_NAMES + INPUTS or saved["theta"].shape != self.theta.shape:
-                raise ValueError(
-                    f"{path}: {saved['theta'].size} weights over {names} differ from this "
-                    f"learner's {self.theta.size} over {WEIGHT_NAMES + INPUTS}"
-                )
-            self.theta = saved["theta"].astype(float)
-            self._adam_m = saved["adam_m"].astype(float)
-            self._adam_v = saved["adam_v"].astype(float)
-            self.steps = int(saved["steps"])

@@ -303,30 +303,36 @@ class ReserveESLearner(Learner):
         return {"analytic": N_FEATURES, "visited": N_FEATURES}
 
     # ------------------------------------------------------------------ persistence
+    # the file of :meth:`save` and the names of the weights it holds (a subclass with more
+    # weights names its own)
+    state_file: ClassVar[str] = STATE_FILE
+    weight_names: ClassVar[tuple[str, ...]] = WEIGHT_NAMES
+
     def save(self, directory: Path) -> None:
-        """``reserve_es.npz``: the weights, Adam's moments, the step count and the features."""
+        """:attr:`state_file`: the weights, Adam's moments, the step count and their names."""
         directory.mkdir(parents=True, exist_ok=True)
         np.savez(
-            directory / STATE_FILE,
+            directory / self.state_file,
             theta=self.theta,
             adam_m=self._adam_m,
             adam_v=self._adam_v,
             steps=np.int64(self.steps),
-            features=np.asarray(WEIGHT_NAMES),
+            features=np.asarray(self.weight_names),
         )
 
     def load(self, directory: Path) -> None:
-        """Restore :meth:`save`'s file; refuse one made for other features."""
-        path = directory / STATE_FILE
+        """Restore :meth:`save`'s file; refuse one made for other weights or another size."""
+        path = directory / self.state_file
         with np.load(path, allow_pickle=False) as saved:
-            if tuple(saved["features"].tolist()) != WEIGHT_NAMES:
-                names = saved["features"].tolist()
-                raise ValueError(f"{path}: weights {names} differ from {WEIGHT_NAMES}")
+            names = tuple(saved["features"].tolist())
+            if names != self.weight_names or saved["theta"].shape != self.theta.shape:
+                raise ValueError(
+                    f"{path}: {saved['theta'].size} weights over {list(names)} differ from this "
+                    f"learner's {self.theta.size} over {list(self.weight_names)}"
+                )
             self.theta = saved["theta"].astype(float)
-            self._adam_m, self._adam_v = (
-                saved["adam_m"].astype(float),
-                saved["adam_v"].astype(float),
-            )
+            self._adam_m = saved["adam_m"].astype(float)
+            self._adam_v = saved["adam_v"].astype(float)
             self.steps = int(saved["steps"])
 
     def checkpoint_state(self, directory: Path) -> dict[str, Any]:
