@@ -87,7 +87,12 @@ from mrta_rl.learners.memory import (
     neural_estimate,
 )
 from mrta_rl.learners.neural.networks import PerRobotQ, joint_decode, joint_encode
-from mrta_rl.learners.neural.set_network import ROBOT_ATTENTION, SetNetwork, SetWithPrior
+from mrta_rl.learners.neural.set_network import (
+    ROBOT_ATTENTION,
+    SetNetwork,
+    SetWithPrior,
+    check_fits,
+)
 from mrta_rl.learners.tabular.priors import HOLD_PRIORS, GreedyPrior, HoldRule, SpreadWaitPrior
 from mrta_rl.partition import Partition
 from mrta_rl.types import GroupMap
@@ -781,17 +786,7 @@ class PerRobotQLearner(NeuralLearner, abstract=True):
                 types, ``learner.embed_dim`` not a multiple of ``learner.heads``, or
                 ``learner.prior_in_state`` (the set network has no such input).
         """
-        n, most = env.n_task_types, int(settings["max_task_types"])
-        if n > most:
-            raise ConfigError(
-                f"learner.max_task_types: {most} is smaller than the team's {n} task types "
-                f"(system {env.system.name}): set learner.max_task_types>={n}"
-            )
-        if int(settings["embed_dim"]) % int(settings["heads"]):
-            raise ConfigError(
-                f"learner.embed_dim: {settings['embed_dim']} must be a multiple of "
-                f"learner.heads={settings['heads']}"
-            )
+        check_fits(env.n_task_types, env.system.name, settings)
         if settings.get("prior_in_state"):
             raise ConfigError("learner.prior_in_state: needs network=mlp (no such set input)")
         net = SetNetwork(**cls.set_settings(settings), device="meta")

@@ -47,7 +47,7 @@ from torchrl.modules import MLP, MaskedCategorical, ProbabilisticActor
 from torchrl.objectives import ValueEstimators
 from torchrl.objectives.multiagent import MAPPOLoss
 
-from mrta_rl.config import Choices, ConfigError, Range
+from mrta_rl.config import Choices, Range
 from mrta_rl.envs import AuctionEnv, encodings
 from mrta_rl.envs.torchrl_env import GROUP_SET_KEYS, PRIOR_KEY, ROOT_SET_KEYS, set_inputs_td
 from mrta_rl.learners.base import PPO_LOOP, Learner, LearnerKind, MemoryQuery
@@ -61,7 +61,7 @@ from mrta_rl.learners.neural.common import (
     require_torchrl,
 )
 from mrta_rl.learners.neural.networks import PerRobotQ
-from mrta_rl.learners.neural.set_network import ROBOT_ATTENTION, SetWithPrior
+from mrta_rl.learners.neural.set_network import ROBOT_ATTENTION, SetWithPrior, check_fits
 from mrta_rl.learners.tabular.priors import GreedyPrior
 from mrta_rl.partition import Partition
 from mrta_rl.types import GroupMap
@@ -192,17 +192,7 @@ class PPOLearner(Learner, abstract=True):
             ConfigError: naming ``learner.max_task_types`` (below the team's task types) or
                 ``learner.embed_dim`` (not a multiple of ``learner.heads``).
         """
-        n, most = env.n_task_types, int(settings["max_task_types"])
-        if n > most:
-            raise ConfigError(
-                f"learner.max_task_types: {most} is smaller than the team's {n} task types "
-                f"(system {env.system.name}): set learner.max_task_types>={n}"
-            )
-        if int(settings["embed_dim"]) % int(settings["heads"]):
-            raise ConfigError(
-                f"learner.embed_dim: {settings['embed_dim']} is not a multiple of "
-                f"learner.heads={settings['heads']}"
-            )
+        check_fits(env.n_task_types, env.system.name, settings)
 
     @classmethod
     def estimate_memory(cls, query: MemoryQuery) -> ResourceEstimate:

@@ -35,6 +35,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from mrta_rl.config import ConfigError
 from mrta_rl.envs.encodings import ROBOT_TOKEN_SIZE, SLOT_TOKEN_SIZE, TYPE_TOKEN_SIZE
 
 MASKED = -1e9  # the score of an invalid action: far below any Q-value or logit, and finite
@@ -118,6 +119,31 @@ class Block(nn.Module):
         robots = robots + self.ff_r(self.norm_ff_r(robots))
         slots = slots + self.ff_s(self.norm_ff_s(slots))
         return robots, slots
+
+
+def check_fits(n_task_types: int, system: str, settings: dict) -> None:
+    """Refuse a learner's set-network settings that cannot work on a team, naming the key.
+
+    Args:
+        n_task_types: The team's task types ``n``.
+        system: The team's name, for the message.
+        settings: The learner's settings (``max_task_types``, ``embed_dim``, ``heads``).
+
+    Raises:
+        ConfigError: ``learner.max_task_types`` below ``n`` (the type embedding has one row per
+            type), or ``learner.embed_dim`` not a multiple of ``learner.heads``.
+    """
+    most = int(settings["max_task_types"])
+    if n_task_types > most:
+        raise ConfigError(
+            f"learner.max_task_types: {most} is smaller than the team's {n_task_types} task "
+            f"types (system {system}): set learner.max_task_types>={n_task_types}"
+        )
+    if int(settings["embed_dim"]) % int(settings["heads"]):
+        raise ConfigError(
+            f"learner.embed_dim: {settings['embed_dim']} must be a multiple of "
+            f"learner.heads={settings['heads']}"
+        )
 
 
 class SetNetwork(nn.Module):
