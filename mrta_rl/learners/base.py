@@ -86,6 +86,7 @@ class Learner(ABC):
         training_loop: ``"module:function"`` of the loop that trains it.
         requires_partition: True if the learner needs the subG partition (paper §4); the runner
             then builds the env with ``Lambda_i = partition.active_tasks(system)``.
+        any_team: True if the learned state fits any team (see :meth:`bind_env`).
         env: The env the learner acts in (built by the runner).
         rng: The learner's only source of randomness.
         partition: The subG partition, or None.
@@ -97,6 +98,10 @@ class Learner(ABC):
     kind: ClassVar[LearnerKind]
     training_loop: ClassVar[str]
     requires_partition: ClassVar[bool] = False
+    # True if the learned state holds nothing of one team (no robot index, no team size): the
+    # learner then trains on a family of teams (:meth:`bind_env`) and a run's state plays any
+    # team (``init=<run dir>``)
+    any_team: ClassVar[bool] = False
     facts: ClassVar[tuple[str, ...]] = FACTS  # a base class may require more of its subclasses
 
     def __init_subclass__(cls, *, abstract: bool = False, **kwargs: Any) -> None:
@@ -209,6 +214,16 @@ class Learner(ABC):
             Scalar diagnostics, keys slash-namespaced (``learner/G1/td_error``); may be empty.
         """
         return {}
+
+    def bind_env(self, env: AuctionEnv) -> None:
+        """Train on ``env`` from now on: the next team of a family (``system.family``).
+
+        Only a learner with :attr:`any_team` is trained on a family; the default refuses.
+
+        Raises:
+            NotImplementedError: for a learner tied to one team.
+        """
+        raise NotImplementedError(f"{type(self).__name__} is trained on one team only")
 
     def end_episode(self) -> None:  # noqa: B027 - optional hook, deliberately a no-op
         """Advance per-episode schedules (epsilon, learning-rate decay); default: nothing."""

@@ -150,6 +150,7 @@ def policy_actions(view, team, weights, out):  # pragma: no cover - compiled
     idle_cover = np.zeros(n, np.int64)
     soon_cover = np.zeros(n, np.int64)
     free_in = np.zeros(m, np.int64)
+    free_within = np.zeros((n, 1), np.int64)  # grown to the longest slot task of a tick
     phi = np.zeros((m, N_LOW))
     low = np.zeros(m)
     preference = np.zeros(m)
@@ -185,6 +186,12 @@ def policy_actions(view, team, weights, out):  # pragma: no cover - compiled
         for z in range(n):
             team_h += queued[z, 1]
             team_l += queued[z, 0]
+        longest = 0
+        for k in range(filled):
+            longest = max(longest, slot_duration[k])
+        if free_within.shape[1] <= longest:
+            free_within = np.zeros((n, longest + 1), np.int64)
+        free_within[:] = 0
         for i in range(m):
             free_in[i] = max(busy_until[b, i] - now + 1, 0)  # ticks until idle; 0 = idle
             n_idle += idle[b, i]
@@ -192,6 +199,13 @@ def policy_actions(view, team, weights, out):  # pragma: no cover - compiled
                 if active[i, z]:
                     idle_cover[z] += idle[b, i]
                     soon_cover[z] += free_in[i] <= SOON
+                    if free_in[i] < free_within.shape[1]:
+                        free_within[z, free_in[i]] += 1
+        # free_within[z, d]: robots of type z free within d ticks (a running sum over d), so
+        # the pair input cover_task costs O(|Lambda_i|), not O(m |Lambda_i|), at any team size
+        for z in range(n):
+            for d in range(1, free_within.shape[1]):
+                free_within[z, d] += free_within[z, d - 1]
         # reserve_es's features (its encode), the bid-dependent ones left at 0
         for i in range(m):
             level = recency(last_high[b], now, active[i], recency_thresholds)
@@ -244,9 +258,7 @@ def policy_actions(view, team, weights, out):  # pragma: no cover - compiled
                             own_due += due_soon[z]
                             fewest_soon = min(fewest_soon, soon_cover[z] - 1)  # others than i
                             fewest_idle = min(fewest_idle, idle_cover[z] - 1)
-                            others = 0
-                            for j in range(m):
-                                others += j != i and active[j, z] and free_in[j] <= duration
+                            others = free_within[z, duration] - (free_in[i] <= duration)
                             fewest_task = min(fewest_task, others)
                     x[0] = battery[b, i] / capacity
                     x[1] = battery[b, i] - margin[i] < threshold
@@ -351,18 +363,29 @@ class NetESLearner(ReserveESLearner):
         self.theta = np.concatenate([self.theta, *(w.ravel() for w in start)])
         self._adam_m = np.zeros_like(self.theta)
         self._adam_v = np.zeros_like(self.theta)
-        env = self.env
-        p = env.params
-        self._margin = battery_margin(env)
-        self._scalars = np.array(
-            [p.battery_capacity, p.drain_per_tick, p.battery_threshold, p.horizon], np.float64
-        )
         self._draw()
+
+    def _team(self, env: AuctionEnv) -> dict[str, np.ndarray]:
+        """``reserve_es``'s team facts plus ``active``, ``margin`` and ``scalars`` of TeamFacts."""
+        if self._team_env is not env:
+            facts = super()._team(env)
+            p = env.params
+            facts["active"] = env.active_tasks
+            facts["margin"] = battery_margin(env)
+            facts["scalars"] = np.array(
+                [p.battery_capacity, p.drain_per_tick, p.battery_threshold, p.horizon], np.float64
+            )
+        return self._team_facts
 
     # ------------------------------------------------------------------ policy
     def encode(self, env: AuctionEnv) -> dict[str, np.ndarray]:
-        """The env arrays the policy reads, copied (the env changes them when it steps)."""
+        """The env arrays the policy reads, copied (the env changes them when it steps).
+
+        ``team`` holds what the policy reads of the env's team (:meth:`_team`), so the learner
+        plays whichever team the env has.
+        """
         return {
+            "team": self._team(env),
             "queue": env._queue.copy(),
             "queue_len": env._queue_len.copy(),
             "t": env.t.copy(),
@@ -394,13 +417,14 @@ class NetESLearner(ReserveESLearner):
             np.ascontiguousarray(mask, bool),
             view["slot_high"],
         )
+        facts = view["team"]
         team = TeamFacts(
-            self.env.active_tasks,
-            self._order,
-            self._margin,
+            facts["active"],
+            facts["order"],
+            facts["margin"],
             RECENCY_THRESHOLDS_ARRAY,
             QUEUE_THRESHOLDS_ARRAY,
-            self._scalars,
+            facts["scalars"],
         )
         members = MemberWeights(np.ascontiguousarray(theta, np.float64), group, self.hidden)
         policy_actions(tick, team, members, actions)

@@ -138,6 +138,8 @@ class ReserveESLearner(Learner):
     label: ClassVar[str] = "reserve-ES"
     kind: ClassVar[LearnerKind] = "search"
     training_loop: ClassVar[str] = TICK_LOOP  # policy search on the numpy tick loop
+    # every weight multiplies a feature that reads the team through counts and fractions only
+    any_team: ClassVar[bool] = True
 
     @classmethod
     def estimate_memory(cls, query: MemoryQuery) -> ResourceEstimate:
@@ -163,26 +165,50 @@ class ReserveESLearner(Learner):
         **kwargs: Any,
     ) -> None:
         super().__init__(**kwargs)
-        batch = self.env.batch_size
-        if batch % (2 * pairs):
-            raise ValueError(
-                f"train.batch_size {batch} must be a multiple of 2 * pairs = {2 * pairs} "
-                "(every perturbed policy plays the same number of copies): change learner.pairs "
-                "or train.batch_size"
-            )
         self.pairs, self.sigma, self.lr = pairs, sigma, lr
-        self.copies = batch // (2 * pairs)  # copies per perturbed policy
         self.theta = start_theta(reserve, hold_level)
         self._adam_m = np.zeros(N_FEATURES)
         self._adam_v = np.zeros(N_FEATURES)
         self.steps = 0  # ES updates made
-        active = self.env.active_tasks  # Lambda_i, [m, n]
-        self._order = rules.fewest_types_first(active)  # the rule's order
-        self._versatility = active.sum(axis=1) / self.env.n_task_types
+        self._team_env: AuctionEnv | None = None  # the env whose team facts _team holds
+        self.bind_env(self.env)
+        self._draw()
+
+    def bind_env(self, env: AuctionEnv) -> None:
+        """Train on ``env`` from now on (the first env, or the next team of a family).
+
+        Raises:
+            ValueError: if its batch is not a multiple of ``2 * pairs``.
+        """
+        batch = env.batch_size
+        if batch % (2 * self.pairs):
+            raise ValueError(
+                f"train.batch_size {batch} must be a multiple of 2 * pairs = {2 * self.pairs} "
+                "(every perturbed policy plays the same number of copies): change learner.pairs "
+                "or train.batch_size"
+            )
+        self.env, self.n_robots, self.n_actions = env, env.n_robots, env.n_actions
+        self.copies = batch // (2 * self.pairs)  # copies per perturbed policy
         # common random numbers: copy b starts as a clone of copy b mod copies (seed and episode
         # count included), so every member plays the same task streams, episode after episode
-        self.env.set_state(self.env.get_state(np.arange(batch) % self.copies))
-        self._draw()
+        env.set_state(env.get_state(np.arange(batch) % self.copies))
+        self._returns = np.zeros(batch)
+
+    def _team(self, env: AuctionEnv) -> dict[str, np.ndarray]:
+        """What the policy reads of the team of ``env`` (computed once per env).
+
+        Returns:
+            ``order`` ``[m]``: the rule's order (fewest active types first); ``versatility``
+            ``[m]``: ``|Lambda_i| / n``.
+        """
+        if self._team_env is not env:
+            active = env.active_tasks  # Lambda_i, [m, n]
+            self._team_facts = {
+                "order": rules.fewest_types_first(active),
+                "versatility": active.sum(axis=1) / env.n_task_types,
+            }
+            self._team_env = env
+        return self._team_facts
 
     # ------------------------------------------------------------------ policy
     def _draw(self) -> None:
@@ -191,14 +217,15 @@ class ReserveESLearner(Learner):
         self.perturbations = eps = self.rng.standard_normal((self.pairs, self.theta.size))
         members = np.concatenate([self.theta + self.sigma * eps, self.theta - self.sigma * eps])
         self.copy_theta = np.repeat(members, self.copies, axis=0)  # [B, P], member-major
-        self._returns = np.zeros(self.env.batch_size)
+        self._returns = np.zeros(len(self.copy_theta))
 
     def encode(self, env: AuctionEnv) -> dict[str, np.ndarray]:
         """The features that do not change while a tick's bids are placed, and the slots.
 
         Returns:
             ``static`` ``[B, m, len(FEATURES)]`` (the robot features of :data:`FEATURES`, zero
-            where a feature depends on the bids), ``slot_high`` ``[B, K]``, ``idle`` ``[B, m]``.
+            where a feature depends on the bids), ``slot_high`` ``[B, K]``, ``idle`` ``[B, m]``,
+            ``order`` ``[m]`` (the rule's robot order of this env's team).
         """
         active = env.active_tasks
         batch = env.batch_size
@@ -209,7 +236,8 @@ class ReserveESLearner(Learner):
         covers = active.astype(np.int64)
         idle_per_type = idle.astype(np.int64) @ covers  # [B, n]
         soon_per_type = (free_level(env) <= 1).astype(np.int64) @ covers
-        shape = (batch, self.n_robots)
+        facts = self._team(env)
+        shape = (batch, env.n_robots)
         columns = {
             "bias": np.ones(shape),
             "h_within_3": level == 0,
@@ -219,14 +247,19 @@ class ReserveESLearner(Learner):
             "sole_idle": ((idle_per_type[:, None, :] == 1) & active[None]).any(-1) & idle,
             # a robot counts itself among the idle-or-soon robots of its types
             "sole_soon": ((soon_per_type[:, None, :] <= 1) & active[None]).any(-1),
-            "versatility": np.broadcast_to(self._versatility, shape),
+            "versatility": np.broadcast_to(facts["versatility"], shape),
             "team_queued_l": np.broadcast_to(team[:, None, 1] / 2, shape),
             "team_queued_h": np.broadcast_to(team[:, None, 0] / 2, shape),
         }
         static = np.zeros((*shape, N_LOW))  # the DYNAMIC columns stay 0: act adds them
         for name, column in columns.items():
             static[..., FEATURES.index(name)] = column
-        return {"static": static, "slot_high": env.slot_high.copy(), "idle": idle}
+        return {
+            "static": static,
+            "slot_high": env.slot_high.copy(),
+            "idle": idle,
+            "order": facts["order"],
+        }
 
     def act(self, view: dict[str, np.ndarray], mask: np.ndarray, *, explore: bool) -> np.ndarray:
         """Bid per the rule of the module docstring, with the member's weights when exploring."""
@@ -237,7 +270,7 @@ class ReserveESLearner(Learner):
             theta = self.copy_theta
         else:
             theta = np.broadcast_to(self.theta, (batch, N_FEATURES))
-        robots = self._order
+        robots = view["order"]
         features = view["static"][:, robots]  # [B, m, P] in the rule's order
         low = np.einsum("bmp,bp->bm", features, theta[:, :N_LOW])
         preference = np.einsum("bmp,bp->bm", features[..., HIGH_COLUMNS], theta[:, N_LOW:])
