@@ -68,9 +68,10 @@ def _check_team(learner: Learner, directory: Path) -> None:
 def load_learner(learner: Learner, directory: Path) -> None:
     """Restore a saved learner state into the learner built for the run, or refuse it.
 
-    The state must have been saved for the run's team (:func:`save_learner`), and the learner's
-    ``load`` checks the files against itself (keys, shapes, dtypes, consistency); any problem
-    names the file.
+    The state must have been saved for the run's team (:func:`save_learner`), unless it holds
+    nothing of one team (``Learner.any_team``: a family run's, or ``init=`` on another team), and
+    the learner's ``load`` checks the files against itself (keys, shapes, dtypes, consistency);
+    any problem names the file.
 
     Args:
         learner: The learner built for the run.
@@ -81,7 +82,8 @@ def load_learner(learner: Learner, directory: Path) -> None:
     """
     if not directory.is_dir():
         raise RunDirError(f"no saved learner state: {directory} is missing")
-    _check_team(learner, directory)
+    if not type(learner).any_team:
+        _check_team(learner, directory)
     try:
         learner.load(directory)
     except (OSError, ValueError, KeyError, RuntimeError, EOFError) as err:

@@ -24,6 +24,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig
 
 from mrta_rl.runners.progress import progress_bar
+from mrta_rl.runners.train import family_env
 
 if TYPE_CHECKING:
     from mrta_rl.envs import AuctionEnv, StepResult
@@ -100,8 +101,9 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     rows: list[dict[str, Any]] = state["curve"]
     env_ticks = state["env_ticks"]
     start = time.perf_counter()
-    for _ in range(state["episode"] + 1):
-        env.reset()
+    if run.family is None:
+        for _ in range(state["episode"] + 1):
+            env.reset()
     with (
         instantiate(cfg.logger)(run_dir=run_dir) as curve,
         progress_bar(
@@ -119,6 +121,10 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
             curve.log(row)
             recent.append(row["team_return_mean"])
         for episode in range(state["episode"] + 1, cfg.train.episodes + 1):
+            if run.family is not None:  # a team of its own each episode (systems/family.py)
+                env = family_env(run, episode, cfg.seed)
+                learner.bind_env(env)
+                env.reset()
             # encode, eq. (3) and act: one compiled call per tick (TabularLearner.train_tick)
             actions = train_tick(env, None)
             while actions is not None:  # copies share the horizon: all finish at the same tick

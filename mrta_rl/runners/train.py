@@ -45,13 +45,16 @@ from mrta_rl.runners.learner_files import load_learner, save_learner
 from mrta_rl.runners.run_config import read_run_config, run_choices
 from mrta_rl.runners.run_dir import claim_run_dir, releases_run_dirs
 from mrta_rl.runners.validation import (
+    FAMILY_SEEDS,
     SEED_STRIDE,
     ResourceRefusal,
     hydra_choice,
+    team_params,
     training_loop,
     validate_config,
 )
 from mrta_rl.systems import RobotSystem
+from mrta_rl.systems.family import TeamFamily
 
 logger = logging.getLogger(__name__)
 
@@ -70,6 +73,9 @@ class RunSetup:
         learner: The learner, built on ``env``.
         checkpoint: Periodic training checkpoints and resuming (set by :func:`train`; None:
             none).
+        family: The family of teams training draws one team per episode from
+            (:func:`family_env`), else None; ``system`` is then its evaluation team.
+        env_overrides: The run's ``env.*``, applied to every team of a family.
     """
 
     name: str
@@ -80,6 +86,8 @@ class RunSetup:
     env: AuctionEnv
     learner: Learner
     checkpoint: TrainingCheckpoint | None = None
+    family: TeamFamily | None = None
+    env_overrides: dict[str, Any] | None = None
 
 
 def build_run(cfg: DictConfig, name: str | None = None) -> RunSetup:
@@ -115,9 +123,45 @@ def build_run(cfg: DictConfig, name: str | None = None) -> RunSetup:
         )
     except (TypeError, ValueError) as err:  # a relation between settings (eps_end <= eps_start)
         raise ConfigError(f"learner {name!r} ({cls.__name__}): {err}") from err
+    if checked.init is not None:  # zero-shot on this team, or fine-tuning from there
+        try:
+            load_learner(learner, checked.init / LEARNER_DIR)
+        except RunDirError as err:
+            raise ConfigError(f"init: {err}") from None
     limit_growth(learner, checked.memory_limit)  # tables grow with the states met (qtable.py)
     return RunSetup(
-        name, checked.system, env.params, checked.partition, checked.active_tasks, env, learner
+        name,
+        checked.system,
+        env.params,
+        checked.partition,
+        checked.active_tasks,
+        env,
+        learner,
+        family=checked.family,
+        env_overrides=checked.env_overrides,
+    )
+
+
+def family_env(run: RunSetup, episode: int, seed: int) -> AuctionEnv:
+    """The training env of one episode on a family of teams: team ``episode`` of the family.
+
+    Args:
+        run: The built run (its ``family``, training batch and ``env.*``).
+        episode: The training episode (1, 2, ...), which names the team.
+        seed: The run seed.
+
+    Returns:
+        ``B`` copies of the team; copy ``b`` has env seed
+        ``seed * SEED_STRIDE + FAMILY_SEEDS + episode * B + b``.
+    """
+    assert run.family is not None
+    team = run.family.team(episode)
+    batch = run.env.batch_size
+    return AuctionEnv(
+        team,
+        team_params(team, run.env_overrides or {}),
+        batch_size=batch,
+        seed=seed * SEED_STRIDE + FAMILY_SEEDS + episode * batch,
     )
 
 

@@ -21,6 +21,7 @@ from __future__ import annotations
 import importlib
 import logging
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Annotated, Any
 
 import numpy as np
@@ -48,12 +49,14 @@ from mrta_rl.systems import (
     build_system,
     system_shape,
 )
+from mrta_rl.systems.family import TeamFamily, build_family
 
 logger = logging.getLogger(__name__)
 
 # top-level keys of a run config besides RunSettings': conf/config.yaml's blocks and groups
 RUN_BLOCKS = (
     "resume",
+    "init",
     "train",
     "eval",
     "limits",
@@ -219,6 +222,10 @@ class CheckedConfig:
         memory_limit: Bytes the learner may take (``limits.memory_gb``, :func:`memory_limit`).
         batch_size: Env copies per training tick (``train.batch_size`` capped by
             ``train.robot_copies``, :func:`training_copies`).
+        family: The family of teams training draws from (``system.family``), else None; then
+            ``system`` is its evaluation team.
+        env_overrides: The run's ``env.*`` (every team's parameters take them last).
+        init: The run dir whose learner state the learner starts from (``init=``), else None.
     """
 
     learner_cls: type[Learner]
@@ -229,6 +236,9 @@ class CheckedConfig:
     estimate: ResourceEstimate
     memory_limit: int
     batch_size: int
+    family: TeamFamily | None = None
+    env_overrides: dict[str, Any] | None = None
+    init: Path | None = None
 
     @property
     def active_tasks(self) -> np.ndarray | None:
@@ -417,17 +427,19 @@ def validate_config(cfg: DictConfig) -> CheckedConfig:
     file = hydra_choice("system", str(system_cfg.get("name", "?")))
     eval_copies = min(evaluation["batch_size"], evaluation["episodes"])
     check_team_size(system_cfg, file, train, eval_copies, memory_limit(limits))
+    env_overrides = _plain(cfg, "env") or {}
     try:
+        family = build_family(system_cfg)
         system = build_system(system_cfg)
-        params = AuctionParams.merged(
-            check_fields(AuctionParams, system.env_overrides, "system.env", null_is_default=True),
-            _plain(cfg, "env") or {},
-        )
+        params = team_params(system, env_overrides)
     except SystemConfigError as err:
         message = str(err)
         raise SystemConfigError(
             message if message.startswith("system") else f"system {file}: {message}"
         ) from None
+    if family is not None:
+        check_family(cls, family, file, train)
+    init = check_init(cls, _plain(cfg, "init"))
     partition = (
         subg_partition(system, bound.get("max_group_size")) if cls.requires_partition else None
     )
@@ -474,5 +486,92 @@ def validate_config(cfg: DictConfig) -> CheckedConfig:
             format_bytes(limit),
         )
     return CheckedConfig(
-        cls, hyperparameters, system, params, partition, estimate, limit, batch_size
+        cls,
+        hyperparameters,
+        system,
+        params,
+        partition,
+        estimate,
+        limit,
+        batch_size,
+        family,
+        env_overrides,
+        init,
     )
+
+
+def team_params(system: RobotSystem, env_overrides: dict[str, Any]) -> AuctionParams:
+    """A team's dynamics parameters: the spec's, then its ``env:`` block, then the run's ``env.*``.
+
+    Raises:
+        ConfigError: naming the parameter (``system.env.<key>`` or ``env.<key>``).
+    """
+    return AuctionParams.merged(
+        check_fields(AuctionParams, system.env_overrides, "system.env", null_is_default=True),
+        env_overrides,
+    )
+
+
+# on a family, copy b of training episode e plays seed * SEED_STRIDE + FAMILY_SEEDS + e * B + b:
+# the upper half of the run seed's stride, apart from one-team training (copy b) and the splits
+FAMILY_SEEDS = SEED_STRIDE // 2
+
+
+def any_team_learners() -> list[str]:
+    """The shipped learners that learn a state fitting any team (``Learner.any_team``)."""
+    from mrta_rl.conf_files import learner_files, learner_named
+
+    return [n for n in learner_files() if learner_named(n).trains() and learner_named(n).any_team]
+
+
+def check_family(cls: type[Learner], family: TeamFamily, file: str, train: dict[str, Any]) -> None:
+    """Refuse training on a family of teams by a learner whose state is tied to one team.
+
+    Raises:
+        ConfigError: naming the learner and the system, or ``train.episodes``.
+    """
+    _check(
+        not cls.trains() or cls.any_team,
+        f"system {file}: learner {hydra_choice('learner', cls.__name__)} ({cls.__name__}) is "
+        f"tied to one team's robots and cannot train on a family of teams; learners that can: "
+        f"{', '.join(any_team_learners())}",
+    )
+    _check(
+        (train["episodes"] + 1) * train["batch_size"] <= FAMILY_SEEDS,
+        f"train.episodes: {train['episodes']} episodes of {train['batch_size']} copies on a "
+        f"family of teams need more env seeds than a run seed owns ({FAMILY_SEEDS:,})",
+    )
+
+
+def check_init(cls: type[Learner], init: Any) -> Path | None:
+    """The run dir of ``init=`` (the learner starts from its saved state), checked.
+
+    Its learner must be of the same class and hold nothing of one team (``Learner.any_team``),
+    so that its state plays the run's team, whichever team it was trained on.
+
+    Raises:
+        ConfigError: naming ``init`` and what is wrong.
+    """
+    if init is None:
+        return None
+    from mrta_rl.run_files import LEARNER_DIR, RunDirError
+    from mrta_rl.runners.run_config import read_run_config
+
+    _check(isinstance(init, str) and init != "", f"init: must be a run dir, got {init!r}")
+    name = hydra_choice("learner", cls.__name__)
+    _check(
+        cls.any_team,
+        f"init: learner {name} ({cls.__name__}) is tied to one team's robots; only a learner "
+        f"whose state fits any team starts from another run ({', '.join(any_team_learners())})",
+    )
+    run_dir = Path(init)
+    try:
+        saved = learner_class(read_run_config(run_dir).get("learner"))
+    except RunDirError as err:
+        raise ConfigError(f"init: {err}") from None
+    _check(
+        saved is cls,
+        f"init: {run_dir} trained {saved.__name__}, not {cls.__name__} (learner={name})",
+    )
+    _check((run_dir / LEARNER_DIR).is_dir(), f"init: {run_dir / LEARNER_DIR} is missing")
+    return run_dir

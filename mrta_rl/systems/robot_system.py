@@ -340,6 +340,14 @@ def system_shape(cfg: Mapping[str, Any]) -> tuple[int, int] | None:
         ``(m, n)``; for a table, ``n`` counts the distinct task type names. None when the config
         is malformed (:func:`build_system` then names what is wrong).
     """
+    if "family" in cfg:  # the largest team the family can draw
+        from mrta_rl.systems.family import build_family
+
+        try:
+            family = build_family(cfg)
+        except SystemConfigError:
+            return None
+        return family.largest if family is not None else None
     if "robots" in cfg:
         robots = cfg["robots"]
         if not isinstance(robots, Mapping) or not robots:
@@ -363,13 +371,18 @@ def build_system(cfg: Mapping[str, Any]) -> RobotSystem:
         cfg: The ``system`` config group content (a dict or OmegaConf mapping).
 
     Returns:
-        The validated system.
+        The validated system; for a family of teams (``family:``, ``systems/family.py``), the
+        team its runs are evaluated on.
 
     Raises:
         SystemConfigError: on unknown keys or malformed content, naming the culprit.
     """
     cfg = dict(cfg)
     name = str(cfg.get("name", "unnamed"))
+    if "family" in cfg:  # a family of teams: the run plays its evaluation team
+        from mrta_rl.systems.family import EVAL_TEAM, build_family
+
+        return build_family(cfg).team(EVAL_TEAM)
     if "robots" in cfg:
         unknown = set(cfg) - _TABLE_KEYS
         if unknown:
