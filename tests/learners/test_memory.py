@@ -185,10 +185,10 @@ def test_a_first_tick_that_cannot_fit_is_refused_up_front(compose_cfg):
 
 def test_tables_that_outgrow_the_memory_limit_stop_the_run_with_the_reason(compose_cfg, tmp_path):
     """A table that passes the up-front check may still grow past limits.memory_gb with the
-    states it meets in training: the run stops with a user error naming the group that holds the
-    most (System-I's 3-robot G2, rows of up to 1 + 3 x 3 + 3 x 6 + 6 = 34 joint actions with 3
-    slots), its rows and the limit, and leaves the reason as data, instead of asking numpy for
-    more memory than the machine has."""
+    states it meets in training: the run stops with a user error naming the group that asks the
+    most (System-I's 3-robot G2: rows of up to 1 + 3 x 3 + 3 x 6 + 6 = 34 joint actions with 3
+    slots, a new one per copy), its rows and the limit, and leaves the reason as data, instead
+    of asking numpy for more memory than the machine has."""
     from mrta_rl.runners import train
 
     cfg = compose_cfg(
@@ -202,9 +202,9 @@ def test_tables_that_outgrow_the_memory_limit_stop_the_run_with_the_reason(compo
         ]  # fmt: skip
     )
     with pytest.raises(TableGrowthError, match=r"subg_cql on system system1 \(6 robots\): stopped "
-                       r"in training: group G2 \(3 robots\) holds the most, \d+ rows of up to 34 "
-                       r"joint actions \(\d+ in all\): the Q-table would grow .* more than the "
-                       r"limit of 100 kB; "
+                       r"in training: group G2 \(3 robots\) asks the most: \d+ rows met "
+                       r"\(\d+ joint actions\) and room for 16 new rows of up to 34 joint actions: "
+                       r"the Q-table would grow .* more than the limit of 100 kB; "
                        r"use smaller sub-groups .*or raise limits.memory_gb"):  # fmt: skip
         train(cfg, run_dir=tmp_path)
     assert not (tmp_path / "metrics.json").exists()

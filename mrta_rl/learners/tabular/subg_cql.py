@@ -165,22 +165,23 @@ class GroupQLearner(TabularLearner, abstract=True):
         try:
             self.storage.reserve(len(self.groups) * copies, int(entries.sum()))
         except TableGrowthError as err:
-            raise TableGrowthError(f"{self._largest_group(entries)}: {err}") from None
+            raise TableGrowthError(f"{self._largest_group(copies, entries)}: {err}") from None
 
-    def _largest_group(self, new_entries: np.ndarray) -> str:
-        """The group that would take the most of a growth: its name, rows and row size.
+    def _largest_group(self, copies: int, new_entries: np.ndarray) -> str:
+        """The group that asks the most of a growth: its name, its rows and the room it asks.
 
         Args:
-            new_entries: ``[G]`` entries each group's new rows may take.
+            copies: The new rows each group may create this tick (one per copy).
+            new_entries: ``[G]`` the entries the new rows of each group may take.
         """
         n_rows = self.storage.n_rows
         group = self.storage.rows[ROW_GROUP, :n_rows]
         held = np.bincount(group, self.storage.rows[ROW_LENGTH, :n_rows], len(self.groups))
         g = int(np.argmax(held + new_entries))
         return (
-            f"group {self.group_names[g]} ({len(self.groups[g])} robots) holds the most, "
-            f"{int(np.count_nonzero(group == g)):,} rows of up to {int(self._row_entries[g]):,} "
-            f"joint actions ({int(held[g]):,} in all)"
+            f"group {self.group_names[g]} ({len(self.groups[g])} robots) asks the most: "
+            f"{int(np.count_nonzero(group == g)):,} rows met ({int(held[g]):,} joint actions) "
+            f"and room for {copies:,} new rows of up to {int(self._row_entries[g]):,} joint actions"
         )
 
     @functools.cached_property
