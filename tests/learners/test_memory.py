@@ -160,13 +160,20 @@ def test_a_table_growing_past_the_limit_is_refused_and_left_unchanged():
     assert storage.q.size == 8192 and storage.nbytes == 8 * (3 * 1024 + 5 * 256 + 3 * 8192)
 
 
-def test_a_first_tick_that_cannot_fit_is_refused_up_front(compose_cfg):
+@pytest.mark.parametrize(
+    ("settings", "copies", "room"),
+    [
+        ([], 102, "15.5 GB"),  # training: 5120 // 50 copies (conf/budget/subg_cql.yaml)
+        (["train.batch_size=2", "eval.batch_size=20"], 20, "3.03 GB"),  # evaluation's copies
+    ],
+)
+def test_a_first_tick_that_cannot_fit_is_refused_up_front(settings, copies, room, compose_cfg):
     """subG-CQL at 50 robots with max_group_size=6 (scaled auction: 15 slots) makes room, before
-    its first tick, for a new row per group and copy: a 6-robot group's row holds
+    each tick, for a new row per group and copy: a 6-robot group's row holds
     sum_j C(6, j) 15!/(15-j)! = 1 + 90 + 3,150 + 54,600 + 491,400 + 2,162,160 + 3,603,600 =
-    6,315,001 joint actions (24 B each, plus 152 B a row), and 5120 // 50 = 102 copies need
-    102 x 151.6 MB = 15.5 GB of it: refused by group, rows and limit before any work, where it
-    used to grow past 30 GiB in training."""
+    6,315,001 joint actions (24 B each, plus 152 B a row: 151.6 MB), for the most copies that
+    play a tick, training's or evaluation's: refused by group, rows and limit before any work,
+    where it used to grow past 30 GiB in training."""
     cfg = compose_cfg(
         [
             "experiment=scaling",
@@ -174,12 +181,16 @@ def test_a_first_tick_that_cannot_fit_is_refused_up_front(compose_cfg):
             "partition.max_group_size=6",
             "system.n_robots=50",
             "system.seed=0",
-            "limits.memory_gb=12",
+            "limits.memory_gb=3",
+            *settings,
         ]  # fmt: skip
     )
-    with pytest.raises(ValueError, match=r"subg_cql on system random \(50 robots\): needs about "
-                       r"[\d.]+ GB up front \(G\d+: 102 rows of 6,315,001 joint actions 15.5 GB, "
-                       r".*more than the limit of 12 GB; use fewer robots per group"):  # fmt: skip
+    message = (
+        rf"subg_cql on system random \(50 robots\): needs about [\d.]+ GB up front \({copies} "
+        rf"copies x G\d+ row \(6,315,001 joint actions\) {room}, .*more than the limit of 3 GB; "
+        r"use fewer robots per group"
+    )
+    with pytest.raises(ValueError, match=message):
         build_run(cfg)
 
 

@@ -57,7 +57,7 @@ class CQLLearner(GroupQLearner):
             return group_state_count(env, robots, features)
 
         groups = {"team": list(range(env.n_robots))}
-        return group_table_estimate(cls.__name__, env, groups, states, settings, decisions, copies)
+        return group_table_estimate(cls.__name__, env, groups, states, settings, decisions)
 
     @classmethod
     def learning_space_dimension(

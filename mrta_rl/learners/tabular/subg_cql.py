@@ -458,7 +458,7 @@ class SubGCQLLearner(GroupQLearner):
             return subgroup_state_count(env, robots, state, features)
 
         groups = robot_groups(env, partition)
-        return group_table_estimate(cls.__name__, env, groups, states, settings, decisions, copies)
+        return group_table_estimate(cls.__name__, env, groups, states, settings, decisions)
 
     @classmethod
     def learning_space_dimension(
