@@ -6,8 +6,9 @@ the tables and networks) and how much memory it takes:
 
 * ``up_front``: memory the run takes for sure: the env copies of training and evaluation, dense
   tables (DQL), network weights with their target copies, gradients and Adam moments, a full
-  replay buffer and a collector batch; for CQL and subG-CQL one full row of each group's table
-  (all its robots idle: every episode starts so, and a state's row is enumerated whole);
+  replay buffer and a collector batch; for CQL and subG-CQL a full row of each group's table per
+  copy of a tick, training's or evaluation's (``per_copy``: before each tick a table makes room
+  for every copy's state to be new, ``GroupQLearner._reserve``);
 * ``worst``: ``up_front`` plus an upper bound of the tables that grow with the states met
   (CQL, subG-CQL, semi-CQL store only visited states: at most ``min(|S_g|, decisions)`` rows, a
   decision being one copy-tick of training).
@@ -63,6 +64,11 @@ class ResourceEstimate:
         up_front: Bytes the learner takes for sure.
         worst: Upper bound of the bytes, tables grown to every state they could meet.
         parts: Bytes by part (``"G1 table"``, ``"replay buffer"``, ``"networks"``...), worst case.
+        per_copy: Bytes each env copy of a tick takes up front, by part (``"G1 row (44,001
+            joint actions)"``); :func:`estimate_resources` counts them for the most copies
+            that play one tick, training's or evaluation's.
+        up_front_parts: ``up_front`` by part where it is not ``parts`` (set with ``per_copy``
+            by :func:`estimate_resources`); empty: ``parts``.
         reason: Why the learner cannot run at all (e.g. joint actions beyond int64), else None.
         advice: What to change, for the messages.
     """
@@ -71,6 +77,8 @@ class ResourceEstimate:
     up_front: int = 0
     worst: int = 0
     parts: dict[str, int] = field(default_factory=dict)
+    per_copy: dict[str, int] = field(default_factory=dict)
+    up_front_parts: dict[str, int] = field(default_factory=dict)
     reason: str | None = None
     advice: str = ""
 
@@ -86,7 +94,8 @@ class ResourceEstimate:
         if self.reason is not None:
             return self.reason
         if self.up_front > limit_bytes:
-            biggest = sorted(self.parts.items(), key=lambda kv: -kv[1])[:3]
+            parts = self.up_front_parts or self.parts
+            biggest = sorted(parts.items(), key=lambda kv: -kv[1])[:3]
             detail = ", ".join(f"{name} {format_bytes(b)}" for name, b in biggest)
             return (
                 f"needs about {format_bytes(self.up_front)} up front ({detail}), more than the "
@@ -230,11 +239,17 @@ def estimate_resources(
     except Unfit as unfit:
         estimate = ResourceEstimate(cls.__name__, reason=unfit.reason, advice=unfit.advice)
     copies = (batch_size + eval_batch_size) * env_copy_bytes(env, params.queue_capacity)
+    ticking = max(batch_size if episodes > 0 else 0, eval_batch_size)  # copies of one tick
+    first_tick = {
+        f"{ticking:,} copies x {part}": ticking * b for part, b in estimate.per_copy.items()
+    }
+    up_front = estimate.up_front + sum(first_tick.values()) + copies
     return dataclasses.replace(
         estimate,
-        up_front=estimate.up_front + copies,
-        worst=estimate.worst + copies,
+        up_front=up_front,
+        worst=max(estimate.worst + copies, up_front),
         parts={"env copies": copies, **estimate.parts},
+        up_front_parts=first_tick and {"env copies": copies, **first_tick},
         advice=estimate.advice or "lower train.batch_size, eval.batch_size or env.queue_capacity",
     )
 
@@ -317,9 +332,11 @@ def group_table_estimate(
 ) -> ResourceEstimate:
     """Joint Q-tables of visited states, one per group (CQL, subG-CQL; ``tabular.qtable``).
 
-    One full row per group counts up front: every episode starts with all robots idle, and a
-    state is enumerated whole on its first visit (a 50-robot random team's 11-robot sub-group
-    with 15 slots asked numpy for 537 TiB in the middle of a run instead).
+    A full row per group and copy of a tick counts up front (``per_copy``): a state is
+    enumerated whole on its first visit, and before each tick the table makes room for every
+    copy's state of every group to be new (``GroupQLearner._reserve``), so the first tick takes
+    that much for sure (a 50-robot random team's 6-robot sub-group with 15 slots and 102 copies:
+    15.5 GB; unchecked, an 11-robot one asked numpy for 537 TiB in the middle of a run).
 
     Args:
         name: The learner class's name.
@@ -337,7 +354,7 @@ def group_table_estimate(
     """
     A, K = env.n_actions, env.n_slots
     parts: dict[str, int] = {}
-    full_rows = 0
+    per_copy: dict[str, int] = {}  # the room of a copy's new rows at each tick, taken for sure
     for group, robots in groups.items():
         check_joint_actions(group, len(robots), A)
         states = state_counts(robots)
@@ -351,9 +368,9 @@ def group_table_estimate(
         rows = min(states, decisions)
         row = per_row * JOINT_ENTRY_BYTES + JOINT_ROW_BYTES
         parts[f"{group} table"] = GROWTH * rows * row
-        full_rows += row
-    worst = max(full_rows, sum(parts.values()))
-    return ResourceEstimate(name, full_rows, worst, parts, advice=GROUP_ADVICE)
+        per_copy[f"{group} row ({per_row:,} joint actions)"] = row
+    worst = sum(parts.values())
+    return ResourceEstimate(name, 0, worst, parts, per_copy, advice=GROUP_ADVICE)
 
 
 def machine_memory() -> int:

@@ -16,6 +16,8 @@ from mrta_rl.learners import (
 )
 from mrta_rl.learners.tabular.subg_cql import SubGCQLLearner
 from mrta_rl.partition import subg_partition
+from mrta_rl.runners import build_run, evaluate_policy
+from mrta_rl.splits import split_seed
 from tests.conftest import paper_system
 
 # one copy, four robots, K = 3 slots; columns: wait, slot 1, slot 2, slot 3
@@ -268,3 +270,31 @@ def test_team_reserve_rejects_bad_settings(rng):
     ):
         with pytest.raises(ValueError, match=match):
             make_team(rng, **bad)
+
+
+RANDOM50 = ["system=random", "system.n_robots=50", "system.scale_auction=true"]
+
+
+@pytest.mark.parametrize(
+    ("learner", "system", "episodes", "team_return"),
+    [  # docs/notebook.md, "team_reserve, the subg_reserve rule over the whole team" (100 episodes)
+        ("subg_reserve", ["system=system1"], 100, 2671.9),
+        ("subg_reserve", ["system=system2"], 100, 4956.0),
+        ("team_reserve", ["system=system1"], 100, 2811.0),
+        ("team_reserve", ["system=system2"], 100, 5524.4),
+        # a random 50-robot team (scaled auction, 15 slots): train.py's eval.episodes=20
+        ("subg_reserve", RANDOM50, 20, 22825.8),
+        ("team_reserve", RANDOM50, 20, 28842.3),
+    ],
+)
+def test_rules_score_what_the_reports_recorded(learner, system, episodes, team_return, compose_cfg):
+    """The rules at their yaml defaults on the test split score the team returns recorded from
+    ``scripts/train.py learner=<rule> ... eval.episodes=<episodes>``: the same actions on every
+    task stream, whatever the rules' code becomes."""
+    run = build_run(compose_cfg([f"learner={learner}", *system]))
+    seed = split_seed("test")
+    env = AuctionEnv(
+        run.system, run.params, batch_size=episodes, active_tasks=run.active_tasks, seed=seed
+    )
+    summary = evaluate_policy(run.learner, env, episodes, seed)
+    assert round(summary.team_return_mean, 1) == team_return

@@ -160,10 +160,46 @@ def test_a_table_growing_past_the_limit_is_refused_and_left_unchanged():
     assert storage.q.size == 8192 and storage.nbytes == 8 * (3 * 1024 + 5 * 256 + 3 * 8192)
 
 
+@pytest.mark.parametrize(
+    ("settings", "copies", "room"),
+    [
+        ([], 102, "15.5 GB"),  # training: 5120 // 50 copies (conf/budget/subg_cql.yaml)
+        (["train.batch_size=2", "eval.batch_size=20"], 20, "3.03 GB"),  # evaluation's copies
+    ],
+)
+def test_a_first_tick_that_cannot_fit_is_refused_up_front(settings, copies, room, compose_cfg):
+    """subG-CQL at 50 robots with max_group_size=6 (scaled auction: 15 slots) makes room, before
+    each tick, for a new row per group and copy: a 6-robot group's row holds
+    sum_j C(6, j) 15!/(15-j)! = 1 + 90 + 3,150 + 54,600 + 491,400 + 2,162,160 + 3,603,600 =
+    6,315,001 joint actions (24 B each, plus 152 B a row: 151.6 MB), for the most copies that
+    play a tick, training's or evaluation's: refused by group, rows and limit before any work,
+    where it used to grow past 30 GiB in training."""
+    cfg = compose_cfg(
+        [
+            "experiment=scaling",
+            "learner=subg_cql",
+            "partition.max_group_size=6",
+            "system.n_robots=50",
+            "system.seed=0",
+            "limits.memory_gb=3",
+            *settings,
+        ]  # fmt: skip
+    )
+    message = (
+        rf"subg_cql on system random \(50 robots\): needs about [\d.]+ GB up front \({copies} "
+        rf"copies x G\d+ row \(6,315,001 joint actions\) {room}, .*more than the limit of 3 GB; "
+        r"use fewer robots per group"
+    )
+    with pytest.raises(ValueError, match=message):
+        build_run(cfg)
+
+
 def test_tables_that_outgrow_the_memory_limit_stop_the_run_with_the_reason(compose_cfg, tmp_path):
-    """subG-CQL at 50 robots (max_group_size=6) passes the up-front check, but its tables grow
-    past limits.memory_gb in training: the run stops with a user error and leaves the reason as
-    data, instead of asking numpy for more memory than the machine has."""
+    """A table that passes the up-front check may still grow past limits.memory_gb with the
+    states it meets in training: the run stops with a user error naming the group that asks the
+    most (System-I's 3-robot G2: rows of up to 1 + 3 x 3 + 3 x 6 + 6 = 34 joint actions with 3
+    slots, a new one per copy), its rows and the limit, and leaves the reason as data, instead
+    of asking numpy for more memory than the machine has."""
     from mrta_rl.runners import train
 
     cfg = compose_cfg(
@@ -177,7 +213,9 @@ def test_tables_that_outgrow_the_memory_limit_stop_the_run_with_the_reason(compo
         ]  # fmt: skip
     )
     with pytest.raises(TableGrowthError, match=r"subg_cql on system system1 \(6 robots\): stopped "
-                       r"in training: its Q-table would grow .* more than the limit of 100 kB; "
+                       r"in training: group G2 \(3 robots\) asks the most: \d+ rows met "
+                       r"\(\d+ joint actions\) and room for 16 new rows of up to 34 joint actions: "
+                       r"the Q-table would grow .* more than the limit of 100 kB; "
                        r"use smaller sub-groups .*or raise limits.memory_gb"):  # fmt: skip
         train(cfg, run_dir=tmp_path)
     assert not (tmp_path / "metrics.json").exists()

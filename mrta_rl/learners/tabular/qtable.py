@@ -233,9 +233,9 @@ class JointQStorage:
         grown = 8 * (3 * hash_slots + 5 * rows + 3 * entries)  # int64 / float64 columns
         if grown > self.max_bytes:
             raise TableGrowthError(
-                f"its Q-table would grow from {format_bytes(self.nbytes)} to "
-                f"{format_bytes(grown)} (room for {states:,} states and their valid joint "
-                f"actions), more than the limit of {format_bytes(self.max_bytes)}"
+                f"the Q-table would grow from {format_bytes(self.nbytes)} to "
+                f"{format_bytes(grown)} (room for {states:,} rows, states met, and their valid "
+                f"joint actions), more than the limit of {format_bytes(self.max_bytes)}"
             )
 
     def row(self, group: int, state: int) -> int:

@@ -32,7 +32,13 @@ from mrta_rl.learners.tabular.encoding import (
 )
 from mrta_rl.learners.tabular.joint_actions import JointActions, max_valid_joint_actions
 from mrta_rl.learners.tabular.priors import PRIOR_CODES, PRIOR_ORDERS, PRIORS, spread_order
-from mrta_rl.learners.tabular.qtable import TABLE_KEYS, JointQStorage
+from mrta_rl.learners.tabular.qtable import (
+    ROW_GROUP,
+    ROW_LENGTH,
+    TABLE_KEYS,
+    JointQStorage,
+    TableGrowthError,
+)
 from mrta_rl.metrics.learning_space import subgroup_dimension
 from mrta_rl.partition import Partition
 
@@ -131,8 +137,9 @@ class GroupQLearner(TabularLearner, abstract=True):
         for g, robots in enumerate(self.groups):
             self.order[g, : len(robots)] = spread_order(env.active_tasks[robots], self.prior_order)
         self._prior_code = PRIOR_CODES[self.prior]
-        self._row_entries = max(
-            max_valid_joint_actions(len(g), self.n_actions, self.prune_conflicts) for g in groups
+        self._row_entries = np.array(  # the most entries a row of each group holds
+            [max_valid_joint_actions(len(g), self.n_actions, self.prune_conflicts) for g in groups],
+            np.int64,
         )
         self.storage = JointQStorage(len(groups))
         self._pending: tuple[np.ndarray, ...] | None = None
@@ -149,13 +156,33 @@ class GroupQLearner(TabularLearner, abstract=True):
         Args:
             mask: ``[B, m, K + 1]`` valid actions of the state the call meets.
         """
-        new_rows = len(self.groups) * len(mask)
-        if self.prune_conflicts or self._row_entries <= 4096:
-            entries = new_rows * self._row_entries
+        copies = len(mask)
+        if self.prune_conflicts or self._row_entries.max() <= 4096:
+            entries = copies * self._row_entries  # [G]: each group's largest row per copy
         else:  # without pruning, bound each copy by the product of its valid action counts
             counts = mask.sum(axis=2)  # [B, m]
-            entries = sum(int(counts[:, g].prod(axis=1).sum()) for g in self.groups)
-        self.storage.reserve(new_rows, entries)
+            entries = np.array([int(counts[:, g].prod(axis=1).sum()) for g in self.groups])
+        try:
+            self.storage.reserve(len(self.groups) * copies, int(entries.sum()))
+        except TableGrowthError as err:
+            raise TableGrowthError(f"{self._largest_group(copies, entries)}: {err}") from None
+
+    def _largest_group(self, copies: int, new_entries: np.ndarray) -> str:
+        """The group that asks the most of a growth: its name, its rows and the room it asks.
+
+        Args:
+            copies: The new rows each group may create this tick (one per copy).
+            new_entries: ``[G]`` the entries the new rows of each group may take.
+        """
+        n_rows = self.storage.n_rows
+        group = self.storage.rows[ROW_GROUP, :n_rows]
+        held = np.bincount(group, self.storage.rows[ROW_LENGTH, :n_rows], len(self.groups))
+        g = int(np.argmax(held + new_entries))
+        return (
+            f"group {self.group_names[g]} ({len(self.groups[g])} robots) asks the most: "
+            f"{int(np.count_nonzero(group == g)):,} rows met ({int(held[g]):,} joint actions) "
+            f"and room for {copies:,} new rows of up to {int(self._row_entries[g]):,} joint actions"
+        )
 
     @functools.cached_property
     def _kernel_settings(self) -> tuple:
