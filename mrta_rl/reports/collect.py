@@ -147,7 +147,7 @@ def _flatten(config: Any, prefix: str = "") -> dict[str, Any]:
 
 def configuration_variants(records: Sequence[RunRecord]) -> list[str]:
     """What sets each run's configuration apart from the other runs of its learner and system."""
-    flat = [_flatten(named_streams(r.config)) for r in records]
+    flat = [_flatten(named_init(named_streams(r.config))) for r in records]
     variants = [""] * len(records)
     groups: dict[tuple[str, str], list[int]] = {}
     for i, record in enumerate(records):
@@ -180,6 +180,22 @@ def named_streams(config: dict[str, Any]) -> dict[str, Any]:
     if evaluation.get("seed") == SPLIT_SEEDS.get(split):
         named["seed"] = None
     return {**config, "eval": named}
+
+
+def named_init(config: dict[str, Any]) -> dict[str, Any]:
+    """The config with ``init`` (a run dir) named by the system that run trained on.
+
+    Runs started from the runs of several seeds on one family (``init=<run dir>``) are one
+    configuration, ``init=family``, apart from the runs trained on their own team.
+    """
+    init = config.get("init")
+    if not init:
+        return config
+    try:
+        trained_on = str(read_metrics(Path(init) / METRICS_FILE)["system"])
+    except (OSError, ValueError, KeyError, TypeError):
+        trained_on = Path(init).name
+    return {**config, "init": trained_on}
 
 
 def _format_value(value: Any) -> str:

@@ -30,6 +30,7 @@ from mrta_rl.reports.collect import (
     RunRecord,
     config_value,
     configuration_variants,
+    named_init,
     refusal_reason,
 )
 from mrta_rl.reports.frame import long_table, order_learners, summarize, system_label
@@ -414,6 +415,8 @@ def _kind(run: RunRecord) -> str:
     """``"rule"`` (a fixed policy: no learning space), ``"untrained"`` or ``"trained"``."""
     if not run.metrics.get("learning_space"):
         return "rule"
+    if run.config.get("init"):  # trained in another run (on a family, or on another team)
+        return "trained"
     return "trained" if (run.metrics.get("train") or {}).get("episodes", 0) > 0 else "untrained"
 
 
@@ -466,6 +469,9 @@ def _variant(run: RunRecord, kind: str, trained_variant: str) -> str:
         return _features(run)
     # eval.* settings do not make a policy: each run is scored on its (re-)evaluation
     rest = [t for t in trained_variant.split() if not t.startswith(("features=", "eval."))]
+    init = named_init(run.config).get("init")
+    if init and f"init={init}" not in rest:  # the policy was trained on other teams
+        rest.append(f"init={init}")
     features = _features(run)
     return " ".join([features] * (features != "paper") + rest) or "paper"
 
