@@ -256,7 +256,7 @@ class AuctionEnv:
                 1 << DURATION_BITS,
             ),
             "expected tasks per episode x 4": (4 * p.arrival_rate * p.horizon, 1 << ID_BITS),
-            "slots + 1 (actions fit in int8)": (p.slots + 1, 128),
+            "zones (one robot at least in each)": (p.zones, self.n_robots + 1),
         }
         for what, (value, limit) in limits.items():
             if value >= limit:
@@ -433,6 +433,9 @@ class AuctionEnv:
                 why = f"{robot} is busy until tick {self.busy_until[b, i]}"
             elif self.slot_type[b, a - 1] < 0:
                 why = f"slot {a} is empty"
+            elif (a - 1) % self.params.zones != i * self.params.zones // self.n_robots:
+                zone = i * self.params.zones // self.n_robots
+                why = f"slot {a} is not in {robot}'s auction zone {zone + 1}"
             else:
                 why = f"{robot} may not do {self.system.task_types[self.slot_type[b, a - 1]]}"
             raise ValueError(
