@@ -293,11 +293,12 @@ def select_copy(b, tables, state, views):
         free = now > busy_until[b, i]
         idle[b, i] = free
         mask[b, i, 0] = True
-        zone = i * zones // m
-        for kk in range(K):
+        if zones > 1:  # other zones' slots
+            for kk in range(K):
+                mask[b, i, kk + 1] = False
+        for kk in range(i * zones // m, K, zones):
             ttype = slot_type[b, kk]
-            ours = kk % zones == zone
-            mask[b, i, kk + 1] = free and ours and ttype >= 0 and can_do[ttype, i]
+            mask[b, i, kk + 1] = free and ttype >= 0 and can_do[ttype, i]
 
 
 # ---------------------------------------------------------------------------- spec steps 4-8
