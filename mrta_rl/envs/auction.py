@@ -200,6 +200,11 @@ class AuctionEnv:
         for j in np.flatnonzero(~active.any(axis=0)):
             raise ValueError(f"active_tasks: task type {system.task_types[j]} has no robot left")
         self.active_tasks = active  # Lambda_i, [m, n]
+        # [m, K]: robot i's auction zone holds slot k (spec, "Auction zones"; all True for one)
+        zones, robot = self.params.zones, np.arange(system.n_robots)
+        self.zone_slots = (
+            np.arange(p.slots)[None, :] % zones == (robot * zones // robot.size)[:, None]
+        )
         self.copy_offset = 0  # index of copy 0 in a larger batch (ThreadedAuctionEnv), for errors
         self._check_limits()
 
