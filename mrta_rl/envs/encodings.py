@@ -65,8 +65,9 @@ and rules that know it use: when busy robots become free and how full the queue 
 Neural features:
     * :func:`local_features` ``[B, m, F]`` with ``F = 1 + K (1 + 2n) + 1 + 3 + m``: idle bit; per
       slot a one-hot over ``1 + 2n`` codes (``1 + 2 type + high`` over *all* types, so robots share
-      one layout, but 0 where the type is not in ``Lambda_i``, as in the local view); battery-low
-      bit; recency one-hot (3); robot-id one-hot (m).
+      one layout, but 0 where the type is not in ``Lambda_i``, as in the local view, or where the
+      slot is in another auction zone, spec "Auction zones"); battery-low bit; recency one-hot
+      (3); robot-id one-hot (m).
     * :func:`global_features` ``[B, G]`` with ``G = K (1 + 2n) + m + m + 3n``: per slot a one-hot
       over ``1 + 2n`` codes; idle bits; battery-low bits; per task type a recency one-hot (3).
 
