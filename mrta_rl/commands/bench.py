@@ -1,10 +1,13 @@
 """``mrta-bench``: env-ticks per second of the auction env under greedy, plain-loop ratios.
 
 Usage: ``mrta-bench [--batch-sizes 1 16 64 1024 8192] [--threads 1 2] [--paths step play]
-[--repeats 3] [--seconds 1.0] [--systems system1 system2 random100] [--clock wall|cpu]
+[--repeats 3] [--seconds 1.0] [--systems system1 system2 random100 scaled1000] [--clock wall|cpu]
 [--out FILE]`` (or ``python scripts/bench_env.py ...``; ``make bench``). A system is a shipped
-one, ``random100`` (100 random robots) or the path of a team yaml. The plain loop is the
-spec's reference reading, :mod:`mrta_rl.envs.reference`.
+one, ``random100`` (100 random robots), ``scaled1000`` (1,000 random robots with the scaled
+auction: 300 slots in 100 zones) or the path of a team yaml. A cell whose action mask
+(copies x robots x (slots + 1)) exceeds :data:`MAX_MASK` is left out: its memory and time grow
+with it (``scaled1000`` runs 1 and 16 copies). The plain loop is the spec's reference reading,
+:mod:`mrta_rl.envs.reference`.
 """
 
 from __future__ import annotations
@@ -18,8 +21,28 @@ from tqdm import tqdm
 
 from mrta_rl.bench.env import bench_env, bench_plain_loop, format_table
 from mrta_rl.conf_files import system_file
+from mrta_rl.envs.params import AuctionParams
 from mrta_rl.runners import cli
-from mrta_rl.systems import build_system, random_system
+from mrta_rl.systems import RobotSystem, build_system, random_system
+
+# entries of the largest action mask benchmarked: random100 at 8,192 copies holds 3.3 million
+MAX_MASK = 1 << 23
+# the benchmark's random teams by name: robots, task types, density, scaled auction
+RANDOM_TEAMS = {"random100": (100, 20, 0.15, False), "scaled1000": (1000, 20, 0.15, True)}
+
+
+def _system(name: str) -> RobotSystem:
+    """A benchmark team: one of :data:`RANDOM_TEAMS` (team seed 0), a shipped one or a yaml."""
+    if name in RANDOM_TEAMS:
+        m, n, density, scaled = RANDOM_TEAMS[name]
+        return random_system(m, n, density, seed=0, scale_auction=scaled, name=name)
+    return build_system(yaml.safe_load(system_file(name).read_text()))
+
+
+def _mask_size(system: RobotSystem, batch_size: int) -> int:
+    """Entries of the action mask of ``batch_size`` copies of ``system``."""
+    slots = AuctionParams.merged(system.env_overrides).slots
+    return batch_size * system.n_robots * (slots + 1)
 
 
 def _task() -> None:
@@ -29,16 +52,13 @@ def _task() -> None:
     parser.add_argument("--paths", nargs="+", default=["step", "play"], choices=["step", "play"])
     parser.add_argument("--repeats", type=int, default=3, help="side-by-side repeats (ratios)")
     parser.add_argument("--seconds", type=float, default=1.0, help="least wall time per cell")
-    parser.add_argument("--systems", nargs="+", default=["system1", "system2", "random100"])
+    parser.add_argument(
+        "--systems", nargs="+", default=["system1", "system2", "random100", "scaled1000"]
+    )
     parser.add_argument("--clock", default="wall", choices=["wall", "cpu"], help="cpu: steadier")
     parser.add_argument("--out", default="bench_env.json")
     args = parser.parse_args()
-    systems = [
-        random_system(100, 20, 0.15, seed=0, name="random100")
-        if name == "random100"
-        else build_system(yaml.safe_load(system_file(name).read_text()))
-        for name in args.systems
-    ]
+    systems = [_system(name) for name in args.systems]
     plain = [(s, None, 1, 1) for s in systems]
     cells = plain + [
         (s, path, b, n)
@@ -46,7 +66,7 @@ def _task() -> None:
         for path in args.paths
         for n in args.threads
         for b in args.batch_sizes
-        if b >= n
+        if b >= n and _mask_size(s, b) <= MAX_MASK
     ]
     results = []
     with tqdm(total=args.repeats * len(cells), desc="bench_env", unit="cell") as bar:

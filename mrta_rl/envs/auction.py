@@ -200,6 +200,11 @@ class AuctionEnv:
         for j in np.flatnonzero(~active.any(axis=0)):
             raise ValueError(f"active_tasks: task type {system.task_types[j]} has no robot left")
         self.active_tasks = active  # Lambda_i, [m, n]
+        # [m, K]: robot i's auction zone holds slot k (spec, "Auction zones"; all True for one)
+        zones, robot = self.params.zones, np.arange(system.n_robots)
+        self.zone_slots = (
+            np.arange(p.slots)[None, :] % zones == (robot * zones // robot.size)[:, None]
+        )
         self.copy_offset = 0  # index of copy 0 in a larger batch (ThreadedAuctionEnv), for errors
         self._check_limits()
 
@@ -256,7 +261,7 @@ class AuctionEnv:
                 1 << DURATION_BITS,
             ),
             "expected tasks per episode x 4": (4 * p.arrival_rate * p.horizon, 1 << ID_BITS),
-            "slots + 1 (actions fit in int8)": (p.slots + 1, 128),
+            "zones (one robot at least in each)": (p.zones, self.n_robots + 1),
         }
         for what, (value, limit) in limits.items():
             if value >= limit:
@@ -433,6 +438,9 @@ class AuctionEnv:
                 why = f"{robot} is busy until tick {self.busy_until[b, i]}"
             elif self.slot_type[b, a - 1] < 0:
                 why = f"slot {a} is empty"
+            elif (a - 1) % self.params.zones != i * self.params.zones // self.n_robots:
+                zone = i * self.params.zones // self.n_robots
+                why = f"slot {a} is not in {robot}'s auction zone {zone + 1}"
             else:
                 why = f"{robot} may not do {self.system.task_types[self.slot_type[b, a - 1]]}"
             raise ValueError(

@@ -65,8 +65,9 @@ and rules that know it use: when busy robots become free and how full the queue 
 Neural features:
     * :func:`local_features` ``[B, m, F]`` with ``F = 1 + K (1 + 2n) + 1 + 3 + m``: idle bit; per
       slot a one-hot over ``1 + 2n`` codes (``1 + 2 type + high`` over *all* types, so robots share
-      one layout, but 0 where the type is not in ``Lambda_i``, as in the local view); battery-low
-      bit; recency one-hot (3); robot-id one-hot (m).
+      one layout, but 0 where the type is not in ``Lambda_i``, as in the local view, or where the
+      slot is in another auction zone, spec "Auction zones"); battery-low bit; recency one-hot
+      (3); robot-id one-hot (m).
     * :func:`global_features` ``[B, G]`` with ``G = K (1 + 2n) + m + m + 3n``: per slot a one-hot
       over ``1 + 2n`` codes; idle bits; battery-low bits; per task type a recency one-hot (3).
 
@@ -81,8 +82,9 @@ network runs on any team. Every float lies in ``[0, 1]``; counts are divided by 
       and ``|Lambda_i| / n``. No robot id.
     * ``robot_types`` ``[B, m, n]`` bool: ``Lambda_i`` as a multi-hot.
     * ``slots`` ``[B, K, S]`` (:data:`SLOT_FEATURES`): present, high, ticks since due (scaled),
-      round 2 (the task is dropped if nobody wins it now, spec step 6), duration (scaled), idle
-      robots that may bid for it (scaled). An empty slot is all zeros.
+      round 2 (the task is dropped if nobody wins it now, spec step 6), duration (scaled), the
+      robots that may bid for it (idle, its type in their ``Lambda_i``, in its auction zone;
+      scaled). An empty slot is all zeros.
     * ``slot_type`` ``[B, K]`` int64: the slot task's type, 0 for an empty slot.
     * ``types`` ``[B, n, T]`` (:data:`TYPE_FEATURES`): queued H and L (scaled counts and levels /
       2), recency one-hot (3), ticks since the last H arrival (scaled), idle robots and idle or
@@ -594,9 +596,11 @@ def local_features(env: AuctionEnv, features: str = "paper") -> np.ndarray:
     B, m, K, n = env.batch_size, env.n_robots, env.n_slots, env.n_task_types
     n_codes = 1 + 2 * n
     codes = _slot_codes(env)  # [B, K]
-    # as in the local view, a robot sees only the slots it may bid for (spec step 4: Lambda_i)
-    # (an empty slot indexes row -1, a real type, but its code is 0 anyway)
+    # as in the local view, a robot sees only the slots it may bid for (spec step 4: Lambda_i,
+    # and its auction zone's slots) (an empty slot indexes row -1, a real type, but its code is
+    # 0 anyway)
     visible = env.active_tasks.T[env.slot_type] & (codes > 0)[:, :, None]  # [B, K, m]
+    visible &= env.zone_slots.T[None]
     local_codes = np.where(visible, codes[:, :, None], 0).transpose(0, 2, 1)  # [B, m, K]
     at = local_feature_layout(K, n, features)
     out = np.zeros((B, m, local_feature_size(env, features)), np.float32)
@@ -709,7 +713,7 @@ SLOT_FEATURES = (
     "waiting",  # ticks since the task's due tick / TIME_SCALE
     "round_2",  # dropped if nobody wins it this tick (spec step 6)
     "duration",  # duration / TIME_SCALE
-    "bidders",  # idle robots whose Lambda holds its type / COUNT_SCALES["robots"]
+    "bidders",  # robots that may bid for it (idle, Lambda, zone) / COUNT_SCALES["robots"]
 )
 TYPE_FEATURES = (
     "queued_high",  # / COUNT_SCALES["high"]
@@ -811,8 +815,9 @@ def set_inputs(env: AuctionEnv) -> SetInputs:
     slots[..., s["waiting"]] = np.where(present, _scaled(t - task_due(keys), TIME_SCALE), 0)
     slots[..., s["round_2"]] = present & (task_round(keys) == 2)
     slots[..., s["duration"]] = np.where(present, _scaled(task_duration(keys), TIME_SCALE), 0)
-    bidders = np.take_along_axis(idle_cover, slot_type, axis=1)  # [B, K]
-    slots[..., s["bidders"]] = np.where(present, _scaled(bidders, COUNT_SCALES["robots"]), 0)
+    # the robots that may bid for each slot (spec step 4: idle, its type in Lambda_i, its zone)
+    bidders = env.action_mask[:, :, 1:].sum(axis=1)  # [B, K], 0 for an empty slot
+    slots[..., s["bidders"]] = _scaled(bidders, COUNT_SCALES["robots"])
 
     types = np.zeros((B, n, TYPE_TOKEN_SIZE), np.float32)
     y = {name: k for k, name in enumerate(TYPE_FEATURES)}

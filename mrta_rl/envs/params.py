@@ -37,6 +37,9 @@ class AuctionParams:
     # extra busy ticks before a task of another type than the robot's previous one
     # (docs/spec/auction_env.md); 0 = no switch cost
     switch_ticks: Annotated[int, Range(0)] = 0
+    # separate auctions the robots bid in (docs/spec/auction_env.md, "Auction zones"): robot i
+    # bids only for the slots of its zone; 1 = one auction for the whole team
+    zones: Annotated[int, Range(1)] = 1
 
     def __post_init__(self) -> None:
         # the declarations above are the checks (mrta_rl.config); only relations between
@@ -45,6 +48,7 @@ class AuctionParams:
             object.__setattr__(self, name, value)
         relations = {
             "queue_capacity": (self.queue_capacity >= self.slots, "must be >= slots"),
+            "zones": (self.zones <= self.slots, "must be <= slots (every zone has a slot)"),
             "duration_low": (self.duration_low[0] <= self.duration_low[1], "needs lo <= hi"),
             "duration_high": (self.duration_high[0] <= self.duration_high[1], "needs lo <= hi"),
         }

@@ -77,7 +77,12 @@ class ReferenceAuction:
         """Robot ``i``'s valid actions: wait, and a bid for each slot of an active type if idle."""
         if not self.t > self.busy_until[i]:
             return [0]
-        return [0] + [k + 1 for k, x in enumerate(self.slots) if self.active[i, x["type"]]]
+        zone, zones = i * self.p.zones // self.m, self.p.zones  # spec, "Auction zones"
+        return [0] + [
+            k + 1
+            for k, x in enumerate(self.slots)
+            if self.active[i, x["type"]] and k % zones == zone
+        ]
 
     def step(self, actions):
         """Spec steps 4-8; returns (team reward, individual rewards)."""

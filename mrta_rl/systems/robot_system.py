@@ -263,18 +263,19 @@ def random_system(
     result is always a valid system.
 
     With ``scale_auction``, the auction grows with the team as in System-I and II (10 robots,
-    ``slots`` 3, ``queue_capacity`` 32): ``slots = ceil(3 m / 10)`` and ``queue_capacity =
-    ceil(32 m / 10)`` go into the system's env parameters. The spec's arrival rate is already
-    ``m / 6``, so arrivals, auction slots and queue per robot stay those of the paper's systems
-    at every team size; with the spec's fixed 3 slots, more high-priority tasks arrive than can
-    be auctioned from about 55 robots on (docs/results.md, "Scaling"). Values in ``env`` win.
+    ``slots`` 3, ``queue_capacity`` 32, one auction): :func:`auction_for_team`'s ``slots``,
+    ``queue_capacity`` and ``zones`` go into the system's env parameters, so that the team bids
+    in one auction zone per 10 robots, each of about 10 robots and 3 slots fed by the shared
+    queue. The spec's arrival rate is already ``m / 6``, so arrivals, slots, queue and bidders
+    per slot stay those of the paper's systems at every team size (docs/guide/teams.md, "Random
+    teams"). Values in ``env`` win.
 
     Args:
         n_robots: Number of robots ``m`` (>= 1).
         n_task_types: Number of task types ``n`` (>= 1).
         density: Probability of each robot-task pair, in [0, 1].
         seed: Seed of the generator; the same arguments give the same system.
-        scale_auction: Scale ``slots`` and ``queue_capacity`` with the team (see above).
+        scale_auction: Scale ``slots``, ``queue_capacity`` and ``zones`` with the team (above).
         name: System name.
         env: Optional per-system environment parameters.
 
@@ -307,22 +308,32 @@ def random_system(
     return RobotSystem(name, robots, tasks, rtm.astype(np.float64), {}, scaled | dict(env or {}))
 
 
-# System-I and II (paper Tables 1-2): 10 robots, spec defaults slots = 3, queue_capacity = 32
+# System-I and II (paper Tables 1-2): 10 robots, spec defaults slots = 3, queue_capacity = 32,
+# one auction zone
 PAPER_TEAM, PAPER_SLOTS, PAPER_QUEUE = 10, 3, 32
 
 
 def auction_for_team(n_robots: int) -> dict[str, int]:
-    """``slots`` and ``queue_capacity`` per robot as in the paper's 10-robot systems.
+    """The auction of a team of ``m`` robots, per robot that of the paper's 10-robot systems.
+
+    Slots and queue places grow in proportion to the team, and the team bids in one auction zone
+    per 10 robots (spec, "Auction zones"). One zone would not do: every idle robot bids for the
+    lowest slot it may take (the spec's greedy), so the first slot of each task type draws all
+    the bids for that type and one auction assigns at most one task per type and tick, however
+    many slots it has; the ``m / 6`` arrivals per tick outgrow the ``n`` task types from about
+    ``6 n`` robots on. In zones of about 10 robots, as many robots compete for a slot as in
+    System-I and II at every size.
 
     Args:
         n_robots: Team size ``m``.
 
     Returns:
-        ``{"slots": ceil(3 m / 10), "queue_capacity": ceil(32 m / 10)}``.
+        ``{"slots": ceil(3 m / 10), "queue_capacity": ceil(32 m / 10), "zones": ceil(m / 10)}``.
     """
     return {
         "slots": -(-PAPER_SLOTS * n_robots // PAPER_TEAM),
         "queue_capacity": -(-PAPER_QUEUE * n_robots // PAPER_TEAM),
+        "zones": -(-n_robots // PAPER_TEAM),
     }
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from mrta_rl.config import ConfigError
 from mrta_rl.envs import kernel
 from mrta_rl.envs.auction import AuctionEnv
 from mrta_rl.envs.params import AuctionParams
@@ -71,6 +72,8 @@ def random_valid_actions(env, rng):
         # task-switch setup cost (docs/spec/auction_env.md)
         (SYSTEM1, AuctionParams(horizon=150, arrival_rate=1.5, queue_capacity=6, switch_ticks=3)),
         (MIXED, AuctionParams(horizon=150, arrival_rate=1.5, switch_ticks=2, battery_threshold=60)),
+        # auction zones (docs/spec/auction_env.md): 6 robots in 2 zones of 3 slots each
+        (SYSTEM1, AuctionParams(horizon=150, arrival_rate=2.0, slots=6, zones=2)),
     ],
 )
 def test_batched_dynamics_equal_the_reference_tick_by_tick(system, params):
@@ -212,6 +215,42 @@ def test_masks_allow_only_idle_robots_bidding_for_their_active_types():
     ]  # T1: R5, R6 (R1 dropped it, R3 busy)
     assert list(mask[:, 2]) == [False, True, False, False, False, False]  # T2: R2 only
     assert not mask[:, 3].any()  # slot 3 is empty
+
+
+def test_zones_split_the_slots_and_robots_into_separate_auctions():
+    # zones = 2: R1-R3 (i * 2 // 6 = 0) bid for slots 1 and 3, R4-R6 for slots 2 and 4
+    env = quiet_env(SYSTEM1, slots=4, zones=2)
+    env.inject_tasks(0, [task(type=0, id=k) for k in range(4)])  # four T1 tasks
+    mask = env.action_mask[0]
+    capable = [True, False, True, False, True, True]  # T1: R1, R3, R5, R6
+    zone_0 = [True, True, True, False, False, False]
+    for slot in (1, 3):
+        assert list(mask[:, slot]) == [c and z for c, z in zip(capable, zone_0, strict=True)]
+    for slot in (2, 4):
+        assert list(mask[:, slot]) == [c and not z for c, z in zip(capable, zone_0, strict=True)]
+    with pytest.raises(ValueError, match="slot 2 is not in R1's auction zone 1"):
+        env.step(np.array([[2, 0, 0, 0, 0, 0]]))
+    # the two zones' greedy bidders win a T1 task each in the same tick
+    result = env.step(env.fixed_actions("greedy"))
+    assert result.team_reward[0] == 2 * AuctionParams().reward_assign_low
+    assert env.stats.assigned[0, 0, 0] == 2
+
+
+def test_zones_need_a_robot_and_a_slot_each():
+    with pytest.raises(ValueError, match="zones .* = 7 exceeds the environment's limit 6"):
+        quiet_env(SYSTEM1, slots=8, zones=7)
+    with pytest.raises(ConfigError, match="AuctionParams.zones: must be <= slots"):
+        AuctionParams(slots=2, zones=3)
+
+
+def test_a_thousand_robots_bid_for_300_slots():
+    # slot indices above 127 are actions like any other (no small-integer ceiling)
+    system = random_system(1000, 12, 0.25, seed=0, scale_auction=True)
+    env = AuctionEnv(system, AuctionParams.merged(system.env_overrides, {"horizon": 20}), seed=1)
+    assert env.n_actions == 301 and env.action_mask.shape == (1, 1000, 301)
+    assert env.action_mask[0, :, 128:].any()  # ~167 tasks arrive at tick 0
+    stats = env.play("greedy", episodes=1)
+    assert stats.assigned.sum() > 0 and stats.ticks[0] == 20
 
 
 @pytest.mark.parametrize(

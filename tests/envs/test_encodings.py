@@ -372,3 +372,18 @@ def test_set_inputs_widths_do_not_depend_on_the_team():
             np.testing.assert_array_equal(recency, ob.recency_level(env, env.active_tasks))
         widths.add((x.robots.shape[-1], x.slots.shape[-1], x.types.shape[-1]))
     assert widths == {(ob.ROBOT_TOKEN_SIZE, ob.SLOT_TOKEN_SIZE, ob.TYPE_TOKEN_SIZE)}
+
+
+def test_zones_hide_other_zones_slots_from_local_features_and_bidders():
+    # four robots of one type in 2 zones: R1, R2 bid for slot 1, R3, R4 for slot 2; R2 is busy
+    robots = {f"R{i}": ["T1"] for i in range(1, 5)}
+    system = build_system({"name": "zoned", "robots": robots})
+    env = AuctionEnv(system, AuctionParams(arrival_rate=0.0, slots=2, zones=2))
+    env.busy_until[0, 1] = 5
+    env.inject_tasks(0, [task(0, 0, 0), task(0, 0, 1)])  # two T1 L tasks, in slots 1 and 2
+    bidders = ob.set_inputs(env).slots[0, :, ob.SLOT_FEATURES.index("bidders")]
+    assert bidders.tolist() == [1 / 4, 2 / 4]  # R1 for slot 1; R3 and R4 for slot 2
+    at = ob.local_feature_layout(2, 1, "paper")
+    codes = ob.local_features(env)[0][:, at["slots"]].reshape(4, 2, 3).argmax(-1)  # [m, K]
+    # code 1 = a T1 L task the robot may bid for, 0 = none (another zone's slot)
+    assert codes.tolist() == [[1, 0], [1, 0], [0, 1], [0, 1]]

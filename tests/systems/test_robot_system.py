@@ -12,6 +12,8 @@ import yaml
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from mrta_rl.envs.auction import AuctionEnv
+from mrta_rl.envs.params import AuctionParams
 from mrta_rl.systems import SystemConfigError, build_system, random_system
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -166,19 +168,40 @@ def test_random_system_config_and_scaling_size():
 
 
 def test_random_system_scales_the_auction_with_the_team():
-    # System-I/II per robot: 3 slots and a queue of 32 per 10 robots, rounded up
+    # System-I/II per robot: 3 slots, a queue of 32 and one auction zone per 10 robots, rounded up
     assert random_system(10, 4, 0.5, 0).env_overrides == {}
     assert random_system(10, 4, 0.5, 0, scale_auction=True).env_overrides == {
         "slots": 3,
         "queue_capacity": 32,
+        "zones": 1,
     }
     assert random_system(55, 4, 0.5, 0, scale_auction=True).env_overrides == {
         "slots": 17,  # ceil(16.5)
         "queue_capacity": 176,
+        "zones": 6,  # ceil(5.5)
     }
     s = build_system(
-        {"name": "random", "n_robots": 200, "scale_auction": True, "env": {"slots": 5}}
+        {"name": "random", "n_robots": 200, "scale_auction": True, "env": {"slots": 25}}
     )
-    assert s.env_overrides == {"slots": 5, "queue_capacity": 640}  # the file's env wins
+    assert s.env_overrides == {"slots": 25, "queue_capacity": 640, "zones": 20}  # env wins
     with pytest.raises(SystemConfigError, match=r"system.scale_auction"):
         random_system(3, 3, 0.5, 0, scale_auction="yes")
+
+
+def _greedy_regime(n_robots: int) -> np.ndarray:
+    """Greedy's CTR of L and H tasks and share of busy robot-ticks, in percent, on a scaled team."""
+    system = random_system(n_robots, 12, 0.25, seed=0, scale_auction=True)
+    params = AuctionParams.merged(system.env_overrides, {"horizon": 400})
+    stats = AuctionEnv(system, params, batch_size=4, seed=2_000_000).play("greedy", episodes=1)
+    assigned, dropped = stats.assigned.sum(axis=(0, 1)), stats.dropped.sum(axis=(0, 1))
+    busy = stats.busy_ticks.sum() / (stats.ticks.sum() * n_robots)
+    return 100 * np.array([*(assigned / (assigned + dropped)), busy])
+
+
+def test_scaled_auction_keeps_greedys_regime_per_robot_from_10_to_200_robots():
+    # one auction for the whole team serves one task per type and tick under greedy: at 200
+    # robots and 12 types it completed 8 % of L tasks (55 % at 10 robots) with every robot busy
+    at_10 = _greedy_regime(10)
+    assert 45 < at_10[0] < 65 and 60 < at_10[1] < 78 and 70 < at_10[2] < 90
+    for n_robots in (50, 200):
+        np.testing.assert_allclose(_greedy_regime(n_robots), at_10, atol=6)
