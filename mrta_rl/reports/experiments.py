@@ -476,11 +476,23 @@ def _variant(run: RunRecord, kind: str, trained_variant: str) -> str:
     return " ".join([features] * (features != "paper") + rest) or "paper"
 
 
+def team_of(run: RunRecord) -> str:
+    """The team a run played: its system, and for a random team its size and team seed.
+
+    Random teams share the system name ``random``; each (size, team seed) is a team of its own,
+    with its own streams and its own best rule.
+    """
+    m, seed = config_value(run.config, "system.n_robots"), config_value(run.config, "system.seed")
+    if m is None:
+        return run.system
+    return f"{run.system} ({m:,} robots, team seed {seed})"
+
+
 def collect_policies(runs: Sequence[RunRecord]) -> dict[str, list[Policy]]:
-    """Per system: greedy, the best team_reserve, rollout, the learners (trained and untrained)."""
+    """Per team: greedy, the best team_reserve, rollout, the learners (trained and untrained)."""
     if not any(r.name in RULES or _kind(r) == "untrained" for r in runs):
         return {}
-    runs = [with_reevaluation(r) for r in runs]
+    runs = [dataclasses.replace(with_reevaluation(r), system=team_of(r)) for r in runs]
     # trained configurations are told apart among the trained runs only: the settings in which
     # an untrained run differs (train.episodes, learning rates...) do not change its policy
     trained = [r for r in runs if _kind(r) == "trained"]

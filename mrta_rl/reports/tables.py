@@ -143,9 +143,19 @@ def ctr_markdown(summary: pd.DataFrame, priority: str) -> str:
     return _markdown_pivot(_pivot_text(rows, "item"), "learner")
 
 
+MAX_ROBOT_COLUMNS = 20  # a larger team's ITR table shows the mean over its robots only
+
+
 def itr_markdown(summary: pd.DataFrame) -> str:
-    """Rows learners, columns robots and their mean: ITR on one system."""
-    return _markdown_pivot(_pivot_text(_metric(summary, "itr"), "item"), "learner")
+    """Rows learners, columns robots and their mean: ITR on one system.
+
+    A team of more than :data:`MAX_ROBOT_COLUMNS` robots gets the mean column only (every robot
+    stays in the CSV).
+    """
+    itr = _metric(summary, "itr")
+    if itr["item"].nunique() - 1 > MAX_ROBOT_COLUMNS:
+        itr = itr[itr["item"] == "mean"]
+    return _markdown_pivot(_pivot_text(itr, "item"), "learner")
 
 
 def team_return_markdown(summary: pd.DataFrame, table: pd.DataFrame) -> str:

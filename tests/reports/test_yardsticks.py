@@ -264,3 +264,34 @@ def test_the_decision_time_is_a_metric_of_the_long_table_and_runs_csv():
     }
     wide = runs_wide(frame)
     assert wide.loc[1, "decision_time_ms_per_tick"] == 12.5
+
+
+def random_team(run: RunRecord, m: int, team_seed: int, greedy: list[float]) -> RunRecord:
+    """``run`` as played on the random team of ``m`` robots and team seed ``team_seed``."""
+    metrics = json.loads(json.dumps(run.metrics))
+    metrics["baseline_greedy"]["team_return"]["per_episode"] = greedy
+    config = {**run.config, "system": {"name": "random", "n_robots": m, "seed": team_seed}}
+    return dataclasses.replace(run, system="random", metrics=metrics, config=config)
+
+
+def test_each_random_team_is_a_team_of_its_own_and_an_init_run_is_trained(tmp_path):
+    """Random teams share the system name; each size and team seed has its own best rule."""
+    family = tmp_path / "family"
+    family.mkdir()
+    (family / "metrics.json").write_text(json.dumps({"system": "family"}))
+    runs = []
+    for m, rule, greedy in ((10, [11.0, 22.0, 33.0], GREEDY), (200, [5.0, 6.0, 7.0], [4.0] * 3)):
+        runs.append(random_team(record("team_reserve", 0, rule), m, 0, greedy))
+        policy = record("reserve_es", 0, [x + 1 for x in rule], space={"analytic": 20})
+        policy = dataclasses.replace(policy, config={"init": str(family)})
+        runs.append(random_team(policy, m, 0, greedy))
+    by_team = collect_policies(runs)
+    assert set(by_team) == {"random (10 robots, team seed 0)", "random (200 robots, team seed 0)"}
+    for team, rule in (
+        ("random (10 robots, team seed 0)", 22.0),
+        ("random (200 robots, team seed 0)", 6.0),
+    ):
+        names = {p.name: p for p in by_team[team]}
+        assert names[BEST_RESERVE].means == [pytest.approx(rule)]
+        # played zero-shot (train.episodes=0) from a run trained on the family: a trained policy
+        assert names["reserve-ES [init=family]"].kind == "trained"
