@@ -87,16 +87,27 @@ def test_dense_dql_tables_are_counted_exactly(features, rng):
 
 
 @pytest.mark.parametrize(
-    ("learner", "network"),
-    [("iql", "mlp"), ("vdn", "mlp"), ("qmix", "mlp"), ("subg_dqn", None), ("qmix", "set")],
+    ("learner", "network", "team"),
+    [
+        ("iql", "mlp", "system1"),
+        ("vdn", "mlp", "system1"),
+        ("qmix", "mlp", "system1"),
+        ("subg_dqn", None, "system1"),
+        ("qmix", "set", "system1"),
+        # a large team: the per-robot leaves (masks, the prior's one-hot) dominate a transition
+        ("qmix", "set", "random60"),
+    ],
 )
-def test_network_and_transition_sizes_match_built_learners(learner, network, compose_cfg):
+def test_network_and_transition_sizes_match_built_learners(learner, network, team, compose_cfg):
     from torchrl.collectors import Collector
 
     from mrta_rl.envs.torchrl_env import AuctionTorchRLEnv
 
     choice = [] if network is None else [f"learner.network={network}"]
-    cfg = compose_cfg([f"learner={learner}", "system=system1", "debug=smoke", *choice])
+    system = ["system=system1"]
+    if team == "random60":
+        system = ["system=random", "system.n_robots=60", "system.scale_auction=true"]
+    cfg = compose_cfg([f"learner={learner}", *system, "debug=smoke", *choice])
     run = build_run(cfg)
     hp = run.learner.hp
     estimate = estimate_resources(
