@@ -24,9 +24,9 @@ mask and add no conflict (an added bid's slot has no other bidder).
 
 This is a reference, not a learner: it reads the full env state (queue, busy times, batteries),
 which no learner's observation holds, and it knows the arrival process of the spec. It has no
-training (``kind = "fixed"``). ``horizon=0`` or a single candidate plays the base policy. Its
-decision time per tick (candidates and rollouts) goes into ``metrics.json``
-(:meth:`RolloutPlanner.decision_time`).
+training (``kind = "fixed"``). ``horizon=0``, or a single candidate without neighbours, plays
+the base policy. Its decision time per tick (candidates and rollouts) goes into
+``metrics.json`` (:meth:`RolloutPlanner.decision_time`).
 
 Copies are snapshot, restored and re-seeded with the env's own exact ``AuctionEnv.get_state`` /
 ``set_state`` / ``reseed`` (docs/spec/auction_env.md); ``reseed`` draws the future arrivals of a
