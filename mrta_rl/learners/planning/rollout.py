@@ -15,11 +15,18 @@ rebuilt from its own config, read as data, with its saved learner state, as re-e
 ``base``, scored first (ties go to it), so planning can only improve on the learned policy in
 expectation. A value that names a rule is the rule: write ``./hold`` for a run dir named ``hold``.
 
+``neighbours`` adds local candidates around the base policy's joint action (:func:`neighbours`):
+the base action with one of its bids dropped (``drop``: that robot waits) or with one waiting
+robot bidding for a slot that no bid of the base action takes (``add``). The rules' joint
+actions are whole-team changes, far from a good learned action; a neighbour changes one robot's
+bid, so the planner can improve such a base one bid at a time. Neighbours are valid under the
+mask and add no conflict (an added bid's slot has no other bidder).
+
 This is a reference, not a learner: it reads the full env state (queue, busy times, batteries),
 which no learner's observation holds, and it knows the arrival process of the spec. It has no
-training (``kind = "fixed"``). ``horizon=0`` or a single candidate plays the base policy. Its
-decision time per tick (candidates and rollouts) goes into ``metrics.json``
-(:meth:`RolloutPlanner.decision_time`).
+training (``kind = "fixed"``). ``horizon=0``, or a single candidate without neighbours, plays
+the base policy. Its decision time per tick (candidates and rollouts) goes into
+``metrics.json`` (:meth:`RolloutPlanner.decision_time`).
 
 Copies are snapshot, restored and re-seeded with the env's own exact ``AuctionEnv.get_state`` /
 ``set_state`` / ``reseed`` (docs/spec/auction_env.md); ``reseed`` draws the future arrivals of a
@@ -62,6 +69,47 @@ CANDIDATES: dict[str, dict[str, Any] | None] = {
 
 
 BASE_RUN = "base"  # the candidate name of a trained base policy's own action
+# local moves around the base policy's joint action (neighbours())
+NEIGHBOURS = ("drop", "add")
+
+
+def neighbours(action: np.ndarray, mask: np.ndarray, kinds: tuple[str, ...]) -> np.ndarray:
+    """The joint actions one bid away from ``action``, per copy (module docstring).
+
+    ``drop``: one row per robot ``i``, ``action`` with robot ``i`` waiting. ``add``: one row per
+    robot ``i`` and slot ``k`` (robot-major), ``action`` with robot ``i`` bidding for ``k``,
+    where robot ``i`` waits in ``action``, the bid is valid under ``mask`` and no robot bids for
+    ``k`` in ``action``. A move that does not apply to a copy leaves its row equal to ``action``
+    (the planner rolls out each distinct joint action once). Rows come in the order of ``kinds``.
+
+    Args:
+        action: ``[B, m]`` int joint actions (0 = wait, ``k`` = bid for slot ``k``).
+        mask: ``[B, m, K + 1]`` bool valid actions.
+        kinds: Moves of :data:`NEIGHBOURS`.
+
+    Returns:
+        ``[N, B, m]`` joint actions; ``N`` = ``m`` per ``drop`` and ``m * K`` per ``add``.
+    """
+    n_copies, m = action.shape
+    n_slots = mask.shape[2] - 1
+    rows = []
+    for kind in kinds:
+        if kind == "drop":
+            moved = np.repeat(action[None], m, axis=0)  # [m, B, m]
+            moved[np.arange(m), :, np.arange(m)] = 0
+            rows.append(moved)
+        elif kind == "add":
+            slots = np.arange(1, n_slots + 1)
+            taken = (action[:, :, None] == slots).any(axis=1)  # [B, K]: some robot bids for k
+            ok = (action == 0)[:, :, None] & mask[:, :, 1:] & ~taken[:, None, :]  # [B, m, K]
+            moved = np.repeat(action[None], m * n_slots, axis=0)  # [m * K, B, m]
+            for i in range(m):
+                for k in range(n_slots):
+                    moved[i * n_slots + k, :, i] = np.where(ok[:, i, k], k + 1, action[:, i])
+            rows.append(moved)
+    if not rows:
+        return np.empty((0, n_copies, m), action.dtype)
+    return np.concatenate(rows)
 
 
 def is_rule(base: str) -> bool:
@@ -88,6 +136,8 @@ class RolloutPlanner(FixedLearner):
             a rule of :data:`CANDIDATES`, or a run dir of ``scripts/train.py`` on the same team
             (module docstring).
         gamma: Discount per tick of the rollout return (1 = plain sum).
+        neighbours: Local candidates around the base policy's joint action (:func:`neighbours`):
+            ``drop`` (one bid dropped), ``add`` (one waiting robot bids for a free slot).
         margin: A candidate replaces the base policy's action only where its mean rollout
             return beats the base's by more than ``margin`` standard errors of their paired
             difference over the samples (the futures are common to both); among those, the
@@ -119,10 +169,13 @@ class RolloutPlanner(FixedLearner):
         base: str = "hold_group",
         gamma: Annotated[float, Range(0, 1, low_open=True)] = 1.0,
         margin: Annotated[float, Range(0)] = 0.0,
+        # none: only the rules' whole-team joint actions compete with the base's
+        neighbours: Annotated[tuple[str, ...], Choices(*NEIGHBOURS)] = (),
         **kwargs,
     ) -> None:
         super().__init__(**kwargs)  # types and ranges: the annotations (mrta_rl.config)
         self.samples, self.horizon, self.gamma, self.margin = samples, horizon, gamma, margin
+        self.neighbours = neighbours
         if is_rule(base):
             self.base_run = None
             names = [base, *(c for c in candidates if c != base)]  # the base first: ties to it
@@ -181,12 +234,17 @@ class RolloutPlanner(FixedLearner):
         )
 
     def encode(self, env: AuctionEnv) -> tuple[Any, np.ndarray]:
-        """A snapshot of every copy and the candidates' joint actions ``[C, B, m]``."""
+        """A snapshot of every copy and the candidates' joint actions ``[C, B, m]``.
+
+        The rules' actions (the base's first), then the base action's :func:`neighbours`.
+        """
         start = time.perf_counter()
         mask = env.action_mask
         actions = np.stack(
             [rule.act(rule.encode(env), mask, explore=False) for rule in self._rules]
         )
+        if self.neighbours:
+            actions = np.concatenate([actions, neighbours(actions[0], mask, self.neighbours)])
         state = env.get_state()
         self.decision_s += time.perf_counter() - start
         return state, actions

@@ -9,7 +9,12 @@ import pytest
 from mrta_rl.envs import AuctionEnv, AuctionParams
 from mrta_rl.learners import GreedyLearner, TeamReserveLearner
 from mrta_rl.learners.fixed import SubGReserveLearner
-from mrta_rl.learners.planning.rollout import RolloutPlanner, SubGRolloutPlanner, restore
+from mrta_rl.learners.planning.rollout import (
+    RolloutPlanner,
+    SubGRolloutPlanner,
+    neighbours,
+    restore,
+)
 from mrta_rl.partition import subg_partition
 from tests.conftest import paper_system
 
@@ -94,6 +99,50 @@ def test_greedy_base_with_no_planning_is_greedy():
     np.testing.assert_array_equal(ours, theirs)
 
 
+def test_neighbours_of_a_joint_action_move_one_bid():
+    """Two copies of 3 robots and 2 slots, worked by hand.
+
+    Copy 0: robot 0 bids for slot 1, robot 1 waits (it may bid for 1 or 2), robot 2 is busy.
+    Copy 1: everyone waits; robot 0 may bid for 2, robot 1 for nothing, robot 2 for 1 or 2.
+    """
+    action = np.array([[1, 0, 0], [0, 0, 0]])
+    mask = np.zeros((2, 3, 3), bool)
+    mask[:, :, 0] = True  # waiting is always valid
+    mask[0, 0, [1, 2]] = mask[0, 1, [1, 2]] = True
+    mask[1, 0, 2] = mask[1, 2, [1, 2]] = True
+    drop = neighbours(action, mask, ("drop",))
+    # one row per robot: only copy 0's robot 0 has a bid to drop
+    np.testing.assert_array_equal(drop[:, 0], [[0, 0, 0], [1, 0, 0], [1, 0, 0]])
+    np.testing.assert_array_equal(drop[:, 1], [[0, 0, 0]] * 3)
+    add = neighbours(action, mask, ("add",))
+    assert add.shape == (6, 2, 3)  # robot-major rows (robot, slot): (0,1) (0,2) (1,1) ... (2,2)
+    # copy 0: slot 1 is taken by robot 0, robot 2 is busy: only robot 1 -> slot 2
+    expect0 = [[1, 0, 0], [1, 0, 0], [1, 0, 0], [1, 2, 0], [1, 0, 0], [1, 0, 0]]
+    np.testing.assert_array_equal(add[:, 0], expect0)
+    # copy 1: robot 0 -> slot 2, robot 2 -> slot 1 or 2
+    expect1 = [[0, 0, 0], [2, 0, 0], [0, 0, 0], [0, 0, 0], [0, 0, 1], [0, 0, 2]]
+    np.testing.assert_array_equal(add[:, 1], expect1)
+    both = neighbours(action, mask, ("drop", "add"))
+    np.testing.assert_array_equal(both, np.concatenate([drop, add]))
+    assert neighbours(action, mask, ()).shape == (0, 2, 3)
+
+
+def test_with_neighbours_only_it_plays_the_base_or_one_bid_away():
+    """Base ``hold_group`` and no other rule: each tick plays the rule's action or a neighbour."""
+    planner, env = make(samples=3, horizon=5, candidates=["hold_group"], neighbours=["drop", "add"])
+    rule = TeamReserveLearner(env=env, rng=np.random.default_rng(1), hold_scope="group")
+    moved = 0
+    while not env.done.all():
+        mask = env.action_mask.copy()
+        base = rule.act(rule.encode(env), mask, explore=False)
+        actions = planner.act(planner.encode(env), mask, explore=False)
+        near = neighbours(base, mask, ("drop", "add"))
+        assert ((near == actions).all(axis=-1).any(axis=0) | (base == actions).all(axis=-1)).all()
+        moved += int((actions != base).any(axis=-1).sum())
+        env.step(actions)  # raises on an invalid action (or a conflict-free move gone wrong)
+    assert planner.decisions > 0 and moved > 0  # the neighbours were rolled out and some played
+
+
 def test_rejects_bad_settings():
     for bad, match in (
         ({"samples": 0}, "samples: must be an integer >= 1"),
@@ -101,6 +150,7 @@ def test_rejects_bad_settings():
         ({"gamma": 0.0}, r"gamma: must be a number in \(0, 1\]"),
         ({"base": "nope"}, "base: must be one of 'greedy'"),
         ({"candidates": ["greedy", "nope"]}, "candidates: must be a list, each item one of"),
+        ({"neighbours": ["drop", "swap"]}, "neighbours: must be a list, each item one of"),
     ):
         with pytest.raises(ValueError, match=match):
             make(**bad)

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from mrta_rl.envs import AuctionEnv, AuctionParams
-from mrta_rl.learners.planning.rollout import RolloutPlanner
+from mrta_rl.learners.planning.rollout import RolloutPlanner, neighbours
 from mrta_rl.run_files import read_metrics
 from mrta_rl.runners import train as run_train
 from mrta_rl.runners.train import load_run
@@ -68,6 +68,24 @@ def test_planning_on_a_trained_base_is_valid_deterministic_and_timed(base_run):
     assert timing["ms_per_tick"] == pytest.approx(1000 * timing["total_s"] / 60, rel=1e-3)
     again, _ = play(*planner_on(base_run, samples=2, horizon=5))
     np.testing.assert_array_equal(first, again)
+
+
+def test_neighbours_of_a_trained_base_move_one_bid_of_its_action(base_run):
+    """No rule candidates: each tick plays the learned action or one of its neighbours."""
+    planner, env = planner_on(
+        base_run, samples=2, horizon=5, candidates=[], neighbours=["drop", "add"]
+    )
+    learned = load_run(base_run).learner
+    moved = 0
+    while not env.done.all():
+        mask = env.action_mask.copy()
+        base = learned.act(learned.encode(env), mask, explore=False)
+        actions = planner.act(planner.encode(env), mask, explore=False)
+        near = neighbours(base, mask, ("drop", "add"))
+        assert ((near == actions).all(axis=-1).any(axis=0) | (base == actions).all(axis=-1)).all()
+        moved += int((actions != base).any(axis=-1).sum())
+        env.step(actions)  # raises on an invalid action
+    assert planner.decision_time()["planned_ticks"] > 0 and moved > 0
 
 
 def test_a_run_with_a_trained_base_records_its_decision_time(base_run, tmp_path):
