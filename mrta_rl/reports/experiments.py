@@ -462,7 +462,8 @@ def _variant(run: RunRecord, kind: str, trained_variant: str) -> str:
         cfg = run.config.get("learner") or {}
         base = str(cfg.get("base", ""))
         if run.name in PLANNERS and "/" in base:
-            return f"base={_base_label(base)}"
+            moves = cfg.get("neighbours") or []  # candidates around the base's own action
+            return f"base={_base_label(base)}" + (f", neighbours={','.join(moves)}" * bool(moves))
         keys = RESERVE_KEYS if run.name == "team_reserve" else ()
         return ", ".join(f"{k}={cfg[k]}" for k in keys if k in cfg)
     if kind == "untrained":
