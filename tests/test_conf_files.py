@@ -20,7 +20,8 @@ def test_system_by_name_or_path(tmp_path, monkeypatch):
     assert system_file("my_team.yaml") == tmp_path / "my_team.yaml"  # relative to the cwd
     assert resolve_system(tmp_path / "my_team.yaml").n_robots == 2
     for missing in ("system9", "nope.yaml", str(tmp_path / "nope.yml")):
-        with pytest.raises(UserError, match=r"unknown system .*known: \['family', 'random', 'system1'"):
+        known = r"unknown system .*known: \['family', 'random', 'system1'"
+        with pytest.raises(UserError, match=known):
             system_file(missing)
 
 
