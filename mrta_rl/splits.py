@@ -12,7 +12,9 @@ Each split owns :data:`SPLIT_WIDTH` seeds (``runners/validation.py`` refuses mor
 copies), so the two never share a stream; both lie below ``SEED_STRIDE``, before the training
 copies of every run seed but 0, and past those of run seed 0 (it refuses more training copies
 than the test split's first seed). Every learner and run seed is evaluated on the same streams of
-a split.
+a split. Training on a family of teams (``systems/family.py``), copy ``b`` of training episode
+``e`` plays ``s * SEED_STRIDE + FAMILY_SEEDS + e * B + b``: the upper half of the run seed's
+stride, apart from one-team training and the splits.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ SEED_STRIDE = 2**32  # training env seed = seed * SEED_STRIDE + copy; evaluation
 SPLIT_SEEDS = {"test": 1_000_000, "validation": 2_000_000}  # eval.split -> seed of copy 0
 DEFAULT_SPLIT = "test"  # the split of a run config without eval.split (written before it existed)
 SPLIT_WIDTH = 1_000_000  # seeds a split owns: at most this many evaluation copies
+FAMILY_SEEDS = SEED_STRIDE // 2  # first training seed of a run seed on a family of teams
 
 
 def split_seed(split: str | None) -> int:

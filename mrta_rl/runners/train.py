@@ -45,7 +45,6 @@ from mrta_rl.runners.learner_files import load_learner, save_learner
 from mrta_rl.runners.run_config import read_run_config, run_choices
 from mrta_rl.runners.run_dir import claim_run_dir, releases_run_dirs
 from mrta_rl.runners.validation import (
-    FAMILY_SEEDS,
     SEED_STRIDE,
     ResourceRefusal,
     hydra_choice,
@@ -53,6 +52,7 @@ from mrta_rl.runners.validation import (
     training_loop,
     validate_config,
 )
+from mrta_rl.splits import FAMILY_SEEDS
 from mrta_rl.systems import RobotSystem
 from mrta_rl.systems.family import TeamFamily
 

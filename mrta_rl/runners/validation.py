@@ -41,7 +41,7 @@ from mrta_rl.learners.memory import (
     team_floor_bytes,
 )
 from mrta_rl.partition import Partition, subg_partition
-from mrta_rl.splits import DEFAULT_SPLIT, SEED_STRIDE, SPLIT_SEEDS, SPLIT_WIDTH
+from mrta_rl.splits import DEFAULT_SPLIT, FAMILY_SEEDS, SEED_STRIDE, SPLIT_SEEDS, SPLIT_WIDTH
 from mrta_rl.systems import (
     MAX_PAIRS,
     RobotSystem,
@@ -510,11 +510,6 @@ def team_params(system: RobotSystem, env_overrides: dict[str, Any]) -> AuctionPa
         check_fields(AuctionParams, system.env_overrides, "system.env", null_is_default=True),
         env_overrides,
     )
-
-
-# on a family, copy b of training episode e plays seed * SEED_STRIDE + FAMILY_SEEDS + e * B + b:
-# the upper half of the run seed's stride, apart from one-team training (copy b) and the splits
-FAMILY_SEEDS = SEED_STRIDE // 2
 
 
 def any_team_learners() -> list[str]:
