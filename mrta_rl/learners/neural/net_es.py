@@ -33,7 +33,6 @@ from numba import njit
 from mrta_rl.config import Range
 from mrta_rl.envs import AuctionEnv
 from mrta_rl.envs.encodings import (
-    N_RECENCY_LEVELS,
     QUEUE_THRESHOLDS_ARRAY,
     RECENCY_THRESHOLDS_ARRAY,
     battery_margin,
@@ -309,12 +308,9 @@ class NetESLearner(ReserveESLearner):
         hidden: Hidden units of the network.
         init_scale: Standard deviation of the first layer's start weights, times
             ``1 / sqrt(len(INPUTS))``; the output layer starts at zero.
-        pairs: Antithetic pairs per training episode (as ``reserve_es``).
-        sigma: Standard deviation of the weight perturbations.
-        lr: Adam's step size.
-        reserve: Start rule: idle robots kept back for H work.
-        hold_level: Start rule: L waits while the robot's recency level is below this.
-        **kwargs: Env, generator and partition of :class:`~mrta_rl.learners.base.Learner`.
+        **kwargs: ``reserve_es``'s settings (``pairs``, ``sigma``, ``lr``, ``reserve``,
+            ``hold_level``: :class:`~mrta_rl.learners.search.reserve_es.ReserveESLearner`), and
+            the env, generator and partition of :class:`~mrta_rl.learners.base.Learner`.
 
     Attributes:
         theta: The flat weights the policy plays: the rule's ``N_FEATURES``, then the network's.
@@ -346,17 +342,10 @@ class NetESLearner(ReserveESLearner):
         *,
         hidden: Annotated[int, Range(1)] = 16,
         init_scale: Annotated[float, Range(0)] = 1.0,
-        pairs: Annotated[int, Range(1)] = 12,
-        sigma: Annotated[float, Range(0, low_open=True)] = 0.3,
-        lr: Annotated[float, Range(0, low_open=True)] = 0.15,
-        reserve: Annotated[int, Range(0, 2)] = 0,
-        hold_level: Annotated[int, Range(0, N_RECENCY_LEVELS)] = 1,
         **kwargs: Any,
     ) -> None:
         self.hidden = hidden
-        super().__init__(
-            pairs=pairs, sigma=sigma, lr=lr, reserve=reserve, hold_level=hold_level, **kwargs
-        )
+        super().__init__(**kwargs)  # reserve_es's settings are declared there
         first = self.rng.standard_normal((N_INPUTS, hidden)) * init_scale / np.sqrt(N_INPUTS)
         bias = self.rng.standard_normal(hidden) * init_scale
         start = [first, bias, np.zeros((hidden, N_HEADS)), np.zeros(N_HEADS)]
