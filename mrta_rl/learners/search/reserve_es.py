@@ -192,7 +192,6 @@ class ReserveESLearner(Learner):
         # common random numbers: copy b starts as a clone of copy b mod copies (seed and episode
         # count included), so every member plays the same task streams, episode after episode
         env.set_state(env.get_state(np.arange(batch) % self.copies))
-        self._returns = np.zeros(batch)
 
     def _team(self, env: AuctionEnv) -> dict[str, np.ndarray]:
         """What the policy reads of the team of ``env`` (computed once per env).
