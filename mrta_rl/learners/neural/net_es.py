@@ -87,8 +87,9 @@ TickView = namedtuple(
 )
 # what does not change while the learner plays one team: Lambda_i, the rule's robot order and
 # its hold margins, the encodings' thresholds, and battery capacity, drain, threshold, horizon
+# and the auction zones: robot i bids in zone[i], one of ``zones`` (spec, "Auction zones")
 TeamFacts = namedtuple(
-    "TeamFacts", "active order margin recency_thresholds queue_thresholds scalars"
+    "TeamFacts", "active order margin recency_thresholds queue_thresholds scalars zone zones"
 )
 # the members' weights: copy b plays theta[b // group]; the network has n_hidden units
 MemberWeights = namedtuple("MemberWeights", "theta group n_hidden")
@@ -134,9 +135,16 @@ def policy_actions(view, team, weights, out):  # pragma: no cover - compiled
     recency_thresholds, queue_thresholds = team.recency_thresholds, team.queue_thresholds
     theta, group, n_hidden = weights.theta, weights.group, weights.n_hidden
     capacity, drain, threshold, horizon = scalars[0], scalars[1], scalars[2], scalars[3]
+    zone, zones = team.zone, team.zones
     n_copies, m, n_actions = mask.shape
     n_slots = n_actions - 1
     n = active.shape[1]
+    # A robot bids only in its zone, whose share of the one queue is 1 / zones: the robots
+    # counted are its zone's, the queue counts are divided by zones (thresholds times zones)
+    zone_size = np.zeros(zones, np.int64)
+    for i in range(m):
+        zone_size[zone[i]] += 1
+    zone_thresholds = queue_thresholds * zones
     versatility = np.zeros(m)
     for i in range(m):
         for z in range(n):
@@ -147,10 +155,12 @@ def policy_actions(view, team, weights, out):  # pragma: no cover - compiled
     counts = np.zeros((n, 2), np.int64)  # the whole queue, slots included; 0 = L, 1 = H
     queued = np.zeros((n, 2), np.int64)  # outside the slots
     due_soon = np.zeros(n, np.int64)
-    idle_cover = np.zeros(n, np.int64)
-    soon_cover = np.zeros(n, np.int64)
+    idle_cover = np.zeros((zones, n), np.int64)
+    soon_cover = np.zeros((zones, n), np.int64)
+    zone_idle = np.zeros(zones, np.int64)
+    idle_left = np.zeros(zones, np.int64)
     free_in = np.zeros(m, np.int64)
-    free_within = np.zeros((n, 1), np.int64)  # grown to the longest slot task of a tick
+    free_within = np.zeros((zones, n, 1), np.int64)  # grown to the longest slot task of a tick
     phi = np.zeros((m, N_LOW))
     low = np.zeros(m)
     preference = np.zeros(m)
@@ -178,10 +188,10 @@ def policy_actions(view, team, weights, out):  # pragma: no cover - compiled
             queued[z, high] += 1
             if high and due <= now + SOON:
                 due_soon[z] += 1
-        team_high, team_low = queue_levels_of(counts, everything, queue_thresholds)
+        team_high, team_low = queue_levels_of(counts, everything, zone_thresholds)
         idle_cover[:] = 0
         soon_cover[:] = 0
-        n_idle = 0
+        zone_idle[:] = 0
         team_h = team_l = 0
         for z in range(n):
             team_h += queued[z, 1]
@@ -189,32 +199,34 @@ def policy_actions(view, team, weights, out):  # pragma: no cover - compiled
         longest = 0
         for k in range(filled):
             longest = max(longest, slot_duration[k])
-        if free_within.shape[1] <= longest:
-            free_within = np.zeros((n, longest + 1), np.int64)
+        if free_within.shape[2] <= longest:
+            free_within = np.zeros((zones, n, longest + 1), np.int64)
         free_within[:] = 0
         for i in range(m):
             free_in[i] = max(busy_until[b, i] - now + 1, 0)  # ticks until idle; 0 = idle
-            n_idle += idle[b, i]
+            c = zone[i]
+            zone_idle[c] += idle[b, i]
             for z in range(n):
                 if active[i, z]:
-                    idle_cover[z] += idle[b, i]
-                    soon_cover[z] += free_in[i] <= SOON
-                    if free_in[i] < free_within.shape[1]:
-                        free_within[z, free_in[i]] += 1
-        # free_within[z, d]: robots of type z free within d ticks (a running sum over d), so
-        # the pair input cover_task costs O(|Lambda_i|), not O(m |Lambda_i|), at any team size
-        for z in range(n):
-            for d in range(1, free_within.shape[1]):
-                free_within[z, d] += free_within[z, d - 1]
+                    idle_cover[c, z] += idle[b, i]
+                    soon_cover[c, z] += free_in[i] <= SOON
+                    if free_in[i] < free_within.shape[2]:
+                        free_within[c, z, free_in[i]] += 1
+        # free_within[c, z, d]: zone c's robots of type z free within d ticks (a running sum
+        # over d), so the pair input cover_task costs O(|Lambda_i|), not O(m |Lambda_i|)
+        for c in range(zones):
+            for z in range(n):
+                for d in range(1, free_within.shape[2]):
+                    free_within[c, z, d] += free_within[c, z, d - 1]
         # reserve_es's features (its encode), the bid-dependent ones left at 0
         for i in range(m):
             level = recency(last_high[b], now, active[i], recency_thresholds)
-            own_high, own_low = queue_levels_of(counts, active[i], queue_thresholds)
+            own_high, own_low = queue_levels_of(counts, active[i], zone_thresholds)
             sole_idle = sole_soon = False
             for z in range(n):
                 if active[i, z]:
-                    sole_idle |= idle_cover[z] == 1
-                    sole_soon |= soon_cover[z] <= 1
+                    sole_idle |= idle_cover[zone[i], z] == 1
+                    sole_soon |= soon_cover[zone[i], z] <= 1
             phi[i, :] = 0.0
             phi[i, 0] = 1.0
             phi[i, 1] = level == 0
@@ -235,7 +247,7 @@ def policy_actions(view, team, weights, out):  # pragma: no cover - compiled
             free[i] = idle[b, i]
             out[b, i] = 0
         ending = horizon - now <= ENDING
-        idle_left = n_idle
+        idle_left[:] = zone_idle
         for high in (1, 0):  # H slots first, as team_reserve
             for k in range(n_slots):
                 if slot_high[b, k] != high:
@@ -249,6 +261,7 @@ def policy_actions(view, team, weights, out):  # pragma: no cover - compiled
                     if not (free[i] and mask[b, i, k + 1]):
                         continue
                     duration = slot_duration[k]
+                    c = zone[i]
                     own_h = own_l = own_due = 0
                     fewest_soon = fewest_idle = fewest_task = m
                     for z in range(n):
@@ -256,15 +269,15 @@ def policy_actions(view, team, weights, out):  # pragma: no cover - compiled
                             own_h += queued[z, 1]
                             own_l += queued[z, 0]
                             own_due += due_soon[z]
-                            fewest_soon = min(fewest_soon, soon_cover[z] - 1)  # others than i
-                            fewest_idle = min(fewest_idle, idle_cover[z] - 1)
-                            others = free_within[z, duration] - (free_in[i] <= duration)
+                            fewest_soon = min(fewest_soon, soon_cover[c, z] - 1)  # others than i
+                            fewest_idle = min(fewest_idle, idle_cover[c, z] - 1)
+                            others = free_within[c, z, duration] - (free_in[i] <= duration)
                             fewest_task = min(fewest_task, others)
                     x[0] = battery[b, i] / capacity
                     x[1] = battery[b, i] - margin[i] < threshold
                     x[2] = versatility[i] / n
-                    x[3] = min(own_h, 4) / 4.0
-                    x[4] = min(own_l, 12) / 12.0
+                    x[3] = min(own_h / zones, 4.0) / 4.0
+                    x[4] = min(own_l / zones, 12.0) / 12.0
                     x[5] = 1.0 / (1.0 + fewest_soon)
                     x[6] = 1.0 / (1.0 + fewest_idle)
                     x[7] = 1.0 / (1.0 + fewest_task)
@@ -273,16 +286,16 @@ def policy_actions(view, team, weights, out):  # pragma: no cover - compiled
                     x[10] = slot_round2[k]
                     x[11] = 1.0 / contenders  # the robot itself is one
                     x[12] = battery[b, i] - drain * duration < threshold
-                    x[13] = n_idle / m
-                    x[14] = min(team_h, 5) / 5.0
-                    x[15] = min(team_l, 20) / 20.0
+                    x[13] = zone_idle[c] / zone_size[c]
+                    x[14] = min(team_h / zones, 5.0) / 5.0
+                    x[15] = min(team_l / zones, 20.0) / 20.0
                     x[16] = ending
-                    x[17] = min(own_due, 2) / 2.0
+                    x[17] = min(own_due / zones, 2.0) / 2.0
                     _network(x, weights, n_hidden, heads)
                     if high:
                         score = preference[i] + heads[1]
                     else:
-                        others = idle_left - 1
+                        others = idle_left[c] - 1  # of the robot's zone
                         score = low[i] + heads[0]
                         score += weights[NO_OTHER_IDLE] * (others == 0)
                         score += weights[ONE_OTHER_IDLE] * (others == 1)
@@ -294,7 +307,7 @@ def policy_actions(view, team, weights, out):  # pragma: no cover - compiled
                 if winner >= 0:
                     out[b, winner] = k + 1
                     free[winner] = False
-                    idle_left -= 1
+                    idle_left[zone[winner]] -= 1
 
 
 def network_shapes(hidden: int) -> tuple[tuple[int, ...], ...]:
@@ -375,6 +388,9 @@ class NetESLearner(ReserveESLearner):
             facts["scalars"] = np.array(
                 [p.battery_capacity, p.drain_per_tick, p.battery_threshold, p.horizon], np.float64
             )
+            # robot i bids in zone i * zones // m (spec, "Auction zones")
+            facts["zone"] = np.arange(env.n_robots) * p.zones // env.n_robots
+            facts["zones"] = p.zones
         return self._team_facts
 
     # ------------------------------------------------------------------ policy
@@ -425,6 +441,8 @@ class NetESLearner(ReserveESLearner):
             RECENCY_THRESHOLDS_ARRAY,
             QUEUE_THRESHOLDS_ARRAY,
             facts["scalars"],
+            facts["zone"],
+            int(facts["zones"]),
         )
         members = MemberWeights(np.ascontiguousarray(theta, np.float64), group, self.hidden)
         policy_actions(tick, team, members, actions)
