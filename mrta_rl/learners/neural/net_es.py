@@ -15,6 +15,14 @@ keep it, the queued tasks of its types, the H tasks of its types due again withi
 The network's output layer starts at zero, so the untrained policy plays ``reserve_es``'s start
 rule (``team_reserve`` with the given ``reserve`` and ``hold_level``) exactly.
 
+Every count is the robot's auction zone's (spec, "Auction zones"): a robot bids only for its
+zone's slots, so the robots counted (idle, free soon, free within the task's duration, the idle
+share, the robots left to bid) are those of its zone, and the queue counts (its types', the
+team's, the due H tasks, the rule's queue levels) are divided by the number of zones, the zone's
+share of the one queue, before their thresholds and caps. A team of 1,000 robots in 100 zones then
+shows each robot what a team of 10 shows it; with one zone the counts are the whole team's.
+Recency (the last H arrival of the robot's types) stays team-wide.
+
 All weights (the rule's and the network's, one flat vector) are learned from the team return by
 ``reserve_es``'s antithetic evolution strategies on common random numbers: every member plays the
 same task streams, the members' weights are batched (one matrix product per layer over the
@@ -52,7 +60,8 @@ from mrta_rl.learners.search.reserve_es import (
 )
 from mrta_rl.partition import Partition
 
-# x(i, k) for idle robot i and slot k, each in [0, 1]
+# x(i, k) for idle robot i and slot k, each in [0, 1]; robots counted are those of i's zone,
+# queue counts are divided by the number of zones (module docstring)
 INPUTS = (
     "battery",  # battery / battery_capacity
     "battery_low",  # the longest task of Lambda_i may send the robot to charge
@@ -67,7 +76,7 @@ INPUTS = (
     "round_2",  # the slot task is in its second auction: lost if nobody takes it now
     "contenders",  # 1 / (1 + other idle robots that may bid for the slot)
     "recharges",  # the slot task would send the robot to charge
-    "team_idle",  # idle robots / m
+    "team_idle",  # idle robots / robots (of the zone)
     "team_queued_h",  # H tasks queued outside the slots, / 5 (capped)
     "team_queued_l",  # L tasks queued outside the slots, / 20 (capped)
     "ending",  # 12 ticks or fewer left in the episode
