@@ -15,6 +15,14 @@ keep it, the queued tasks of its types, the H tasks of its types due again withi
 The network's output layer starts at zero, so the untrained policy plays ``reserve_es``'s start
 rule (``team_reserve`` with the given ``reserve`` and ``hold_level``) exactly.
 
+Every count is the robot's auction zone's (spec, "Auction zones"): a robot bids only for its
+zone's slots, so the robots counted (idle, free soon, free within the task's duration, the idle
+share, the robots left to bid) are those of its zone, and the queue counts (its types', the
+team's, the due H tasks, the rule's queue levels) are divided by the number of zones, the zone's
+share of the one queue, before their thresholds and caps. A team of 1,000 robots in 100 zones then
+shows each robot what a team of 10 shows it; with one zone the counts are the whole team's.
+Recency (the last H arrival of the robot's types) stays team-wide.
+
 All weights (the rule's and the network's, one flat vector) are learned from the team return by
 ``reserve_es``'s antithetic evolution strategies on common random numbers: every member plays the
 same task streams, the members' weights are batched (one matrix product per layer over the
@@ -51,7 +59,8 @@ from mrta_rl.learners.search.reserve_es import (
 )
 from mrta_rl.partition import Partition
 
-# x(i, k) for idle robot i and slot k, each in [0, 1]
+# x(i, k) for idle robot i and slot k, each in [0, 1]; robots counted are those of i's zone,
+# queue counts are divided by the number of zones (module docstring)
 INPUTS = (
     "battery",  # battery / battery_capacity
     "battery_low",  # the longest task of Lambda_i may send the robot to charge
@@ -66,7 +75,7 @@ INPUTS = (
     "round_2",  # the slot task is in its second auction: lost if nobody takes it now
     "contenders",  # 1 / (1 + other idle robots that may bid for the slot)
     "recharges",  # the slot task would send the robot to charge
-    "team_idle",  # idle robots / m
+    "team_idle",  # idle robots / robots (of the zone)
     "team_queued_h",  # H tasks queued outside the slots, / 5 (capped)
     "team_queued_l",  # L tasks queued outside the slots, / 20 (capped)
     "ending",  # 12 ticks or fewer left in the episode
@@ -86,8 +95,9 @@ TickView = namedtuple(
 )
 # what does not change while the learner plays one team: Lambda_i, the rule's robot order and
 # its hold margins, the encodings' thresholds, and battery capacity, drain, threshold, horizon
+# and the auction zones: robot i bids in zone[i], one of ``zones`` (spec, "Auction zones")
 TeamFacts = namedtuple(
-    "TeamFacts", "active order margin recency_thresholds queue_thresholds scalars"
+    "TeamFacts", "active order margin recency_thresholds queue_thresholds scalars zone zones"
 )
 # the members' weights: copy b plays theta[b // group]; the network has n_hidden units
 MemberWeights = namedtuple("MemberWeights", "theta group n_hidden")
@@ -133,9 +143,16 @@ def policy_actions(view, team, weights, out):  # pragma: no cover - compiled
     recency_thresholds, queue_thresholds = team.recency_thresholds, team.queue_thresholds
     theta, group, n_hidden = weights.theta, weights.group, weights.n_hidden
     capacity, drain, threshold, horizon = scalars[0], scalars[1], scalars[2], scalars[3]
+    zone, zones = team.zone, team.zones
     n_copies, m, n_actions = mask.shape
     n_slots = n_actions - 1
     n = active.shape[1]
+    # A robot bids only in its zone, whose share of the one queue is 1 / zones: the robots
+    # counted are its zone's, the queue counts are divided by zones (thresholds times zones)
+    zone_size = np.zeros(zones, np.int64)
+    for i in range(m):
+        zone_size[zone[i]] += 1
+    zone_thresholds = queue_thresholds * zones
     versatility = np.zeros(m)
     for i in range(m):
         for z in range(n):
@@ -146,10 +163,12 @@ def policy_actions(view, team, weights, out):  # pragma: no cover - compiled
     counts = np.zeros((n, 2), np.int64)  # the whole queue, slots included; 0 = L, 1 = H
     queued = np.zeros((n, 2), np.int64)  # outside the slots
     due_soon = np.zeros(n, np.int64)
-    idle_cover = np.zeros(n, np.int64)
-    soon_cover = np.zeros(n, np.int64)
+    idle_cover = np.zeros((zones, n), np.int64)
+    soon_cover = np.zeros((zones, n), np.int64)
+    zone_idle = np.zeros(zones, np.int64)
+    idle_left = np.zeros(zones, np.int64)
     free_in = np.zeros(m, np.int64)
-    free_within = np.zeros((n, 1), np.int64)  # grown to the longest slot task of a tick
+    free_within = np.zeros((zones, n, 1), np.int64)  # grown to the longest slot task of a tick
     phi = np.zeros((m, N_LOW))
     low = np.zeros(m)
     preference = np.zeros(m)
@@ -177,10 +196,10 @@ def policy_actions(view, team, weights, out):  # pragma: no cover - compiled
             queued[z, high] += 1
             if high and due <= now + SOON:
                 due_soon[z] += 1
-        team_high, team_low = queue_levels_of(counts, everything, queue_thresholds)
+        team_high, team_low = queue_levels_of(counts, everything, zone_thresholds)
         idle_cover[:] = 0
         soon_cover[:] = 0
-        n_idle = 0
+        zone_idle[:] = 0
         team_h = team_l = 0
         for z in range(n):
             team_h += queued[z, 1]
@@ -188,32 +207,34 @@ def policy_actions(view, team, weights, out):  # pragma: no cover - compiled
         longest = 0
         for k in range(filled):
             longest = max(longest, slot_duration[k])
-        if free_within.shape[1] <= longest:
-            free_within = np.zeros((n, longest + 1), np.int64)
+        if free_within.shape[2] <= longest:
+            free_within = np.zeros((zones, n, longest + 1), np.int64)
         free_within[:] = 0
         for i in range(m):
             free_in[i] = max(busy_until[b, i] - now + 1, 0)  # ticks until idle; 0 = idle
-            n_idle += idle[b, i]
+            c = zone[i]
+            zone_idle[c] += idle[b, i]
             for z in range(n):
                 if active[i, z]:
-                    idle_cover[z] += idle[b, i]
-                    soon_cover[z] += free_in[i] <= SOON
-                    if free_in[i] < free_within.shape[1]:
-                        free_within[z, free_in[i]] += 1
-        # free_within[z, d]: robots of type z free within d ticks (a running sum over d), so
-        # the pair input cover_task costs O(|Lambda_i|), not O(m |Lambda_i|), at any team size
-        for z in range(n):
-            for d in range(1, free_within.shape[1]):
-                free_within[z, d] += free_within[z, d - 1]
+                    idle_cover[c, z] += idle[b, i]
+                    soon_cover[c, z] += free_in[i] <= SOON
+                    if free_in[i] < free_within.shape[2]:
+                        free_within[c, z, free_in[i]] += 1
+        # free_within[c, z, d]: zone c's robots of type z free within d ticks (a running sum
+        # over d), so the pair input cover_task costs O(|Lambda_i|), not O(m |Lambda_i|)
+        for c in range(zones):
+            for z in range(n):
+                for d in range(1, free_within.shape[2]):
+                    free_within[c, z, d] += free_within[c, z, d - 1]
         # reserve_es's features (its encode), the bid-dependent ones left at 0
         for i in range(m):
             level = recency(last_high[b], now, active[i], recency_thresholds)
-            own_high, own_low = queue_levels_of(counts, active[i], queue_thresholds)
+            own_high, own_low = queue_levels_of(counts, active[i], zone_thresholds)
             sole_idle = sole_soon = False
             for z in range(n):
                 if active[i, z]:
-                    sole_idle |= idle_cover[z] == 1
-                    sole_soon |= soon_cover[z] <= 1
+                    sole_idle |= idle_cover[zone[i], z] == 1
+                    sole_soon |= soon_cover[zone[i], z] <= 1
             phi[i, :] = 0.0
             phi[i, 0] = 1.0
             phi[i, 1] = level == 0
@@ -234,7 +255,7 @@ def policy_actions(view, team, weights, out):  # pragma: no cover - compiled
             free[i] = idle[b, i]
             out[b, i] = 0
         ending = horizon - now <= ENDING
-        idle_left = n_idle
+        idle_left[:] = zone_idle
         for high in (1, 0):  # H slots first, as team_reserve
             for k in range(n_slots):
                 if slot_high[b, k] != high:
@@ -248,6 +269,7 @@ def policy_actions(view, team, weights, out):  # pragma: no cover - compiled
                     if not (free[i] and mask[b, i, k + 1]):
                         continue
                     duration = slot_duration[k]
+                    c = zone[i]
                     own_h = own_l = own_due = 0
                     fewest_soon = fewest_idle = fewest_task = m
                     for z in range(n):
@@ -255,15 +277,15 @@ def policy_actions(view, team, weights, out):  # pragma: no cover - compiled
                             own_h += queued[z, 1]
                             own_l += queued[z, 0]
                             own_due += due_soon[z]
-                            fewest_soon = min(fewest_soon, soon_cover[z] - 1)  # others than i
-                            fewest_idle = min(fewest_idle, idle_cover[z] - 1)
-                            others = free_within[z, duration] - (free_in[i] <= duration)
+                            fewest_soon = min(fewest_soon, soon_cover[c, z] - 1)  # others than i
+                            fewest_idle = min(fewest_idle, idle_cover[c, z] - 1)
+                            others = free_within[c, z, duration] - (free_in[i] <= duration)
                             fewest_task = min(fewest_task, others)
                     x[0] = battery[b, i] / capacity
                     x[1] = battery[b, i] - margin[i] < threshold
                     x[2] = versatility[i] / n
-                    x[3] = min(own_h, 4) / 4.0
-                    x[4] = min(own_l, 12) / 12.0
+                    x[3] = min(own_h / zones, 4.0) / 4.0
+                    x[4] = min(own_l / zones, 12.0) / 12.0
                     x[5] = 1.0 / (1.0 + fewest_soon)
                     x[6] = 1.0 / (1.0 + fewest_idle)
                     x[7] = 1.0 / (1.0 + fewest_task)
@@ -272,16 +294,16 @@ def policy_actions(view, team, weights, out):  # pragma: no cover - compiled
                     x[10] = slot_round2[k]
                     x[11] = 1.0 / contenders  # the robot itself is one
                     x[12] = battery[b, i] - drain * duration < threshold
-                    x[13] = n_idle / m
-                    x[14] = min(team_h, 5) / 5.0
-                    x[15] = min(team_l, 20) / 20.0
+                    x[13] = zone_idle[c] / zone_size[c]
+                    x[14] = min(team_h / zones, 5.0) / 5.0
+                    x[15] = min(team_l / zones, 20.0) / 20.0
                     x[16] = ending
-                    x[17] = min(own_due, 2) / 2.0
+                    x[17] = min(own_due / zones, 2.0) / 2.0
                     _network(x, weights, n_hidden, heads)
                     if high:
                         score = preference[i] + heads[1]
                     else:
-                        others = idle_left - 1
+                        others = idle_left[c] - 1  # of the robot's zone
                         score = low[i] + heads[0]
                         score += weights[NO_OTHER_IDLE] * (others == 0)
                         score += weights[ONE_OTHER_IDLE] * (others == 1)
@@ -293,7 +315,7 @@ def policy_actions(view, team, weights, out):  # pragma: no cover - compiled
                 if winner >= 0:
                     out[b, winner] = k + 1
                     free[winner] = False
-                    idle_left -= 1
+                    idle_left[zone[winner]] -= 1
 
 
 def network_shapes(hidden: int) -> tuple[tuple[int, ...], ...]:
@@ -364,6 +386,9 @@ class NetESLearner(ReserveESLearner):
             facts["scalars"] = np.array(
                 [p.battery_capacity, p.drain_per_tick, p.battery_threshold, p.horizon], np.float64
             )
+            # robot i bids in zone i * zones // m (spec, "Auction zones")
+            facts["zone"] = np.arange(env.n_robots) * p.zones // env.n_robots
+            facts["zones"] = p.zones
         return self._team_facts
 
     # ------------------------------------------------------------------ policy
@@ -414,6 +439,8 @@ class NetESLearner(ReserveESLearner):
             RECENCY_THRESHOLDS_ARRAY,
             QUEUE_THRESHOLDS_ARRAY,
             facts["scalars"],
+            facts["zone"],
+            int(facts["zones"]),
         )
         members = MemberWeights(np.ascontiguousarray(theta, np.float64), group, self.hidden)
         policy_actions(tick, team, members, actions)

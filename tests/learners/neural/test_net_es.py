@@ -132,3 +132,47 @@ def test_size_does_not_depend_on_the_team():
         assert learner.theta.size == 358
         assert NetESLearner.learning_space_dimension(learner.env, None, {}) == 358
     assert NetESLearner.learning_space_dimension(learner.env, None, {"hidden": 4}) == 106
+
+
+def random_heads(learner: NetESLearner) -> None:
+    """Output layer drawn (not zero), so every pair input reaches the bids."""
+    size = learner.hidden * N_HEADS + N_HEADS
+    learner.theta[-size:] = np.random.default_rng(9).normal(size=size)
+
+
+@pytest.mark.parametrize(("system_name", "team_return"), [("system1", 1516.0), ("system2", 2740.0)])
+def test_one_zone_counts_the_whole_team(system_name, team_return):
+    """With one auction zone the inputs count the whole team: the team return of fixed weights on
+    fixed streams is the one of the team-wide policy (measured with it, 4 copies x 120 ticks)."""
+    env = AuctionEnv(paper_system(system_name), AuctionParams(horizon=120), batch_size=4, seed=5)
+    learner = NetESLearner(env=env, rng=np.random.default_rng(5), pairs=1, reserve=1)
+    random_heads(learner)
+    total = 0.0
+    while not env.done.any():
+        step = env.step(learner.act(learner.encode(env), env.action_mask, explore=False))
+        total += float(step.team_reward.sum())
+    assert total == team_return
+
+
+def test_a_robot_counts_only_its_own_zone():
+    """Two zones (robots 0-4 and 5-9): making zone 1's robots busy for long changes no bid of
+    zone 0's robots, tick after tick, though zone 1's idle robots and covers are inputs of both."""
+    env = AuctionEnv(
+        paper_system("system2"), AuctionParams(horizon=120, zones=2), batch_size=4, seed=5
+    )
+    learner = NetESLearner(env=env, rng=np.random.default_rng(5), pairs=1, reserve=1)
+    random_heads(learner)
+    other = np.arange(10) >= 5  # zone 1: robot i is in zone i * 2 // 10
+    compared = 0
+    while not env.done.any():
+        view, mask = learner.encode(env), env.action_mask
+        actions = learner.act(view, mask, explore=False)
+        busy = {**view, "idle": view["idle"] & ~other, "busy_until": view["busy_until"].copy()}
+        busy["busy_until"][:, other] = view["t"][:, None] + 30
+        busy_mask = mask.copy()
+        busy_mask[:, other, 1:] = False
+        changed = learner.act(busy, busy_mask, explore=False)
+        np.testing.assert_array_equal(changed[:, ~other], actions[:, ~other])
+        compared += int((actions[:, ~other] > 0).sum())
+        env.step(actions)
+    assert compared > 0  # zone 0's robots bid: there are bids to change
