@@ -200,11 +200,11 @@ class AuctionEnv:
         for j in np.flatnonzero(~active.any(axis=0)):
             raise ValueError(f"active_tasks: task type {system.task_types[j]} has no robot left")
         self.active_tasks = active  # Lambda_i, [m, n]
-        # [m, K]: robot i's auction zone holds slot k (spec, "Auction zones"; all True for one)
-        zones, robot = self.params.zones, np.arange(system.n_robots)
-        self.zone_slots = (
-            np.arange(p.slots)[None, :] % zones == (robot * zones // robot.size)[:, None]
-        )
+        # [m]: robot i bids in auction zone i * zones // m, which holds the slots k with
+        # k % zones == zone (spec, "Auction zones"; every robot in zone 0 for one)
+        zones = self.params.zones
+        self.robot_zone = np.arange(system.n_robots) * zones // system.n_robots
+        self.zone_slots = np.arange(p.slots)[None, :] % zones == self.robot_zone[:, None]
         self.copy_offset = 0  # index of copy 0 in a larger batch (ThreadedAuctionEnv), for errors
         self._check_limits()
 
@@ -438,9 +438,8 @@ class AuctionEnv:
                 why = f"{robot} is busy until tick {self.busy_until[b, i]}"
             elif self.slot_type[b, a - 1] < 0:
                 why = f"slot {a} is empty"
-            elif (a - 1) % self.params.zones != i * self.params.zones // self.n_robots:
-                zone = i * self.params.zones // self.n_robots
-                why = f"slot {a} is not in {robot}'s auction zone {zone + 1}"
+            elif not self.zone_slots[i, a - 1]:
+                why = f"slot {a} is not in {robot}'s auction zone {self.robot_zone[i] + 1}"
             else:
                 why = f"{robot} may not do {self.system.task_types[self.slot_type[b, a - 1]]}"
             raise ValueError(

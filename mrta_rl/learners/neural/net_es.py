@@ -386,8 +386,7 @@ class NetESLearner(ReserveESLearner):
             facts["scalars"] = np.array(
                 [p.battery_capacity, p.drain_per_tick, p.battery_threshold, p.horizon], np.float64
             )
-            # robot i bids in zone i * zones // m (spec, "Auction zones")
-            facts["zone"] = np.arange(env.n_robots) * p.zones // env.n_robots
+            facts["zone"] = env.robot_zone
             facts["zones"] = p.zones
         return self._team_facts
 
