@@ -41,6 +41,7 @@ from mrta_rl.envs.encodings import (
     TYPE_TOKEN_SIZE,
     global_feature_size,
     local_feature_size,
+    prior_dtype,
 )
 from mrta_rl.learners.base import MemoryQuery
 from mrta_rl.partition import Partition, subg_partition
@@ -303,11 +304,12 @@ def neural_estimate(
         n, K = env.n_task_types, env.n_slots
         robot = ROBOT_TOKEN_SIZE * 4 + n  # robots (float32), robot_types (bool)
         root = K * (SLOT_TOKEN_SIZE * 4 + 8) + n * TYPE_TOKEN_SIZE * 4  # slots, slot_type, types
-    # one transition: observation, mask and the prior's one-hot action (and their next), state
-    # and next state; per robot the action (int64), robot and group rewards (and their next),
-    # the invalid-action flags, the next team reward; flags (measured on the buffer,
+    # one transition: observation, mask (bool) and the prior's action index (and their next),
+    # state and next state; per robot the action (int64), robot and group rewards (and their
+    # next), the invalid-action flags, the next team reward; flags (measured on the buffer,
     # tests/learners/test_memory.py)
-    transition = 2 * (m * robot + root + S * 4 + 2 * m * A) + m * (8 + 16 + 2 + 4) + 32
+    prior = prior_dtype(A).itemsize
+    transition = 2 * (m * robot + root + S * 4 + m * (A + prior)) + m * (8 + 16 + 2 + 4) + 32
     parts = {
         "networks": weights * BYTES_PER_WEIGHT,
         "replay buffer": int(settings["buffer_size"]) * transition,

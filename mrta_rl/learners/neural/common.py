@@ -34,8 +34,9 @@ Every prior (the plain auction's :class:`~mrta_rl.learners.tabular.priors.Greedy
 subG-DQN's ``spread_wait``) is computed from the core env with the rules of ``mrta_rl/rules.py``
 -- by :class:`~mrta_rl.envs.torchrl_env.AuctionTorchRLEnv` (its ``prior`` argument) while
 training and by :meth:`NeuralLearner.encode` in evaluation -- and reaches the Q-network as the
-observation ``(group, "prior_action")``, a one-hot per robot, stored in the replay buffer with
-the other observations so the target network sees the prior's action of the next state.
+observation ``(group, "prior_action")``, the action index per robot, stored in the replay buffer
+with the other observations so the target network sees the prior's action of the next state;
+the networks expand it to a one-hot (:func:`~mrta_rl.envs.torchrl_env.prior_one_hot`).
 ``prior_in_state`` (with ``hold``) also feeds that one-hot to the network as an input.
 
 Inputs (``features``, :data:`~mrta_rl.envs.encodings.FEATURES`): ``paper`` (default) or
@@ -74,7 +75,7 @@ from mrta_rl.envs.torchrl_env import (
     GROUP_SET_KEYS,
     PRIOR_KEY,
     ROOT_SET_KEYS,
-    prior_one_hot,
+    prior_index,
     set_inputs_td,
 )
 from mrta_rl.learners.base import FACTS, TORCHRL_LOOP, Learner, LearnerKind, MemoryQuery
@@ -153,7 +154,7 @@ def observation_td(
 
     Returns:
         TensorDict of batch ``[B]``: ``state`` ``[B, G]`` and per group ``observation``
-        ``[B, n_g, F]``, ``action_mask`` ``[B, n_g, K + 1]`` [and ``prior_action``, same shape];
+        ``[B, n_g, F]``, ``action_mask`` ``[B, n_g, K + 1]`` [and ``prior_action`` ``[B, n_g]``];
         with ``set_inputs``, ``slots``, ``slot_type``, ``types`` and per group ``robots``,
         ``robot_types`` instead of ``observation``.
     """
@@ -175,7 +176,7 @@ def observation_td(
         td = TensorDict(leaves, batch_size=(B,))
     td.set("state", torch.from_numpy(encodings.global_features(env, features)))
     if prior is not None:
-        prior_t = prior_one_hot(prior(env, mask), env.n_actions)
+        prior_t = prior_index(prior(env, mask), env.n_actions)
         for group, idx in index.items():
             td.set((group, PRIOR_KEY), prior_t[:, idx])
     return td

@@ -37,6 +37,7 @@ from torch.nn import functional as F
 
 from mrta_rl.config import ConfigError
 from mrta_rl.envs.encodings import ROBOT_TOKEN_SIZE, SLOT_TOKEN_SIZE, TYPE_TOKEN_SIZE
+from mrta_rl.envs.torchrl_env import prior_one_hot
 
 MASKED = -1e9  # the score of an invalid action: far below any Q-value or logit, and finite
 ROBOT_ATTENTION = ("full", "pooled")  # robots attend to each other, or to a pooled team token
@@ -310,6 +311,7 @@ class SetWithPrior(nn.Module):
         action_mask: torch.Tensor,
         prior_action: torch.Tensor,
     ) -> torch.Tensor:
-        """Masked scores; ``prior_action`` ``[*, m, K + 1]``: one-hot of the prior's action."""
+        """Masked scores; ``prior_action`` ``[*, m]``: the prior's action (-1: none)."""
         values = self.net(robots, robot_types, slots, slot_type, types, action_mask)
-        return values + self.auction_prior * prior_action.to(values.dtype)
+        prior = prior_one_hot(prior_action, values.shape[-1])
+        return values + self.auction_prior * prior.to(values.dtype)

@@ -15,7 +15,7 @@ from torchrl.modules import EGreedyModule, MultiAgentMLP, QValueModule
 
 from mrta_rl.envs import AuctionEnv, AuctionParams
 from mrta_rl.envs import encodings as ob
-from mrta_rl.envs.torchrl_env import AuctionTorchRLEnv, prior_one_hot
+from mrta_rl.envs.torchrl_env import AuctionTorchRLEnv, prior_index, prior_one_hot
 from mrta_rl.learners import SubGReserveLearner, TeamReserveLearner
 from mrta_rl.learners.neural import IQLLearner, QMIXLearner, SubGDQNLearner, VDNLearner
 from mrta_rl.learners.neural.common import WEIGHTS_FILE, EpsilonGreedy
@@ -129,7 +129,7 @@ def test_joint_combine_and_decode_round_trip():
 def test_greedy_bid_is_the_lowest_valid_bid(system):
     mask = np.array([[[1, 0, 1, 1], [1, 0, 0, 0], [1, 1, 1, 0]]], dtype=bool)
     expected = torch.tensor([[0, 0, 1, 0], [0, 0, 0, 0], [0, 1, 0, 0]], dtype=torch.float32)
-    greedy_bid = prior_one_hot(GreedyPrior()(AuctionEnv(system), mask), 4)[0]
+    greedy_bid = prior_one_hot(prior_index(GreedyPrior()(AuctionEnv(system), mask), 4), 4)[0]
     assert torch.equal(greedy_bid.float(), expected)
 
 
@@ -206,7 +206,7 @@ def test_untrained_network_with_the_hold_prior_plays_team_reserve(
 
 
 def test_hold_prior_reaches_the_network_through_the_torchrl_env(system):
-    """Training path: the env's prior_action is the rule's one-hot, the collector plays it (eps
+    """Training path: the env's prior_action is the rule's action, the collector plays it (eps
     0), the replayed transitions carry it for the next state too, and a gradient step runs."""
     learner, env = make(
         QMIXLearner, system, batch=5, prior_reserve=1, eps_start=0.0, eps_end=0.0, **HOLD
@@ -216,11 +216,11 @@ def test_hold_prior_reaches_the_network_through_the_torchrl_env(system):
     td = torchrl_env.reset()
     prior = td.get(("agents", "prior_action"))
     expected = rule.act(rule.encode(env), env.action_mask, explore=False)
-    assert torch.equal(prior.long().argmax(-1), torch.from_numpy(expected))
-    assert torch.equal(prior.sum(-1), torch.ones(5, env.n_robots, dtype=torch.long))
+    assert prior.dtype == torch.int8  # System-II: K + 1 = 4 actions
+    assert torch.equal(prior.long(), torch.from_numpy(expected))
     data = collect(learner, env, frames=200)
     played = data.get(("agents", "action"))
-    assert torch.equal(played, data.get(("agents", "prior_action")).long().argmax(-1))
+    assert torch.equal(played, data.get(("agents", "prior_action")).long())
     assert ("next", "agents", "prior_action") in data.keys(include_nested=True)
     assert np.isfinite(learner.train_step(data[:64])["train/loss"])
 
@@ -474,8 +474,8 @@ def test_shared_q_network_loads_multiagent_mlp_checkpoints():
         device=torch.device("cpu"),
     )
     net.load_state_dict({f"mlp.{k}": v for k, v in old.state_dict().items()})
-    x, mask = torch.rand(3, 5, 7), torch.ones(3, 5, 4, dtype=torch.bool)
-    torch.testing.assert_close(net(x, mask), old(x))
+    x, prior = torch.rand(3, 5, 7), torch.zeros(3, 5, dtype=torch.int8)
+    torch.testing.assert_close(net(x, prior), old(x))
 
 
 @pytest.mark.parametrize("name", ["qmix", "vdn", "iql", "subg_dqn"])
