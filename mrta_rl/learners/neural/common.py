@@ -256,6 +256,10 @@ class NeuralLearner(Learner, abstract=True):
     training_loop: ClassVar[str] = TORCHRL_LOOP
     facts: ClassVar[tuple[str, ...]] = (*FACTS, "network_weights")
     memory_advice: ClassVar[str] = NEURAL_ADVICE  # what to change when it does not fit
+    # what a replayed transition keeps (memory.neural_estimate): only the loss's keys, and
+    # the bytes per global feature of its states
+    replay_loss_keys_only: ClassVar[bool] = False
+    replay_state_bytes: ClassVar[int] = 4
 
     @classmethod
     def estimate_memory(cls, query: MemoryQuery) -> ResourceEstimate:
@@ -266,7 +270,16 @@ class NeuralLearner(Learner, abstract=True):
         """
         env, partition, settings, decisions, copies = query
         weights = cls.network_weights(env, partition, settings)
-        return neural_estimate(cls.__name__, env, settings, weights, copies, cls.memory_advice)
+        return neural_estimate(
+            cls.__name__,
+            env,
+            settings,
+            weights,
+            copies,
+            cls.memory_advice,
+            loss_keys_only=cls.replay_loss_keys_only,
+            state_bytes=cls.replay_state_bytes,
+        )
 
     @classmethod
     def learning_space_dimension(
@@ -865,6 +878,8 @@ class MixedQLearner(PerRobotQLearner, abstract=True):
     Subclasses differ only in the mixer (``vdn.py``: ``VDNMixer``, ``qmix.py``: ``QMixer``).
     """
 
+    replay_loss_keys_only: ClassVar[bool] = True  # transitions() keeps the loss's in_keys
+
     @classmethod
     def network_weights(
         cls, env: AuctionEnv, partition: Partition | None, settings: dict[str, Any]
@@ -913,8 +928,10 @@ class MixedQLearner(PerRobotQLearner, abstract=True):
     def transitions(self, data: TensorDictBase) -> TensorDictBase:
         """Scaled team reward, also at the root ``[N, 1]`` where ``QMixerLoss`` reads it.
 
-        As in TorchRL's QMIX example; Q-values are recomputed by the loss, so not stored.
+        As in TorchRL's QMIX example. Only what the loss reads is kept (its ``in_keys``): the
+        Q-values are recomputed by the loss, and the per-robot rewards, the root flags of the
+        current step and (VDN: its mixer has no state input) the state are read by no one.
         """
         data = super().transitions(data)
         data.set(("next", "reward"), data.get(("next", "agents", "reward"))[:, 0])
-        return data.exclude(("agents", "action_value"), ("agents", "chosen_action_value"))
+        return data.select(*self.losses["agents"].in_keys)

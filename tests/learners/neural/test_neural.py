@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 import torch
-from tensordict import TensorDict
+from tensordict import TensorDict, unravel_key
 from torchrl.collectors import Collector
 from torchrl.data import Categorical
 from torchrl.envs.utils import ExplorationType, set_exploration_type
@@ -223,6 +223,43 @@ def test_hold_prior_reaches_the_network_through_the_torchrl_env(system):
     assert torch.equal(played, data.get(("agents", "prior_action")).long())
     assert ("next", "agents", "prior_action") in data.keys(include_nested=True)
     assert np.isfinite(learner.train_step(data[:64])["train/loss"])
+
+
+@pytest.mark.parametrize("cls", [VDNLearner, QMIXLearner])
+def test_mixed_learners_replay_only_what_their_loss_reads(cls, system):
+    """No per-robot rewards, flags or Q-values in the replay; QMIX's state as exact bool, VDN's
+    (its mixer has no state input) not at all; the loss still runs on the stored batch."""
+    learner, env = make(cls, system, batch=4)
+    data = collect(learner, env, frames=40)
+    stored = set(data.keys(include_nested=True, leaves_only=True))
+    assert stored == {unravel_key(k) for k in learner.losses["agents"].in_keys}
+    assert ("next", "agents", "robot_reward") not in stored and ("agents", "reward") not in stored
+    if cls is VDNLearner:
+        assert "state" not in stored and ("next", "state") not in stored
+    else:
+        state = data.get("state")
+        assert state.dtype == torch.bool and state.shape == (40, learner.state_size)
+        assert data.get(("next", "state")).dtype == torch.bool
+    assert np.isfinite(learner.train_step(data[:32])["train/loss"])
+
+
+def test_qmix_mixes_a_bool_state_as_its_float_values(system):
+    """The mixer reads the bool state it is stored as exactly as the float 0/1 state."""
+    learner, _ = make(QMIXLearner, system)
+    mixer = learner.networks["mixer"]
+    torch.manual_seed(0)
+    chosen = torch.randn(6, learner.n_robots, 1)
+    state = torch.rand(6, learner.state_size) < 0.3
+    assert torch.equal(mixer(chosen, state), mixer(chosen, state.float()))
+
+
+def test_qmix_refuses_to_store_a_state_that_is_not_binary(system):
+    learner, env = make(QMIXLearner, system, batch=2)
+    view = AuctionTorchRLEnv(env, group_map=learner.group_map, prior=learner.rule)
+    data = view.rollout(3, learner.explore_policy)  # [B, T]
+    data.set("state", data.get("state") * 0.5)
+    with pytest.raises(RuntimeError, match="state: the global features are not 0/1"):
+        learner.transitions(data)
 
 
 def test_checkpoint_of_another_prior_is_refused(system, tmp_path):
