@@ -273,7 +273,9 @@ class SetNetwork(nn.Module):
         lead = robots.shape[:-2]
         h, s = self._tokens(robots, robot_types, slots, slot_type, types)
         wait = self.wait_head(h)  # [N, m, 1]
-        pair = F.relu(self.pair_robot(h).unsqueeze(2) + self.pair_slot(s).unsqueeze(1))
+        # [N, m, K, d], the largest tensor of the network: the ReLU in place saves allocating
+        # (and page-faulting) a second one; its gradient reads the output either way
+        pair = F.relu_(self.pair_robot(h).unsqueeze(2) + self.pair_slot(s).unsqueeze(1))
         bids = self.pair_out(pair).squeeze(-1)  # [N, m, K]
         out = torch.cat([wait, bids], -1).reshape(*lead, h.shape[1], -1)
         if action_mask is None:
