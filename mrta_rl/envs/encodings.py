@@ -753,6 +753,17 @@ class SetInputs(NamedTuple):
     types: np.ndarray
 
 
+def prior_dtype(n_actions: int) -> np.dtype:
+    """The smallest signed integer dtype holding every action ``0..K`` and -1 (no action).
+
+    The dtype of a prior's action per robot as the TorchRL view writes it (``prior_action``).
+    """
+    for dtype in (np.int8, np.int16, np.int32):
+        if n_actions - 1 <= np.iinfo(dtype).max:
+            return np.dtype(dtype)
+    return np.dtype(np.int64)
+
+
 def _scaled(count: np.ndarray, scale: float) -> np.ndarray:
     return np.minimum(count / scale, 1.0)
 

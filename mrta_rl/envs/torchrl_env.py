@@ -29,7 +29,7 @@ from mrta_rl.types import GroupMap
 GroupMapArg = Mapping[str, Sequence[str | int]] | MarlGroupMapType | str | None
 # a prior policy read from the core env: ``[B, m]`` int64 actions (``learners.tabular.priors``)
 PriorActions = Callable[[AuctionEnv], np.ndarray]
-PRIOR_KEY = "prior_action"  # (group, PRIOR_KEY): one-hot of the prior's action per robot
+PRIOR_KEY = "prior_action"  # (group, PRIOR_KEY): the prior's action per robot, -1 if none
 GROUP_SET_KEYS = ("robots", "robot_types")  # set inputs per group: (group, key) [B, n_g, ...]
 ROOT_SET_KEYS = ("slots", "slot_type", "types")  # set inputs at the root: [B, K, ...], [B, n, T]
 
@@ -75,13 +75,24 @@ def set_inputs_td(env: AuctionEnv, group_map: GroupMap, mask: np.ndarray) -> Ten
     return TensorDict(out, batch_size=(B,))
 
 
-def prior_one_hot(actions: np.ndarray, n_actions: int) -> torch.Tensor:
-    """``[B, m]`` int actions -> ``[B, m, K + 1]`` bool one-hot (the ``prior_action`` leaf).
+def prior_index(actions: np.ndarray, n_actions: int) -> torch.Tensor:
+    """``[B, m]`` int actions of a prior -> the ``prior_action`` leaf (-1: none for that robot).
 
-    An action of -1 (the prior has none for that robot) is an all-False row.
+    Args:
+        actions: The prior's actions, ``0..K`` or -1.
+        n_actions: ``K + 1``, which sizes the dtype (:func:`~mrta_rl.envs.encodings.prior_dtype`).
     """
-    one_hot = torch.nn.functional.one_hot(torch.from_numpy(actions) + 1, n_actions + 1)
-    return one_hot[..., 1:].to(torch.bool)
+    return torch.from_numpy(actions.astype(encodings.prior_dtype(n_actions)))
+
+
+def prior_one_hot(prior_action: torch.Tensor, n_actions: int) -> torch.Tensor:
+    """The ``prior_action`` leaf ``[*, n_g]`` -> ``[*, n_g, K + 1]`` bool one-hot.
+
+    What the networks read: the prior's action of each robot marked, a robot without one
+    (-1) an all-False row.
+    """
+    actions = torch.arange(n_actions, device=prior_action.device)
+    return prior_action.unsqueeze(-1) == actions
 
 
 def resolve_group_map(robots: Sequence[str], group_map: GroupMapArg) -> GroupMap:
@@ -152,9 +163,11 @@ class AuctionTorchRLEnv(EnvBase):
         features (:func:`~mrta_rl.envs.encodings.global_features`) for mixers; both in the
         encoding ``features`` (``"paper"`` by default, ``"time_to_free"`` adds free and queue
         levels: ``encodings`` module docstring, "Features"). With a
-        ``prior``, ``(group, "prior_action")`` bool ``[B, n_g, K + 1]`` is the one-hot of that
-        policy's action of every robot in the current state (the neural learners' ``hold``
-        prior: a rule that reads the whole team, computed here from the core). Two reward
+        ``prior``, ``(group, "prior_action")`` ``[B, n_g]`` is that policy's action of every
+        robot in the current state, -1 where it has none, in the smallest integer dtype that
+        holds ``K`` (:func:`~mrta_rl.envs.encodings.prior_dtype`; the networks expand it with
+        :func:`prior_one_hot`); the prior is e.g. the neural learners' ``hold`` rule, which
+        reads the whole team, computed here from the core. Two reward
         breakdowns ride along as observations of the step (zero after a reset):
         ``(group, "robot_reward")`` ``[B, n_g, 1]``, each robot's individual reward, and
         ``(group, "group_reward")`` ``[B, n_g, 1]``, the sub-group reward (sum of its robots'
@@ -251,7 +264,8 @@ class AuctionTorchRLEnv(EnvBase):
                 shape=shape,
             )
             if self.prior is not None:
-                obs[group][PRIOR_KEY] = Binary(n=A, shape=(*shape, A), dtype=torch.bool)
+                dtype = getattr(torch, encodings.prior_dtype(A).name)  # torch.int8, ...
+                obs[group][PRIOR_KEY] = Bounded(-1, A - 1, shape, dtype=dtype)
             if self.set_inputs:
                 R = encodings.ROBOT_TOKEN_SIZE
                 obs[group]["robots"] = Bounded(0.0, 1.0, shape=(*shape, R), dtype=torch.float32)
@@ -321,7 +335,7 @@ class AuctionTorchRLEnv(EnvBase):
             robot = torch.zeros(B, core.n_robots)
         if invalid is None and self.invalid_action == "wait":
             invalid = torch.zeros(B, core.n_robots, dtype=torch.bool)
-        prior = None if self.prior is None else prior_one_hot(self.prior(core), core.n_actions)
+        prior = None if self.prior is None else prior_index(self.prior(core), core.n_actions)
         tensors = set_input_tensors(core) if self.set_inputs else {}
         for key in ROOT_SET_KEYS if self.set_inputs else ():
             out.set(key, tensors[key])

@@ -41,6 +41,7 @@ from mrta_rl.envs.encodings import (
     TYPE_TOKEN_SIZE,
     global_feature_size,
     local_feature_size,
+    prior_dtype,
 )
 from mrta_rl.learners.base import MemoryQuery
 from mrta_rl.partition import Partition, subg_partition
@@ -279,7 +280,15 @@ NEURAL_ADVICE = "lower learner.buffer_size or learner.hidden, or use a smaller s
 
 
 def neural_estimate(
-    name: str, env: AuctionEnv, settings: dict[str, Any], weights: int, copies: int, advice: str
+    name: str,
+    env: AuctionEnv,
+    settings: dict[str, Any],
+    weights: int,
+    copies: int,
+    advice: str,
+    *,
+    loss_keys_only: bool = False,
+    state_bytes: int = 4,
 ) -> ResourceEstimate:
     """A TorchRL learner's networks, replay buffer and collector batch (float32 weights).
 
@@ -292,6 +301,10 @@ def neural_estimate(
         weights: Its trainable weights (the class counts them).
         copies: Training copies (``train.batch_size``).
         advice: What to change when it does not fit.
+        loss_keys_only: The replay buffer keeps only what the loss reads (the mixed learners'
+            ``transitions``), not every leaf of the collected batch.
+        state_bytes: Bytes per global feature of a stored state (float32: 4, bool: 1, not
+            read by the loss: 0); ``loss_keys_only`` learners only.
 
     Returns:
         The estimate, all of it up front.
@@ -303,15 +316,19 @@ def neural_estimate(
         n, K = env.n_task_types, env.n_slots
         robot = ROBOT_TOKEN_SIZE * 4 + n  # robots (float32), robot_types (bool)
         root = K * (SLOT_TOKEN_SIZE * 4 + 8) + n * TYPE_TOKEN_SIZE * 4  # slots, slot_type, types
-    # one transition: observation, mask and the prior's one-hot action (and their next), state
-    # and next state; per robot the action (int64), robot and group rewards (and their next),
-    # the invalid-action flags, the next team reward; flags (measured on the buffer,
-    # tests/learners/test_memory.py)
-    transition = 2 * (m * robot + root + S * 4 + 2 * m * A) + m * (8 + 16 + 2 + 4) + 32
+    # an observation: per robot its inputs, mask (bool) and the prior's action index
+    observation = m * (robot + A + prior_dtype(A).itemsize) + root
+    # one collected transition: observation and state (and their next); per robot the action
+    # (int64), robot and group rewards (and their next), the invalid-action flags, the next
+    # team reward; flags (measured on the buffer, tests/learners/test_memory.py)
+    collected = 2 * (observation + S * 4) + m * (8 + 16 + 2 + 4) + 32
+    stored = collected
+    if loss_keys_only:  # observation and state (and their next), the action; next reward, flags
+        stored = 2 * (observation + S * state_bytes) + m * 8 + 16
     parts = {
         "networks": weights * BYTES_PER_WEIGHT,
-        "replay buffer": int(settings["buffer_size"]) * transition,
-        "collector batch": int(settings["collect_ticks"]) * copies * transition,
+        "replay buffer": int(settings["buffer_size"]) * stored,
+        "collector batch": int(settings["collect_ticks"]) * copies * collected,
     }
     total = sum(parts.values())
     return ResourceEstimate(name, total, total, parts, advice=advice)

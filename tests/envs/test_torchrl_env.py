@@ -15,7 +15,13 @@ from torchrl.envs.utils import check_env_specs
 
 from mrta_rl.envs import AuctionEnv, AuctionParams
 from mrta_rl.envs import encodings as ob
-from mrta_rl.envs.torchrl_env import AuctionTorchRLEnv, resolve_group_map, set_inputs_td
+from mrta_rl.envs.torchrl_env import (
+    AuctionTorchRLEnv,
+    prior_index,
+    prior_one_hot,
+    resolve_group_map,
+    set_inputs_td,
+)
 from mrta_rl.partition import subg_partition
 from mrta_rl.rules import greedy_actions
 from mrta_rl.systems import RobotSystem, build_system
@@ -89,8 +95,8 @@ def test_time_to_free_features_size_the_specs(kind):
 
 
 @pytest.mark.parametrize("kind", GROUP_MAPS)
-def test_prior_action_key_is_the_prior_one_hot_per_group(kind):
-    """prior=: the one-hot of that policy's actions under every group, at reset and step."""
+def test_prior_action_key_is_the_prior_action_per_group(kind):
+    """prior=: that policy's action of every robot under every group, at reset and step."""
     env = make(load_system("system2"), kind, 5, horizon=4)
     assert "prior_action" not in env.reset().get(next(iter(env.group_map))).keys()
     with_prior = AuctionTorchRLEnv(env.auction, env.group_map, prior=greedy_of_core)
@@ -100,11 +106,26 @@ def test_prior_action_key_is_the_prior_one_hot_per_group(kind):
     for _ in range(3):
         for group in with_prior.group_map:
             mask, got = td.get((group, "action_mask")), td.get((group, "prior_action"))
-            assert got.dtype == torch.bool and got.sum(-1).eq(1).all()
+            assert got.dtype == torch.int8 and got.shape == mask.shape[:2]  # K + 1 = 4
             expected = greedy_actions(mask.numpy())  # the plain auction, by the mask
-            np.testing.assert_array_equal(got.long().argmax(-1).numpy(), expected)
+            np.testing.assert_array_equal(got.numpy(), expected)
         actions = random_valid(with_prior.auction.action_mask, rng)
         td = with_prior.step(to_td(with_prior, actions))["next"]
+
+
+def test_prior_action_is_the_smallest_integer_and_expands_to_a_one_hot():
+    """int8 while every action 0..K fits (K + 1 <= 128), then int16; -1 is an all-False row."""
+    assert [ob.prior_dtype(A) for A in (4, 128, 129, 32768, 32769)] == [
+        np.int8,
+        np.int8,
+        np.int16,
+        np.int16,
+        np.int32,
+    ]
+    leaf = prior_index(np.array([[2, -1, 0]]), n_actions=4)
+    assert leaf.dtype == torch.int8 and leaf.tolist() == [[2, -1, 0]]
+    expected = [[[False, False, True, False], [False] * 4, [True, False, False, False]]]
+    assert prior_one_hot(leaf, 4).tolist() == expected
 
 
 def greedy_of_core(core: AuctionEnv) -> np.ndarray:

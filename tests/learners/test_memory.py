@@ -94,8 +94,10 @@ def test_dense_dql_tables_are_counted_exactly(features, rng):
         ("qmix", "mlp", "system1"),
         ("subg_dqn", None, "system1"),
         ("qmix", "set", "system1"),
-        # a large team: the per-robot leaves (masks, the prior's one-hot) dominate a transition
+        # a large team: the per-robot leaves (inputs and masks) dominate a transition; QMIX
+        # keeps its state as bool, VDN none
         ("qmix", "set", "random60"),
+        ("vdn", "set", "random60"),
     ],
 )
 def test_network_and_transition_sizes_match_built_learners(learner, network, team, compose_cfg):
@@ -116,7 +118,7 @@ def test_network_and_transition_sizes_match_built_learners(learner, network, tea
     weights = sum(p.numel() for p in run.learner.networks.parameters())
     assert estimate.parts["networks"] == weights * BYTES_PER_WEIGHT
     env = AuctionTorchRLEnv(  # as the runner builds it
-        run.env, group_map=run.learner.group_map, **run.learner.view_options
+        run.env, group_map=run.learner.group_map, invalid_action="raise", **run.learner.view_options
     )
     collector = Collector(
         env,

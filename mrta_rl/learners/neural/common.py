@@ -34,8 +34,9 @@ Every prior (the plain auction's :class:`~mrta_rl.learners.tabular.priors.Greedy
 subG-DQN's ``spread_wait``) is computed from the core env with the rules of ``mrta_rl/rules.py``
 -- by :class:`~mrta_rl.envs.torchrl_env.AuctionTorchRLEnv` (its ``prior`` argument) while
 training and by :meth:`NeuralLearner.encode` in evaluation -- and reaches the Q-network as the
-observation ``(group, "prior_action")``, a one-hot per robot, stored in the replay buffer with
-the other observations so the target network sees the prior's action of the next state.
+observation ``(group, "prior_action")``, the action index per robot, stored in the replay buffer
+with the other observations so the target network sees the prior's action of the next state;
+the networks expand it to a one-hot (:func:`~mrta_rl.envs.torchrl_env.prior_one_hot`).
 ``prior_in_state`` (with ``hold``) also feeds that one-hot to the network as an input.
 
 Inputs (``features``, :data:`~mrta_rl.envs.encodings.FEATURES`): ``paper`` (default) or
@@ -74,7 +75,7 @@ from mrta_rl.envs.torchrl_env import (
     GROUP_SET_KEYS,
     PRIOR_KEY,
     ROOT_SET_KEYS,
-    prior_one_hot,
+    prior_index,
     set_inputs_td,
 )
 from mrta_rl.learners.base import FACTS, TORCHRL_LOOP, Learner, LearnerKind, MemoryQuery
@@ -153,7 +154,7 @@ def observation_td(
 
     Returns:
         TensorDict of batch ``[B]``: ``state`` ``[B, G]`` and per group ``observation``
-        ``[B, n_g, F]``, ``action_mask`` ``[B, n_g, K + 1]`` [and ``prior_action``, same shape];
+        ``[B, n_g, F]``, ``action_mask`` ``[B, n_g, K + 1]`` [and ``prior_action`` ``[B, n_g]``];
         with ``set_inputs``, ``slots``, ``slot_type``, ``types`` and per group ``robots``,
         ``robot_types`` instead of ``observation``.
     """
@@ -175,7 +176,7 @@ def observation_td(
         td = TensorDict(leaves, batch_size=(B,))
     td.set("state", torch.from_numpy(encodings.global_features(env, features)))
     if prior is not None:
-        prior_t = prior_one_hot(prior(env, mask), env.n_actions)
+        prior_t = prior_index(prior(env, mask), env.n_actions)
         for group, idx in index.items():
             td.set((group, PRIOR_KEY), prior_t[:, idx])
     return td
@@ -255,6 +256,10 @@ class NeuralLearner(Learner, abstract=True):
     training_loop: ClassVar[str] = TORCHRL_LOOP
     facts: ClassVar[tuple[str, ...]] = (*FACTS, "network_weights")
     memory_advice: ClassVar[str] = NEURAL_ADVICE  # what to change when it does not fit
+    # what a replayed transition keeps (memory.neural_estimate): only the loss's keys, and
+    # the bytes per global feature of its states
+    replay_loss_keys_only: ClassVar[bool] = False
+    replay_state_bytes: ClassVar[int] = 4
 
     @classmethod
     def estimate_memory(cls, query: MemoryQuery) -> ResourceEstimate:
@@ -265,7 +270,16 @@ class NeuralLearner(Learner, abstract=True):
         """
         env, partition, settings, decisions, copies = query
         weights = cls.network_weights(env, partition, settings)
-        return neural_estimate(cls.__name__, env, settings, weights, copies, cls.memory_advice)
+        return neural_estimate(
+            cls.__name__,
+            env,
+            settings,
+            weights,
+            copies,
+            cls.memory_advice,
+            loss_keys_only=cls.replay_loss_keys_only,
+            state_bytes=cls.replay_state_bytes,
+        )
 
     @classmethod
     def learning_space_dimension(
@@ -864,6 +878,8 @@ class MixedQLearner(PerRobotQLearner, abstract=True):
     Subclasses differ only in the mixer (``vdn.py``: ``VDNMixer``, ``qmix.py``: ``QMixer``).
     """
 
+    replay_loss_keys_only: ClassVar[bool] = True  # transitions() keeps the loss's in_keys
+
     @classmethod
     def network_weights(
         cls, env: AuctionEnv, partition: Partition | None, settings: dict[str, Any]
@@ -912,8 +928,10 @@ class MixedQLearner(PerRobotQLearner, abstract=True):
     def transitions(self, data: TensorDictBase) -> TensorDictBase:
         """Scaled team reward, also at the root ``[N, 1]`` where ``QMixerLoss`` reads it.
 
-        As in TorchRL's QMIX example; Q-values are recomputed by the loss, so not stored.
+        As in TorchRL's QMIX example. Only what the loss reads is kept (its ``in_keys``): the
+        Q-values are recomputed by the loss, and the per-robot rewards, the root flags of the
+        current step and (VDN: its mixer has no state input) the state are read by no one.
         """
         data = super().transitions(data)
         data.set(("next", "reward"), data.get(("next", "agents", "reward"))[:, 0])
-        return data.exclude(("agents", "action_value"), ("agents", "chosen_action_value"))
+        return data.select(*self.losses["agents"].in_keys)

@@ -1,9 +1,9 @@
 """Q-networks of the TorchRL learners: per-robot and joint-action nets, joint-action coding.
 
-The auction prior (see ``common.py``) enters as an input: the env's ``prior_action`` one-hot
-marks the prior rule's action of every robot (computed from the env by ``tabular.priors``, with
-the rules of ``mrta_rl/rules.py``), its bonus is added to the output, and the output layers
-start at zero, so an untrained network plays the prior rule.
+The auction prior (see ``common.py``) enters as an input: the env's ``prior_action`` is the
+prior rule's action of every robot (computed from the env by ``tabular.priors``, with the rules
+of ``mrta_rl/rules.py``), expanded here to a one-hot; its bonus is added to the output, and the
+output layers start at zero, so an untrained network plays the prior rule.
 """
 
 from __future__ import annotations
@@ -11,6 +11,8 @@ from __future__ import annotations
 import torch
 from torch import nn
 from torchrl.modules import MLP, MultiAgentMLP
+
+from mrta_rl.envs.torchrl_env import prior_one_hot
 
 
 def joint_combine(per_robot: torch.Tensor, op: str) -> torch.Tensor:
@@ -123,13 +125,14 @@ class PerRobotQ(nn.Module):
             )
         zero_last_layer(self.mlp)
         self.auction_prior = auction_prior
+        self.n_actions = n_actions
 
     def forward(self, observation: torch.Tensor, prior_action: torch.Tensor) -> torch.Tensor:
         """Q-values ``[*, n_g, A]`` of ``observation`` ``[*, n_g, F]``.
 
-        ``prior_action``: ``[*, n_g, A]`` bool one-hot of the prior rule's action of each robot.
+        ``prior_action``: ``[*, n_g]`` the prior rule's action of each robot (-1: none).
         """
-        prior = prior_action.to(observation.dtype)
+        prior = prior_one_hot(prior_action, self.n_actions).to(observation.dtype)
         if self.prior_in_state:
             observation = torch.cat([observation, prior], -1)
         if isinstance(self.mlp, MultiAgentMLP):
@@ -209,16 +212,17 @@ class JointQ(nn.Module):
         )
         zero_last_layer(self.mlp)
         self.auction_prior = auction_prior
+        self.n_actions = n_actions
 
     def forward(
         self, observation: torch.Tensor, action_mask: torch.Tensor, prior_action: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Joint Q-values and joint mask ``[*, A^n_g]`` (mask = product of the robots' masks).
 
-        ``prior_action``: ``[*, n_g, A]`` bool one-hot of the prior rule's action of each robot.
+        ``prior_action``: ``[*, n_g]`` the prior rule's action of each robot (-1: none).
         """
         value = self.mlp(observation.flatten(-2))  # [*, A^n_g]
-        per_robot = prior_action.to(value.dtype)
+        per_robot = prior_one_hot(prior_action, self.n_actions).to(value.dtype)
         prior = joint_combine(per_robot, "add")  # robots playing the prior's action, summed
         return value + self.auction_prior * prior, joint_combine(action_mask, "and")
 

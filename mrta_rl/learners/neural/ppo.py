@@ -200,9 +200,10 @@ class PPOLearner(Learner, abstract=True):
         env, partition, settings = query.env, query.partition, query.settings
         m, A = env.n_robots, env.n_actions
         F, S = feature_sizes(env, settings)
-        # one frame (copy-tick): observation, mask, prior one-hot, state (and their next), per
-        # robot action, log-probability, value, advantage, target, reward; flags
-        frame = 2 * (m * F * 4 + S * 4 + 2 * m * A) + m * (8 + 5 * 4) + 32
+        # one frame (copy-tick): observation, mask, the prior's action index, state (and their
+        # next), per robot action, log-probability, value, advantage, target, reward; flags
+        prior = encodings.prior_dtype(A).itemsize
+        frame = 2 * (m * F * 4 + S * 4 + m * (A + prior)) + m * (8 + 5 * 4) + 32
         if settings["network"] == "set":  # the set inputs too: robot, slot and type tokens
             n, K = env.n_task_types, A - 1
             robots = m * (encodings.ROBOT_TOKEN_SIZE * 4 + n)  # float32 features, bool types

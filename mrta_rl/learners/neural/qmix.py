@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from typing import Annotated, Any, ClassVar
 
+import torch
+from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule
 from torchrl.modules import QMixer
 
@@ -22,6 +24,7 @@ class QMIXLearner(MixedQLearner):
     """
 
     label: ClassVar[str] = "QMIX"
+    replay_state_bytes: ClassVar[int] = 1  # the state is stored as bool (transitions)
 
     @classmethod
     def network_weights(
@@ -49,7 +52,7 @@ class QMIXLearner(MixedQLearner):
     def _mixer(self) -> TensorDictModule:
         """TorchRL ``QMixer`` over the robots' chosen Q-values and the global state."""
         return TensorDictModule(
-            QMixer(
+            BoolStateQMixer(
                 state_shape=(self.state_size,),
                 mixing_embed_dim=self.mixing_embed_dim,
                 n_agents=self.n_robots,
@@ -58,3 +61,31 @@ class QMIXLearner(MixedQLearner):
             in_keys=[("agents", "chosen_action_value"), "state"],
             out_keys=["chosen_action_value"],
         )
+
+    def transitions(self, data: TensorDictBase) -> TensorDictBase:
+        """The mixed learners' transitions, the state and next state kept as bool.
+
+        The global features are 0/1 (one-hots and bits, ``encodings.global_features``), so a
+        bool copy is exact at a quarter of the bytes; :class:`BoolStateQMixer` reads it back
+        as float.
+
+        Raises:
+            RuntimeError: if a state holds a value other than 0 and 1 (an encoding that is not
+                binary cannot be stored so).
+        """
+        data = super().transitions(data)
+        for key in ("state", ("next", "state")):
+            state = data.get(key)
+            stored = state.bool()
+            if not torch.equal(stored.to(state.dtype), state):
+                raise RuntimeError(f"{key}: the global features are not 0/1, cannot be bool")
+            data.set(key, stored)
+        return data
+
+
+class BoolStateQMixer(QMixer):
+    """TorchRL's ``QMixer`` over the state as the replay buffer keeps it (bool, exact 0/1)."""
+
+    def forward(self, chosen_action_value: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
+        """Mix the robots' chosen Q-values ``[*, m, 1]`` under ``state`` ``[*, G]`` (any dtype)."""
+        return super().forward(chosen_action_value, state.to(chosen_action_value.dtype))

@@ -37,6 +37,7 @@ from torch.nn import functional as F
 
 from mrta_rl.config import ConfigError
 from mrta_rl.envs.encodings import ROBOT_TOKEN_SIZE, SLOT_TOKEN_SIZE, TYPE_TOKEN_SIZE
+from mrta_rl.envs.torchrl_env import prior_one_hot
 
 MASKED = -1e9  # the score of an invalid action: far below any Q-value or logit, and finite
 ROBOT_ATTENTION = ("full", "pooled")  # robots attend to each other, or to a pooled team token
@@ -272,7 +273,9 @@ class SetNetwork(nn.Module):
         lead = robots.shape[:-2]
         h, s = self._tokens(robots, robot_types, slots, slot_type, types)
         wait = self.wait_head(h)  # [N, m, 1]
-        pair = F.relu(self.pair_robot(h).unsqueeze(2) + self.pair_slot(s).unsqueeze(1))
+        # [N, m, K, d], the largest tensor of the network: the ReLU in place saves allocating
+        # (and page-faulting) a second one; its gradient reads the output either way
+        pair = F.relu_(self.pair_robot(h).unsqueeze(2) + self.pair_slot(s).unsqueeze(1))
         bids = self.pair_out(pair).squeeze(-1)  # [N, m, K]
         out = torch.cat([wait, bids], -1).reshape(*lead, h.shape[1], -1)
         if action_mask is None:
@@ -310,6 +313,7 @@ class SetWithPrior(nn.Module):
         action_mask: torch.Tensor,
         prior_action: torch.Tensor,
     ) -> torch.Tensor:
-        """Masked scores; ``prior_action`` ``[*, m, K + 1]``: one-hot of the prior's action."""
+        """Masked scores; ``prior_action`` ``[*, m]``: the prior's action (-1: none)."""
         values = self.net(robots, robot_types, slots, slot_type, types, action_mask)
-        return values + self.auction_prior * prior_action.to(values.dtype)
+        prior = prior_one_hot(prior_action, values.shape[-1])
+        return values + self.auction_prior * prior.to(values.dtype)

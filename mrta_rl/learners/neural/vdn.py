@@ -17,6 +17,7 @@ class VDNLearner(MixedQLearner):
     """
 
     label: ClassVar[str] = "VDN"  # its mixer, a sum, has no weights
+    replay_state_bytes: ClassVar[int] = 0  # no state input: the loss reads no state
 
     def _mixer(self) -> TensorDictModule:
         """TorchRL ``VDNMixer``: the sum of the robots' chosen Q-values (no state input)."""

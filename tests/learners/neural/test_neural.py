@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 import torch
-from tensordict import TensorDict
+from tensordict import TensorDict, unravel_key
 from torchrl.collectors import Collector
 from torchrl.data import Categorical
 from torchrl.envs.utils import ExplorationType, set_exploration_type
@@ -15,7 +15,7 @@ from torchrl.modules import EGreedyModule, MultiAgentMLP, QValueModule
 
 from mrta_rl.envs import AuctionEnv, AuctionParams
 from mrta_rl.envs import encodings as ob
-from mrta_rl.envs.torchrl_env import AuctionTorchRLEnv, prior_one_hot
+from mrta_rl.envs.torchrl_env import AuctionTorchRLEnv, prior_index, prior_one_hot
 from mrta_rl.learners import SubGReserveLearner, TeamReserveLearner
 from mrta_rl.learners.neural import IQLLearner, QMIXLearner, SubGDQNLearner, VDNLearner
 from mrta_rl.learners.neural.common import WEIGHTS_FILE, EpsilonGreedy
@@ -129,7 +129,7 @@ def test_joint_combine_and_decode_round_trip():
 def test_greedy_bid_is_the_lowest_valid_bid(system):
     mask = np.array([[[1, 0, 1, 1], [1, 0, 0, 0], [1, 1, 1, 0]]], dtype=bool)
     expected = torch.tensor([[0, 0, 1, 0], [0, 0, 0, 0], [0, 1, 0, 0]], dtype=torch.float32)
-    greedy_bid = prior_one_hot(GreedyPrior()(AuctionEnv(system), mask), 4)[0]
+    greedy_bid = prior_one_hot(prior_index(GreedyPrior()(AuctionEnv(system), mask), 4), 4)[0]
     assert torch.equal(greedy_bid.float(), expected)
 
 
@@ -206,7 +206,7 @@ def test_untrained_network_with_the_hold_prior_plays_team_reserve(
 
 
 def test_hold_prior_reaches_the_network_through_the_torchrl_env(system):
-    """Training path: the env's prior_action is the rule's one-hot, the collector plays it (eps
+    """Training path: the env's prior_action is the rule's action, the collector plays it (eps
     0), the replayed transitions carry it for the next state too, and a gradient step runs."""
     learner, env = make(
         QMIXLearner, system, batch=5, prior_reserve=1, eps_start=0.0, eps_end=0.0, **HOLD
@@ -216,13 +216,50 @@ def test_hold_prior_reaches_the_network_through_the_torchrl_env(system):
     td = torchrl_env.reset()
     prior = td.get(("agents", "prior_action"))
     expected = rule.act(rule.encode(env), env.action_mask, explore=False)
-    assert torch.equal(prior.long().argmax(-1), torch.from_numpy(expected))
-    assert torch.equal(prior.sum(-1), torch.ones(5, env.n_robots, dtype=torch.long))
+    assert prior.dtype == torch.int8  # System-II: K + 1 = 4 actions
+    assert torch.equal(prior.long(), torch.from_numpy(expected))
     data = collect(learner, env, frames=200)
     played = data.get(("agents", "action"))
-    assert torch.equal(played, data.get(("agents", "prior_action")).long().argmax(-1))
+    assert torch.equal(played, data.get(("agents", "prior_action")).long())
     assert ("next", "agents", "prior_action") in data.keys(include_nested=True)
     assert np.isfinite(learner.train_step(data[:64])["train/loss"])
+
+
+@pytest.mark.parametrize("cls", [VDNLearner, QMIXLearner])
+def test_mixed_learners_replay_only_what_their_loss_reads(cls, system):
+    """No per-robot rewards, flags or Q-values in the replay; QMIX's state as exact bool, VDN's
+    (its mixer has no state input) not at all; the loss still runs on the stored batch."""
+    learner, env = make(cls, system, batch=4)
+    data = collect(learner, env, frames=40)
+    stored = set(data.keys(include_nested=True, leaves_only=True))
+    assert stored == {unravel_key(k) for k in learner.losses["agents"].in_keys}
+    assert ("next", "agents", "robot_reward") not in stored and ("agents", "reward") not in stored
+    if cls is VDNLearner:
+        assert "state" not in stored and ("next", "state") not in stored
+    else:
+        state = data.get("state")
+        assert state.dtype == torch.bool and state.shape == (40, learner.state_size)
+        assert data.get(("next", "state")).dtype == torch.bool
+    assert np.isfinite(learner.train_step(data[:32])["train/loss"])
+
+
+def test_qmix_mixes_a_bool_state_as_its_float_values(system):
+    """The mixer reads the bool state it is stored as exactly as the float 0/1 state."""
+    learner, _ = make(QMIXLearner, system)
+    mixer = learner.networks["mixer"]
+    torch.manual_seed(0)
+    chosen = torch.randn(6, learner.n_robots, 1)
+    state = torch.rand(6, learner.state_size) < 0.3
+    assert torch.equal(mixer(chosen, state), mixer(chosen, state.float()))
+
+
+def test_qmix_refuses_to_store_a_state_that_is_not_binary(system):
+    learner, env = make(QMIXLearner, system, batch=2)
+    view = AuctionTorchRLEnv(env, group_map=learner.group_map, prior=learner.rule)
+    data = view.rollout(3, learner.explore_policy)  # [B, T]
+    data.set("state", data.get("state") * 0.5)
+    with pytest.raises(RuntimeError, match="state: the global features are not 0/1"):
+        learner.transitions(data)
 
 
 def test_checkpoint_of_another_prior_is_refused(system, tmp_path):
@@ -474,8 +511,8 @@ def test_shared_q_network_loads_multiagent_mlp_checkpoints():
         device=torch.device("cpu"),
     )
     net.load_state_dict({f"mlp.{k}": v for k, v in old.state_dict().items()})
-    x, mask = torch.rand(3, 5, 7), torch.ones(3, 5, 4, dtype=torch.bool)
-    torch.testing.assert_close(net(x, mask), old(x))
+    x, prior = torch.rand(3, 5, 7), torch.zeros(3, 5, dtype=torch.int8)
+    torch.testing.assert_close(net(x, prior), old(x))
 
 
 @pytest.mark.parametrize("name", ["qmix", "vdn", "iql", "subg_dqn"])

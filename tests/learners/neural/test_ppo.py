@@ -53,9 +53,8 @@ def test_no_invalid_action_is_ever_sampled_even_where_the_logits_favour_one(cls,
     mask[..., 0] = True  # wait is always valid (spec step 4)
     mask[0] = False
     mask[0, :, 0] = True  # copy 0: a wait-only state
-    favoured = torch.zeros(B, m, A, dtype=torch.bool)
     invalid = np.where(~mask[..., 1:].all(-1), (~mask[..., 1:]).argmax(-1) + 1, 0)  # [B, m]
-    favoured.scatter_(-1, torch.from_numpy(invalid)[..., None], True)
+    favoured = torch.from_numpy(invalid).to(view.get(("agents", "prior_action")).dtype)
     view.set(("agents", "prior_action"), favoured)  # e^20 times likelier, if it were valid
     assert (~mask[np.arange(B)[:, None], np.arange(m), invalid]).sum() > B  # really masked
     torch.manual_seed(0)
