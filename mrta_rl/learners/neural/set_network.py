@@ -272,15 +272,23 @@ class SetNetwork(nn.Module):
         """
         lead = robots.shape[:-2]
         h, s = self._tokens(robots, robot_types, slots, slot_type, types)
+        N, m, K = h.shape[0], h.shape[1], s.shape[1]
         wait = self.wait_head(h)  # [N, m, 1]
-        # [N, m, K, d], the largest tensor of the network: the ReLU in place saves allocating
-        # (and page-faulting) a second one; its gradient reads the output either way
-        pair = F.relu_(self.pair_robot(h).unsqueeze(2) + self.pair_slot(s).unsqueeze(1))
-        bids = self.pair_out(pair).squeeze(-1)  # [N, m, K]
-        out = torch.cat([wait, bids], -1).reshape(*lead, h.shape[1], -1)
+        a, b = self.pair_robot(h), self.pair_slot(s)  # [N, m, d], [N, K, d]
         if action_mask is None:
-            return out
-        return out.masked_fill(~action_mask, MASKED)
+            bids = self.pair_out(F.relu(a.unsqueeze(2) + b.unsqueeze(1))).squeeze(-1)
+            return torch.cat([wait, bids], -1).reshape(*lead, m, K + 1)
+        # Only the valid (robot, slot) pairs are scored: an invalid one scores MASKED whatever
+        # its value, and most pairs are invalid (a busy robot bids for nothing, a robot bids
+        # only for its types' slots of its own auction zone), so the pair tensor shrinks from
+        # [N, m, K, d] to [valid pairs, d].
+        mask = action_mask.reshape(N, m, K + 1)
+        n_idx, r_idx, k_idx = mask[..., 1:].nonzero(as_tuple=True)
+        pair = F.relu_(a[n_idx, r_idx] + b[n_idx, k_idx])  # [P, d]
+        scores = self.pair_out(pair).squeeze(-1)  # [P]
+        bids = wait.new_full((N, m, K), MASKED).index_put((n_idx, r_idx, k_idx), scores)
+        out = torch.cat([wait, bids], -1).masked_fill(~mask, MASKED)
+        return out.reshape(*lead, m, K + 1)
 
 
 class SetWithPrior(nn.Module):

@@ -99,6 +99,29 @@ def test_one_set_of_weights_runs_on_any_team():
     assert sum(p.numel() for p in net.parameters()) == count
 
 
+def test_masked_scores_and_gradients_are_those_of_every_pair():
+    """Scoring only the valid pairs changes no valid score and no gradient (scaled auction zones:
+    a robot's valid slots are a few of the team's)."""
+    system = random_system(40, 6, density=0.25, seed=0, scale_auction=True)
+    env = AuctionEnv(system, AuctionParams.merged({**system.env_overrides, "horizon": 50}), batch_size=2)
+    for _ in range(6):
+        env.step(env.fixed_actions("greedy"))
+    x, mask = inputs(env)
+    assert 0 < mask[..., 1:].float().mean() < 0.2  # most pairs are invalid
+    grads = []
+    for masked in (False, True):
+        net = trained_like()
+        out = net(*x, mask if masked else None)
+        if masked:
+            assert (out[~mask] == MASKED).all()
+        (out[mask] ** 2).sum().backward()
+        grads.append((out[mask].detach(), [p.grad for p in net.parameters()]))
+    (dense, dense_grads), (sparse, sparse_grads) = grads
+    torch.testing.assert_close(sparse, dense)
+    for dense_grad, sparse_grad in zip(dense_grads, sparse_grads):
+        torch.testing.assert_close(sparse_grad, dense_grad, rtol=1e-4, atol=1e-5)
+
+
 def test_only_wait_valid_gives_a_proper_distribution():
     env = played_env(paper_system("system1"), batch=2)
     x, mask = inputs(env)
