@@ -63,8 +63,18 @@ EVALUATION_BLOCKS = ("eval", "baseline_greedy")
 FIELD_STATS_HEADER = ["statistic", "x", "y", "value", "ci_low", "ci_high", "n_runs"]
 
 
+def _series(label: str, variant: str) -> str:
+    """A study line: the learner's label and the learner settings that set its runs apart.
+
+    ``variant`` (``collect.configuration_variants``) also names the swept system keys
+    (``system.n_robots=200``): those are the x axis, not the line, and keep their dotted names.
+    """
+    settings = [token for token in variant.split() if "." not in token.partition("=")[0]]
+    return " ".join([label, *settings])
+
+
 def _point(cell: tuple, config: dict[str, Any], metrics: dict[str, Any], refused: str) -> dict:
-    """One study row; ``cell`` is ``(label, learner, system, seed)``."""
+    """One study row; ``cell`` is ``(series, learner, system, seed)``."""
     label, learner, system, seed = cell
     ret, greedy = (
         ((metrics.get(k) or {}).get("team_return") or {}).get("mean") for k in EVALUATION_BLOCKS
@@ -99,7 +109,10 @@ def _point(cell: tuple, config: dict[str, Any], metrics: dict[str, Any], refused
 
 def study_points(runs: Sequence[RunRecord], inputs: Sequence[Path]) -> pd.DataFrame:
     """Every finished run and every refused run below the inputs, one row each."""
-    points = [_point((r.label, r.name, r.system, r.seed), r.config, r.metrics, "") for r in runs]
+    points = [
+        _point((_series(r.label, r.variant), r.name, r.system, r.seed), r.config, r.metrics, "")
+        for r in runs
+    ]
     found = {p.parent.resolve() for path in inputs for p in Path(path).rglob(REFUSED_FILE)}
     found |= {Path(p).resolve() for p in inputs if (Path(p) / REFUSED_FILE).is_file()}
     for run_dir in sorted(found):

@@ -163,6 +163,17 @@ def test_scaling_report_from_fabricated_runs(tmp_path):
     assert "Probability of improvement" in text and "IQM" in text
 
 
+def test_a_learner_with_two_settings_draws_two_lines(tmp_path):
+    """QMIX with its two networks: two study lines, the team size on the x axis of both."""
+    runs = tmp_path / "scaling"
+    for m, network in itertools.product((10, 20), ("mlp", "set")):
+        settings = {"system.n_robots": m, "learner.network": network}
+        study_run(runs / f"q{m}{network}", "qmix", 0, settings, 95.0 + (network == "set"))
+    points = study_points(collect_runs([runs]).runs, [runs])
+    lines = points.groupby("series")["system.n_robots"].apply(sorted).to_dict()
+    assert lines == {"qmix network=mlp": [10, 20], "qmix network=set": [10, 20]}
+
+
 def test_switch_cost_claims_along_the_dimension(tmp_path):
     runs = tmp_path / "switch"
     for s, seed in itertools.product((0, 4, 8), (0, 1)):
