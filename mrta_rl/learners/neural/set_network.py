@@ -15,7 +15,8 @@ Inputs are the team-size independent tokens of :func:`mrta_rl.envs.encodings.set
   ``"pooled"`` to one team token, the mean of the robot tokens (memory linear in ``m``: the
   setting for teams of a thousand robots); then a feed-forward layer on each token.
 * **Heads**: per robot a wait score from its token, per (robot, slot) a pair score
-  ``w . relu(A h_i + B s_k)``; outputs ``[*, m, K + 1]``, column 0 wait, column ``k`` slot ``k``.
+  ``w . relu(A h_i + B s_k)``, computed for the valid pairs of ``action_mask`` only (the others
+  are masked anyway); outputs ``[*, m, K + 1]``, column 0 wait, column ``k`` slot ``k``.
   The output layers start at zero, so an untrained network scores every action 0 and the auction
   prior bonus of the Q-learners (``learners/neural/networks.py``) decides alone. Invalid actions
   score :data:`MASKED` (finite, so a softmax or a max over them never gives NaN; waiting is
