@@ -134,8 +134,27 @@ def learner_named(name: str, config_dirs: Iterable[str | os.PathLike] = ()) -> t
     files = learner_files(config_dirs)
     if name not in files:
         raise UserError(f"unknown learner {name!r}; known: {sorted(files)}")
+    return learner_from_target(_learner_target(name, files), f"{files[name]}: _target_")
+
+
+def _learner_target(name: str, files: dict[str, Path], seen: tuple[str, ...] = ()) -> Any:
+    """A learner yaml's ``_target_``, else that of the learner it extends (its defaults list).
+
+    ``defaults: [qmix, _self_]`` in ``learner/qmix_set.yaml`` composes ``learner/qmix.yaml``
+    under it, as Hydra does: the last such entry that names a ``_target_`` wins.
+    """
     path = files[name]
     check_yaml_file(path)
     block: Any = yaml.safe_load(path.read_text())
-    target = block.get("_target_") if isinstance(block, dict) else None
-    return learner_from_target(target, f"{path}: _target_")
+    if not isinstance(block, dict):
+        return None
+    if "_target_" in block:
+        return block["_target_"]
+    entries = block.get("defaults") or []
+    parents = [e.removesuffix(".yaml") for e in entries if isinstance(e, str) and e != "_self_"]
+    for parent in reversed(parents):
+        if parent in files and parent not in (*seen, name):
+            target = _learner_target(parent, files, (*seen, name))
+            if target is not None:
+                return target
+    return None

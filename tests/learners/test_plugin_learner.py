@@ -17,6 +17,7 @@ from pathlib import Path
 import pytest
 
 from mrta_rl.conf_files import learner_files, learner_named
+from mrta_rl.config import UserError
 from mrta_rl.envs import AuctionParams
 from mrta_rl.learners.memory import estimate_resources
 from mrta_rl.reports import build_report
@@ -91,3 +92,16 @@ def test_a_learner_from_a_user_module_and_yaml_is_trained_estimated_labelled_and
     # the user's code imported it (learner_named above): then it is evaluated, weights and all
     again = evaluate_checkpoint(run_dir)
     assert again["learner"] == TOY and again["eval"] == metrics["eval"]
+
+
+def test_a_user_learner_extending_a_shipped_one_through_its_defaults_is_listed(tmp_path):
+    """``learner/qmix_set.yaml`` with ``defaults: [qmix, _self_]``: QMIX's class, as Hydra composes."""
+    folder = tmp_path / "my_conf"
+    (folder / "learner").mkdir(parents=True)
+    (folder / "learner" / "qmix_set.yaml").write_text(
+        "defaults:\n  - qmix\n  - _self_\nnetwork: set\n"
+    )
+    (folder / "learner" / "orphan.yaml").write_text("defaults:\n  - _self_\nnetwork: set\n")
+    assert learner_named("qmix_set", [folder]) is learner_named("qmix")
+    with pytest.raises(UserError, match="orphan.yaml: _target_: missing"):
+        learner_named("orphan", [folder])
