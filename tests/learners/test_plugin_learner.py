@@ -95,7 +95,7 @@ def test_a_learner_from_a_user_module_and_yaml_is_trained_estimated_labelled_and
 
 
 def test_a_user_learner_extending_a_shipped_one_through_its_defaults_is_listed(tmp_path):
-    """``learner/qmix_set.yaml`` with ``defaults: [qmix, _self_]``: QMIX's class, as Hydra composes."""
+    """``learner/qmix_set.yaml`` with ``defaults: [qmix, _self_]`` is QMIX, as Hydra composes it."""
     folder = tmp_path / "my_conf"
     (folder / "learner").mkdir(parents=True)
     (folder / "learner" / "qmix_set.yaml").write_text(

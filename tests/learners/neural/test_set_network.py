@@ -103,7 +103,9 @@ def test_masked_scores_and_gradients_are_those_of_every_pair():
     """Scoring only the valid pairs changes no valid score and no gradient (scaled auction zones:
     a robot's valid slots are a few of the team's)."""
     system = random_system(40, 6, density=0.25, seed=0, scale_auction=True)
-    env = AuctionEnv(system, AuctionParams.merged({**system.env_overrides, "horizon": 50}), batch_size=2)
+    env = AuctionEnv(
+        system, AuctionParams.merged({**system.env_overrides, "horizon": 50}), batch_size=2
+    )
     for _ in range(6):
         env.step(env.fixed_actions("greedy"))
     x, mask = inputs(env)
@@ -118,7 +120,7 @@ def test_masked_scores_and_gradients_are_those_of_every_pair():
         grads.append((out[mask].detach(), [p.grad for p in net.parameters()]))
     (dense, dense_grads), (sparse, sparse_grads) = grads
     torch.testing.assert_close(sparse, dense)
-    for dense_grad, sparse_grad in zip(dense_grads, sparse_grads):
+    for dense_grad, sparse_grad in zip(dense_grads, sparse_grads, strict=True):
         torch.testing.assert_close(sparse_grad, dense_grad, rtol=1e-4, atol=1e-5)
 
 
