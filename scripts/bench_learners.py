@@ -2,12 +2,14 @@
 
 Usage: python scripts/bench_learners.py [--learners subg_cql dql ...] [--episodes 2] [--repeats 3]
        [--horizon 200] [--baseline /path/to/other/checkout] [--experiment NAME]
-       [--config-dir DIR ...] [--list] [--out bench_learners.json]
+       [--config-dir DIR ...] [--override KEY=VALUE ...] [--list] [--out bench_learners.json]
 
 The learners are the ``learner/`` yaml files of the shipped ``conf/`` and of each
 ``--config-dir`` (as ``scripts/train.py --config-dir``); by default every one that trains.
-``--list`` prints them and exits. With ``--baseline`` the same measurements run, in turns, on
-another checkout of mrta_rl (e.g. today's main) and the table shows the speed-up over it.
+``--list`` prints them and exits. ``--override KEY=VALUE`` sets a config key of every learner
+run (``--override learner.network=set``); the ``system.*`` and ``env.*`` ones also set the team
+of the yardsticks. With ``--baseline`` the same measurements run, in turns, on another checkout
+of mrta_rl (e.g. today's main) and the table shows the speed-up over it.
 """
 
 from __future__ import annotations
@@ -32,6 +34,9 @@ if __name__ == "__main__":
     parser.add_argument("--learners", nargs="+", help="learner names (default: all that train)")
     parser.add_argument(
         "--config-dir", action="append", default=[], help="a user config dir with learner/*.yaml"
+    )
+    parser.add_argument(
+        "--override", action="append", default=[], help="KEY=VALUE of every run (repeatable)"
     )
     parser.add_argument("--list", action="store_true", help="print the learners and exit")
     parser.add_argument("--system", default="system2", help="conf/system name")
@@ -65,6 +70,7 @@ if __name__ == "__main__":
                     args.horizon,
                     args.experiment if root is None else "",  # the baseline keeps its defaults
                     args.config_dir,
+                    args.override,
                 )
             )
     rows = summarize(runs)

@@ -37,6 +37,7 @@ logger = logging.getLogger(__name__)
 
 NEURAL_RATES = ("fps_collection", "fps_training", "gradient_steps")  # runners/torchrl.py info
 WARMUP_OVERRIDES = ("env.horizon=20", "train.episodes=1")  # loads compiled code, fills caches
+TEAM_KEYS = ("system.", "env.")  # overrides that also set the yardsticks' team and dynamics
 
 
 def _repo_root() -> Path:
@@ -116,6 +117,7 @@ def measure(
     horizon: int = 0,
     experiment: str = "",
     config_dirs: Sequence[str] = (),
+    overrides: Sequence[str] = (),
 ) -> dict[str, Any]:
     """One worker's measurements: the two yardsticks and every learner's training speed.
 
@@ -127,6 +129,8 @@ def measure(
         horizon: Ticks per training episode (0: the config's, ``env.horizon``).
         experiment: ``conf/experiment`` file applied to every learner run ("" for none).
         config_dirs: User config dirs added to the search path (``--config-dir``).
+        overrides: Config overrides of every learner run (``learner.network=set``); the
+            ``system.*`` and ``env.*`` ones also set the yardsticks' team.
 
     Returns:
         ``{"plain": ticks/s, "env": {batch: ticks/s}, "learners": {name: {...}}}``.
@@ -137,7 +141,7 @@ def measure(
         from mrta_rl.envs import benchmark  # type: ignore[no-redef]
     from mrta_rl.systems import build_system
 
-    cfg = _compose([f"system={system}"])
+    cfg = _compose([f"system={system}", *(o for o in overrides if o.startswith(TEAM_KEYS))])
     from omegaconf import OmegaConf
 
     built = build_system(OmegaConf.to_container(cfg.system, resolve=True))
@@ -149,7 +153,7 @@ def measure(
     for name in learners:
         warm_start = time.perf_counter()
         pinned = [f"experiment={experiment}"] if experiment else []
-        pinned += search_path(config_dirs)
+        pinned += [*search_path(config_dirs), *overrides]
         _train_once(name, system, [*pinned, *WARMUP_OVERRIDES])
         warmup = time.perf_counter() - warm_start
         budget = [*pinned, f"train.episodes={episodes}"]
@@ -198,6 +202,7 @@ def run_worker(
     horizon: int = 0,
     experiment: str = "",
     config_dirs: Sequence[str | os.PathLike] = (),
+    overrides: Sequence[str] = (),
 ) -> dict[str, Any]:
     """Run :func:`measure` in a fresh process importing ``mrta_rl`` from ``code_root``.
 
@@ -210,6 +215,7 @@ def run_worker(
         horizon: Ticks per training episode (0: the config's).
         experiment: ``conf/experiment`` file applied to every learner run ("" for none).
         config_dirs: User config dirs added to the search path (``--config-dir``).
+        overrides: Config overrides of every run (:func:`measure`).
 
     Returns:
         The worker's :func:`measure` output.
@@ -224,7 +230,7 @@ def run_worker(
         # -c keeps this module's folder off sys.path (it holds a torchrl.py)
         dirs = os.pathsep.join(str(Path(d).resolve()) for d in config_dirs) or "-"
         argv = [str(out), system, str(episodes), str(seconds), str(horizon), experiment or "-"]
-        argv += [dirs, *learners_in(root, learners, config_dirs)]
+        argv += [dirs, json.dumps(list(overrides)), *learners_in(root, learners, config_dirs)]
         code = f"import runpy, sys; sys.argv = ['bench', *{argv!r}]; "
         code += f"runpy.run_path({str(Path(__file__).resolve())!r}, run_name='__main__')"
         args = [sys.executable, "-c", code]
@@ -362,12 +368,20 @@ def format_table(rows: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
-if __name__ == "__main__":  # worker: out system episodes seconds horizon experiment dirs learners
-    out_path, system_name, n_episodes, min_s, n_ticks, pinned, dir_list, *names = sys.argv[1:]
+if __name__ == "__main__":  # worker: out system episodes seconds horizon experiment dirs overrides
+    worker_args = sys.argv[1:]
+    out_path, system_name, n_episodes, min_s, n_ticks, pinned, dir_list, extra, *names = worker_args
     logging.basicConfig(level=logging.WARNING)
     experiment_name = "" if pinned == "-" else pinned
     user_dirs = [] if dir_list == "-" else dir_list.split(os.pathsep)
     result = measure(
-        names, system_name, int(n_episodes), float(min_s), int(n_ticks), experiment_name, user_dirs
+        names,
+        system_name,
+        int(n_episodes),
+        float(min_s),
+        int(n_ticks),
+        experiment_name,
+        user_dirs,
+        json.loads(extra),
     )
     Path(out_path).write_text(json.dumps(result, indent=2))

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import pytest
+
 from mrta_rl.bench.learners import format_table, learners_in, search_path, trained_learners
 from tests.conftest import ROOT
 
@@ -58,3 +60,13 @@ def test_table_speed_up_by_hand_and_dash_without_baseline():
     assert "| 2.5x / 2.5x | 2.5x / 2.5x |" in this_dql
     es = next(line for line in lines if "| reserve_es | this |" in line)
     assert "| - / - | - / - |" in es
+
+
+def test_overrides_reach_every_learner_run():
+    from mrta_rl.bench.learners import run_worker
+
+    out = run_worker(None, ["dql"], "system1", 1, 0.01, 5, overrides=["train.batch_size=3"])
+    assert out["learners"]["dql"]["batch_size"] == 3
+    assert out["learners"]["dql"]["ticks"] == 1 * 5 * 3  # episodes x horizon x copies
+    with pytest.raises(RuntimeError, match="no_such_key"):
+        run_worker(None, ["dql"], "system1", 1, 0.01, 5, overrides=["learner.no_such_key=1"])
