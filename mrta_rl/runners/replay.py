@@ -75,8 +75,13 @@ def save_replay(buffer: TensorDictReplayBuffer, path: Path) -> None:
         buffer: The run's replay buffer.
         path: The checkpoint's ``replay.pt``.
     """
-    # cloned: a slice is a view, and torch.save writes a view's whole storage (every row)
-    rows = buffer[: len(buffer)].exclude(INDEX_KEY).clone() if len(buffer) else TensorDict()
+    filled = len(buffer)
+    rows = buffer[:filled].exclude(INDEX_KEY) if filled else TensorDict()
+    if 0 < filled < buffer.storage.max_size:
+        # a slice is a view, and torch.save writes a view's whole storage (every row): cloned.
+        # A full buffer's rows are its whole storage, written as they are: a copy of a full
+        # buffer would double the run's peak memory for the time of the save.
+        rows = rows.clone()
     payload = {"transitions": rows.to_dict(), "torch_rng": torch.get_rng_state()}
     torch.save(payload, path)
 

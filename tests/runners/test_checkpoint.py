@@ -389,6 +389,24 @@ def test_sigkill_after_a_random_checkpoint_then_resume_ends_like_an_uninterrupte
     assert_same_run(full_dir, cut_dir)
 
 
+@pytest.mark.slow  # about 10 s: two processes starting torch
+def test_a_run_killed_with_a_full_replay_buffer_resumes_to_the_same_end(compose_cfg, tmp_path):
+    """The buffer (300 transitions) is full and has wrapped by the checkpoint resumed from."""
+    args = ["learner=qmix", "system=system1", "debug=smoke", *BUDGETS["neural"]]
+    args.append("learner.buffer_size=300")  # 200 frames per smoke episode
+    full_dir, cut_dir = tmp_path / "full", tmp_path / "cut"
+    cut = script("scripts/train.py", *args, f"hydra.run.dir={cut_dir}")
+    wait_for_checkpoint(cut, cut_dir / "train.log", 3)
+    cut.send_signal(signal.SIGKILL)
+    cut.wait()
+    replay = torch.load(latest_checkpoint(cut_dir) / "replay.pt", weights_only=True)
+    assert {leaf.shape[0] for leaf in tensor_values(replay["transitions"])} == {300}
+    resumed = script("scripts/train.py", f"resume={cut_dir}")
+    train(compose_cfg(args), run_dir=full_dir)
+    assert 3 <= resumed_run(resumed, cut_dir) < setting(args, "train.episodes")
+    assert_same_run(full_dir, cut_dir)
+
+
 def test_resume_refuses_other_overrides(compose_cfg, tmp_path):
 
     with pytest.raises(ValueError, match="train.episodes"):
@@ -477,6 +495,14 @@ def killed_qmix(tmp_path_factory) -> tuple[Path, dict]:
 
 
 REPLAY_DAMAGES = ("none", "empty", "drop", "extra", "retype", "reshape", "nan", "cut", "garbage")
+
+
+def tensor_values(tree: dict) -> list[torch.Tensor]:
+    return [
+        v
+        for value in tree.values()
+        for v in (tensor_values(value) if isinstance(value, dict) else [value])
+    ]
 
 
 def tensor_leaves(tree: dict, prefix: tuple[str, ...] = ()) -> list[tuple[str, ...]]:
@@ -599,3 +625,27 @@ def test_a_reevaluation_on_more_copies_keeps_the_first_episodes(greedy_run):
     rounds = evaluate_checkpoint(greedy_run, episodes=4)["eval"]["team_return"]  # 2 rounds of 2
     assert rounds["per_episode"][:2] == first["per_episode"]
     assert rounds["per_episode"][2:] != again["per_episode"][2:]  # second episodes of copies 0, 1
+
+
+@pytest.mark.parametrize("rows", [3, 6])
+def test_a_full_replay_buffer_is_saved_without_a_copy_and_a_filling_one_as_its_rows(tmp_path, rows):
+    """A copy of a full buffer would double a large run's peak memory during the save; a filling
+    buffer's slice is a view of the whole storage, so only its rows are copied and written."""
+    from tensordict import TensorDict
+    from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+
+    from mrta_rl.runners.replay import save_replay
+
+    buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(4))
+    buffer.extend(TensorDict({"obs": torch.arange(rows * 2.0).reshape(rows, 2)}, [rows]))
+    saved = []
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(torch, "save", lambda payload, path: saved.append(payload))
+        save_replay(buffer, tmp_path / "replay.pt")
+    obs = saved[0]["transitions"]["obs"]
+    storage = buffer.storage._storage["obs"]
+    assert obs.tolist() == storage[: min(rows, 4)].tolist()
+    if rows > 4:  # full: the storage itself
+        assert obs.data_ptr() == storage.data_ptr()
+    else:  # filling: its rows, not the capacity's
+        assert obs.untyped_storage().nbytes() == rows * 2 * obs.element_size()
