@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING, Any, ClassVar, Literal, NamedTuple
 
 import numpy as np
 
-from mrta_rl.config import RUNNER_ARGUMENTS, ConfigError, check_keywords
+from mrta_rl.config import RUNNER_ARGUMENTS, ConfigError, UserError, check_keywords
 from mrta_rl.envs import AuctionEnv, StepResult
 from mrta_rl.loops import NO_TRAINING, PPO_LOOP, TICK_LOOP, TORCHRL_LOOP  # noqa: F401 - for plugins
 from mrta_rl.partition import Partition
@@ -35,6 +35,19 @@ if TYPE_CHECKING:  # memory.py imports the encodings, which import the learners 
     from mrta_rl.learners.memory import ResourceEstimate
 
 LearnerKind = Literal["fixed", "tabular", "neural", "search"]
+
+
+class NonFiniteState(UserError):
+    """An update made a learner's state NaN or infinite (or out of its range): training stops.
+
+    The learner raises it where the update is made, before the state is kept or saved, so the
+    run ends with its last checkpoint as it was; the message names the learner and the step.
+    """
+
+    def __init__(self, fault: str) -> None:
+        super().__init__(
+            f"{fault}; training stopped, nothing of it saved (the last checkpoint stays)"
+        )
 
 
 class MemoryQuery(NamedTuple):
