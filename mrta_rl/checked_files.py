@@ -120,7 +120,7 @@ def open_regular(path: Path | str) -> int:
 
 
 def _too_big(path: Path | str, limit: int, what: str) -> RunDirError:
-    return RunDirError(f"{path}: more than {limit:,} bytes, the most {what} takes")
+    return RunDirError(f"{path}: more than the limit of {limit:,} bytes for {what}")
 
 
 def read_bytes(path: Path | str, limit: int, what: str = "such a file") -> bytes:
@@ -454,6 +454,7 @@ class ArraySpec:
         low: Every value is at least this.
         magnitude: Every value's absolute value is at most this.
         names: The exact content of a text array (the names of the weights).
+        meaning: What the array is, for messages (``"the weights"``).
     """
 
     shape: tuple[int | None, ...]
@@ -463,6 +464,7 @@ class ArraySpec:
     low: float | None = None
     magnitude: float | None = None
     names: tuple[str, ...] | None = None
+    meaning: str | None = None
 
     @classmethod
     def like(cls, array: np.ndarray, *, grows: bool = False, **more: Any) -> ArraySpec:
@@ -509,6 +511,7 @@ def _check_header(
     The bytes declared are bounded by the spec's (its shape is fixed), else by the machine's
     memory (a table's rows).
     """
+    name = f"{name} ({spec.meaning})" if spec.meaning else name
     if dtype.hasobject:
         raise error(f"{source}: {name} holds Python objects (pickled data), never loaded")
     if dtype.kind not in spec.kinds or (spec.dtype is not None and dtype != np.dtype(spec.dtype)):
@@ -531,6 +534,7 @@ def _check_values(
     name: str, array: np.ndarray, spec: ArraySpec, source: str, error: type[UserError]
 ) -> None:
     """The values of an array against its spec: finite floats, bounds, names."""
+    name = f"{name} ({spec.meaning})" if spec.meaning else name
     if array.dtype.kind == "f":
         bad = np.isnan(array) | (np.isinf(array) if spec.finite else False)
         if bad.any():
@@ -538,9 +542,9 @@ def _check_values(
     if not array.size:
         return
     if spec.low is not None and array.min() < spec.low:
-        raise error(f"{source}: {name} holds {array.min()!r}, must be >= {spec.low:g}")
+        raise error(f"{source}: {name} holds {array.min().item()!r}, must be >= {spec.low:g}")
     if spec.magnitude is not None and np.abs(array).max() > spec.magnitude:
-        largest = array.flat[np.abs(array).argmax()]
+        largest = array.flat[np.abs(array).argmax()].item()
         raise error(f"{source}: {name} holds {largest!r}, must be within +-{spec.magnitude:g}")
     if spec.names is not None and tuple(array.tolist()) != spec.names:
         raise error(

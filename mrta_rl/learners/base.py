@@ -30,11 +30,34 @@ from mrta_rl.config import RUNNER_ARGUMENTS, ConfigError, UserError, check_keywo
 from mrta_rl.envs import AuctionEnv, StepResult
 from mrta_rl.loops import NO_TRAINING, PPO_LOOP, TICK_LOOP, TORCHRL_LOOP  # noqa: F401 - for plugins
 from mrta_rl.partition import Partition
+from mrta_rl.run_files import RunDirError, check_schema, read_json
 
 if TYPE_CHECKING:  # memory.py imports the encodings, which import the learners package
     from mrta_rl.learners.memory import ResourceEstimate
 
 LearnerKind = Literal["fixed", "tabular", "neural", "search"]
+
+
+def read_description(path: Path, schema: dict[str, Any]) -> dict[str, Any]:
+    """A learner's ``learner.json`` (what its ``save`` wrote beside its state), checked.
+
+    Args:
+        path: The file.
+        schema: What ``save`` writes (``run_files.check_schema``'s form).
+
+    Returns:
+        The content.
+
+    Raises:
+        RunDirError: naming the file and the key, if it is not such a description.
+    """
+    try:
+        description = read_json(path)
+        check_schema(description, schema, path, "")
+    except RunDirError as err:
+        detail = str(err).removeprefix(f"{path}: ")
+        raise RunDirError(f"{path}: not a learner description written by save ({detail})") from None
+    return description
 
 
 class NonFiniteState(UserError):

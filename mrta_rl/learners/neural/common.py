@@ -87,6 +87,7 @@ from mrta_rl.learners.base import (
     LearnerKind,
     MemoryQuery,
     NonFiniteState,
+    read_description,
 )
 from mrta_rl.learners.fixed import HOLD_SCOPES, HoldLevel, Reserve
 from mrta_rl.learners.memory import (
@@ -105,7 +106,7 @@ from mrta_rl.learners.neural.set_network import (
 )
 from mrta_rl.learners.tabular.priors import HOLD_PRIORS, GreedyPrior, HoldRule, SpreadWaitPrior
 from mrta_rl.partition import Partition
-from mrta_rl.run_files import ANY, INT, STR, RunDirError, check_schema, read_json
+from mrta_rl.run_files import ANY, INT, STR, RunDirError
 from mrta_rl.types import GroupMap
 
 logger = logging.getLogger(__name__)
@@ -768,8 +769,7 @@ def read_meta(path: Path, schema: dict[str, Any]) -> dict[str, Any]:
     Raises:
         RunDirError: naming the file and the key.
     """
-    meta = read_json(path)
-    check_schema(meta, schema, path, "")
+    meta = read_description(path, schema)
     if meta["gradient_steps"] < 0:
         raise RunDirError(f"{path}: gradient_steps: must be >= 0, got {meta['gradient_steps']}")
     return meta

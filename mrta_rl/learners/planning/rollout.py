@@ -150,10 +150,17 @@ def check_base_chain(run_dir: Path) -> None:
         current = Path(base)
         seen = [p.resolve() for p in chain]
         if current.resolve() in seen:
-            loop = [*chain[seen.index(current.resolve()) :], current]
-            shown = " -> ".join(str(p) for p in loop[:4]) + (" -> ..." if len(loop) > 4 else "")
-            what = f"{loop[0]} is its own base" if len(loop) == 2 else "the bases loop"
-            raise ConfigError(f"learner.base: {what} ({shown}); give a rule or another run dir")
+            loop = chain[seen.index(current.resolve()) :]
+            if len(loop) == 1:
+                raise ConfigError(
+                    f"learner.base: {loop[0]} is its own base; give a rule or another run dir"
+                )
+            shown = " -> ".join(str(p) for p in loop[:3])
+            more = f" -> {len(loop) - 3} more" if len(loop) > 3 else ""
+            raise ConfigError(
+                f"learner.base: the bases loop: {shown}{more} -> back to the first; give a rule "
+                "or another run dir"
+            )
         if len(chain) >= MAX_BASES:
             raise ConfigError(
                 f"learner.base: {run_dir}: a chain of more than {MAX_BASES} trained bases"

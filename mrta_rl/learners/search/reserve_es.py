@@ -361,12 +361,20 @@ class ReserveESLearner(Learner):
         ``features`` the names of the weights (:attr:`weight_names`).
         """
         weights = self.theta.shape
+        moment = "Adam's {} moment of the weights"
         return {
-            "theta": ArraySpec(weights, magnitude=MAX_WEIGHT),
-            "adam_m": ArraySpec(weights, magnitude=MAX_WEIGHT),
-            "adam_v": ArraySpec(weights, low=0.0, magnitude=MAX_WEIGHT**2),
-            "steps": ArraySpec((), kinds="iu", low=0),
-            "features": ArraySpec((len(self.weight_names),), kinds="U", names=self.weight_names),
+            "theta": ArraySpec(weights, magnitude=MAX_WEIGHT, meaning="the weights"),
+            "adam_m": ArraySpec(weights, magnitude=MAX_WEIGHT, meaning=moment.format("first")),
+            "adam_v": ArraySpec(
+                weights, low=0.0, magnitude=MAX_WEIGHT**2, meaning=moment.format("second")
+            ),
+            "steps": ArraySpec((), kinds="iu", low=0, meaning="ES steps made"),
+            "features": ArraySpec(
+                (len(self.weight_names),),
+                kinds="U",
+                names=self.weight_names,
+                meaning="the weights' names",
+            ),
         }
 
     def _state_arrays(self) -> dict[str, np.ndarray]:

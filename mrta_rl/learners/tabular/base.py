@@ -19,10 +19,10 @@ import numpy as np
 from mrta_rl.checked_files import ArraySpec, read_arrays
 from mrta_rl.config import Choices, Range
 from mrta_rl.envs import AuctionEnv, StepResult
-from mrta_rl.learners.base import TICK_LOOP, Learner, LearnerKind
+from mrta_rl.learners.base import TICK_LOOP, Learner, LearnerKind, read_description
 from mrta_rl.learners.tabular.schedules import LinearSchedule
 from mrta_rl.partition import Partition
-from mrta_rl.run_files import INT, STR, RunDirError, check_schema, read_json
+from mrta_rl.run_files import INT, STR, RunDirError
 
 logger = logging.getLogger(__name__)
 
@@ -234,8 +234,7 @@ class TabularLearner(Learner, abstract=True):
         """
         directory = Path(directory)
         meta_path = directory / META_FILE
-        meta = read_json(meta_path)
-        check_schema(meta, META, meta_path, "")
+        meta = read_description(meta_path, META)
         if meta["class"] != type(self).__name__:
             raise ValueError(f"{directory} holds a {meta['class']}, not a {type(self).__name__}")
         if meta["episodes_done"] < 0:
