@@ -380,15 +380,14 @@ def stop_after(end_episode, episodes: int):
     return wrapped
 
 
-def poison_draw(draw, at: int):
-    """``_draw`` whose ``at``-th call leaves NaN perturbations: the next ES step's gradient."""
-    calls = []
+def poison_update(update, episode: int):
+    """``update`` that leaves a NaN in Adam's first moment during ``episode``: that episode's ES
+    step makes the weights NaN (whatever the gradient: a smoke episode's may be zero)."""
 
-    def wrapped(self):
-        draw(self)
-        calls.append(1)
-        if len(calls) == at:
-            self.perturbations = np.full_like(self.perturbations, math.nan)
+    def wrapped(self, *args, **kwargs):
+        if self.steps == episode - 1:
+            self._adam_m = np.full_like(self._adam_m, math.nan)
+        return update(self, *args, **kwargs)
 
     return wrapped
 
@@ -408,8 +407,7 @@ def test_an_update_to_nan_stops_the_run_and_keeps_the_last_checkpoint(tmp_path):
     cfg = compose_config(overrides)
     save_hydra_files(cfg, cut_dir, "reserve_es", "system1")
     with pytest.MonkeyPatch.context() as patch:
-        # draws: at the start, then after each ES step; the 3rd is used by ES step 3
-        patch.setattr(ReserveESLearner, "_draw", poison_draw(ReserveESLearner._draw, 3))
+        patch.setattr(ReserveESLearner, "update", poison_update(ReserveESLearner.update, 3))
         with pytest.raises(UserError) as err:
             train(cfg, run_dir=cut_dir)
     HydraConfig.instance().cfg = None

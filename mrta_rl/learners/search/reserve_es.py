@@ -394,7 +394,8 @@ class ReserveESLearner(Learner):
             NonFiniteState: if the state breaks :meth:`state_schema` (nothing is written).
         """
         arrays = self._state_arrays()
-        check_arrays(arrays, self.state_schema(), f"{self.label}, saving", NonFiniteState)
+        where = f"{self.label} after ES step {self.steps}, saving"
+        check_arrays(arrays, self.state_schema(), where, NonFiniteState)
         directory.mkdir(parents=True, exist_ok=True)
         np.savez(directory / self.state_file, **arrays)
 
