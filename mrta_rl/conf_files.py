@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from mrta_rl.checked_files import read_yaml
-from mrta_rl.config import UserError
+from mrta_rl.config import UserError, short_list
 from mrta_rl.systems.files import check_yaml_file
 
 if TYPE_CHECKING:
@@ -132,7 +132,7 @@ def learner_named(name: str, config_dirs: Iterable[str | os.PathLike] = ()) -> t
 
     files = learner_files(config_dirs)
     if name not in files:
-        raise UserError(f"unknown learner {name!r}; known: {sorted(files)}")
+        raise UserError(f"unknown learner {name!r}; known: {short_list(files, 12)}")
     return learner_from_target(_learner_target(name, files), f"{files[name]}: _target_")
 
 

@@ -126,7 +126,7 @@ class Declared:
         return self.default is inspect.Parameter.empty
 
 
-def short_list(items: Iterable[Any], first: int = 5) -> str:
+def short_list(items: Iterable[Any], first: int = 5, *, quote: bool = False) -> str:
     """A list as messages print it: the first items, then a count of the rest.
 
     A message stays one short line however long the list it names (a file's keys, a team's
@@ -136,6 +136,7 @@ def short_list(items: Iterable[Any], first: int = 5) -> str:
     Args:
         items: The items (shown with ``str``).
         first: How many items are shown before the count.
+        quote: Show the items with ``repr`` (``'R1', 'R2'``).
 
     Returns:
         The items joined by commas, cut after ``first`` with ``"and N more"``; ``"none"`` if empty.
@@ -143,7 +144,7 @@ def short_list(items: Iterable[Any], first: int = 5) -> str:
     items = list(items)
     if not items:
         return "none"
-    shown = ", ".join(str(item) for item in items[:first])
+    shown = ", ".join(repr(item) if quote else str(item) for item in items[:first])
     rest = len(items) - first
     return f"{shown} and {rest} more" if rest > 0 else shown
 

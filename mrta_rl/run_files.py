@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from mrta_rl.checked_files import RunDirError, read_json
+from mrta_rl.config import short_list
 from mrta_rl.loops import LOOP_COUNTERS
 
 # the files of a run dir, written by the runners and read by the runners and the reports
@@ -243,8 +244,8 @@ def read_metrics(path: Path) -> dict[str, Any]:
     for block in ("ctr", "itr", "return_by_type"):
         if set(learned.get(block, ())) != set(greedy.get(block, ())):
             raise RunDirError(
-                f"{path}: eval.{block}: names {sorted(learned.get(block, ()))}, but "
-                f"baseline_greedy.{block} names {sorted(greedy.get(block, ()))}"
+                f"{path}: eval.{block}: names {short_list(sorted(learned.get(block, ())))}, but "
+                f"baseline_greedy.{block} names {short_list(sorted(greedy.get(block, ())))}"
             )
     if learned["episodes"] < 1:
         raise _refuse(path, "eval.episodes", "an integer >= 1", learned["episodes"])

@@ -24,15 +24,17 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from hydra.core.hydra_config import HydraConfig
 
 from mrta_rl.commands import use_team_files
 from mrta_rl.config import UserError
+from mrta_rl.learners.neural.qmix import QMIXLearner
 from mrta_rl.learners.search.reserve_es import ReserveESLearner
 from mrta_rl.reports import build_report
 from mrta_rl.reports.collect import read_curve
 from mrta_rl.runners import evaluate_checkpoint, train
-from mrta_rl.runners.checkpoint import latest_checkpoint
+from mrta_rl.runners.checkpoint import TrainingCheckpoint, latest_checkpoint
 from tests.commands.test_cli import assert_user_error, script
 from tests.commands.test_cli import train as train_script
 from tests.conftest import compose_config
@@ -422,3 +424,80 @@ def test_an_update_to_nan_stops_the_run_and_keeps_the_last_checkpoint(tmp_path):
     HydraConfig.instance().cfg = None
     assert without_timings(resumed) == without_timings(full)
     assert json.loads((cut_dir / "metrics.json").read_text())["train"]["episodes"] == 4
+
+
+# ---------------------------------------------------------------------------------- torch learners
+QMIX = [
+    "learner=qmix",
+    "system=system1",
+    "debug=smoke",
+    "train.episodes=3",
+    "train.checkpoint_every=1",
+    "learner.warmup_frames=100",
+    "learner.hidden=16",
+    "learner.batch_size=32",
+]
+
+
+@pytest.fixture(scope="module")
+def stopped_qmix(tmp_path_factory) -> Path:
+    """A qmix run stopped after its checkpoint of episode 2 (gradient steps made)."""
+    run_dir = tmp_path_factory.mktemp("qmix") / "cut"
+    cfg = compose_config(QMIX)
+    save_hydra_files(cfg, run_dir, "qmix", "system1")
+    save = TrainingCheckpoint.save
+
+    def save_then_stop(self, loop, files=None):
+        path = save(self, loop, files)
+        if loop["episode"] == 2:
+            raise Stopped
+        return path
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(TrainingCheckpoint, "save", save_then_stop)
+        with pytest.raises(Stopped):
+            train(cfg, run_dir=run_dir)
+    HydraConfig.instance().cfg = None
+    return run_dir
+
+
+OPTIMIZER_FAULTS = {
+    "negative second moment": ("exp_avg_sq", lambda t: -t - 1.0, "must be >= 0"),
+    "negative step": ("step", lambda t: t * 0 - 5, "must be >= 0"),
+    "NaN first moment": ("exp_avg", lambda t: t * math.nan, "NaN or infinite"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(OPTIMIZER_FAULTS))
+def test_a_damaged_optimizer_state_is_refused_on_resume(stopped_qmix, tmp_path, case):
+    key, damage, reason = OPTIMIZER_FAULTS[case]
+    run_dir = tmp_path / "run"
+    shutil.copytree(stopped_qmix, run_dir)
+    path = latest_checkpoint(run_dir) / "training.pt"
+    extra = torch.load(path, weights_only=True)
+    state = extra["optimizer"]["state"]
+    assert state, "no gradient step was made before the checkpoint"
+    first = next(iter(state))
+    state[first][key] = damage(state[first][key])
+    torch.save(extra, path)
+    with pytest.raises(UserError) as err:
+        resume(run_dir)
+    assert_one_line(str(err.value), str(path), f"optimizer.state.{first}.{key}", reason)
+
+
+def test_a_nan_loss_stops_a_torch_learner_before_its_step(stopped_qmix, tmp_path, monkeypatch):
+    """The replayed rewards made NaN: the loss is NaN; the step it would feed is not taken."""
+    run_dir = tmp_path / "run"
+    shutil.copytree(stopped_qmix, run_dir)
+    transitions = QMIXLearner.transitions
+
+    def poisoned(self, data):
+        data = transitions(self, data)
+        return data.apply(lambda t: t * math.nan if t.is_floating_point() else t)
+
+    monkeypatch.setattr(QMIXLearner, "transitions", poisoned)
+    with pytest.raises(UserError) as err:
+        resume(run_dir)
+    assert_one_line(str(err.value), "QMIX", "gradient step", "the loss is nan", "last checkpoint")
+    assert latest_checkpoint(run_dir).name == "2"
+    assert not (run_dir / "learner").exists()

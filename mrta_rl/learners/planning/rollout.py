@@ -42,7 +42,7 @@ from typing import Annotated, Any, ClassVar
 
 import numpy as np
 
-from mrta_rl.config import Choices, ConfigError, Range, UserError
+from mrta_rl.config import Choices, ConfigError, Range, UserError, short_list
 from mrta_rl.envs import AuctionEnv
 from mrta_rl.learners.base import FixedLearner, Learner, learner_from_target
 from mrta_rl.learners.fixed import GreedyLearner, TeamReserveLearner
@@ -272,7 +272,8 @@ class RolloutPlanner(FixedLearner):
             if theirs[part] != ours[part]:
                 raise ConfigError(
                     f"{key}: {run_dir} is a run of another team: its {part} "
-                    f"{theirs[part]!r} are not the planner's system's {ours[part]!r}"
+                    f"[{short_list(theirs[part], quote=True)}] are not the planner's system's "
+                    f"[{short_list(ours[part], quote=True)}]"
                 )
         return learner
 
