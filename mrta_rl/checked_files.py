@@ -285,11 +285,21 @@ class _BoundedLoader(yaml.SafeLoader):
 
 
 def _syntax_error(path: Path | str, err: yaml.YAMLError) -> YamlSyntaxError:
-    """One line for PyYAML's several-line message: the file, the line and column, the problem."""
-    mark = getattr(err, "problem_mark", None) or getattr(err, "context_mark", None)
-    where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
-    problem = getattr(err, "problem", None) or getattr(err, "context", None) or type(err).__name__
-    return YamlSyntaxError(f"{path}: {where}YAML syntax error: {problem}")
+    """One line for PyYAML's several-line message: file, line and column, problem, construct.
+
+    The construct is the one the problem was found in (``while parsing a flow sequence at line
+    3, column 7``).
+    """
+
+    def at(mark: Any) -> str:
+        return f"line {mark.line + 1}, column {mark.column + 1}"
+
+    problem_mark = getattr(err, "problem_mark", None)
+    context, context_mark = getattr(err, "context", None), getattr(err, "context_mark", None)
+    where = f"{at(problem_mark)}: " if problem_mark is not None else ""
+    problem = getattr(err, "problem", None) or context or type(err).__name__
+    within = f" ({context} at {at(context_mark)})" if context and context_mark else ""
+    return YamlSyntaxError(f"{path}: {where}YAML syntax error: {problem}{within}")
 
 
 def check_yaml_text(text: str, path: Path | str) -> Any:
