@@ -23,9 +23,8 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import yaml
-
-from mrta_rl.config import UserError
+from mrta_rl.checked_files import read_yaml
+from mrta_rl.config import UserError, short_list
 from mrta_rl.systems.files import check_yaml_file
 
 if TYPE_CHECKING:
@@ -82,7 +81,7 @@ def system_file(system: str | os.PathLike) -> Path:
             and the bound it passes (size, encoding, nesting, aliases: ``systems/files.py``).
     """
     path = Path(system).expanduser() if is_system_path(system) else system_dir() / f"{system}.yaml"
-    if not path.is_file():
+    if not path.exists():
         raise UserError(
             f"unknown system {str(system)!r}: no file {path}; known: {shipped_systems()} "
             "or the path of a team yaml"
@@ -133,7 +132,7 @@ def learner_named(name: str, config_dirs: Iterable[str | os.PathLike] = ()) -> t
 
     files = learner_files(config_dirs)
     if name not in files:
-        raise UserError(f"unknown learner {name!r}; known: {sorted(files)}")
+        raise UserError(f"unknown learner {name!r}; known: {short_list(files, 12)}")
     return learner_from_target(_learner_target(name, files), f"{files[name]}: _target_")
 
 
@@ -143,9 +142,7 @@ def _learner_target(name: str, files: dict[str, Path], seen: tuple[str, ...] = (
     ``defaults: [qmix, _self_]`` in ``learner/qmix_set.yaml`` composes ``learner/qmix.yaml``
     under it, as Hydra does: the last such entry that names a ``_target_`` wins.
     """
-    path = files[name]
-    check_yaml_file(path)
-    block: Any = yaml.safe_load(path.read_text())
+    block: Any = read_yaml(files[name])
     if not isinstance(block, dict):
         return None
     if "_target_" in block:

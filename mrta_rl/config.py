@@ -30,7 +30,7 @@ import math
 import numbers
 import types
 import typing
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from typing import Annotated, Any, Literal, Union
 
@@ -47,6 +47,7 @@ __all__ = [
     "declared_fields",
     "declared_keywords",
     "describe",
+    "short_list",
 ]
 
 RUNNER_ARGUMENTS = frozenset({"env", "rng", "partition"})  # supplied by the runner, not the config
@@ -123,6 +124,29 @@ class Declared:
     def required(self) -> bool:
         """True when the declaration has no default."""
         return self.default is inspect.Parameter.empty
+
+
+def short_list(items: Iterable[Any], first: int = 5, *, quote: bool = False) -> str:
+    """A list as messages print it: the first items, then a count of the rest.
+
+    A message stays one short line however long the list it names (a file's keys, a team's
+    robots): ``short_list(names)`` is ``"bias, h_within_3, h_within_10, queued_h, queued_l and
+    33 more"``.
+
+    Args:
+        items: The items (shown with ``str``).
+        first: How many items are shown before the count.
+        quote: Show the items with ``repr`` (``'R1', 'R2'``).
+
+    Returns:
+        The items joined by commas, cut after ``first`` with ``"and N more"``; ``"none"`` if empty.
+    """
+    items = list(items)
+    if not items:
+        return "none"
+    shown = ", ".join(repr(item) if quote else str(item) for item in items[:first])
+    rest = len(items) - first
+    return f"{shown} and {rest} more" if rest > 0 else shown
 
 
 def _num(x: float) -> str:

@@ -12,7 +12,8 @@ damaged file is never half-used and never ends in a traceback:
 * ``metrics.json`` of a finished run (:func:`read_metrics`), as the reports read it;
 * ``.hydra/config.yaml`` is read by :func:`~mrta_rl.runners.run_config.read_run_config`.
 
-Every file is bounded in size before it is parsed (:data:`MAX_JSON_BYTES`).
+Every file is read through ``mrta_rl/checked_files.py`` (regular files only, bounded in bytes,
+JSON without NaN), whose :class:`~mrta_rl.checked_files.RunDirError` every refusal is.
 """
 
 from __future__ import annotations
@@ -24,7 +25,8 @@ import os
 from pathlib import Path
 from typing import Any
 
-from mrta_rl.config import UserError
+from mrta_rl.checked_files import RunDirError, read_json
+from mrta_rl.config import short_list
 from mrta_rl.loops import LOOP_COUNTERS
 
 # the files of a run dir, written by the runners and read by the runners and the reports
@@ -39,10 +41,6 @@ REFUSED_FILE = "refused.json"  # instead of metrics.json: the run was refused up
 TEAM_FILE = "team.json"  # in a learner state folder: the team it was trained on (save_learner)
 STATE_FILE = "training.json"  # loop counters, curve so far, learner checkpoint_state
 REFUSED_JOBS_FILE = "refused_jobs.jsonl"  # in a sweep dir: the jobs refused before they started
-
-
-class RunDirError(UserError):
-    """A run dir that cannot be used; the message names the file and what is wrong."""
 
 
 def write_json(path: Path, payload: dict[str, Any], *, exclusive: bool = False) -> None:
@@ -71,7 +69,6 @@ def write_json(path: Path, payload: dict[str, Any], *, exclusive: bool = False) 
     tmp.unlink()
 
 
-MAX_JSON_BYTES = 256 * 2**20  # a training.json holds one curve row (~80 bytes) per episode
 CURVE_ROW = ("env_ticks", "episode", "team_return_mean")  # metrics.CURVE_COLUMNS
 # metrics.json as train() writes it (EpisodeSummary.to_json): "*" = any key; a key ending in
 # "?" may be absent; INT, NUMBER (finite), OPTIONAL (finite or null), STR, ANY are leaves
@@ -99,40 +96,6 @@ METRICS = {
     "learning_space?": {"*": INT},
     "*": ANY,  # other blocks (resources, checkpoint) are not read as numbers
 }
-
-
-def read_json(path: Path) -> Any:
-    """A JSON file's content, or a :class:`RunDirError` naming the file.
-
-    Args:
-        path: The file.
-
-    Returns:
-        The parsed content (NaN and infinities refused).
-
-    Raises:
-        RunDirError: if the file is missing, too big, not UTF-8 or not JSON.
-    """
-    try:
-        size = path.stat().st_size
-        if size > MAX_JSON_BYTES:
-            raise RunDirError(f"{path}: {size:,} bytes, more than the limit of {MAX_JSON_BYTES:,}")
-        text = path.read_bytes().decode("utf-8")
-        return json.loads(text, parse_constant=_no_constant)
-    except RunDirError:
-        raise
-    except FileNotFoundError:
-        raise RunDirError(f"{path}: missing") from None
-    except OSError as err:
-        raise RunDirError(f"{path}: cannot be read ({err.strerror})") from None
-    except UnicodeDecodeError as err:
-        raise RunDirError(f"{path}: not UTF-8 text (byte {err.start})") from None
-    except (ValueError, RecursionError) as err:  # JSONDecodeError is a ValueError
-        raise RunDirError(f"{path}: not valid JSON ({str(err)[:120]})") from None
-
-
-def _no_constant(name: str) -> Any:
-    raise ValueError(f"{name} is not a finite number")
 
 
 def _is_int(value: Any) -> bool:
@@ -281,8 +244,8 @@ def read_metrics(path: Path) -> dict[str, Any]:
     for block in ("ctr", "itr", "return_by_type"):
         if set(learned.get(block, ())) != set(greedy.get(block, ())):
             raise RunDirError(
-                f"{path}: eval.{block}: names {sorted(learned.get(block, ()))}, but "
-                f"baseline_greedy.{block} names {sorted(greedy.get(block, ()))}"
+                f"{path}: eval.{block}: names {short_list(sorted(learned.get(block, ())))}, but "
+                f"baseline_greedy.{block} names {short_list(sorted(greedy.get(block, ())))}"
             )
     if learned["episodes"] < 1:
         raise _refuse(path, "eval.episodes", "an integer >= 1", learned["episodes"])

@@ -15,9 +15,9 @@ from __future__ import annotations
 
 import sys
 
-import yaml
 from hydra.core.config_store import ConfigStore
 
+from mrta_rl.checked_files import read_yaml
 from mrta_rl.conf_files import is_system_path, shipped_systems, system_file
 from mrta_rl.config import UserError
 from mrta_rl.systems import build_system
@@ -61,7 +61,7 @@ def use_team_files(argv: list[str] | None = None) -> list[str]:
                     "rename the file"
                 )
             taken[name] = str(path)
-            team = yaml.safe_load(path.read_text())
+            team = read_yaml(path)
             try:
                 build_system(team)
             except (UserError, TypeError) as err:

@@ -16,10 +16,10 @@ import argparse
 import json
 from pathlib import Path
 
-import yaml
 from tqdm import tqdm
 
 from mrta_rl.bench.env import bench_env, bench_plain_loop, format_table
+from mrta_rl.checked_files import read_yaml
 from mrta_rl.conf_files import system_file
 from mrta_rl.envs.params import AuctionParams
 from mrta_rl.runners import cli
@@ -36,7 +36,7 @@ def _system(name: str) -> RobotSystem:
     if name in RANDOM_TEAMS:
         m, n, density, scaled = RANDOM_TEAMS[name]
         return random_system(m, n, density, seed=0, scale_auction=scaled, name=name)
-    return build_system(yaml.safe_load(system_file(name).read_text()))
+    return build_system(read_yaml(system_file(name)))
 
 
 def _mask_size(system: RobotSystem, batch_size: int) -> int:

@@ -20,8 +20,8 @@ from collections.abc import Mapping
 from typing import Any, Literal
 
 import numpy as np
-import yaml
 
+from mrta_rl.checked_files import read_yaml
 from mrta_rl.conf_files import system_file
 from mrta_rl.envs.auction import AuctionEnv
 from mrta_rl.envs.params import AuctionParams
@@ -59,7 +59,7 @@ def resolve_system(system: SystemLike) -> RobotSystem:
     if isinstance(system, Mapping):
         return build_system(system)
     if isinstance(system, str | os.PathLike):
-        return build_system(yaml.safe_load(system_file(system).read_text()))
+        return build_system(read_yaml(system_file(system)))
     raise TypeError(
         f"system must be a RobotSystem, a name, a yaml path or a mapping, got {type(system)}"
     )

@@ -26,15 +26,51 @@ from typing import TYPE_CHECKING, Any, ClassVar, Literal, NamedTuple
 
 import numpy as np
 
-from mrta_rl.config import RUNNER_ARGUMENTS, ConfigError, check_keywords
+from mrta_rl.config import RUNNER_ARGUMENTS, ConfigError, UserError, check_keywords
 from mrta_rl.envs import AuctionEnv, StepResult
 from mrta_rl.loops import NO_TRAINING, PPO_LOOP, TICK_LOOP, TORCHRL_LOOP  # noqa: F401 - for plugins
 from mrta_rl.partition import Partition
+from mrta_rl.run_files import RunDirError, check_schema, read_json
 
 if TYPE_CHECKING:  # memory.py imports the encodings, which import the learners package
     from mrta_rl.learners.memory import ResourceEstimate
 
 LearnerKind = Literal["fixed", "tabular", "neural", "search"]
+
+
+def read_description(path: Path, schema: dict[str, Any]) -> dict[str, Any]:
+    """A learner's ``learner.json`` (what its ``save`` wrote beside its state), checked.
+
+    Args:
+        path: The file.
+        schema: What ``save`` writes (``run_files.check_schema``'s form).
+
+    Returns:
+        The content.
+
+    Raises:
+        RunDirError: naming the file and the key, if it is not such a description.
+    """
+    try:
+        description = read_json(path)
+        check_schema(description, schema, path, "")
+    except RunDirError as err:
+        detail = str(err).removeprefix(f"{path}: ")
+        raise RunDirError(f"{path}: not a learner description written by save ({detail})") from None
+    return description
+
+
+class NonFiniteState(UserError):
+    """An update made a learner's state NaN or infinite (or out of its range): training stops.
+
+    The learner raises it where the update is made, before the state is kept or saved, so the
+    run ends with its last checkpoint as it was; the message names the learner and the step.
+    """
+
+    def __init__(self, fault: str) -> None:
+        super().__init__(
+            f"{fault}; training stopped, nothing of it saved (the last checkpoint stays)"
+        )
 
 
 class MemoryQuery(NamedTuple):

@@ -8,7 +8,6 @@ is a duplicate, and test and validation runs are never averaged together.
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import itertools
 import json
@@ -21,6 +20,15 @@ from typing import Any
 
 from omegaconf import OmegaConf
 
+from mrta_rl.checked_files import (
+    MAX_TEXT_BYTES,
+    RunDirError,
+    parse_json,
+    read_bytes,
+    read_config,
+    read_csv_numbers,
+    read_json,
+)
 from mrta_rl.config import UserError
 from mrta_rl.run_files import (
     CONFIG_FILE,
@@ -101,19 +109,26 @@ class Collection:
 
 
 def read_curve(path: Path) -> tuple[tuple[int, float], ...]:
-    """Rows ``(env_ticks, team_return_mean)`` of a curve.csv (``()`` if absent or header-only)."""
-    if not path.is_file():
+    """Rows ``(env_ticks, team_return_mean)`` of a curve.csv (``()`` if absent or header-only).
+
+    Raises:
+        RunDirError: naming the file, and the line and column of a cell that is not a number.
+    """
+    if not path.exists():
         return ()
-    with path.open(newline="") as handle:
-        return tuple(
-            (int(float(row["env_ticks"])), float(row["team_return_mean"]))
-            for row in csv.DictReader(handle)
-            if row.get("env_ticks") not in (None, "")
-        )
+    rows = read_csv_numbers(path, ("env_ticks", "team_return_mean"), key="env_ticks")
+    return tuple((int(ticks), value) for ticks, value in rows)
 
 
-def _load_yaml(path: Path) -> Any:
-    return OmegaConf.to_container(OmegaConf.load(path), resolve=False) if path.is_file() else None
+def read_yaml_config(path: Path) -> Any:
+    """A run dir's YAML config as plain data (None if absent), read with the checked reader.
+
+    Raises:
+        RunDirError: naming the file, if it is not a regular file, too big or not YAML.
+    """
+    if not path.exists():
+        return None
+    return OmegaConf.to_container(read_config(path), resolve=False)
 
 
 def config_value(config: dict[str, Any], dotted: str) -> Any:
@@ -124,8 +139,8 @@ def config_value(config: dict[str, Any], dotted: str) -> Any:
 def load_run(run_dir: Path) -> RunRecord:
     """Read one run dir."""
     metrics = read_metrics(run_dir / METRICS_FILE)
-    config = _load_yaml(run_dir / CONFIG_FILE) or {}
-    overrides = _load_yaml(run_dir / CONFIG_FILE.with_name("overrides.yaml")) or []
+    config = read_yaml_config(run_dir / CONFIG_FILE) or {}
+    overrides = read_yaml_config(run_dir / CONFIG_FILE.with_name("overrides.yaml")) or []
     learner = metrics["learner"]
     learner = str(learner["name"] if isinstance(learner, dict) else learner)
     curve = read_curve(run_dir / CURVE_FILE)
@@ -220,11 +235,11 @@ def natural_key(text: str) -> tuple[Any, ...]:
 def refusal_reason(run_dir: Path) -> str | None:
     """``"refused: <reason>"`` if the run was refused up front (its ``refused.json``), else None."""
     path = run_dir / REFUSED_FILE
-    if not path.is_file():
+    if not path.exists():
         return None
     try:
-        reason = json.loads(path.read_text()).get("reason", "no reason given")
-    except (json.JSONDecodeError, AttributeError):
+        reason = read_json(path).get("reason", "no reason given")
+    except (RunDirError, AttributeError):
         reason = f"unreadable {REFUSED_FILE}"
     return f"refused: {reason}"
 
@@ -235,11 +250,14 @@ def refused_jobs(sweep_dir: Path) -> dict[frozenset[str], str]:
     Such a job leaves no run dir, so its reason is kept in the sweep dir.
     """
     path, out = sweep_dir / REFUSED_JOBS_FILE, {}
-    for line in path.read_text(errors="replace").splitlines() if path.is_file() else []:
+    if not path.exists():
+        return out
+    text = read_bytes(path, MAX_TEXT_BYTES, "a list of refused jobs").decode(errors="replace")
+    for line in text.splitlines():
         try:
-            record = json.loads(line)
+            record = parse_json(line, path)
             out[frozenset(str(o) for o in record["overrides"])] = f"refused: {record['reason']}"
-        except (ValueError, KeyError, TypeError):
+        except (RunDirError, KeyError, TypeError):
             continue
     return out
 
@@ -248,7 +266,7 @@ def expected_sweep_jobs(multirun_yaml: Path) -> list[list[str]] | None:
     """The job list Hydra's BasicSweeper built for a multirun (None: another sweeper ran it)."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
-    cfg = OmegaConf.load(multirun_yaml)
+    cfg = read_config(multirun_yaml)
     sweeper = OmegaConf.select(cfg, "hydra.sweeper", default=None)
     if sweeper is None or sweeper.get("_target_") != BASIC_SWEEPER:
         return None
@@ -315,9 +333,9 @@ def collect_runs(inputs: Iterable[Path | str]) -> Collection:
         expected_found = True
         collection.sweep_source = ", ".join(str(s) for s in sweeps)
         collection.expected_jobs += len(jobs)
-        cfg = OmegaConf.load(multirun_yaml)
+        cfg = read_config(multirun_yaml)
         dirs = {  # job dirs of the sweep by their overrides
-            frozenset(str(o) for o in _load_yaml(p) or []): p.parent.parent
+            frozenset(str(o) for o in read_yaml_config(p) or []): p.parent.parent
             for p in sorted(multirun_yaml.parent.rglob("overrides.yaml"))
             if p.parent.name == ".hydra"
         }

@@ -19,7 +19,6 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
-from omegaconf import OmegaConf
 
 from mrta_rl.config import UserError
 from mrta_rl.reports import figures
@@ -31,6 +30,7 @@ from mrta_rl.reports.collect import (
     config_value,
     configuration_variants,
     named_init,
+    read_yaml_config,
     refusal_reason,
 )
 from mrta_rl.reports.frame import long_table, order_learners, summarize, system_label
@@ -120,7 +120,7 @@ def study_points(runs: Sequence[RunRecord], inputs: Sequence[Path]) -> pd.DataFr
             continue
         record = read_json(run_dir / REFUSED_FILE)
         path = run_dir / CONFIG_FILE
-        config = OmegaConf.to_container(OmegaConf.load(path)) if path.is_file() else {}
+        config = read_yaml_config(path) or {}
         learner, system = str(record.get("learner", "?")), str(record.get("system", "?"))
         cell = (learner, learner, system, int(record.get("seed", config.get("seed", 0))))
         points.append(_point(cell, config, {}, refusal_reason(run_dir) or ""))

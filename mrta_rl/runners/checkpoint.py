@@ -24,6 +24,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+from mrta_rl.checked_files import read_text
 from mrta_rl.learners import Learner
 from mrta_rl.run_files import (
     CHECKPOINT_DIR,
@@ -36,6 +37,7 @@ from mrta_rl.run_files import (
 from mrta_rl.runners.learner_files import load_learner, save_learner
 
 logger = logging.getLogger(__name__)
+POINTER_BYTES = 64  # the pointer file holds a version folder's name: an episode number
 
 
 # ---------------------------------------------------------------------------------- checkpoints
@@ -54,13 +56,13 @@ def latest_checkpoint(run_dir: Path | str) -> Path | None:
     """
     root = Path(run_dir) / CHECKPOINT_DIR
     pointer = root / POINTER_FILE
-    if not pointer.is_file():  # no save has completed: a version folder alone is not named yet
+    if not pointer.exists():  # no save has completed: a version folder alone is not named yet
         return None
-    name = pointer.read_text().strip()
+    name = read_text(pointer, POINTER_BYTES, "a checkpoint pointer").strip()
     if not name.isdigit():
         raise RunDirError(f"{pointer}: not a checkpoint version (got {name[:40]!r})")
     version = root / name
-    if not (version / STATE_FILE).is_file():
+    if not (version / STATE_FILE).exists():
         raise RunDirError(f"{pointer}: names {version}, which holds no {STATE_FILE}")
     return version
 
@@ -158,6 +160,8 @@ class TrainingCheckpoint:
         load_learner(self.learner, version / LEARNER_DIR)
         try:
             self.learner.restore_state(learner_state, version)
+        except RunDirError:  # a file of the checkpoint refused: the message names it
+            raise
         except Exception as err:  # the learner's own checks, or a state it cannot even read
             raise RunDirError(f"{state_path}: learner: state refused ({err!r})") from err
         logger.info("resuming from %s after episode %d", version, loop["episode"])

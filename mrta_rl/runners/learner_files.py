@@ -6,14 +6,24 @@ checks them against the learner built for the run; any failure names the file an
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from mrta_rl.config import short_list
 from mrta_rl.learners import Learner
-from mrta_rl.run_files import TEAM_FILE, RunDirError, write_json
+from mrta_rl.run_files import (
+    NUMBER,
+    STR,
+    TEAM_FILE,
+    RunDirError,
+    check_schema,
+    read_json,
+    write_json,
+)
+
+TEAM = {"robots": [STR], "task_types": [STR], "willingness": [[NUMBER]]}  # team_record's
 
 
 # ---------------------------------------------------------------------------------- learner state
@@ -40,28 +50,26 @@ def save_learner(learner: Learner, directory: Path) -> None:
 def _check_team(learner: Learner, directory: Path) -> None:
     """Refuse a learner state saved for another team, naming the first robot that differs."""
     path = directory / TEAM_FILE
-    try:
-        saved = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise RunDirError(f"{path}: missing (the team the learner state was trained on)") from None
-    except (OSError, ValueError) as err:
-        raise RunDirError(f"{path}: not readable JSON ({err})") from None
+    if not path.exists():
+        raise RunDirError(f"{path}: missing (the team the learner state was trained on)")
+    saved = read_json(path)
+    check_schema(saved, TEAM, path, "")
     expected = team_record(learner)
-    if not isinstance(saved, dict) or set(saved) != set(expected):
-        raise RunDirError(f"{path}: expected the keys {sorted(expected)}")
     for key in ("robots", "task_types"):
         if saved[key] != expected[key]:
             raise RunDirError(
-                f"{path}: {key}: the learner state was trained on another team ({saved[key]!r}), "
-                f"not the run's system ({expected[key]!r})"
+                f"{path}: {key}: the learner state was trained on another team "
+                f"({short_list(saved[key])}), not the run's system ({short_list(expected[key])})"
             )
+    if len(saved["willingness"]) != len(expected["willingness"]):
+        raise RunDirError(f"{path}: willingness: {len(saved['willingness'])} rows, not one a robot")
     for robot, row, want in zip(
         expected["robots"], saved["willingness"], expected["willingness"], strict=True
     ):
         if row != want:
             raise RunDirError(
                 f"{path}: willingness.{robot}: the learner state was trained on another team "
-                f"({row!r}), not the run's system ({want!r})"
+                f"({short_list(row)}), not the run's system ({short_list(want)})"
             )
 
 

@@ -27,8 +27,8 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig
 from torchrl.collectors import Collector
 
+from mrta_rl.checked_files import read_tensors
 from mrta_rl.envs.torchrl_env import AuctionTorchRLEnv
-from mrta_rl.learners.neural.common import read_tensors
 from mrta_rl.run_files import RunDirError
 from mrta_rl.runners.episodes import EpisodeReturns
 from mrta_rl.runners.progress import progress_bar
@@ -41,6 +41,7 @@ if TYPE_CHECKING:
 logger = logging.getLogger(__name__)
 
 RNG_FILE = "torch_rng.pt"  # training checkpoints: torch's generator at the episode boundary
+RNG_BYTES = 2**16  # the most bytes of RNG_FILE (the generator's state takes about 5 kB)
 
 
 def read_rng(path: Path) -> torch.Tensor:
@@ -49,11 +50,8 @@ def read_rng(path: Path) -> torch.Tensor:
     Raises:
         RunDirError: naming the file, if it is missing, damaged or not a generator state.
     """
-    try:
-        state = read_tensors(path, torch.device("cpu"))
-    except ValueError as err:
-        raise RunDirError(str(err)) from None
     expected = torch.get_rng_state()
+    state = read_tensors(path, torch.device("cpu"), RNG_BYTES, "torch's generator state")
     if not isinstance(state, torch.Tensor) or state.shape != expected.shape:
         raise RunDirError(f"{path}: not torch's generator state")
     return state

@@ -19,6 +19,7 @@ built or written: a file of the wrong structure, shapes, dtypes or with NaN is r
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -27,7 +28,7 @@ from tensordict import TensorDict
 from torchrl.data import TensorDictReplayBuffer
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from mrta_rl.learners.neural.common import read_tensors
+from mrta_rl.checked_files import PT_OVERHEAD, PT_PER_TENSOR, read_tensors
 from mrta_rl.run_files import RunDirError
 
 if TYPE_CHECKING:
@@ -123,9 +124,13 @@ def read_replay(
         RunDirError: naming the file and the key, if the file is missing, truncated, not a
             tensor file, or its content does not fit the run.
     """
+    stored = min(frames, capacity)
+    row_bytes = sum(math.prod(shape) * dtype.itemsize for shape, dtype in layout.values())
+    # the rows and torch's generator, twice over (with the file's own records)
+    limit = 2 * stored * row_bytes + PT_OVERHEAD + PT_PER_TENSOR * (len(layout) + 1)
     try:
-        payload = read_tensors(path, torch.device("cpu"))
-    except ValueError as err:
+        payload = read_tensors(path, torch.device("cpu"), limit, "a replay buffer of this run")
+    except RunDirError as err:
         raise RunDirError(f"cannot resume: {err}") from None
     if not isinstance(payload, dict) or set(payload) != set(REPLAY_KEYS):
         held = sorted(map(str, payload)) if isinstance(payload, dict) else _describe(payload)
@@ -145,7 +150,6 @@ def read_replay(
             f"{_describe(payload['transitions'])}"
         )
     leaves = _leaves(payload["transitions"], path)
-    stored = min(frames, capacity)
     unexpected = sorted(set(leaves) - set(layout))
     if unexpected:
         raise RunDirError(

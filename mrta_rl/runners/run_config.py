@@ -21,10 +21,10 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
+from mrta_rl.checked_files import YamlSyntaxError, read_config, read_yaml_text
 from mrta_rl.learners import Learner
 from mrta_rl.metrics.logger import CSVLogger
 from mrta_rl.run_files import CONFIG_FILE, HYDRA_FILE, RunDirError
-from mrta_rl.systems.files import check_yaml_file
 
 logger = logging.getLogger(__name__)
 
@@ -203,13 +203,9 @@ def read_run_config(run_dir: Path | str) -> DictConfig:
     """
     run_dir = Path(run_dir)
     path = run_dir / CONFIG_FILE
-    if not path.is_file():
+    if not path.exists():
         raise RunDirError(f"{run_dir} is not a run dir of scripts/train.py: no {path}")
-    check_yaml_file(path)  # size, encoding, depth, aliases: before OmegaConf expands anything
-    try:
-        cfg = OmegaConf.load(path)
-    except Exception as err:  # YAML and OmegaConf raise several types
-        raise RunDirError(f"{path}: not a readable YAML config ({err})") from err
+    cfg = read_config(path)  # size, encoding, depth, aliases: before OmegaConf expands it
     check_run_config(OmegaConf.to_container(cfg, resolve=False), path)
     return cfg  # type: ignore[return-value]
 
@@ -217,11 +213,15 @@ def read_run_config(run_dir: Path | str) -> DictConfig:
 def run_choices(run_dir: Path) -> dict[str, str]:
     """Config-group choices recorded in ``.hydra/hydra.yaml`` (``learner`` -> ``greedy``)."""
     path = Path(run_dir) / HYDRA_FILE
-    if not path.is_file():
+    if not path.exists():
         return {}
-    check_yaml_file(path)  # a hostile file is refused; a merely damaged one loses the names
+    try:  # a hostile file is refused; a merely damaged one loses the names
+        text = read_yaml_text(path)
+    except YamlSyntaxError as err:
+        logger.warning("config-group choices unreadable: %s", err)
+        return {}
     try:
-        choices = OmegaConf.select(OmegaConf.load(path), "hydra.runtime.choices", default={})
+        choices = OmegaConf.select(OmegaConf.create(text), "hydra.runtime.choices", default={})
         return {str(k): str(v) for k, v in dict(choices).items() if isinstance(v, str | int)}
     except Exception as err:  # a damaged hydra.yaml only loses the names
         logger.warning("%s: config-group choices unreadable (%s)", path, err)

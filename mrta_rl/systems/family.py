@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from mrta_rl.config import short_list
 from mrta_rl.systems.robot_system import RobotSystem, SystemConfigError, random_system
 
 EVAL_TEAM = 0  # the team a family run is evaluated on; training episode e plays team e >= 1
@@ -120,8 +121,9 @@ def build_family(cfg: Mapping[str, Any]) -> TeamFamily | None:
     name = str(cfg.get("name", "family"))
     unknown = set(cfg) - FAMILY_KEYS
     if unknown:
+        shown = short_list(sorted(unknown, key=str), quote=True)
         raise SystemConfigError(
-            f"system {name!r}: unknown keys {sorted(unknown)} (allowed: {sorted(FAMILY_KEYS)})"
+            f"system {name!r}: unknown keys [{shown}] (allowed: {sorted(FAMILY_KEYS)})"
         )
     ranges = cfg["family"]
     if not isinstance(ranges, Mapping):
@@ -129,8 +131,9 @@ def build_family(cfg: Mapping[str, Any]) -> TeamFamily | None:
     unknown = set(ranges) - set(RANGES)
     missing = set(RANGES[:3]) - set(ranges)
     if unknown or missing:
+        shown = short_list(sorted(unknown, key=str), quote=True)
         raise SystemConfigError(
-            f"system {name!r}: family has unknown keys {sorted(unknown)} or lacks "
+            f"system {name!r}: family has unknown keys [{shown}] or lacks "
             f"{sorted(missing)} (keys: {', '.join(RANGES)}; willingness is optional)"
         )
     return TeamFamily(

@@ -31,7 +31,7 @@ from typing import Annotated, Any
 
 import numpy as np
 
-from mrta_rl.config import ConfigError, Range, check_keywords
+from mrta_rl.config import ConfigError, Range, check_keywords, short_list
 from mrta_rl.types import RobotId, TaskType
 
 _DURATION_KEYS = ("duration_low", "duration_high")
@@ -397,15 +397,17 @@ def build_system(cfg: Mapping[str, Any]) -> RobotSystem:
     if "robots" in cfg:
         unknown = set(cfg) - _TABLE_KEYS
         if unknown:
+            shown = short_list(sorted(unknown, key=str), quote=True)
             raise SystemConfigError(
-                f"system {name!r}: unknown keys {sorted(unknown)} (allowed: {sorted(_TABLE_KEYS)})"
+                f"system {name!r}: unknown keys [{shown}] (allowed: {sorted(_TABLE_KEYS)})"
             )
         return RobotSystem.from_table(name, cfg["robots"], cfg.get("task_types"), cfg.get("env"))
     if "n_robots" in cfg:
         unknown = set(cfg) - _RANDOM_KEYS
         if unknown:
+            shown = short_list(sorted(unknown, key=str), quote=True)
             raise SystemConfigError(
-                f"system {name!r}: unknown keys {sorted(unknown)} (allowed: {sorted(_RANDOM_KEYS)})"
+                f"system {name!r}: unknown keys [{shown}] (allowed: {sorted(_RANDOM_KEYS)})"
             )
         sizes = {k: v for k, v in cfg.items() if k not in ("name", "env")}
         return random_system(**sizes, name=name, env=cfg.get("env"))

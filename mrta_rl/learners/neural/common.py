@@ -57,6 +57,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 from pathlib import Path
 from typing import Annotated, Any, ClassVar, Literal
 
@@ -69,7 +70,8 @@ from torchrl.envs.utils import ExplorationType, exploration_type, set_exploratio
 from torchrl.modules import QValueModule
 from torchrl.objectives import HardUpdate, LossModule, SoftUpdate
 
-from mrta_rl.config import Choices, ConfigError, Range
+from mrta_rl.checked_files import read_tensors, tensor_file_limit
+from mrta_rl.config import Choices, ConfigError, Range, UserError, short_list
 from mrta_rl.envs import AuctionEnv, encodings
 from mrta_rl.envs.torchrl_env import (
     GROUP_SET_KEYS,
@@ -78,7 +80,15 @@ from mrta_rl.envs.torchrl_env import (
     prior_index,
     set_inputs_td,
 )
-from mrta_rl.learners.base import FACTS, TORCHRL_LOOP, Learner, LearnerKind, MemoryQuery
+from mrta_rl.learners.base import (
+    FACTS,
+    TORCHRL_LOOP,
+    Learner,
+    LearnerKind,
+    MemoryQuery,
+    NonFiniteState,
+    read_description,
+)
 from mrta_rl.learners.fixed import HOLD_SCOPES, HoldLevel, Reserve
 from mrta_rl.learners.memory import (
     NEURAL_ADVICE,
@@ -96,6 +106,7 @@ from mrta_rl.learners.neural.set_network import (
 )
 from mrta_rl.learners.tabular.priors import HOLD_PRIORS, GreedyPrior, HoldRule, SpreadWaitPrior
 from mrta_rl.partition import Partition
+from mrta_rl.run_files import ANY, INT, STR, RunDirError
 from mrta_rl.types import GroupMap
 
 logger = logging.getLogger(__name__)
@@ -103,6 +114,14 @@ logger = logging.getLogger(__name__)
 WEIGHTS_FILE = "weights.pt"  # state_dict of the Q-networks (and mixer), torch.load(weights_only)
 META_FILE = "learner.json"  # group map and sizes, to check a checkpoint fits the run
 TRAINING_FILE = "training.pt"  # optimizer, target networks, epsilon (training checkpoints)
+# learner.json as NeuralLearner.save writes it (run_files.check_schema)
+META = {
+    "class": STR,
+    "group_map": {"*": [STR]},
+    "gradient_steps": INT,
+    "hyperparameters": {"*": ANY},
+    "prior": ANY,
+}
 JOINT = "joint"  # root sub-TensorDict of joint-action keys: (JOINT, group, leaf), batch [*]
 Prior = GreedyPrior | HoldRule | SpreadWaitPrior  # env state -> [B, m] the prior's actions
 # per-robot reward leaves of AuctionTorchRLEnv, [*, n_g, 1]: team (TorchRL's reward key),
@@ -555,6 +574,8 @@ class NeuralLearner(Learner, abstract=True):
             ``{"train/loss": ...}`` (summed over the groups' losses).
         """
         total = sum(loss(batch)["loss"] for loss in self.losses.values())
+        value = float(total.detach())
+        check_loss(value, self.label, self.gradient_steps + 1)  # before the step changes weights
         self.optimizer.zero_grad(set_to_none=True)
         total.backward()
         params = [p for group in self.optimizer.param_groups for p in group["params"]]
@@ -563,7 +584,7 @@ class NeuralLearner(Learner, abstract=True):
         for updater in self.target_updaters:
             updater.step()
         self.gradient_steps += 1
-        return {"train/loss": float(total.detach())}
+        return {"train/loss": value}
 
     # -------------------------------------------------------------- Learner interface
     @property
@@ -637,8 +658,10 @@ class NeuralLearner(Learner, abstract=True):
             directory: Target folder (created if missing).
         """
         directory = Path(directory)
+        state = self.networks.state_dict()
+        check_finite_weights(state, f"{self.label} after gradient step {self.gradient_steps}")
         directory.mkdir(parents=True, exist_ok=True)
-        torch.save(self.networks.state_dict(), directory / WEIGHTS_FILE)
+        torch.save(state, directory / WEIGHTS_FILE)
         meta = {
             "class": type(self).__name__,
             "group_map": self.group_map,
@@ -661,14 +684,9 @@ class NeuralLearner(Learner, abstract=True):
         """
         directory = Path(directory)
         meta_path = directory / META_FILE
-        try:
-            meta = json.loads(meta_path.read_text())
-            saved_class, saved_groups = meta["class"], meta["group_map"]
-            saved_prior, saved_features = meta["prior"], meta["hyperparameters"]["features"]
-        except (OSError, ValueError, KeyError, TypeError) as err:
-            raise ValueError(
-                f"{meta_path}: not a learner description written by save ({err!r})"
-            ) from err
+        meta = read_meta(meta_path, META)
+        saved_class, saved_groups = meta["class"], meta["group_map"]
+        saved_prior, saved_features = meta["prior"], meta["hyperparameters"].get("features")
         if saved_groups != self.group_map:
             raise ValueError(
                 f"{meta_path}: checkpoint groups {saved_groups} differ from {self.group_map}"
@@ -691,10 +709,7 @@ class NeuralLearner(Learner, abstract=True):
                 f"{meta_path}: trained with features={saved_features}, this run's learner has "
                 f"features={self.features} (the networks' inputs differ)"
             )
-        path = directory / WEIGHTS_FILE
-        state = read_tensors(path, self.device)
-        check_state_dict(state, self.networks.state_dict(), path)
-        self.networks.load_state_dict(state)
+        self.networks.load_state_dict(read_weights(directory / WEIGHTS_FILE, self.networks))
 
     def checkpoint_state(self, directory: Path) -> dict[str, Any]:
         """Counters; optimizer, target networks and epsilon in ``training.pt``.
@@ -718,57 +733,165 @@ class NeuralLearner(Learner, abstract=True):
     def restore_state(self, state: dict[str, Any], directory: Path) -> None:
         """Restore :meth:`checkpoint_state` (``weights_only`` loading of ``training.pt``)."""
         super().restore_state(state, directory)
-        extra = read_tensors(Path(directory) / TRAINING_FILE, self.device)
+        path = Path(directory) / TRAINING_FILE
+        losses = {name: loss.state_dict() for name, loss in self.losses.items()}
+        egreedy = [module.state_dict() for module in self.egreedy]
+        params = [p for group in self.optimizer.param_groups for p in group["params"]]
+        # the optimizer's state: Adam's two moments of every weight
+        limit = tensor_file_limit(losses, egreedy, params, params)
+        extra = read_tensors(path, self.device, limit, f"a {TRAINING_FILE} of this learner")
+        if not isinstance(extra, dict) or set(extra) != {"optimizer", "losses", "egreedy"}:
+            raise RunDirError(f"{path}: expected the keys egreedy, losses, optimizer")
+        if not isinstance(extra["losses"], dict) or set(extra["losses"]) != set(losses):
+            raise RunDirError(f"{path}: losses: expected {short_list(losses)}")
         for name, loss in self.losses.items():
+            check_state_dict(extra["losses"][name], losses[name], f"{path}: losses.{name}")
             loss.load_state_dict(extra["losses"][name])
+        check_optimizer_state(extra["optimizer"], self.optimizer, path)
         self.optimizer.load_state_dict(extra["optimizer"])
-        for module, saved in zip(self.egreedy, extra["egreedy"], strict=True):
-            module.eps.copy_(saved["eps"])  # also EGreedyModule's state of older checkpoints
+        saved_eps = extra["egreedy"]
+        if not isinstance(saved_eps, list) or len(saved_eps) != len(self.egreedy):
+            raise RunDirError(f"{path}: egreedy: expected {len(self.egreedy)} exploration states")
+        for module, saved in zip(self.egreedy, saved_eps, strict=True):
+            eps = saved.get("eps") if isinstance(saved, dict) else None
+            if not isinstance(eps, torch.Tensor) or eps.numel() != 1 or not 0 <= float(eps) <= 1:
+                raise RunDirError(f"{path}: egreedy.eps: must be a number in [0, 1]")
+            module.eps.copy_(eps)  # also EGreedyModule's state of older checkpoints
         self.gradient_steps = int(state["gradient_steps"])
         self.frames_collected = int(state["frames_collected"])
         for updater, saved in zip(self.target_updaters, state["target_updaters"], strict=True):
             updater.load_state_dict(saved)
 
 
-def read_tensors(path: Path, device: torch.device) -> Any:
-    """``torch.load(weights_only=True)`` of a file written by this package, errors naming it.
+def read_meta(path: Path, schema: dict[str, Any]) -> dict[str, Any]:
+    """A neural learner's ``learner.json``, checked against its schema (``run_files``).
 
     Raises:
-        ValueError: if the file is missing, truncated or not a tensor file of this package (the
-            message never suggests loading it unsafely).
+        RunDirError: naming the file and the key.
     """
-    if not path.is_file():
-        raise ValueError(f"{path}: missing")
-    try:
-        return torch.load(path, map_location=device, weights_only=True)
-    except Exception as err:  # torch raises many types; its message suggests unsafe loading
-        raise ValueError(
-            f"{path}: truncated, damaged or not a weights file written by this package "
-            f"({type(err).__name__})"
-        ) from None
+    meta = read_description(path, schema)
+    if meta["gradient_steps"] < 0:
+        raise RunDirError(f"{path}: gradient_steps: must be >= 0, got {meta['gradient_steps']}")
+    return meta
 
 
-def check_state_dict(state: Any, expected: dict[str, torch.Tensor], path: Path) -> None:
-    """Saved tensors against the learner's own: names, shapes and dtypes.
+def read_weights(path: Path, networks: nn.Module) -> dict[str, torch.Tensor]:
+    """``weights.pt`` of a learner's networks, checked against them (:func:`check_state_dict`).
 
     Raises:
-        ValueError: naming the file and the first mismatch.
+        RunDirError: naming the file, if it is not a regular file, too big for these networks,
+            not a weights file, or its tensors are not the networks' (names, shapes, dtypes,
+            finite values).
+    """
+    expected = networks.state_dict()
+    device = next(iter(expected.values())).device if expected else torch.device("cpu")
+    state = read_tensors(
+        path, device, tensor_file_limit(expected), "a weights file written by this package"
+    )
+    check_state_dict(state, expected, path)
+    return state
+
+
+def check_state_dict(
+    state: Any,
+    expected: dict[str, torch.Tensor],
+    path: Path | str,
+    error: type[UserError] = RunDirError,
+) -> None:
+    """Saved tensors against the learner's own: names, shapes, dtypes and finite values.
+
+    Args:
+        state: The loaded state dict.
+        expected: The learner's own (``state_dict()``).
+        path: The file (and key), or what made the tensors, for messages.
+        error: The error to raise.
+
+    Raises:
+        RunDirError: (or ``error``) naming the file and the first mismatch.
     """
     if not isinstance(state, dict) or set(state) != set(expected):
-        names = sorted(state) if isinstance(state, dict) else type(state).__name__
-        raise ValueError(
-            f"{path}: holds tensors {names}, this run's learner has {sorted(expected)} "
+        names = short_list(sorted(state)) if isinstance(state, dict) else type(state).__name__
+        raise error(
+            f"{path}: holds tensors {names}, this run's learner has {short_list(sorted(expected))} "
             "(saved for another system, partition or learner?)"
         )
     for name, want in expected.items():
         got = state[name]
         if not isinstance(got, torch.Tensor) or got.shape != want.shape or got.dtype != want.dtype:
             shape = tuple(got.shape) if isinstance(got, torch.Tensor) else type(got).__name__
-            raise ValueError(
+            raise error(
                 f"{path}: tensor {name} is {shape}, expected {tuple(want.shape)} {want.dtype}"
             )
         if got.is_floating_point() and not torch.isfinite(got).all():
-            raise ValueError(f"{path}: tensor {name} holds NaN or infinite values")
+            raise error(f"{path}: tensor {name} holds NaN or infinite values")
+
+
+def check_finite_weights(state: dict[str, torch.Tensor], source: str) -> None:
+    """Refuse to keep weights that hold NaN or infinity (before they are saved).
+
+    Raises:
+        NonFiniteState: naming the learner, the step and the tensor.
+    """
+    check_state_dict(state, state, source, NonFiniteState)
+
+
+def check_loss(value: float, label: str, step: int) -> None:
+    """Stop training at a NaN or infinite loss, before the gradient step would use it.
+
+    Raises:
+        NonFiniteState: naming the learner and the gradient step.
+    """
+    if not math.isfinite(value):
+        raise NonFiniteState(f"{label}: gradient step {step}: the loss is {value}")
+
+
+def check_optimizer_state(saved: Any, optimizer: torch.optim.Optimizer, path: Path) -> None:
+    """An optimizer's saved state (Adam's) against the optimizer the run built.
+
+    The parameter groups must hold the same parameters and settings (learning rate, betas...);
+    each parameter's state tensors are finite and of its shape, its ``step`` and its second
+    moments (``*_sq``) >= 0.
+
+    Raises:
+        RunDirError: naming the file and the key.
+    """
+    fresh = optimizer.state_dict()
+    where = f"{path}: optimizer"
+    if not isinstance(saved, dict) or set(saved) != set(fresh):
+        raise RunDirError(f"{where}: expected the keys {short_list(sorted(fresh))}")
+    groups = saved["param_groups"]
+    if not isinstance(groups, list) or len(groups) != len(fresh["param_groups"]):
+        raise RunDirError(f"{where}.param_groups: expected {len(fresh['param_groups'])} groups")
+    shapes = {}
+    for g, (group, want, live) in enumerate(
+        zip(groups, fresh["param_groups"], optimizer.param_groups, strict=True)
+    ):
+        if not isinstance(group, dict) or group.get("params") != want["params"]:
+            raise RunDirError(f"{where}.param_groups[{g}]: not this run's parameters")
+        for key, value in want.items():
+            if key != "params" and key in group and group[key] != value:
+                raise RunDirError(
+                    f"{where}.param_groups[{g}].{key}: {str(group[key])[:40]}, the run's is {value}"
+                )
+        shapes.update(zip(want["params"], (p.shape for p in live["params"]), strict=True))
+    state = saved["state"]
+    if not isinstance(state, dict) or not set(state) <= set(shapes):
+        raise RunDirError(f"{where}.state: not the state of this run's parameters")
+    for index, entries in state.items():
+        if not isinstance(entries, dict):
+            raise RunDirError(f"{where}.state.{index}: must be a mapping of tensors")
+        for key, value in entries.items():
+            name = f"{where}.state.{index}.{key}"
+            if not isinstance(value, torch.Tensor) or not value.is_floating_point():
+                raise RunDirError(f"{name}: must be a float tensor")
+            if value.numel() != 1 and value.shape != shapes[index]:
+                raise RunDirError(
+                    f"{name}: shape {tuple(value.shape)}, the parameter's is {tuple(shapes[index])}"
+                )
+            if not torch.isfinite(value).all():
+                raise RunDirError(f"{name}: holds NaN or infinite values")
+            if (key == "step" or key.endswith("_sq")) and bool((value < 0).any()):
+                raise RunDirError(f"{name}: holds {float(value.min())}, must be >= 0")
 
 
 NETWORKS = ("mlp", "set")  # the per-robot Q-network: local-feature MLP or the robot-set network

@@ -47,6 +47,7 @@ from torchrl.modules import MLP, MaskedCategorical, ProbabilisticActor
 from torchrl.objectives import ValueEstimators
 from torchrl.objectives.multiagent import MAPPOLoss
 
+from mrta_rl.checked_files import read_tensors, tensor_file_limit
 from mrta_rl.config import Choices, Range
 from mrta_rl.envs import AuctionEnv, encodings
 from mrta_rl.envs.torchrl_env import GROUP_SET_KEYS, PRIOR_KEY, ROOT_SET_KEYS, set_inputs_td
@@ -55,18 +56,30 @@ from mrta_rl.learners.memory import BYTES_PER_WEIGHT, ResourceEstimate, feature_
 from mrta_rl.learners.neural.common import (
     META_FILE,
     WEIGHTS_FILE,
-    check_state_dict,
+    check_finite_weights,
+    check_loss,
+    check_optimizer_state,
     observation_td,
-    read_tensors,
+    read_meta,
+    read_weights,
     require_torchrl,
 )
 from mrta_rl.learners.neural.networks import PerRobotQ
 from mrta_rl.learners.neural.set_network import ROBOT_ATTENTION, SetWithPrior, check_fits
 from mrta_rl.learners.tabular.priors import GreedyPrior
 from mrta_rl.partition import Partition
+from mrta_rl.run_files import ANY, INT, STR, RunDirError
 from mrta_rl.types import GroupMap
 
 TRAINING_FILE = "training.pt"  # optimizer state (training checkpoints)
+LOSS_KEYS = ("loss_objective", "loss_critic", "loss_entropy", "entropy")  # train_batch's means
+# learner.json as PPOLearner.save writes it (run_files.check_schema)
+META = {
+    "class": STR,
+    "group_map": {"*": [STR]},
+    "gradient_steps": INT,
+    "hyperparameters": {"*": ANY},
+}
 GROUP = "agents"  # the one TorchRL group of all robots
 ACTION = (GROUP, "action")
 LOG_PROB = (GROUP, "action_log_prob")
@@ -469,13 +482,16 @@ class PPOLearner(Learner, abstract=True):
             for start in range(0, n - size + 1, size):
                 out = self.loss(data[order[start : start + size]])
                 total = out["loss_objective"] + out["loss_critic"] + out["loss_entropy"]
+                values = {key: float(out[key].detach()) for key in LOSS_KEYS}
+                # before the step changes the weights
+                check_loss(float(total.detach()), self.label, self.gradient_steps + steps + 1)
                 self.optimizer.zero_grad(set_to_none=True)
                 total.backward()
                 nn.utils.clip_grad_norm_(params, self.hp["max_grad_norm"])
                 self.optimizer.step()
                 steps += 1
-                for key in ("loss_objective", "loss_critic", "loss_entropy", "entropy"):
-                    sums[f"train/{key}"] = sums.get(f"train/{key}", 0.0) + float(out[key].detach())
+                for key, value in values.items():
+                    sums[f"train/{key}"] = sums.get(f"train/{key}", 0.0) + value
         self.gradient_steps += steps
         return {key: value / max(steps, 1) for key, value in sums.items()}
 
@@ -512,8 +528,10 @@ class PPOLearner(Learner, abstract=True):
     def save(self, directory: Path) -> None:
         """Write ``weights.pt`` (a state_dict, ``weights_only`` loadable) and ``learner.json``."""
         directory = Path(directory)
+        state = self.networks.state_dict()
+        check_finite_weights(state, f"{self.label} after gradient step {self.gradient_steps}")
         directory.mkdir(parents=True, exist_ok=True)
-        torch.save(self.networks.state_dict(), directory / WEIGHTS_FILE)
+        torch.save(state, directory / WEIGHTS_FILE)
         meta = {
             "class": type(self).__name__,
             "group_map": self.group_map,
@@ -531,15 +549,10 @@ class PPOLearner(Learner, abstract=True):
         """
         directory = Path(directory)
         meta_path = directory / META_FILE
-        try:
-            meta = json.loads(meta_path.read_text())
-            saved_class, saved_groups = meta["class"], meta["group_map"]
-            saved = meta["hyperparameters"]
-            saved_inputs = (saved["network"], saved["features"])
-        except (OSError, ValueError, KeyError, TypeError) as err:
-            raise ValueError(
-                f"{meta_path}: not a learner description written by save ({err!r})"
-            ) from err
+        meta = read_meta(meta_path, META)
+        saved_class, saved_groups = meta["class"], meta["group_map"]
+        saved = meta["hyperparameters"]
+        saved_inputs = (saved.get("network"), saved.get("features"))
         if saved_class != type(self).__name__:
             raise ValueError(f"{directory} holds a {saved_class}, not a {type(self).__name__}")
         if saved_groups != self.group_map:
@@ -552,10 +565,7 @@ class PPOLearner(Learner, abstract=True):
                 f"{saved_inputs[1]}; this run's learner has network={self.hp['network']}, "
                 f"features={self.features}"
             )
-        path = directory / WEIGHTS_FILE
-        state = read_tensors(path, self.device)
-        check_state_dict(state, self.networks.state_dict(), path)
-        self.networks.load_state_dict(state)
+        self.networks.load_state_dict(read_weights(directory / WEIGHTS_FILE, self.networks))
 
     def checkpoint_state(self, directory: Path) -> dict[str, Any]:
         """Counters; the optimizer in ``training.pt`` (torch's generator is the runner's)."""
@@ -565,6 +575,12 @@ class PPOLearner(Learner, abstract=True):
     def restore_state(self, state: dict[str, Any], directory: Path) -> None:
         """Restore :meth:`checkpoint_state` (``weights_only`` loading of ``training.pt``)."""
         super().restore_state(state, directory)
-        extra = read_tensors(Path(directory) / TRAINING_FILE, self.device)
+        path = Path(directory) / TRAINING_FILE
+        params = list(self.loss.parameters())  # the optimizer's: Adam's two moments of each
+        limit = tensor_file_limit(params, params)
+        extra = read_tensors(path, self.device, limit, f"a {TRAINING_FILE} of this learner")
+        if not isinstance(extra, dict) or set(extra) != {"optimizer"}:
+            raise RunDirError(f"{path}: expected the key optimizer")
+        check_optimizer_state(extra["optimizer"], self.optimizer, path)
         self.optimizer.load_state_dict(extra["optimizer"])
         self.gradient_steps = int(state["gradient_steps"])

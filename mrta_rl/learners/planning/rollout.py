@@ -42,9 +42,9 @@ from typing import Annotated, Any, ClassVar
 
 import numpy as np
 
-from mrta_rl.config import Choices, ConfigError, Range, UserError
+from mrta_rl.config import Choices, ConfigError, Range, UserError, short_list
 from mrta_rl.envs import AuctionEnv
-from mrta_rl.learners.base import FixedLearner, Learner
+from mrta_rl.learners.base import FixedLearner, Learner, learner_from_target
 from mrta_rl.learners.fixed import GreedyLearner, TeamReserveLearner
 
 logger = logging.getLogger(__name__)
@@ -69,6 +69,7 @@ CANDIDATES: dict[str, dict[str, Any] | None] = {
 
 
 BASE_RUN = "base"  # the candidate name of a trained base policy's own action
+MAX_BASES = 16  # run dirs in a chain of trained bases (a base whose own base is a run...)
 # local moves around the base policy's joint action (neighbours())
 NEIGHBOURS = ("drop", "add")
 
@@ -115,6 +116,55 @@ def neighbours(action: np.ndarray, mask: np.ndarray, kinds: tuple[str, ...]) -> 
 def is_rule(base: str) -> bool:
     """True if ``learner.base`` names a rule of :data:`CANDIDATES`, not a run dir."""
     return base in CANDIDATES
+
+
+def check_base_chain(run_dir: Path) -> None:
+    """Follow the trained bases from ``run_dir`` through their configs; refuse a loop.
+
+    A run dir's planner may itself play a run dir as its base, and so on: loading such a base
+    loads the chain. A run dir that is its own base, or a chain that comes back to one of its
+    run dirs, would load forever; it is refused before anything is loaded. A config that cannot
+    be read ends the walk (loading the run names what is wrong with it).
+
+    Raises:
+        ConfigError: naming ``learner.base`` and the loop (or a chain of more than
+            :data:`MAX_BASES` run dirs).
+    """
+    from mrta_rl.runners.run_config import read_run_config  # learner modules import no runner
+
+    chain: list[Path] = []
+    current = Path(run_dir)
+    while True:
+        chain.append(current)
+        try:
+            learner = read_run_config(current).get("learner")
+            planner = issubclass(
+                learner_from_target(str(learner.get("_target_")), "learner._target_"),
+                RolloutPlanner,
+            )
+        except (UserError, AttributeError):
+            return
+        base = learner.get("base")  # absent: the class's default, a rule
+        if not planner or not isinstance(base, str) or is_rule(base):
+            return
+        current = Path(base)
+        seen = [p.resolve() for p in chain]
+        if current.resolve() in seen:
+            loop = chain[seen.index(current.resolve()) :]
+            if len(loop) == 1:
+                raise ConfigError(
+                    f"learner.base: {loop[0]} is its own base; give a rule or another run dir"
+                )
+            shown = " -> ".join(str(p) for p in loop[:3])
+            more = f" -> {len(loop) - 3} more" if len(loop) > 3 else ""
+            raise ConfigError(
+                f"learner.base: the bases loop: {shown}{more} -> back to the first; give a rule "
+                "or another run dir"
+            )
+        if len(chain) >= MAX_BASES:
+            raise ConfigError(
+                f"learner.base: {run_dir}: a chain of more than {MAX_BASES} trained bases"
+            )
 
 
 def restore(env: AuctionEnv, state: dict[str, np.ndarray], rows: np.ndarray) -> None:
@@ -212,6 +262,7 @@ class RolloutPlanner(FixedLearner):
             )
         if not run_dir.is_dir():
             raise ConfigError(f"{key}: no such run dir: {run_dir}")
+        check_base_chain(run_dir)
         try:
             learner = load_run(run_dir).learner
         except UserError as err:
@@ -221,7 +272,8 @@ class RolloutPlanner(FixedLearner):
             if theirs[part] != ours[part]:
                 raise ConfigError(
                     f"{key}: {run_dir} is a run of another team: its {part} "
-                    f"{theirs[part]!r} are not the planner's system's {ours[part]!r}"
+                    f"[{short_list(theirs[part], quote=True)}] are not the planner's system's "
+                    f"[{short_list(ours[part], quote=True)}]"
                 )
         return learner
 

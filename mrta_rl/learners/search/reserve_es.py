@@ -43,10 +43,11 @@ from typing import Annotated, Any, ClassVar
 import numpy as np
 
 from mrta_rl import rules
+from mrta_rl.checked_files import ArraySpec, check_arrays, read_arrays
 from mrta_rl.config import Range
 from mrta_rl.envs import AuctionEnv, StepResult
 from mrta_rl.envs.encodings import N_RECENCY_LEVELS, free_level, queue_level, recency_level
-from mrta_rl.learners.base import TICK_LOOP, Learner, LearnerKind, MemoryQuery
+from mrta_rl.learners.base import TICK_LOOP, Learner, LearnerKind, MemoryQuery, NonFiniteState
 from mrta_rl.learners.memory import ResourceEstimate
 from mrta_rl.partition import Partition
 
@@ -86,6 +87,10 @@ START_WEIGHT = 2.0  # |theta_0| of a hold: any weight > 1 outweighs the bias of 
 ADAM_BETAS = (0.9, 0.999)  # Adam's moment decays (Kingma and Ba 2015's defaults)
 ADAM_EPS = 1e-8
 STATE_FILE = "reserve_es.npz"
+# the largest weight (and Adam first moment) a state may hold: every feature is in [0, 1] and
+# the bias is 1, so a weight of 1e9 already outweighs any other; larger ones only overflow.
+# Adam moves a weight by at most about 3.2 lr a step, so training never comes near it.
+MAX_WEIGHT = 1e9
 
 
 def start_theta(reserve: int, hold_level: int) -> np.ndarray:
@@ -328,6 +333,13 @@ class ReserveESLearner(Learner):
         m_hat = self._adam_m / (1 - beta1**self.steps)
         v_hat = self._adam_v / (1 - beta2**self.steps)
         self.theta = self.theta + self.lr * m_hat / (np.sqrt(v_hat) + ADAM_EPS)
+        # a step that made NaN or infinite weights stops the run before they are saved
+        check_arrays(
+            self._state_arrays(),
+            self.state_schema(),
+            f"{self.label} after ES step {self.steps}",
+            NonFiniteState,
+        )
         self._draw()
 
     def learning_space(self) -> dict[str, int]:
@@ -340,32 +352,67 @@ class ReserveESLearner(Learner):
     state_file: ClassVar[str] = STATE_FILE
     weight_names: ClassVar[tuple[str, ...]] = WEIGHT_NAMES
 
+    def state_schema(self) -> dict[str, ArraySpec]:
+        """The arrays of :attr:`state_file`, as this learner's settings shape them.
+
+        ``theta`` and Adam's moments ``adam_m``, ``adam_v`` are real floats of the weights' shape
+        (the rule's weights, then a subclass's), finite, within :data:`MAX_WEIGHT` (``adam_v``,
+        a mean of squared gradients: >= 0, within its square); ``steps`` an integer >= 0;
+        ``features`` the names of the weights (:attr:`weight_names`).
+        """
+        weights = self.theta.shape
+        moment = "Adam's {} moment of the weights"
+        return {
+            "theta": ArraySpec(weights, magnitude=MAX_WEIGHT, meaning="the weights"),
+            "adam_m": ArraySpec(weights, magnitude=MAX_WEIGHT, meaning=moment.format("first")),
+            "adam_v": ArraySpec(
+                weights, low=0.0, magnitude=MAX_WEIGHT**2, meaning=moment.format("second")
+            ),
+            "steps": ArraySpec((), kinds="iu", low=0, meaning="ES steps made"),
+            "features": ArraySpec(
+                (len(self.weight_names),),
+                kinds="U",
+                names=self.weight_names,
+                meaning="the weights' names",
+            ),
+        }
+
+    def _state_arrays(self) -> dict[str, np.ndarray]:
+        """What :meth:`save` writes (:meth:`state_schema`)."""
+        return {
+            "theta": self.theta,
+            "adam_m": self._adam_m,
+            "adam_v": self._adam_v,
+            "steps": np.int64(self.steps),
+            "features": np.asarray(self.weight_names),
+        }
+
     def save(self, directory: Path) -> None:
-        """:attr:`state_file`: the weights, Adam's moments, the step count and their names."""
+        """:attr:`state_file`: the weights, Adam's moments, the step count and their names.
+
+        Raises:
+            NonFiniteState: if the state breaks :meth:`state_schema` (nothing is written).
+        """
+        arrays = self._state_arrays()
+        where = f"{self.label} after ES step {self.steps}, saving"
+        check_arrays(arrays, self.state_schema(), where, NonFiniteState)
         directory.mkdir(parents=True, exist_ok=True)
-        np.savez(
-            directory / self.state_file,
-            theta=self.theta,
-            adam_m=self._adam_m,
-            adam_v=self._adam_v,
-            steps=np.int64(self.steps),
-            features=np.asarray(self.weight_names),
-        )
+        np.savez(directory / self.state_file, **arrays)
 
     def load(self, directory: Path) -> None:
-        """Restore :meth:`save`'s file; refuse one made for other weights or another size."""
+        """Restore :meth:`save`'s file, checked against :meth:`state_schema` before it is used.
+
+        Raises:
+            RunDirError: naming the file and the array: another learner's or size's weights,
+                NaN, infinite or out-of-range values, a negative step count or Adam second
+                moment, or not such a file at all.
+        """
         path = directory / self.state_file
-        with np.load(path, allow_pickle=False) as saved:
-            names = tuple(saved["features"].tolist())
-            if names != self.weight_names or saved["theta"].shape != self.theta.shape:
-                raise ValueError(
-                    f"{path}: {saved['theta'].size} weights over {list(names)} differ from this "
-                    f"learner's {self.theta.size} over {list(self.weight_names)}"
-                )
-            self.theta = saved["theta"].astype(float)
-            self._adam_m = saved["adam_m"].astype(float)
-            self._adam_v = saved["adam_v"].astype(float)
-            self.steps = int(saved["steps"])
+        saved = read_arrays(path, self.state_schema(), what=f"a {self.state_file} of {self.label}")
+        self.theta = saved["theta"].astype(float)
+        self._adam_m = saved["adam_m"].astype(float)
+        self._adam_v = saved["adam_v"].astype(float)
+        self.steps = int(saved["steps"])
 
     def checkpoint_state(self, directory: Path) -> dict[str, Any]:
         """The generator before the current perturbations were drawn, so resuming redraws them.

@@ -16,11 +16,13 @@ from typing import Annotated, Any, ClassVar
 
 import numpy as np
 
+from mrta_rl.checked_files import ArraySpec, read_arrays
 from mrta_rl.config import Choices, Range
 from mrta_rl.envs import AuctionEnv, StepResult
-from mrta_rl.learners.base import TICK_LOOP, Learner, LearnerKind
+from mrta_rl.learners.base import TICK_LOOP, Learner, LearnerKind, read_description
 from mrta_rl.learners.tabular.schedules import LinearSchedule
 from mrta_rl.partition import Partition
+from mrta_rl.run_files import INT, STR, RunDirError
 
 logger = logging.getLogger(__name__)
 
@@ -29,6 +31,7 @@ TARGETS = ("max", "prior")  # what eq. (3) bootstraps from (docs/learners.md, "T
 
 Q_FILE = "q_tables.npz"  # arrays of every table, np.savez without object arrays
 META_FILE = "learner.json"  # hyperparameters and schedule position
+META = {"class": STR, "episodes_done": INT}  # learner.json as save writes it
 
 
 class Uniforms:
@@ -202,8 +205,24 @@ class TabularLearner(Learner, abstract=True):
         meta = {"class": type(self).__name__, "episodes_done": self.episodes_done}
         (directory / META_FILE).write_text(json.dumps(meta, indent=2) + "\n")
 
+    def state_schema(self) -> dict[str, ArraySpec]:
+        """The arrays of ``q_tables.npz``, as the learner built for the run holds them.
+
+        Call it on the fresh learner (before any training): each array's name and dtype, its
+        whole shape, or its trailing dimensions for a table with no rows yet (it grows with the
+        states met); no NaN, and infinity only where the fresh learner holds one (a threshold).
+        """
+        return {
+            name: ArraySpec.like(
+                want,
+                grows=want.ndim > 0 and want.shape[0] == 0,
+                finite=not (want.dtype.kind == "f" and np.isinf(want).any()),
+            )
+            for name, want in self._table_arrays().items()
+        }
+
     def load(self, directory: Path) -> None:
-        """Restore what :meth:`save` wrote (``allow_pickle=False``), checked against this learner.
+        """Restore what :meth:`save` wrote (never unpickling), checked against this learner.
 
         Args:
             directory: Folder written by :meth:`save`.
@@ -211,95 +230,21 @@ class TabularLearner(Learner, abstract=True):
         Raises:
             ValueError: naming the file, if it is unreadable, written by another learner class,
                 or its arrays do not fit this learner (other system or partition, wrong
-                dtype or shape, inconsistent tables).
+                dtype or shape, NaN, inconsistent tables).
         """
         directory = Path(directory)
         meta_path = directory / META_FILE
-        try:
-            meta = json.loads(meta_path.read_text())
-            saved_class, episodes_done = meta["class"], int(meta["episodes_done"])
-        except (OSError, ValueError, KeyError, TypeError) as err:
-            raise ValueError(
-                f"{meta_path}: not a learner description written by save ({err})"
-            ) from err
-        if saved_class != type(self).__name__:
-            raise ValueError(f"{directory} holds a {saved_class}, not a {type(self).__name__}")
-        arrays = read_npz(directory / Q_FILE)
-        check_arrays(arrays, self._table_arrays(), directory / Q_FILE)
+        meta = read_description(meta_path, META)
+        if meta["class"] != type(self).__name__:
+            raise ValueError(f"{directory} holds a {meta['class']}, not a {type(self).__name__}")
+        if meta["episodes_done"] < 0:
+            raise RunDirError(
+                f"{meta_path}: episodes_done: must be >= 0, got {meta['episodes_done']}"
+            )
+        path = directory / Q_FILE
+        arrays = read_arrays(path, self.state_schema(), what="a table file written by save")
         try:
             self._load_table_arrays(arrays)
         except (ValueError, KeyError, IndexError) as err:
-            raise ValueError(f"{directory / Q_FILE}: {err}") from err
-        self.episodes_done = episodes_done
-
-
-ZIP_MAGIC = b"PK\x03\x04"  # every npz file is a zip archive
-
-
-def read_npz(path: Path) -> dict[str, np.ndarray]:
-    """All arrays of an npz file written by ``np.savez``, never unpickling anything.
-
-    Args:
-        path: The file.
-
-    Returns:
-        ``{name: array}``.
-
-    Raises:
-        ValueError: naming the file, if it is missing, not an npz archive, or truncated.
-    """
-    try:
-        with path.open("rb") as handle:
-            head = handle.read(len(ZIP_MAGIC))
-    except OSError as err:
-        raise ValueError(f"{path}: cannot read the table file ({err})") from err
-    if head != ZIP_MAGIC:
-        raise ValueError(f"{path}: not a table file written by save (not an npz archive)")
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            return {k: data[k] for k in data.files}
-    except Exception as err:  # zipfile, zlib and numpy raise several types on damaged files
-        raise ValueError(
-            f"{path}: truncated or damaged table file ({type(err).__name__}: {err})"
-        ) from err
-
-
-def check_arrays(
-    arrays: dict[str, np.ndarray], expected: dict[str, np.ndarray], path: Path
-) -> None:
-    """Saved arrays against the arrays of the learner built for the run: names, dtypes, shapes.
-
-    An expected array with no rows yet (a table that grows with visited states) fixes only its
-    trailing dimensions; any other fixes its whole shape.
-
-    Args:
-        arrays: The loaded arrays.
-        expected: The learner's own arrays (``_table_arrays()`` of the fresh learner).
-        path: The file, for messages.
-
-    Raises:
-        ValueError: naming the file and the first mismatch.
-    """
-    if set(arrays) != set(expected):
-        raise ValueError(
-            f"{path}: holds arrays {sorted(arrays)}, this run's learner has {sorted(expected)} "
-            "(saved for another system, partition or learner?)"
-        )
-    for name, want in expected.items():
-        got = arrays[name]
-        if got.dtype != want.dtype:
-            raise ValueError(f"{path}: array {name} has dtype {got.dtype}, expected {want.dtype}")
-        grows = want.ndim > 0 and want.shape[0] == 0
-        fits = (
-            got.shape[1:] == want.shape[1:] and got.ndim == want.ndim
-            if grows
-            else got.shape == want.shape
-        )
-        if not fits:
-            shape = ("rows", *want.shape[1:]) if grows else want.shape
-            raise ValueError(f"{path}: array {name} has shape {got.shape}, expected {shape}")
-        # NaN is never a value; infinity only where the fresh learner holds one (a threshold)
-        if got.dtype.kind == "f" and (
-            np.isnan(got).any() or (np.isinf(got).any() and not np.isinf(want).any())
-        ):
-            raise ValueError(f"{path}: array {name} holds NaN or infinite values")
+            raise ValueError(f"{path}: {err}") from err
+        self.episodes_done = meta["episodes_done"]

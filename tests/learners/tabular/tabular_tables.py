@@ -18,8 +18,9 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from mrta_rl.checked_files import read_arrays
 from mrta_rl.envs import AuctionEnv, AuctionParams
-from mrta_rl.learners.tabular.base import Q_FILE, TabularLearner, read_npz
+from mrta_rl.learners.tabular.base import Q_FILE, TabularLearner
 from mrta_rl.partition import subg_partition
 from mrta_rl.systems import build_system
 
@@ -108,7 +109,7 @@ def saved_tables(learner: TabularLearner) -> dict[str, np.ndarray]:
     """The tables as ``learner.save`` writes them (``q_tables.npz``): ``{name: array}``."""
     with tempfile.TemporaryDirectory() as folder:
         learner.save(Path(folder))
-        return read_npz(Path(folder) / Q_FILE)
+        return read_arrays(Path(folder) / Q_FILE, learner.state_schema())
 
 
 def play_tables(name: str, hyperparameters: dict) -> dict[str, np.ndarray]:
