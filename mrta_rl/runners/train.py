@@ -244,11 +244,11 @@ def train(cfg: DictConfig, run_dir: Path | str | None = None) -> dict[str, Any]:
         episodes=cfg.train.episodes,
         resources=resources,
     )
-    logger.info(
+    logger.info(  # the system by the name metrics.json gives it
         "learner %s (%s) on %s, seed %d, run dir %s",
         run.name,
         type(run.learner).__name__,
-        run.system.name,
+        system_name,
         cfg.seed,
         run_dir,
     )
