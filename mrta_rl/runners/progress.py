@@ -110,7 +110,7 @@ class ProgressLog:
 
 
 class ProgressBar(tqdm):
-    """A tqdm bar whose rate, and so its time left, count from the end of the first update."""
+    """A tqdm bar whose rate, time left and elapsed time count from the end of the first update."""
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         """As tqdm's (every argument is passed on)."""
