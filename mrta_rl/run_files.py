@@ -7,8 +7,9 @@ damaged file is never half-used and never ends in a traceback:
 
 * ``training.json`` of a training checkpoint (:func:`read_training_state`): the training loop's
   ``loop`` block (``episode`` in ``[0, train.episodes]``, the counters of the learner's
-  ``training_loop``, one curve row per episode played) and the learner's ``checkpoint_state``
-  (a mapping; the learner checks its content in ``restore_state``);
+  ``training_loop``, one curve row per episode played, what the run has ``spent`` so far) and
+  the learner's ``checkpoint_state`` (a mapping; the learner checks its content in
+  ``restore_state``);
 * ``metrics.json`` of a finished run (:func:`read_metrics`), as the reports read it;
 * ``.hydra/config.yaml`` is read by :func:`~mrta_rl.runners.run_config.read_run_config`.
 
@@ -70,6 +71,12 @@ def write_json(path: Path, payload: dict[str, Any], *, exclusive: bool = False) 
 
 
 CURVE_ROW = ("env_ticks", "episode", "team_return_mean")  # metrics.CURVE_COLUMNS
+# a checkpoint's loop.spent: what the run spent up to it, in every process of its life, so that a
+# resumed run adds it (runners/checkpoint.py LoopTime, metrics/usage.py RunResources); each >= 0
+SPENT = (
+    *("wall_s", "collect_s", "train_s"),  # the training loop's wall time, collection, updates
+    *("run_wall_s", "cpu_s", "peak_rss_mb"),  # the run's wall time, CPU time, peak memory
+)
 # metrics.json as train() writes it (EpisodeSummary.to_json): "*" = any key; a key ending in
 # "?" may be absent; INT, NUMBER (finite), OPTIONAL (finite or null), STR, ANY are leaves
 INT, NUMBER, OPTIONAL, STR, ANY = "int", "number", "number or null", "string", "any"
@@ -136,6 +143,14 @@ def check_loop(loop: Any, path: Path, training_loop: str, episodes: int) -> dict
     for key in LOOP_COUNTERS.get(training_loop, ()):
         if not _is_int(loop.get(key)) or loop[key] < 0:
             raise _refuse(path, f"loop.{key}", "an integer >= 0", loop.get(key, "nothing"))
+    spent = loop.get("spent", {})  # absent from checkpoints written before it existed: none
+    if not isinstance(spent, dict):
+        raise _refuse(path, "loop.spent", "a mapping", spent)
+    for key, value in spent.items():
+        if key not in SPENT:
+            raise RunDirError(f"{path}: loop.spent.{key}: unknown key (known: {', '.join(SPENT)})")
+        if not _is_number(value) or value < 0:
+            raise _refuse(path, f"loop.spent.{key}", "a finite number >= 0", value)
     curve = loop.get("curve")
     if not isinstance(curve, list) or len(curve) != episode:
         raise _refuse(

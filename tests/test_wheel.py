@@ -14,6 +14,7 @@ import shutil
 import subprocess
 import sys
 import sysconfig
+import tomllib
 import zipfile
 from pathlib import Path
 
@@ -51,18 +52,41 @@ def _run(args: list[str], cwd: Path, env: dict[str, str]) -> subprocess.Complete
     return done
 
 
+def copy_sources(source: Path) -> None:
+    """Only what a wheel is built from (the package, conf/, the build backend): no .venv,
+    outputs or build files."""
+    ignore = shutil.ignore_patterns("__pycache__", "*.egg-info")
+    build_system = tomllib.loads((ROOT / "pyproject.toml").read_text())["build-system"]
+    for name in ("mrta_rl", "conf", *build_system.get("backend-path", [])):
+        shutil.copytree(ROOT / name, source / name, ignore=ignore)
+    for name in ("pyproject.toml", "README.md"):
+        shutil.copy(ROOT / name, source / name)
+
+
+def files_below(folder: Path) -> list[Path]:
+    return sorted(p.relative_to(folder) for p in folder.rglob("*") if "__pycache__" not in p.parts)
+
+
+def test_building_a_wheel_leaves_the_sources_as_they_were(tmp_path):
+    """``pip wheel .`` in a clone: the wheel in the output folder, no build/ or egg-info left."""
+    source = tmp_path / "clone"
+    copy_sources(source)
+    before = files_below(source)
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME")}
+    pip = [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation"]
+    _run([*pip, "-w", str(tmp_path / "dist"), "."], source, env)
+    assert len(list((tmp_path / "dist").glob("mrta_rl-*.whl"))) == 1
+    left = sorted(set(files_below(source)) - set(before))
+    assert not left, f"left in the sources: {[str(p) for p in left[:5]]}"
+
+
 @pytest.fixture(scope="module")
 def wheel_env(tmp_path_factory):
     """``(wheel, venv bin dir, subprocess env, work dir outside the repository)``."""
     work = tmp_path_factory.mktemp("wheel")
     assert not work.resolve().is_relative_to(ROOT)
     env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME")}
-    source = work / "source"  # only what a wheel is built from: no .venv, outputs or build files
-    ignore = shutil.ignore_patterns("__pycache__", "*.egg-info")
-    for name in ("mrta_rl", "conf"):
-        shutil.copytree(ROOT / name, source / name, ignore=ignore)
-    for name in ("pyproject.toml", "README.md"):
-        shutil.copy(ROOT / name, source / name)
+    copy_sources(work / "source")
     pip = [sys.executable, "-m", "pip"]
     _run([*pip, "wheel", "--no-deps", "--no-build-isolation", "-w", "dist", "./source"], work, env)
     (wheel,) = (work / "dist").glob("mrta_rl-*.whl")

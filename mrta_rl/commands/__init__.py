@@ -8,7 +8,7 @@ with the same overrides, from any directory.
 A team yaml from anywhere: ``system=/path/to/team.yaml`` (or ``system=team.yaml`` relative to the
 working directory; a comma-separated list in a sweep) is read before Hydra starts, checked as a
 shipped system is, and given to Hydra under its file name (``team``), which the run then
-reports as its system.
+reports as its system; a team without a ``name:`` is named so too.
 """
 
 from __future__ import annotations
@@ -66,6 +66,8 @@ def use_team_files(argv: list[str] | None = None) -> list[str]:
                 build_system(team)
             except (UserError, TypeError) as err:
                 raise UserError(f"{path}: {err}") from None
+            if isinstance(team, dict) and "name" not in team:  # the name the run reports
+                team = {"name": name, **team}
             ConfigStore.instance().store(group="system", name=name, node=team)
             names.append(name)
         argv[i] = SYSTEM_OVERRIDE + ",".join(names)

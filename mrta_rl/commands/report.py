@@ -33,8 +33,10 @@ def _task() -> None:
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     files = build_report(args.inputs, args.out)
     runs, missing = len(files.collection.runs), len(files.collection.missing)
+    left_out = len(files.collection.unreadable)
+    counts = f"{runs} runs, {missing} missing" + (f", {left_out} left out" if left_out else "")
     print(
-        f"{files.report} ({runs} runs, {missing} missing; "
+        f"{files.report} ({counts}; "
         f"{len(files.csvs)} CSV files, {len(files.figures)} figures in {files.out_dir})"
     )
 

@@ -24,7 +24,10 @@ from mrta_rl.envs.view_inputs import (
     check_invalid_action,
     sanitize_actions,
 )
+from mrta_rl.logs import log_torchrl_plainly
 from mrta_rl.types import GroupMap
+
+log_torchrl_plainly()  # TorchRL's lines without colour codes, in the run's log (mrta_rl/logs.py)
 
 GroupMapArg = Mapping[str, Sequence[str | int]] | MarlGroupMapType | str | None
 # a prior policy read from the core env: ``[B, m]`` int64 actions (``learners.tabular.priors``)

@@ -1,9 +1,12 @@
 """Collect finished runs (metrics.json, curve.csv) and the jobs a sweep expected but lost.
 
-The expected grid of a multirun is rebuilt as Hydra's ``BasicSweeper`` builds its jobs, so a
-job that failed or never started is *missing*. Every setting that differs among the runs of a
-learner on a system names a configuration of its own, so only the same configuration and seed
-is a duplicate, and test and validation runs are never averaged together.
+The expected grid of a multirun (a sweep dir given, or found below an input) is rebuilt as
+Hydra's ``BasicSweeper`` builds its jobs, so a job that failed or never started is *missing*.
+Run dirs outside a sweep expect nothing: they are reported as the runs they are. A run whose
+files cannot be read (a :class:`~mrta_rl.run_files.RunDirError`) is left out by name. Every
+setting that differs among the runs of a learner on a system names a configuration of its own,
+so only the same configuration and seed is a duplicate, and test and validation runs are never
+averaged together.
 """
 
 from __future__ import annotations
@@ -42,6 +45,8 @@ from mrta_rl.splits import DEFAULT_SPLIT, SPLIT_SEEDS
 logger = logging.getLogger(__name__)
 
 CURVE_FILE = "curve.csv"
+CURVE_COLUMNS = ("env_ticks", "team_return_mean")  # the columns of curve.csv a report reads
+MULTIRUN_FILE = "multirun.yaml"  # what Hydra writes in a sweep dir
 FAILED = "failed or unfinished: no metrics.json (see train.log, sweep output)"
 BASIC_SWEEPER = "hydra._internal.core_plugins.basic_sweeper.BasicSweeper"
 # settings that do not change what a run computes: never part of a configuration's name
@@ -96,16 +101,29 @@ class MissingJob:
     reason: str
 
 
+@dataclass(frozen=True)
+class UnreadableRun:
+    """A run dir left out of the report: one of its files cannot be read (``reason`` says which)."""
+
+    run_dir: Path
+    reason: str
+
+
 @dataclass
 class Collection:
-    """Everything the report is built from; a duplicate repeats a kept run's configuration, seed."""
+    """Everything the report is built from; a duplicate repeats a kept run's configuration, seed.
+
+    ``expected_jobs`` and ``sweep_source`` come from the sweeps among the inputs (0 and "" when
+    there is none: run dirs expect no other runs).
+    """
 
     inputs: list[Path]
     runs: list[RunRecord] = field(default_factory=list)
     missing: list[MissingJob] = field(default_factory=list)
     duplicates: list[RunRecord] = field(default_factory=list)
+    unreadable: list[UnreadableRun] = field(default_factory=list)
     expected_jobs: int = 0
-    sweep_source: str = "runs found"
+    sweep_source: str = ""
 
 
 def read_curve(path: Path) -> tuple[tuple[int, float], ...]:
@@ -299,8 +317,30 @@ def _job_identity(job: Sequence[str], cfg: Any) -> tuple[str, str, int | None]:
     return learner, system, seed
 
 
+def _load_runs(run_dirs: Iterable[Path], collection: Collection) -> list[RunRecord]:
+    """The runs that can be read; the others go to ``collection.unreadable``, with a log line."""
+    records = []
+    for run_dir in run_dirs:
+        try:
+            records.append(load_run(run_dir))
+        except RunDirError as err:
+            logger.warning("%s left out of the report: %s", run_dir, err)
+            collection.unreadable.append(UnreadableRun(run_dir, str(err)))
+    return records
+
+
+def _found(paths: Sequence[Path], name: str) -> list[Path]:
+    """The files ``name`` of the inputs: an input's own, else every one below it."""
+    found = [[p / name] if (p / name).is_file() else p.rglob(name) for p in paths]
+    return sorted({f.resolve() for files in found for f in files})
+
+
 def collect_runs(inputs: Iterable[Path | str]) -> Collection:
-    """Gather the runs below the inputs and list the expected jobs that left no results."""
+    """Gather the runs below the inputs and list the jobs their sweeps expected but lost.
+
+    Raises:
+        ReportInputError: if an input does not exist.
+    """
     paths = [Path(p) for p in inputs]
     for path in paths:
         if not path.exists():
@@ -308,9 +348,7 @@ def collect_runs(inputs: Iterable[Path | str]) -> Collection:
     collection = Collection(inputs=paths)
     by_key: dict[tuple[str, str, int], RunRecord] = {}
     # a run dir holds a metrics.json: an input itself, else every folder below it
-    tops = [p / METRICS_FILE for p in paths]
-    found = [[t] if t.is_file() else t.parent.rglob(METRICS_FILE) for t in tops]
-    records = [load_run(d) for d in sorted({m.parent.resolve() for ms in found for m in ms})]
+    records = _load_runs((m.parent for m in _found(paths, METRICS_FILE)), collection)
     variants = configuration_variants(records)
     for record, variant in zip(records, variants, strict=True):
         if variant:
@@ -323,14 +361,14 @@ def collect_runs(inputs: Iterable[Path | str]) -> Collection:
             collection.duplicates.append(record)
     collection.runs = sorted(by_key.values(), key=lambda r: (natural_key(r.learner), *r.key[1:]))
 
-    sweeps = [p / "multirun.yaml" for p in paths if (p / "multirun.yaml").is_file()]
-    expected_found = False
-    for multirun_yaml in sweeps:
+    # only a sweep expects jobs: run dirs given or found outside one expect no other runs
+    sweeps = []
+    for multirun_yaml in _found(paths, MULTIRUN_FILE):
         jobs = expected_sweep_jobs(multirun_yaml)
         if jobs is None:
-            logger.warning("%s: not a BasicSweeper sweep, grid taken from the runs", multirun_yaml)
+            logger.warning("%s: not a BasicSweeper sweep: no expected grid", multirun_yaml)
             continue
-        expected_found = True
+        sweeps.append(multirun_yaml)
         collection.sweep_source = ", ".join(str(s) for s in sweeps)
         collection.expected_jobs += len(jobs)
         cfg = read_config(multirun_yaml)
@@ -350,12 +388,4 @@ def collect_runs(inputs: Iterable[Path | str]) -> Collection:
                 reason = refusal_reason(job_dir) or FAILED
             missing = MissingJob(*_job_identity(job, cfg), tuple(job), job_dir, reason)
             collection.missing.append(missing)
-    if not expected_found:
-        learners = sorted({r.learner for r in collection.runs}, key=natural_key)
-        systems = sorted({r.system for r in collection.runs})
-        seeds = sorted({r.seed for r in collection.runs})
-        collection.expected_jobs = len(learners) * len(systems) * len(seeds)
-        for key in itertools.product(learners, systems, seeds):
-            if key not in by_key:
-                collection.missing.append(MissingJob(*key, (), None, "no run with this seed"))
     return collection

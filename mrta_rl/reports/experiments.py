@@ -503,7 +503,10 @@ def team_of(run: RunRecord) -> str:
 
 
 def collect_policies(runs: Sequence[RunRecord]) -> dict[str, list[Policy]]:
-    """Per team: greedy, the best team_reserve, rollout, the learners (trained and untrained)."""
+    """Per team: greedy, the best team_reserve, rollout, the learners (trained and untrained).
+
+    A policy holds one run per seed, the first given (the tables keep it, duplicates follow).
+    """
     if not any(r.name in RULES or _kind(r) == "untrained" for r in runs):
         return {}
     runs = [dataclasses.replace(with_reevaluation(r), system=team_of(r)) for r in runs]
@@ -521,7 +524,9 @@ def collect_policies(runs: Sequence[RunRecord]) -> dict[str, list[Policy]]:
         if run.name != GREEDY:
             kind = _kind(run)
             variant = _variant(run, kind, variants.get(id(run), ""))
-            groups[(run.system, run.name, kind, variant)].append(run)
+            members = groups[(run.system, run.name, kind, variant)]
+            if run.seed not in {m.seed for m in members}:  # a seed counts once, as in the tables
+                members.append(run)
     _check_same_streams(runs, greedy)
     out: dict[str, list[Policy]] = {}
     for system, base in greedy.items():

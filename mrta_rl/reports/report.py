@@ -84,6 +84,10 @@ def build_report(inputs: Iterable[Path | str], out_dir: Path | str | None = None
     collection = collect_runs(inputs)
     if not collection.runs:
         missing = f"; {len(collection.missing)} expected jobs missing" if collection.missing else ""
+        if collection.unreadable:
+            first = collection.unreadable[0].reason
+            more = len(collection.unreadable) - 1
+            missing += f"; left out: {first}" + (f" and {more} more" if more else "")
         raise ReportInputError(
             f"no finished run (metrics.json) under {[str(p) for p in inputs]}{missing}"
         )
@@ -118,6 +122,8 @@ def build_report(inputs: Iterable[Path | str], out_dir: Path | str | None = None
             mine = [r for r in collection.runs if r.system == system and r.learner == learner]
             if (c := summarize_curve(mine)) is not None:
                 name = f"{label} ({c.seeds} seed{'s' if c.seeds != 1 else ''})"
+                if c.seeds != len(mine):  # the tables count every run; say why this is fewer
+                    name = f"{label} ({c.seeds} of {len(mine)} seeds have a curve)"
                 line_colors[name] = colors[learner]
                 lines[name] = pd.DataFrame({"x": c.env_ticks, "mean": c.mean, "low": c.low})
                 lines[name]["high"] = c.high
@@ -141,8 +147,8 @@ def build_report(inputs: Iterable[Path | str], out_dir: Path | str | None = None
     files.marl_eval = marl_eval.write_marl_eval(collection.runs, out)
     markdown = _report_markdown(collection, frame, summary, claims, files, rules_md)
     files.report.write_text(markdown + "\n" + study_md + "\n")
-    counts = len(collection.runs), len(collection.missing)
-    logger.info("wrote %s (%d runs, %d missing)", files.report, *counts)
+    counts = len(collection.runs), len(collection.missing), len(collection.unreadable)
+    logger.info("wrote %s (%d runs, %d missing, %d left out)", files.report, *counts)
     return files
 
 
@@ -160,19 +166,35 @@ def _report_markdown(
     rules_md: str = "",
 ) -> str:
     runs, missing, duplicates = collection.runs, collection.missing, collection.duplicates
+    unreadable = collection.unreadable
     verdicts, fig = [c.verdict for c in claims], files.figures.get
     systems = {s: rows for s, rows in summary.groupby("system", sort=False)}
+    if collection.sweep_source:
+        expected = (
+            f" of {collection.expected_jobs} expected (expected grid from "
+            f"{collection.sweep_source}); **{len(missing)} missing**"
+        )
+    else:  # run dirs expect no other runs
+        expected = " (run dirs, not a sweep: no expected grid)"
     md = paragraphs(
         "# Experiment report",
         "Inputs: " + ", ".join(f"`{p}`" for p in collection.inputs),
-        f"**{len(runs)} finished runs** of {collection.expected_jobs} expected "
-        f"(expected grid from {collection.sweep_source}); **{len(missing)} missing**"
+        f"**{len(runs)} finished runs**{expected}"
+        + (f"; **{len(unreadable)} left out** (unreadable files)" if unreadable else "")
         + (f"; {len(duplicates)} duplicate runs ignored" if duplicates else "")
         + ". Every number is the mean over training seeds ± the half-width of its 95 % t "
         "confidence interval (no interval with one seed); CTR and ITR are in percent, evaluated "
         "with exploration off on the same evaluation task streams for every learner and seed. "
         "Exact values: the CSV files next to this report (`runs.csv` holds every run).",
     )
+    if unreadable:
+        md += paragraphs(
+            "## Runs left out",
+            "A file of each of these runs cannot be read; the run is in no table below.",
+            markdown_table(
+                ["run dir", "reason"], [[f"`{u.run_dir}`", u.reason] for u in unreadable]
+            ),
+        )
     if duplicates:
         kept = {r.key: r.run_dir for r in runs}
         rows = [

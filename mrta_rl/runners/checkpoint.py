@@ -19,13 +19,15 @@ import logging
 import os
 import shutil
 import signal
-from collections.abc import Callable, Iterator
+import time
+from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 from mrta_rl.checked_files import read_text
 from mrta_rl.learners import Learner
+from mrta_rl.metrics.usage import RunResources
 from mrta_rl.run_files import (
     CHECKPOINT_DIR,
     LEARNER_DIR,
@@ -38,6 +40,43 @@ from mrta_rl.runners.learner_files import load_learner, save_learner
 
 logger = logging.getLogger(__name__)
 POINTER_BYTES = 64  # the pointer file holds a version folder's name: an episode number
+
+
+# ---------------------------------------------------------------------------------- time spent
+class LoopTime:
+    """The seconds of a training loop over its run's whole life.
+
+    The share of the processes before a resume (the checkpoint's ``loop.spent``) plus this
+    process's, so that a resumed run reports the wall time and the frames per second of the
+    run, not of its last process. Parts: ``collect_s`` (collection), ``train_s`` (updates).
+
+    Args:
+        spent: The restored loop state's ``spent`` block (None or absent keys: nothing).
+    """
+
+    PARTS = ("collect_s", "train_s")
+
+    def __init__(self, spent: Mapping[str, float] | None = None) -> None:
+        spent = spent or {}
+        self._before = {key: float(spent.get(key, 0.0)) for key in ("wall_s", *self.PARTS)}
+        self._parts = dict.fromkeys(self.PARTS, 0.0)
+        self._start = time.perf_counter()
+
+    def add(self, part: str, seconds: float) -> None:
+        """Count ``seconds`` of this process in a part (``collect_s`` or ``train_s``)."""
+        self._parts[part] += seconds
+
+    def total(self, part: str) -> float:
+        """Seconds of a part over the whole life."""
+        return self._before[part] + self._parts[part]
+
+    def wall(self) -> float:
+        """Wall seconds of the loop over the whole life, up to now."""
+        return self._before["wall_s"] + time.perf_counter() - self._start
+
+    def spent(self) -> dict[str, float]:
+        """The ``loop.spent`` block of a checkpoint taken now (:data:`~mrta_rl.run_files.SPENT`)."""
+        return {"wall_s": self.wall(), **{part: self.total(part) for part in self.PARTS}}
 
 
 # ---------------------------------------------------------------------------------- checkpoints
@@ -122,12 +161,21 @@ class TrainingCheckpoint:
         every: Episodes between checkpoints (0: only on Ctrl-C or SIGTERM).
         resume: Continue from the run dir's checkpoint.
         episodes: The run's ``train.episodes``: a checkpoint follows at most that many.
+        resources: The run's wall time, CPU time and peak memory: a checkpoint records them
+            (``loop.spent``), and resuming adds the checkpoint's to them.
     """
 
     def __init__(
-        self, learner: Learner, run_dir: Path, every: int, resume: bool, episodes: int
+        self,
+        learner: Learner,
+        run_dir: Path,
+        every: int,
+        resume: bool,
+        episodes: int,
+        resources: RunResources | None = None,
     ) -> None:
         self.learner = learner
+        self.resources = resources
         self.episodes = int(episodes)
         self.run_dir = Path(run_dir)
         self.root = self.run_dir / CHECKPOINT_DIR
@@ -166,6 +214,8 @@ class TrainingCheckpoint:
             raise RunDirError(f"{state_path}: learner: state refused ({err!r})") from err
         logger.info("resuming from %s after episode %d", version, loop["episode"])
         self.saved_episode = loop["episode"]
+        if self.resources is not None:
+            self.resources.add_before(loop.get("spent", {}))
         return loop
 
     def save(self, loop: dict[str, Any], files: Callable[[Path], None] | None = None) -> Path:
@@ -176,7 +226,8 @@ class TrainingCheckpoint:
         docstring). Temporary names carry the pid.
 
         Args:
-            loop: The training loop's state (JSON: counters, curve rows, ``episode``).
+            loop: The training loop's state (JSON: counters, curve rows, ``episode``, the
+                loop's ``spent`` seconds); the run's own (wall, CPU, memory) are added here.
             files: Writes the loop's own files (replay buffer...) into the folder it is given.
 
         Returns:
@@ -188,6 +239,8 @@ class TrainingCheckpoint:
         shutil.rmtree(tmp, ignore_errors=True)
         tmp.mkdir(parents=True)
         save_learner(self.learner, tmp / LEARNER_DIR)
+        if self.resources is not None:
+            loop = {**loop, "spent": {**loop.get("spent", {}), **self.resources.spent()}}
         state = {"loop": loop, "learner": self.learner.checkpoint_state(tmp)}
         if files is not None:
             files(tmp)

@@ -30,6 +30,7 @@ from torchrl.collectors import Collector
 from mrta_rl.checked_files import read_tensors
 from mrta_rl.envs.torchrl_env import AuctionTorchRLEnv
 from mrta_rl.run_files import RunDirError
+from mrta_rl.runners.checkpoint import LoopTime
 from mrta_rl.runners.episodes import EpisodeReturns
 from mrta_rl.runners.progress import progress_bar
 from mrta_rl.runners.torchrl import TORCH_THREADS
@@ -66,9 +67,11 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         run_dir: Output folder of curve.csv and the TorchRL logs.
 
     Returns:
-        ``{"env_ticks", "wall_s", "episodes", "gradient_steps", "fps_collection",
-        "fps_training", "fps_overall"}``: frames per second of collection, of training (frames
-        passed through the loss per second spent in updates) and overall.
+        ``{"env_ticks", "wall_s", "episodes", "gradient_steps", "collect_s", "train_s",
+        "fps_collection", "fps_training", "fps_overall"}``: seconds of the loop, of collection
+        and of updates; frames per second of collection, of training (frames passed through the
+        loss per second spent in updates) and overall. A resumed run's seconds include those of
+        the processes before it.
     """
     torch.set_num_threads(TORCH_THREADS)
     torch.manual_seed(cfg.seed)  # action sampling and minibatch order (the runner seeds torch)
@@ -99,10 +102,9 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     torch_rng = read_rng(ckpt.path / RNG_FILE) if frames else None
     for _ in range(episodes):
         run.env.reset()
-    seconds = {"collect": 0.0, "train": 0.0}
     returns = EpisodeReturns(batch, next(iter(learner.group_map)), episodes)
     losses: dict[str, float] = {}
-    start = time.perf_counter()
+    clock = LoopTime(state.get("spent"))  # a resumed run's earlier processes included
     if total_frames == 0:
         instantiate(cfg.logger)(run_dir=run_dir).close()
         return {"env_ticks": 0, "wall_s": 0.0, "episodes": 0, "gradient_steps": 0}
@@ -143,7 +145,7 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         scalars = curve.torchrl_logger  # the run's tracker (logger=csv|tensorboard|wandb|mlflow)
         tick = time.perf_counter()
         for data in collector:  # [B, T]
-            seconds["collect"] += time.perf_counter() - tick
+            clock.add("collect_s", time.perf_counter() - tick)
             n_frames = data.numel()
             finished, boundary = returns.add(data, frames)
             frames += n_frames
@@ -153,9 +155,9 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
             tick = time.perf_counter()
             losses = learner.train_batch(data)
             replayed += n_frames * int(learner.hp["epochs"])
-            seconds["train"] += time.perf_counter() - tick
-            fps_collection = frames / max(seconds["collect"], 1e-9)
-            fps_training = replayed / max(seconds["train"], 1e-9)
+            clock.add("train_s", time.perf_counter() - tick)
+            fps_collection = frames / max(clock.total("collect_s"), 1e-9)
+            fps_training = replayed / max(clock.total("train_s"), 1e-9)
             for key, value in {
                 **losses,
                 "fps/collection": fps_collection,
@@ -173,18 +175,21 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
                     "frames": frames,
                     "replayed": replayed,
                     "curve": rows,
+                    "spent": clock.spent(),
                 }
                 ckpt.episode_end(loop, last=frames >= total_frames, files=save_files)
             tick = time.perf_counter()
     collector.shutdown()
-    wall = time.perf_counter() - start
+    wall = clock.wall()
     info = {
         "env_ticks": frames,
         "wall_s": round(wall, 3),
         "episodes": returns.episodes,
         "gradient_steps": learner.gradient_steps,
-        "fps_collection": round(frames / max(seconds["collect"], 1e-9), 1),
-        "fps_training": round(replayed / max(seconds["train"], 1e-9), 1),
+        "collect_s": round(clock.total("collect_s"), 3),
+        "train_s": round(clock.total("train_s"), 3),
+        "fps_collection": round(frames / max(clock.total("collect_s"), 1e-9), 1),
+        "fps_training": round(replayed / max(clock.total("train_s"), 1e-9), 1),
         "fps_overall": round(frames / max(wall, 1e-9), 1),
     }
     logger.info(

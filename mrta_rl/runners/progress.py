@@ -6,6 +6,10 @@ calls, and writes a line to the run's log at least every ``train.log_every_s`` s
 loop advances::
 
     train reserve_es: episode 12/100, return 5230.1, 1630 tick/s, 0:14:02 left
+
+Both count the rate (and the time left) from the end of the first update on: the first tick of
+a process may compile the numba kernels (a minute on a cold cache), which says nothing about the
+speed of training.
 """
 
 from __future__ import annotations
@@ -25,6 +29,7 @@ logger = logging.getLogger(__name__)
 REDRAW_TERMINAL_S = 0.1  # tqdm's default on a terminal
 REDRAW_LOG_S = 15.0  # in a log file or a pipe every redraw is a new line: a few per minute
 LOG_EVERY_S = 30.0  # seconds between log lines when the caller gives no train.log_every_s
+CLOCK: Callable[[], float] = time.monotonic  # the lines' clock (tests put a fake one here)
 
 
 class ProgressLog:
@@ -44,7 +49,7 @@ class ProgressLog:
         every_s: float,
         episode_units: int,
         initial: int = 0,
-        clock: Callable[[], float] = time.monotonic,
+        clock: Callable[[], float] | None = None,
     ) -> None:
         """Start the clock.
 
@@ -55,20 +60,23 @@ class ProgressLog:
             every_s: Seconds between lines (``train.log_every_s``).
             episode_units: Units per training episode (the episode count is ``n`` over it).
             initial: Units done before (a resumed run); the rate counts only this process's.
-            clock: Seconds, monotonic (tests pass their own).
+            clock: Seconds, monotonic; default :data:`CLOCK`.
         """
         self.total, self.unit, self.desc = total, unit, desc
         self.every_s, self.episode_units = every_s, max(1, episode_units)
         self.n = self._start_n = initial
         self.lines = 0
-        self._clock = clock
-        self._start = self._last = clock()
+        self._clock = clock or CLOCK
+        self._start: float | None = None  # end of the first update: the rate counts from there
+        self._last = self._clock()
         self._postfix: dict[str, Any] = {}
 
     def update(self, n: int = 1) -> None:
         """Count ``n`` more units; write a line if ``every_s`` has passed since the last one."""
         self.n += n
         now = self._clock()
+        if self._start is None:  # the first update (compiling, maybe): not part of the rate
+            self._start, self._start_n = now, self.n
         if now - self._last >= self.every_s:
             self._last = now
             self.lines += 1
@@ -80,7 +88,8 @@ class ProgressLog:
 
     def line(self, now: float) -> str:
         """The progress line at clock time ``now``."""
-        rate = (self.n - self._start_n) / max(now - self._start, 1e-9)
+        elapsed = 0.0 if self._start is None else now - self._start
+        rate = (self.n - self._start_n) / elapsed if elapsed > 0 else 0.0
         episodes = f"{self.n // self.episode_units}/{self.total // self.episode_units}"
         parts = [f"episode {episodes}", f"return {self._postfix.get('return', '-')}"]
         parts += [f"{k} {v}" for k, v in self._postfix.items() if k != "return"]
@@ -100,6 +109,28 @@ class ProgressLog:
         return None
 
 
+class ProgressBar(tqdm):
+    """A tqdm bar whose rate, time left and elapsed time count from the end of the first update."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        """As tqdm's (every argument is passed on)."""
+        super().__init__(*args, **kwargs)
+        self._first = True
+
+    def update(self, n: float = 1) -> bool | None:
+        """Count ``n`` more units; after the first update, restart the clock of the rate."""
+        if not self._first or self.disable:
+            return super().update(n)
+        self._first = False
+        self.n += n
+        # tqdm's rate: (n - initial) / (time since start_t), then a moving average of the
+        # increments between redraws; both start here
+        self.initial = self.last_print_n = self.n
+        self.start_t = self.last_print_t = self._time()
+        self.refresh()
+        return True
+
+
 def progress_bar(
     *,
     total: int,
@@ -109,7 +140,7 @@ def progress_bar(
     log_every_s: float | None = None,
     episode_units: int = 1,
     **kwargs: Any,
-) -> tqdm | ProgressLog:
+) -> ProgressBar | ProgressLog:
     """A tqdm bar, or :class:`ProgressLog` lines when the bar is off.
 
     The bar redraws often on a terminal and rarely when stderr is a file or pipe.
@@ -137,7 +168,7 @@ def progress_bar(
             initial=int(kwargs.get("initial", 0)),
         )
     interactive = sys.stderr.isatty()
-    return tqdm(
+    return ProgressBar(
         total=total,
         unit=unit,
         desc=desc,

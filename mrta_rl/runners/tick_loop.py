@@ -13,7 +13,6 @@ from __future__ import annotations
 import logging
 import math
 import numbers
-import time
 from collections import deque
 from collections.abc import Callable
 from contextlib import nullcontext
@@ -23,6 +22,7 @@ from typing import TYPE_CHECKING, Any
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 
+from mrta_rl.runners.checkpoint import LoopTime
 from mrta_rl.runners.progress import progress_bar
 from mrta_rl.runners.train import family_env
 
@@ -87,7 +87,8 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         run_dir: Output folder of curve.csv.
 
     Returns:
-        ``{"env_ticks": copy-ticks played, "wall_s": seconds, "episodes": episodes}``.
+        ``{"env_ticks": copy-ticks played, "wall_s": seconds, "episodes": episodes}``; a resumed
+        run's seconds include those of the processes before it.
     """
     env, learner = run.env, run.learner
     horizon, batch = run.params.horizon, env.batch_size
@@ -100,7 +101,7 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     state = (ckpt.restore() if ckpt else None) or {"episode": 0, "env_ticks": 0, "curve": []}
     rows: list[dict[str, Any]] = state["curve"]
     env_ticks = state["env_ticks"]
-    start = time.perf_counter()
+    clock = LoopTime(state.get("spent"))
     if run.family is None:
         for _ in range(state["episode"] + 1):
             env.reset()
@@ -147,7 +148,8 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
             logger.debug("episode %d: team return %.1f", episode, team_return)
             if ckpt:
                 loop = {"episode": episode, "env_ticks": env_ticks, "curve": rows}
+                loop["spent"] = clock.spent()
                 ckpt.episode_end(loop, last=episode == cfg.train.episodes)
-    wall = time.perf_counter() - start
+    wall = clock.wall()
     logger.info("trained %d episodes (%d env ticks) in %.1f s", cfg.train.episodes, env_ticks, wall)
     return {"env_ticks": env_ticks, "wall_s": round(wall, 3), "episodes": int(cfg.train.episodes)}

@@ -29,6 +29,7 @@ from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
 from mrta_rl.envs.torchrl_env import AuctionTorchRLEnv
+from mrta_rl.runners.checkpoint import LoopTime
 from mrta_rl.runners.episodes import EpisodeReturns
 from mrta_rl.runners.progress import progress_bar
 from mrta_rl.runners.replay import (
@@ -59,10 +60,12 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         run_dir: Output folder of curve.csv and the TorchRL logs.
 
     Returns:
-        ``{"env_ticks", "wall_s", "episodes", "gradient_steps", "fps_collection",
-        "fps_training", "fps_overall"}``: frames per second of collection (copy-ticks collected
-        per second spent collecting), of training (replayed transitions per second spent in
-        gradient steps) and overall (copy-ticks per second of the whole loop).
+        ``{"env_ticks", "wall_s", "episodes", "gradient_steps", "collect_s", "train_s",
+        "fps_collection", "fps_training", "fps_overall"}``: seconds of the loop, of collection
+        and of gradient steps; frames per second of collection (copy-ticks collected per second
+        spent collecting), of training (replayed transitions per second spent in gradient steps)
+        and overall (copy-ticks per second of the whole loop). A resumed run's seconds include
+        those of the processes before it.
     """
     torch.set_num_threads(TORCH_THREADS)
     torch.manual_seed(cfg.seed)  # exploration draws and replay sampling (the runner seeds torch)
@@ -107,10 +110,9 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         restore_replay(buffer, transitions, frames)
     for _ in range(episodes):
         run.env.reset()
-    seconds = {"collect": 0.0, "train": 0.0}
     returns = EpisodeReturns(batch, team_group, episodes)
     loss_info: dict[str, float] = {}
-    start = time.perf_counter()
+    clock = LoopTime(state.get("spent"))  # a resumed run's earlier processes included
     if total_frames == 0:
         instantiate(cfg.logger)(run_dir=run_dir).close()
         return {"env_ticks": 0, "wall_s": 0.0, "episodes": 0, "gradient_steps": 0}
@@ -149,7 +151,7 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         scalars = curve.torchrl_logger  # the run's tracker (logger=csv|tensorboard|wandb|mlflow)
         tick = time.perf_counter()
         for data in collector:  # [B, T]
-            seconds["collect"] += time.perf_counter() - tick
+            clock.add("collect_s", time.perf_counter() - tick)
             n_frames = data.numel()
             finished, boundary = returns.add(data, frames)
             frames += n_frames
@@ -164,9 +166,9 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
                 for _ in range(int(hp["updates_per_collect"])):
                     loss_info = learner.train_step(buffer.sample().to(device))
                     replayed += int(hp["batch_size"])
-            seconds["train"] += time.perf_counter() - tick
-            fps_collection = frames / max(seconds["collect"], 1e-9)
-            fps_training = replayed / max(seconds["train"], 1e-9)
+            clock.add("train_s", time.perf_counter() - tick)
+            fps_collection = frames / max(clock.total("collect_s"), 1e-9)
+            fps_training = replayed / max(clock.total("train_s"), 1e-9)
             for key, value in {
                 **loss_info,
                 "train/epsilon": learner.epsilon,
@@ -185,17 +187,20 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
             )
             if ckpt and boundary:  # the batch ends between episodes: resumable here
                 loop = {"episode": episodes, "frames": frames, "replayed": replayed, "curve": rows}
+                loop["spent"] = clock.spent()
                 ckpt.episode_end(loop, last=frames >= total_frames, files=save_files)
             tick = time.perf_counter()
     collector.shutdown()
-    wall = time.perf_counter() - start
+    wall = clock.wall()
     info = {
         "env_ticks": frames,
         "wall_s": round(wall, 3),
         "episodes": episodes,
         "gradient_steps": learner.gradient_steps,
-        "fps_collection": round(frames / max(seconds["collect"], 1e-9), 1),
-        "fps_training": round(replayed / max(seconds["train"], 1e-9), 1),
+        "collect_s": round(clock.total("collect_s"), 3),
+        "train_s": round(clock.total("train_s"), 3),
+        "fps_collection": round(frames / max(clock.total("collect_s"), 1e-9), 1),
+        "fps_training": round(replayed / max(clock.total("train_s"), 1e-9), 1),
         "fps_overall": round(frames / max(wall, 1e-9), 1),
     }
     logger.info(

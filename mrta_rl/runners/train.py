@@ -14,7 +14,6 @@ and run seed is evaluated on identical streams.
 from __future__ import annotations
 
 import logging
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -212,7 +211,7 @@ def train(cfg: DictConfig, run_dir: Path | str | None = None) -> dict[str, Any]:
         ValueError: on an invalid config or run dir, before anything is written.
         SystemExit: with code 130 after Ctrl-C, 143 after SIGTERM (a checkpoint is saved first).
     """
-    resources = RunResources().start()  # wall time and peak memory of the whole run (build to eval)
+    resources = RunResources().start()  # wall, CPU time and peak memory of the run (build to eval)
     resume = cfg.get("resume")
     if resume:
         run_dir = Path(resume)
@@ -238,18 +237,22 @@ def train(cfg: DictConfig, run_dir: Path | str | None = None) -> dict[str, Any]:
     # checked by validate_config; absent in runs written before checkpoints existed: none
     every = OmegaConf.select(cfg, "train.checkpoint_every", default=0)
     run.checkpoint = TrainingCheckpoint(
-        run.learner, run_dir, every, resume=bool(resume), episodes=cfg.train.episodes
+        run.learner,
+        run_dir,
+        every,
+        resume=bool(resume),
+        episodes=cfg.train.episodes,
+        resources=resources,
     )
-    logger.info(
+    logger.info(  # the system by the name metrics.json gives it
         "learner %s (%s) on %s, seed %d, run dir %s",
         run.name,
         type(run.learner).__name__,
-        run.system.name,
+        system_name,
         cfg.seed,
         run_dir,
     )
-    start = time.perf_counter()
-    try:
+    try:  # the loop times itself (train.wall_s), a resumed run's earlier processes included
         train_info = training_loop(type(run.learner))(run, cfg, run_dir)
     except TrainingInterrupted as stop:
         if stop.checkpoint is None:
@@ -271,7 +274,6 @@ def train(cfg: DictConfig, run_dir: Path | str | None = None) -> dict[str, Any]:
         )
         _write_refusal(run_dir, cfg, reason)  # kept as data: a sweep's report shows the reason
         raise TableGrowthError(reason) from None
-    train_info["wall_s"] = round(time.perf_counter() - start, 3)
     if run.learner.trains():
         save_learner(run.learner, run_dir / LEARNER_DIR)
     results = evaluate_run(run, cfg)

@@ -143,7 +143,7 @@ def test_ctrl_c_before_training_exits_130_and_leaves_nothing(tmp_path):
         time.sleep(0.1)
     assert marker.exists(), proc.communicate()[1]
     proc.send_signal(signal.SIGINT)
-    _, err = proc.communicate(timeout=60)
+    _, err = proc.communicate(timeout=120)
     assert proc.returncode == 130, err
     assert err.strip().splitlines()[-1] == "interrupted" and "Traceback" not in err, err
     assert not run_dir.exists()

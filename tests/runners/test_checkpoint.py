@@ -25,14 +25,15 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from omegaconf import OmegaConf, open_dict
 
+from mrta_rl.envs import AuctionEnv
 from mrta_rl.loops import PPO_LOOP, TICK_LOOP
 from mrta_rl.run_files import RunDirError
 from mrta_rl.runners import build_run, evaluate_checkpoint, train
-from mrta_rl.runners.checkpoint import latest_checkpoint
+from mrta_rl.runners.checkpoint import TrainingCheckpoint, latest_checkpoint
 from mrta_rl.runners.validation import learner_class
 
 ROOT = Path(__file__).resolve().parents[2]
-TIMINGS = ("wall_s", "fps_collection", "fps_training", "fps_overall")
+TIMINGS = ("wall_s", "collect_s", "train_s", "fps_collection", "fps_training", "fps_overall")
 
 
 def script(*args: str, cwd: Path = ROOT, **kwargs) -> subprocess.Popen:
@@ -352,6 +353,29 @@ def assert_same_run(full_dir: Path, cut_dir: Path) -> None:
     assert not (cut_dir / "checkpoint").exists()  # removed once the run is complete
 
 
+def spent_before(cut_dir: Path) -> dict:
+    """What the run had spent at its current checkpoint (``loop.spent`` of training.json)."""
+    loop = json.loads((latest_checkpoint(cut_dir) / "training.json").read_text())["loop"]
+    return loop.get("spent", {})
+
+
+def assert_whole_life(cut_dir: Path, spent: dict) -> None:
+    """The resumed run's figures count the share of the killed process (no magnitudes timed)."""
+    metrics = json.loads((cut_dir / "metrics.json").read_text())
+    train_info, resources = metrics["train"], metrics["resources"]
+    assert train_info["wall_s"] >= round(spent["wall_s"], 3) > 0
+    assert resources["wall_s"] >= round(spent["run_wall_s"], 3) > 0
+    assert resources["wall_s"] >= train_info["wall_s"] - 1e-3  # the run holds its training
+    assert resources["cpu_s"] >= round(spent["cpu_s"], 3) > 0
+    for part in ("collect_s", "train_s"):  # the neural loops': fps are frames over their totals
+        if part in train_info:
+            assert train_info[part] >= round(spent[part], 3)
+    if "fps_collection" in train_info:
+        frames = train_info["env_ticks"]
+        collect_s = max(train_info["collect_s"], 1e-3)  # rounded to the ms, as fps to 0.1
+        assert train_info["fps_collection"] == pytest.approx(frames / collect_s, rel=1e-2)
+
+
 def resumed_run(resumed: subprocess.Popen, cut_dir: Path) -> int:
     """Wait for ``train.py resume=<cut_dir>`` to succeed; the episode it resumed after."""
     out, err = resumed.communicate(timeout=300)
@@ -382,11 +406,13 @@ def test_sigkill_after_a_random_checkpoint_then_resume_ends_like_an_uninterrupte
     cut.send_signal(signal.SIGKILL)
     cut.wait()
     assert not (cut_dir / "metrics.json").exists()
+    spent = spent_before(cut_dir)  # the killed process's share, recorded in the checkpoint
     resumed = script("scripts/train.py", f"resume={cut_dir}")
     train(compose_cfg(args), run_dir=full_dir)
     resumed_after = resumed_run(resumed, cut_dir)
     assert killed_after <= resumed_after < episodes
     assert_same_run(full_dir, cut_dir)
+    assert_whole_life(cut_dir, spent)
 
 
 @pytest.mark.slow  # about 10 s: two processes starting torch
@@ -405,6 +431,74 @@ def test_a_run_killed_with_a_full_replay_buffer_resumes_to_the_same_end(compose_
     train(compose_cfg(args), run_dir=full_dir)
     assert 3 <= resumed_run(resumed, cut_dir) < setting(args, "train.episodes")
     assert_same_run(full_dir, cut_dir)
+
+
+class WorkClock:
+    """A fake ``time.perf_counter`` and ``time.process_time``: time moves by 2**-10 s at each
+    env step (the work), and stands still otherwise. Two runs that step the same number of
+    times take the same time on it, whatever the machine's load."""
+
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+@pytest.fixture
+def work_clock(monkeypatch) -> WorkClock:
+    clock = WorkClock()
+    monkeypatch.setattr(time, "perf_counter", clock)
+    monkeypatch.setattr(time, "process_time", clock)
+    step = AuctionEnv.step
+
+    def timed_step(self, *args, **kwargs):
+        clock.now += 2**-10
+        return step(self, *args, **kwargs)
+
+    monkeypatch.setattr(AuctionEnv, "step", timed_step)
+    return clock
+
+
+@pytest.mark.parametrize(
+    "learner",
+    # one learner per training loop: the tick loop, the TorchRL loop, the on-policy loop
+    ["dql", "qmix", "mappo"],
+)
+def test_a_resumed_run_reports_the_time_of_its_whole_life(
+    compose_cfg, tmp_path, monkeypatch, work_clock, learner
+):
+    """Stopped after its second episode (as by Ctrl-C), then resumed: on the work clock, its
+    training and run times, CPU time and frames per second are the uninterrupted run's."""
+    # the work clock needs no long run: a few episodes, a checkpoint after each
+    rest = [a for a in budget(learner) if not a.startswith(("train.episodes=", "train.check"))]
+    args = [f"learner={learner}", "system=system1", "debug=smoke", *rest]
+    args += ["train.episodes=6", "train.checkpoint_every=1"]
+    full = train(compose_cfg(args), run_dir=tmp_path / "full")
+    episode_end = TrainingCheckpoint.episode_end
+
+    def stop_after_two(self, loop, last, files=None):
+        self.stop_requested = self.stop_requested or loop["episode"] >= 2
+        return episode_end(self, loop, last, files)
+
+    monkeypatch.setattr(TrainingCheckpoint, "episode_end", stop_after_two)
+    cut_dir = tmp_path / "cut"
+    cfg = compose_cfg(args)
+    save_hydra_files(cfg, cut_dir, learner, "system1")
+    with pytest.raises(SystemExit) as stop:
+        train(cfg, run_dir=cut_dir)
+    assert stop.value.code == 130
+    monkeypatch.setattr(TrainingCheckpoint, "episode_end", episode_end)
+    spent = spent_before(cut_dir)
+    cfg = compose_cfg([f"resume={cut_dir}"])
+    HydraConfig.instance().cfg = None  # as from the command line: no overrides but resume=
+    resumed = train(cfg)
+    for key in ("wall_s", "collect_s", "train_s", "fps_collection", "fps_training", "fps_overall"):
+        assert resumed["train"].get(key) == full["train"].get(key), key
+    for key in ("wall_s", "cpu_s"):
+        assert resumed["resources"][key] == full["resources"][key], key
+    assert resumed["train"]["wall_s"] > spent["wall_s"] > 0  # both processes trained
+    assert_whole_life(cut_dir, spent)
 
 
 def test_resume_refuses_other_overrides(compose_cfg, tmp_path):

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import io
 import logging
 import re
+from datetime import timedelta
 
 import pytest
 
-from mrta_rl.runners import train
+from mrta_rl.runners import progress, train
 from mrta_rl.runners.progress import ProgressLog, progress_bar
 
 LINE = re.compile(
@@ -78,15 +80,83 @@ def test_the_interval_is_checked(compose_cfg, tmp_path):
         train(cfg, run_dir=tmp_path)
 
 
-def test_lines_keep_coming_during_a_run(compose_cfg, tmp_path, caplog):
-    """About a second of training with a 0.1 s interval: no silence longer than the interval."""
-    every_s, slack_s = 0.1, 0.3  # slack: the tick that crosses the interval, a busy machine
-    overrides = ["learner=dql", "debug=smoke", "env.horizon=1000", "train.episodes=20"]
+class StepClock(FakeClock):
+    """A clock that moves ``step`` seconds at each reading: one reading per update of the loop."""
+
+    def __init__(self, step: float) -> None:
+        super().__init__()
+        self.step = step
+
+    def __call__(self) -> float:
+        self.now += self.step
+        return self.now
+
+
+class ClockTimes(logging.Handler):
+    """The fake clock's time at each progress line."""
+
+    def __init__(self, clock: FakeClock) -> None:
+        super().__init__()
+        self.clock, self.times = clock, []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if LINE.match(record.getMessage()):
+            self.times.append(self.clock.now)
+
+
+def test_lines_keep_coming_during_a_run(compose_cfg, tmp_path, monkeypatch):
+    """Lines come within episodes, at the first tick after each interval: the loop updates the
+    progress every tick. The clock is fake (0.01 s per tick): no wall clock is timed."""
+    step, every_s, horizon = 0.01, 0.5, 200  # a line every 50 ticks, 4 per episode
+    clock = StepClock(step)
+    monkeypatch.setattr(progress, "CLOCK", clock)
+    overrides = ["learner=dql", "debug=smoke", f"env.horizon={horizon}", "train.episodes=5"]
     overrides.append(f"train.log_every_s={every_s}")
-    caplog.set_level(logging.INFO, logger="mrta_rl.runners")
-    train(compose_cfg(overrides), run_dir=tmp_path)
-    lines = [r for r in caplog.records if LINE.match(r.getMessage())]
-    (end,) = [r for r in caplog.records if r.getMessage().startswith("trained 20 episodes")]
-    times = [r.created for r in [*lines, end]]
-    assert len(lines) >= 3
-    assert max(b - a for a, b in zip(times, times[1:], strict=False)) <= every_s + slack_s
+    lines = ClockTimes(clock)
+    progress.logger.addHandler(lines)
+    monkeypatch.setattr(progress.logger, "level", logging.INFO)
+    try:
+        train(compose_cfg(overrides), run_dir=tmp_path)
+    finally:
+        progress.logger.removeHandler(lines)
+    start = clock.now - 5 * horizon * step  # one clock reading at the start, one per tick
+    times = [round(t - start, 6) for t in lines.times]
+    assert len(times) == 5 * horizon * step // every_s  # 20 lines: 4 in each episode
+    assert max(b - a for a, b in zip([0.0, *times], times, strict=False)) <= every_s + step
+
+
+def test_the_rate_leaves_out_the_first_tick(caplog):
+    """The first tick compiles (a minute on a cold numba cache): the rate and the time left
+    count from its end, as the ticks after it go (10 ticks/s)."""
+    clock = FakeClock()
+    log = ProgressLog(
+        total=1000, unit="tick", desc="train dql", every_s=30, episode_units=100, clock=clock
+    )
+    caplog.set_level(logging.INFO, logger="mrta_rl.runners.progress")
+    clock.now += 60.0  # compiling
+    log.update(1)
+    for _ in range(400):
+        clock.now += 0.1
+        log.update(1)
+    # lines at ticks 1 (the interval has passed) and 301 (30 s later)
+    first, line = (r.getMessage() for r in caplog.records)
+    assert LINE.match(first).group(5, 7) == ("0", "?")  # no tick timed yet
+    rate, left = LINE.match(line).group(5, 7)
+    assert rate == "10"  # ticks after the first / seconds after the first: 300 / 30
+    assert left == str(timedelta(seconds=round((1000 - 301) * 0.1)))  # 0:01:10
+
+
+def test_the_bar_rate_leaves_out_the_first_tick():
+    """The tqdm bar's rate and time left too (here: 10 ticks in 1 s after a first tick of 60 s)."""
+    bar = progress_bar(total=1000, unit="tick", desc="x", enabled=True, file=io.StringIO())
+    clock = FakeClock()
+    clock.now = bar.start_t = bar.last_print_t  # tqdm's own clock, from the bar's start
+    bar._time = clock
+    with bar:
+        clock.now += 60.0  # compiling
+        bar.update(1)
+        for _ in range(10):
+            clock.now += 0.1
+            bar.update(1)
+        shown = bar.format_meter(**bar.format_dict)
+    assert "10.00tick/s" in shown and "<01:38," in shown  # 989 ticks left at 10 per second

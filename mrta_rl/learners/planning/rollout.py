@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated, Any, ClassVar
 
@@ -49,6 +50,7 @@ from mrta_rl.learners.fixed import GreedyLearner, TeamReserveLearner
 
 logger = logging.getLogger(__name__)
 LOG_EVERY = 250  # planned ticks between two decision-time log lines
+CLOCK: Callable[[], float] = time.perf_counter  # the decision time's clock (tests: a fake one)
 
 # candidate rule name -> its team_reserve settings (mrta_rl/learners/fixed.py; None: the plain
 # auction). "hold" and "hold_reserve1" are the best whole-team rules of experiment=team_reserve_grid
@@ -290,7 +292,7 @@ class RolloutPlanner(FixedLearner):
 
         The rules' actions (the base's first), then the base action's :func:`neighbours`.
         """
-        start = time.perf_counter()
+        start = CLOCK()
         mask = env.action_mask
         actions = np.stack(
             [rule.act(rule.encode(env), mask, explore=False) for rule in self._rules]
@@ -298,7 +300,7 @@ class RolloutPlanner(FixedLearner):
         if self.neighbours:
             actions = np.concatenate([actions, neighbours(actions[0], mask, self.neighbours)])
         state = env.get_state()
-        self.decision_s += time.perf_counter() - start
+        self.decision_s += CLOCK() - start
         return state, actions
 
     def act(self, view: tuple[Any, np.ndarray], mask: np.ndarray, *, explore: bool) -> np.ndarray:
@@ -312,10 +314,10 @@ class RolloutPlanner(FixedLearner):
         Returns:
             ``[B, m]`` int64 actions.
         """
-        start = time.perf_counter()
+        start = CLOCK()
         chosen = self._plan(view)
         self.ticks += 1
-        self.decision_s += time.perf_counter() - start
+        self.decision_s += CLOCK() - start
         return chosen
 
     def _plan(self, view: tuple[Any, np.ndarray]) -> np.ndarray:
@@ -326,7 +328,7 @@ class RolloutPlanner(FixedLearner):
         plan = np.flatnonzero((actions != actions[0]).any(axis=(0, 2)))
         if self.horizon == 0 or len(actions) == 1 or len(plan) == 0:
             return chosen
-        start = time.perf_counter()
+        start = CLOCK()
         n_cand, n_plan, S = len(actions), len(plan), self.samples
         # a candidate equal to an earlier one for a copy is not rolled out again
         same = (actions[:, None, plan] == actions[None, :, plan]).all(axis=-1)  # [C, C, P]
@@ -343,7 +345,7 @@ class RolloutPlanner(FixedLearner):
         best = self._choose(returns.reshape(len(pairs), S), pairs, n_plan, n_cand)
         chosen[plan] = actions[best, plan]
         self.decisions += 1
-        self.planning_s += time.perf_counter() - start
+        self.planning_s += CLOCK() - start
         if self.decisions % LOG_EVERY == 0:
             logger.info(
                 "rollout: %d planned ticks, %.2f ms per planned tick (%d copies planned now)",

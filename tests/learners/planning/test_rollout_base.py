@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from mrta_rl.envs import AuctionEnv, AuctionParams
+from mrta_rl.learners.planning import rollout
 from mrta_rl.learners.planning.rollout import RolloutPlanner, neighbours
 from mrta_rl.run_files import read_metrics
 from mrta_rl.runners import train as run_train
@@ -58,14 +59,33 @@ def test_without_planning_it_plays_the_trained_base_tick_by_tick(base_run):
     assert (play(rule, env)[0] != ours).any()
 
 
-def test_planning_on_a_trained_base_is_valid_deterministic_and_timed(base_run):
+class MillisecondClock:
+    """A fake clock that moves 1 ms at each reading."""
+
+    def __init__(self) -> None:
+        self.readings = 0
+
+    def __call__(self) -> float:
+        self.readings += 1
+        return self.readings / 1000
+
+
+def decision_ms(ticks: int, planned: int, encodes: int) -> int:
+    """The decision time on :class:`MillisecondClock`, in ms: ``encode`` reads the clock twice
+    (1 ms), ``act`` twice around the planning, which reads it twice more when it plans (3 ms)."""
+    return encodes + ticks + 2 * planned
+
+
+def test_planning_on_a_trained_base_is_valid_deterministic_and_timed(base_run, monkeypatch):
+    monkeypatch.setattr(rollout, "CLOCK", MillisecondClock())
     planner, env = planner_on(base_run, samples=2, horizon=5)
     first, _ = play(planner, env)  # env.step raises on an invalid action
     timing = planner.decision_time()
     assert timing["ticks"] == 60  # one decision per tick of the episode
-    assert 0 < timing["planned_ticks"] <= 60
-    assert timing["total_s"] > 0
-    assert timing["ms_per_tick"] == pytest.approx(1000 * timing["total_s"] / 60, rel=1e-3)
+    planned = timing["planned_ticks"]
+    assert 0 < planned <= 60
+    assert timing["total_s"] == decision_ms(60, planned, encodes=60) / 1000
+    assert timing["ms_per_tick"] == round(decision_ms(60, planned, encodes=60) / 60, 4)
     again, _ = play(*planner_on(base_run, samples=2, horizon=5))
     np.testing.assert_array_equal(first, again)
 
@@ -88,7 +108,8 @@ def test_neighbours_of_a_trained_base_move_one_bid_of_its_action(base_run):
     assert planner.decision_time()["planned_ticks"] > 0 and moved > 0
 
 
-def test_a_run_with_a_trained_base_records_its_decision_time(base_run, tmp_path):
+def test_a_run_with_a_trained_base_records_its_decision_time(base_run, tmp_path, monkeypatch):
+    monkeypatch.setattr(rollout, "CLOCK", MillisecondClock())
     overrides = ["learner=rollout", "system=system1", "debug=smoke", f"learner.base={base_run}"]
     overrides += ["learner.horizon=3", "learner.samples=1"]
     run_dir = finished_run(tmp_path / "run", overrides, "rollout", "system1")
@@ -96,8 +117,11 @@ def test_a_run_with_a_trained_base_records_its_decision_time(base_run, tmp_path)
     assert read_metrics(run_dir / "metrics.json")["eval"] == evaluation  # reports read it
     timing = evaluation["decision_time"]
     assert timing["ticks"] == 50  # debug=smoke: one round of 2 copies, a horizon of 50 ticks
-    assert timing["ms_per_tick"] > 0 and timing["total_s"] > 0
-    assert 0 <= timing["planned_ticks"] <= 50
+    planned = timing["planned_ticks"]
+    assert 0 <= planned <= 50
+    # evaluation also encodes the state the episode ends in
+    assert timing["total_s"] == decision_ms(50, planned, encodes=51) / 1000
+    assert timing["ms_per_tick"] == round(decision_ms(50, planned, encodes=51) / 50, 4)
 
 
 def test_a_rule_base_keeps_its_metrics_and_adds_only_its_decision_time(tmp_path):
