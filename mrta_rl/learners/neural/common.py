@@ -638,7 +638,7 @@ class NeuralLearner(Learner, abstract=True):
         """
         directory = Path(directory)
         directory.mkdir(parents=True, exist_ok=True)
-        torch.save(self.networks.state_dict(), directory / WEIGHTS_FILE)
+        write_tensors(self.networks.state_dict(), directory / WEIGHTS_FILE)
         meta = {
             "class": type(self).__name__,
             "group_map": self.group_map,
@@ -707,7 +707,7 @@ class NeuralLearner(Learner, abstract=True):
             "losses": {name: loss.state_dict() for name, loss in self.losses.items()},
             "egreedy": [module.state_dict() for module in self.egreedy],
         }
-        torch.save(extra, Path(directory) / TRAINING_FILE)
+        write_tensors(extra, Path(directory) / TRAINING_FILE)
         return {
             **super().checkpoint_state(directory),
             "gradient_steps": self.gradient_steps,
@@ -746,6 +746,18 @@ def read_tensors(path: Path, device: torch.device) -> Any:
             f"{path}: truncated, damaged or not a weights file written by this package "
             f"({type(err).__name__})"
         ) from None
+
+
+def write_tensors(payload: Any, path: Path) -> None:
+    """``torch.save`` through a Python file object, so that a refused write is an ``OSError``.
+
+    Given a path, torch's own writer turns a full disk or a file size limit into a
+    ``RuntimeError`` that names neither the fault nor the file; through a file object the
+    ``OSError`` is that error's context, which the commands report in one line naming the file
+    (``mrta_rl/errors.py``). The bytes written are the same.
+    """
+    with open(path, "wb") as file:
+        torch.save(payload, file)
 
 
 def check_state_dict(state: Any, expected: dict[str, torch.Tensor], path: Path) -> None:

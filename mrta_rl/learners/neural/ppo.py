@@ -59,6 +59,7 @@ from mrta_rl.learners.neural.common import (
     observation_td,
     read_tensors,
     require_torchrl,
+    write_tensors,
 )
 from mrta_rl.learners.neural.networks import PerRobotQ
 from mrta_rl.learners.neural.set_network import ROBOT_ATTENTION, SetWithPrior, check_fits
@@ -513,7 +514,7 @@ class PPOLearner(Learner, abstract=True):
         """Write ``weights.pt`` (a state_dict, ``weights_only`` loadable) and ``learner.json``."""
         directory = Path(directory)
         directory.mkdir(parents=True, exist_ok=True)
-        torch.save(self.networks.state_dict(), directory / WEIGHTS_FILE)
+        write_tensors(self.networks.state_dict(), directory / WEIGHTS_FILE)
         meta = {
             "class": type(self).__name__,
             "group_map": self.group_map,
@@ -559,7 +560,7 @@ class PPOLearner(Learner, abstract=True):
 
     def checkpoint_state(self, directory: Path) -> dict[str, Any]:
         """Counters; the optimizer in ``training.pt`` (torch's generator is the runner's)."""
-        torch.save({"optimizer": self.optimizer.state_dict()}, Path(directory) / TRAINING_FILE)
+        write_tensors({"optimizer": self.optimizer.state_dict()}, Path(directory) / TRAINING_FILE)
         return {**super().checkpoint_state(directory), "gradient_steps": self.gradient_steps}
 
     def restore_state(self, state: dict[str, Any], directory: Path) -> None:
