@@ -38,6 +38,7 @@ import os
 import shutil
 import sys
 from collections.abc import Callable
+from contextlib import suppress
 from pathlib import Path
 from typing import Any
 
@@ -59,10 +60,39 @@ FAILED_JOBS: list[str] = []  # "job <n> (<overrides>): <message>" of this sweep'
 # error, whose run dir is removed (reports/collect.py shows the job as refused, with the reason)
 
 
+_HANDLE_ERROR = logging.FileHandler.handleError  # logging's own: a traceback on stderr, go on
+
+
+def _log_faults_stop(handler: logging.Handler, record: logging.LogRecord) -> None:
+    """A log file the machine refuses to write (disk full...) stops the command, naming it.
+
+    ``logging`` prints a traceback for every record it cannot write and goes on; the job log is
+    one of the run's files, so its refused write ends the command as any other does: in one
+    line (:func:`run`), with the newest checkpoint kept.
+    """
+    err = sys.exc_info()[1]
+    fault = os_fault(err) if err is not None else None
+    if fault is not None and isinstance(handler, logging.FileHandler):
+        raise OSError(fault.errno, fault.strerror, handler.baseFilename) from err
+    _HANDLE_ERROR(handler, record)
+
+
+def _quiet_faults_at_exit(unraisable: Any) -> None:
+    """After a refused write has been named, files that cannot flush as they close say nothing.
+
+    Loggers close their files when the interpreter exits; after a full disk those closes fail
+    again, and Python would print a traceback for each.
+    """
+    if os_fault(unraisable.exc_value) is None:
+        sys.__unraisablehook__(unraisable)
+
+
 def _exit(err: BaseException) -> None:
     """Print the one message of a user error or Ctrl-C and exit, unless tracebacks are wanted."""
     if _FULL_ERROR:
         return  # the caller re-raises: the traceback is printed
+    if os_fault(err) is not None:
+        sys.unraisablehook = _quiet_faults_at_exit
     if isinstance(err, KeyboardInterrupt):
         print("interrupted", file=sys.stderr)
         sys.exit(EXIT_INTERRUPTED)
@@ -88,6 +118,7 @@ def run(main: Callable[[], Any]) -> None:
     """
     # Hydra then re-raises instead of printing its own stack trace; the handlers below decide
     os.environ["HYDRA_FULL_ERROR"] = "1"
+    logging.FileHandler.handleError = _log_faults_stop  # type: ignore[method-assign]
     claimed = None
     try:
         with claim_from_args(sys.argv[1:]) as claimed:  # before Hydra writes into the run dir
@@ -174,7 +205,8 @@ def remove_unused_run_dir(run_dir: Path | None = None, job_name: str = "") -> Pa
             isinstance(handler, logging.FileHandler)
             and Path(handler.baseFilename).parent == run_dir
         ):
-            handler.close()
+            with suppress(OSError):  # its last lines cannot be written: it closes anyway
+                handler.close()
             logging.root.removeHandler(handler)
     shutil.rmtree(run_dir, ignore_errors=True)  # a folder it cannot remove stays
     parent = run_dir.parent

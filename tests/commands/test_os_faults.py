@@ -108,6 +108,17 @@ def test_a_full_disk_keeps_the_last_checkpoint_and_the_run_resumes_to_the_same_e
     assert_same_run(full_dir, cut_dir)
 
 
+@needs_dev_full
+def test_a_log_file_on_a_full_disk_stops_the_run_in_one_line(tmp_path):
+    """logging would print a traceback per line it cannot write, and go on."""
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    (run_dir / "train.log").symlink_to(FULL)
+    code, _, err = run("train.py", "learner=greedy", "debug=smoke", f"hydra.run.dir={run_dir}")
+    assert_one_line(code, err, f"error: {run_dir / 'train.log'}: No space left on device (ENOSPC)")
+    assert not (run_dir / "metrics.json").exists()
+
+
 def fail_on(target: str, fault: int):
     """A stand-in for ``os.replace`` that refuses to write ``target`` (a file name)."""
     real = os.replace
