@@ -18,7 +18,8 @@ is not checked.
 
 :func:`check_value` checks one value, :func:`check_keywords` a config mapping against a class's
 ``__init__`` (following ``**kwargs`` up the base classes) or a function, :func:`check_fields`
-against a dataclass. Every message names the key and what is allowed, e.g.
+against a dataclass, :func:`check_arguments` a command line's options against a dataclass.
+Every message names the key (or the option) and what is allowed, e.g.
 ``learner.alpha_power: must be a number >= 0, got -2``.
 """
 
@@ -41,6 +42,7 @@ __all__ = [
     "Declared",
     "Range",
     "UserError",
+    "check_arguments",
     "check_fields",
     "check_keywords",
     "check_value",
@@ -443,3 +445,27 @@ def check_fields(
         require=require,
         null_is_default=null_is_default,
     )
+
+
+def check_arguments(cls: type, arguments: Any) -> dict[str, Any]:
+    """Check a command line's parsed options against the declared fields of a dataclass.
+
+    Field ``batch_sizes`` is the option ``--batch-sizes`` (``argparse`` stores it as
+    ``batch_sizes``), and the messages name the option as typed.
+
+    Args:
+        cls: The dataclass declaring the options' types and ranges.
+        arguments: The parsed options (an ``argparse.Namespace``).
+
+    Returns:
+        The checked values by field name.
+
+    Raises:
+        ConfigError: naming the option (``--seconds: must be a number > 0, got nan``).
+    """
+    return {
+        name: check_value(
+            f"--{name.replace('_', '-')}", getattr(arguments, name), declared.annotation
+        )
+        for name, declared in declared_fields(cls).items()
+    }

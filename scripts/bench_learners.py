@@ -14,9 +14,10 @@ of mrta_rl (e.g. today's main) and the table shows the speed-up over it.
 
 from __future__ import annotations
 
-import argparse
 import json
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated
 
 from tqdm import tqdm
 
@@ -27,10 +28,25 @@ from mrta_rl.bench.learners import (
     summarize,
     trained_learners,
 )
+from mrta_rl.commands import CommandLineParser
 from mrta_rl.conf_files import learner_files
+from mrta_rl.config import Range, UserError, check_arguments
+from mrta_rl.errors import check_output_file, format_list
+from mrta_rl.runners import cli
 
-if __name__ == "__main__":
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+
+@dataclass(frozen=True)
+class LearnerBenchArguments:
+    """The numbers of the command line, checked before any work."""
+
+    episodes: Annotated[int, Range(1)]  # training episodes per learner
+    horizon: Annotated[int, Range(0)]  # ticks per episode, 0: the config's
+    repeats: Annotated[int, Range(1)]  # repeats (min and median)
+    seconds: Annotated[float, Range(0, low_open=True)]  # least wall time per yardstick, finite
+
+
+def main() -> None:
+    parser = CommandLineParser(prog="bench_learners.py", description=__doc__.splitlines()[0])
     parser.add_argument("--learners", nargs="+", help="learner names (default: all that train)")
     parser.add_argument(
         "--config-dir", action="append", default=[], help="a user config dir with learner/*.yaml"
@@ -48,14 +64,18 @@ if __name__ == "__main__":
     parser.add_argument("--experiment", default="", help="conf/experiment for this checkout's runs")
     parser.add_argument("--out", default="bench_learners.json")
     args = parser.parse_args()
+    check_arguments(LearnerBenchArguments, args)  # before any work
     known = learner_files(args.config_dir)
     unknown = sorted(set(args.learners or ()) - set(known))
     if unknown:
-        parser.error(f"unknown learners {unknown}; known: {sorted(known)}")
+        raise UserError(
+            f"--learners: unknown {', '.join(unknown)} (known: {format_list(sorted(known))})"
+        )
     learners = args.learners or trained_learners(args.config_dir)
     if args.list:
         print("\n".join(learners))
-        raise SystemExit(0)
+        return
+    check_output_file(args.out, "--out")
     codes = {"baseline": args.baseline, "this": None} if args.baseline else {"this": None}
     runs: dict[str, list] = {code: [] for code in codes}
     for _ in tqdm(range(args.repeats), desc="bench_learners", unit="repeat"):
@@ -80,3 +100,7 @@ if __name__ == "__main__":
         print(f"\n{neural}")
     Path(args.out).write_text(json.dumps({"rows": rows, "runs": runs}, indent=2))
     print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    cli.run(main)

@@ -13,7 +13,10 @@ reports as its system; a team without a ``name:`` is named so too.
 
 from __future__ import annotations
 
+import argparse
 import sys
+from collections.abc import Callable
+from typing import Any, NoReturn
 
 from hydra.core.config_store import ConfigStore
 
@@ -25,15 +28,33 @@ from mrta_rl.systems import build_system
 SYSTEM_OVERRIDE = "system="
 
 
-def use_team_files(argv: list[str] | None = None) -> list[str]:
+class CommandLineParser(argparse.ArgumentParser):
+    """``argparse`` for the commands that take options: a bad option is a one-line user error.
+
+    ``argparse`` prints its usage and exits; here the error is a :class:`UserError`, which the
+    command prints as one ``error: ...`` line with the exit code of every user error
+    (``mrta_rl/errors.py``). ``--help`` prints the usage as usual.
+    """
+
+    def error(self, message: str) -> NoReturn:
+        """Raise the parse error as a user error (``argument --repeats: invalid int value``)."""
+        raise UserError(f"{message} (see {self.prog} --help)")
+
+
+def use_team_files(
+    argv: list[str] | None = None, check: Callable[[dict[str, Any]], Any] = build_system
+) -> list[str]:
     """Turn ``system=<team yaml>`` overrides into names of Hydra's ``system`` group.
 
     Every yaml path of a ``system=`` override (several: a sweep) is read, checked with
-    :func:`~mrta_rl.systems.build_system` and stored in Hydra's config store under the file's
-    name; the override then names it. Names of shipped systems pass unchanged.
+    ``check`` and stored in Hydra's config store under the file's name; the override then
+    names it. Names of shipped systems pass unchanged.
 
     Args:
         argv: The command line, changed in place; default ``sys.argv``.
+        check: Builds the team from the file's content, or raises a :class:`UserError`; default
+            :func:`~mrta_rl.systems.build_system`. A command whose limits are known before
+            Hydra composes its config checks them here, before a big team reaches Hydra.
 
     Returns:
         The command line.
@@ -63,7 +84,7 @@ def use_team_files(argv: list[str] | None = None) -> list[str]:
             taken[name] = str(path)
             team = read_yaml(path)
             try:
-                build_system(team)
+                check(team)
             except (UserError, TypeError) as err:
                 raise UserError(f"{path}: {err}") from None
             if isinstance(team, dict) and "name" not in team:  # the name the run reports

@@ -12,16 +12,20 @@ with it (``scaled1000`` runs 1 and 16 copies). The plain loop is the spec's refe
 
 from __future__ import annotations
 
-import argparse
 import json
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated
 
 from tqdm import tqdm
 
 from mrta_rl.bench.env import bench_env, bench_plain_loop, format_table
 from mrta_rl.checked_files import read_yaml
+from mrta_rl.commands import CommandLineParser
 from mrta_rl.conf_files import system_file
+from mrta_rl.config import Range, check_arguments
 from mrta_rl.envs.params import AuctionParams
+from mrta_rl.errors import check_output_file
 from mrta_rl.runners import cli
 from mrta_rl.systems import RobotSystem, build_system, random_system
 
@@ -29,6 +33,16 @@ from mrta_rl.systems import RobotSystem, build_system, random_system
 MAX_MASK = 1 << 23
 # the benchmark's random teams by name: robots, task types, density, scaled auction
 RANDOM_TEAMS = {"random100": (100, 20, 0.15, False), "scaled1000": (1000, 20, 0.15, True)}
+
+
+@dataclass(frozen=True)
+class BenchArguments:
+    """The numbers of the command line (``--batch-sizes`` ...), checked before any work."""
+
+    batch_sizes: Annotated[tuple[int, ...], Range(1)]  # env copies per cell
+    threads: Annotated[tuple[int, ...], Range(1)]  # thread counts (a cell needs copies >= threads)
+    repeats: Annotated[int, Range(1)]  # side-by-side repeats of every cell
+    seconds: Annotated[float, Range(0, low_open=True)]  # least wall time per cell, finite
 
 
 def _system(name: str) -> RobotSystem:
@@ -46,7 +60,7 @@ def _mask_size(system: RobotSystem, batch_size: int) -> int:
 
 
 def _task() -> None:
-    parser = argparse.ArgumentParser(prog="mrta-bench", description=__doc__.splitlines()[0])
+    parser = CommandLineParser(prog="mrta-bench", description=__doc__.splitlines()[0])
     parser.add_argument("--batch-sizes", type=int, nargs="+", default=[1, 16, 64, 1024, 8192])
     parser.add_argument("--threads", type=int, nargs="+", default=[1, 2], help="thread counts")
     parser.add_argument("--paths", nargs="+", default=["step", "play"], choices=["step", "play"])
@@ -58,6 +72,8 @@ def _task() -> None:
     parser.add_argument("--clock", default="wall", choices=["wall", "cpu"], help="cpu: steadier")
     parser.add_argument("--out", default="bench_env.json")
     args = parser.parse_args()
+    check_arguments(BenchArguments, args)  # before any work, and before the systems are built
+    check_output_file(args.out, "--out")
     systems = [_system(name) for name in args.systems]
     plain = [(s, None, 1, 1) for s in systems]
     cells = plain + [

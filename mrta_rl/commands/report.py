@@ -9,27 +9,23 @@ or torch.
 
 from __future__ import annotations
 
-import argparse
 import logging
 import os
 import sys
 
-import yaml
-from hydra.errors import HydraException
-
-from mrta_rl.config import UserError
-from mrta_rl.reports import build_report
-
-# the exit codes of every script (mrta_rl/runners/cli.py): a user error as argparse, Ctrl-C as
-# the shell; runners/cli.py is not imported, since it loads the runners and the learners
-EXIT_USER_ERROR, EXIT_INTERRUPTED = 2, 130
+from mrta_rl.commands import CommandLineParser
+from mrta_rl.errors import EXIT_INTERRUPTED, EXIT_USER_ERROR, check_output_folder, user_message
+from mrta_rl.reports import build_report, default_out_dir
 
 
 def _task() -> None:
-    parser = argparse.ArgumentParser(prog="mrta-report", description=__doc__.splitlines()[0])
+    parser = CommandLineParser(prog="mrta-report", description=__doc__.splitlines()[0])
     parser.add_argument("inputs", nargs="+", help="multirun dir, run dirs, or folders of run dirs")
     parser.add_argument("--out", default=None, help="output folder (default: <input>/report)")
     args = parser.parse_args()
+    # before any run is read: a report that could not be written is not made
+    out = args.out if args.out is not None else default_out_dir(args.inputs)
+    check_output_folder(out, "--out" if args.out is not None else "the report folder")
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     files = build_report(args.inputs, args.out)
     runs, missing = len(files.collection.runs), len(files.collection.missing)
@@ -42,15 +38,21 @@ def _task() -> None:
 
 
 def main() -> None:
-    """Run the command; a user error is one ``error: ...`` line, Ctrl-C ``interrupted``."""
+    """Run the command; a user error is one ``error: ...`` line, Ctrl-C ``interrupted``.
+
+    The exit codes and messages are those of every command (``mrta_rl/errors.py``); this
+    command does not use ``runners/cli.py``, which loads the runners and the learners.
+    """
     try:
         _task()
-    except (UserError, HydraException, yaml.YAMLError, KeyboardInterrupt) as err:
+    except (Exception, KeyboardInterrupt) as err:
         if os.environ.get("HYDRA_FULL_ERROR") == "1":  # the traceback is wanted
             raise
         if isinstance(err, KeyboardInterrupt):
             print("interrupted", file=sys.stderr)
             sys.exit(EXIT_INTERRUPTED)
-        syntax = "YAML syntax error: " if isinstance(err, yaml.YAMLError) else ""
-        print(f"error: {syntax}{err}", file=sys.stderr)
+        message = user_message(err)
+        if message is None:
+            raise  # a bug: its traceback
+        print(f"error: {message}", file=sys.stderr)
         sys.exit(EXIT_USER_ERROR)

@@ -139,6 +139,39 @@ class StepResult:
         return self._robot_reward
 
 
+def check_limits(system: RobotSystem, params: AuctionParams) -> None:
+    """Refuse a team and parameters whose state the env's packed fields cannot hold.
+
+    Checked from the sizes alone, before anything is built: validation
+    (``runners/validation.py``) refuses such a run before any work.
+
+    Args:
+        system: The robot team.
+        params: Its parameters (``arrival_rate`` resolved for the team, or None: ``m / 6``).
+
+    Raises:
+        ValueError: naming the quantity, its value and the limit.
+    """
+    p = params.resolve(system.n_robots)
+    limits = {
+        "horizon + reauction_delay": (p.horizon + p.reauction_delay, 1 << DUE_BITS),
+        "number of task types": (system.n_task_types, 1 << TYPE_BITS),
+        "longest duration": (
+            max(
+                p.duration_low[1],
+                p.duration_high[1],
+                *(r.hi for d in system.durations.values() for r in d.values()),
+            ),
+            1 << DURATION_BITS,
+        ),
+        "expected tasks per episode x 4": (4 * p.arrival_rate * p.horizon, 1 << ID_BITS),
+        "zones (one robot at least in each)": (p.zones, system.n_robots + 1),
+    }
+    for what, (value, limit) in limits.items():
+        if value >= limit:
+            raise ValueError(f"{what} = {value} exceeds the environment's limit {limit - 1}")
+
+
 class AuctionEnv:
     """Batched auction environment (spec ``auction_env.md``), ``B`` independent copies.
 
@@ -206,7 +239,7 @@ class AuctionEnv:
         self.robot_zone = np.arange(system.n_robots) * zones // system.n_robots
         self.zone_slots = np.arange(p.slots)[None, :] % zones == self.robot_zone[:, None]
         self.copy_offset = 0  # index of copy 0 in a larger batch (ThreadedAuctionEnv), for errors
-        self._check_limits()
+        check_limits(system, self.params)
 
         # per (type, priority) duration ranges: system file overrides, else the params' defaults
         dur_lo = np.zeros((self.n_task_types, 2), np.int64)
@@ -246,26 +279,6 @@ class AuctionEnv:
         self._new_views()
         self.seed(seed)
         self.reset()
-
-    def _check_limits(self) -> None:
-        p = self.params
-        limits = {
-            "horizon + reauction_delay": (p.horizon + p.reauction_delay, 1 << DUE_BITS),
-            "number of task types": (self.n_task_types, 1 << TYPE_BITS),
-            "longest duration": (
-                max(
-                    p.duration_low[1],
-                    p.duration_high[1],
-                    *(r.hi for d in self.system.durations.values() for r in d.values()),
-                ),
-                1 << DURATION_BITS,
-            ),
-            "expected tasks per episode x 4": (4 * p.arrival_rate * p.horizon, 1 << ID_BITS),
-            "zones (one robot at least in each)": (p.zones, self.n_robots + 1),
-        }
-        for what, (value, limit) in limits.items():
-            if value >= limit:
-                raise ValueError(f"{what} = {value} exceeds the environment's limit {limit - 1}")
 
     # ------------------------------------------------------------------ seeding and reset
     def seed(self, seed: int | np.ndarray) -> None:

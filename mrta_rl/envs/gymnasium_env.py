@@ -3,6 +3,9 @@
 Importing ``mrta_rl.envs`` (or any module under it) registers the Gymnasium ids of
 :data:`GYM_IDS`, so ``gym.make`` works after ``import mrta_rl.envs``; without that import,
 ``gym.make("mrta_rl.envs:mrta_rl/Auction-System1-v0")`` imports it itself.
+
+``mrta_rl/Auction-v0`` plays the team given as ``system=`` (required); a per-system id plays its
+own team, and refuses a ``system=`` that names another one (:func:`make_gym_env`).
 """
 
 from __future__ import annotations
@@ -14,15 +17,18 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from mrta_rl.conf_files import shipped_systems
 from mrta_rl.envs import encodings, view_inputs
 from mrta_rl.envs.params import AuctionParams
 from mrta_rl.envs.view_inputs import InvalidAction, SystemLike
+from mrta_rl.systems import RobotSystem
 
-# id -> default keyword arguments; gym.make's keyword arguments override them
-GYM_IDS: dict[str, dict[str, Any]] = {
-    "mrta_rl/Auction-v0": {},  # pass system=... (a name, yaml path, mapping or RobotSystem)
-    "mrta_rl/Auction-System1-v0": {"system": "system1"},  # paper Table 1
-    "mrta_rl/Auction-System2-v0": {"system": "system2"},  # paper Table 2
+# id -> the team it plays: None = the system= keyword's (a name, yaml path, mapping or
+# RobotSystem), else a shipped system's name
+GYM_IDS: dict[str, str | None] = {
+    "mrta_rl/Auction-v0": None,
+    "mrta_rl/Auction-System1-v0": "system1",  # paper Table 1
+    "mrta_rl/Auction-System2-v0": "system2",  # paper Table 2
 }
 
 
@@ -140,11 +146,65 @@ class AuctionGymEnv(gym.Env):
         return obs, float(result.team_reward[0]), False, bool(result.done[0]), info
 
 
+def _same_team(a: RobotSystem, b: RobotSystem) -> bool:
+    """True if two teams play the same env: robots, task types, willingness, durations, env:."""
+    return (
+        a.robots == b.robots
+        and a.task_types == b.task_types
+        and np.array_equal(a.willingness, b.willingness)
+        and dict(a.durations) == dict(b.durations)
+        and dict(a.env_overrides) == dict(b.env_overrides)
+    )
+
+
+def make_gym_env(gym_id: str, system: SystemLike | None = None, **kwargs: Any) -> AuctionGymEnv:
+    """The env of a Gymnasium id of :data:`GYM_IDS` (the entry point ``gym.make`` calls).
+
+    Args:
+        gym_id: The id (``gym.make`` passes it: it is registered with the id).
+        system: The team (:class:`AuctionGymEnv`); required by ``mrta_rl/Auction-v0``. A
+            per-system id plays its own team: ``system`` may name that team again, never another.
+        **kwargs: The other arguments of :class:`AuctionGymEnv`.
+
+    Returns:
+        The env.
+
+    Raises:
+        ValueError: naming the keyword ``system``: missing for ``mrta_rl/Auction-v0``, or another
+            team than a per-system id's.
+    """
+    own = GYM_IDS[gym_id]
+    if own is None:
+        if system is None:
+            raise ValueError(
+                f"{gym_id}: pass the team as system=...: a shipped system's name "
+                f"({', '.join(shipped_systems())}), a team yaml path, a mapping or a RobotSystem"
+            )
+        return AuctionGymEnv(system, **kwargs)
+    if system is not None and not _same_team(
+        view_inputs.resolve_system(system), view_inputs.resolve_system(own)
+    ):
+        raise ValueError(
+            f"{gym_id} plays {own}; system={_shown(system)} is another team (drop system=, or "
+            f"use mrta_rl/Auction-v0 with system=...)"
+        )
+    return AuctionGymEnv(own if system is None else system, **kwargs)
+
+
+def _shown(system: SystemLike) -> str:
+    """A ``system=`` value as a message shows it: its name, path or type."""
+    if isinstance(system, RobotSystem):
+        return f"<RobotSystem {system.name}>"
+    if isinstance(system, Mapping):
+        return f"<mapping {system.get('name', '?')}>"
+    return repr(str(system))[:80]
+
+
 def register_envs() -> None:
     """Register the ids of :data:`GYM_IDS` with Gymnasium (once; runs when this module loads)."""
-    for env_id, kwargs in GYM_IDS.items():
+    for env_id in GYM_IDS:
         if env_id not in gym.registry:
-            gym.register(env_id, entry_point=f"{__name__}:AuctionGymEnv", kwargs=kwargs)
+            gym.register(env_id, entry_point=f"{__name__}:make_gym_env", kwargs={"gym_id": env_id})
 
 
 register_envs()

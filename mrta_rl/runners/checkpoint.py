@@ -21,7 +21,7 @@ import shutil
 import signal
 import time
 from collections.abc import Callable, Iterator, Mapping
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from pathlib import Path
 from typing import Any
 
@@ -236,26 +236,35 @@ class TrainingCheckpoint:
         name = str(int(loop["episode"]))
         tmp = self.root / f".{name}.{os.getpid()}.tmp"
         version = self.root / name
-        shutil.rmtree(tmp, ignore_errors=True)
-        tmp.mkdir(parents=True)
-        save_learner(self.learner, tmp / LEARNER_DIR)
-        if self.resources is not None:
-            loop = {**loop, "spent": {**loop.get("spent", {}), **self.resources.spent()}}
-        state = {"loop": loop, "learner": self.learner.checkpoint_state(tmp)}
-        if files is not None:
-            files(tmp)
-        write_json(tmp / STATE_FILE, state)
-        _sync_tree(tmp)
-        if version.exists():  # left by a crash before its pointer moved: never pointed to
-            shutil.rmtree(version)
-        os.rename(tmp, version)
-        _sync(self.root)
         pointer_tmp = self.root / f".{POINTER_FILE}.{os.getpid()}.tmp"
-        with open(pointer_tmp, "w") as file:
-            file.write(name + "\n")
-            file.flush()
-            os.fsync(file.fileno())
-        os.replace(pointer_tmp, self.root / POINTER_FILE)  # the checkpoint is complete here
+        try:
+            shutil.rmtree(tmp, ignore_errors=True)
+            tmp.mkdir(parents=True)
+            save_learner(self.learner, tmp / LEARNER_DIR)
+            if self.resources is not None:
+                loop = {**loop, "spent": {**loop.get("spent", {}), **self.resources.spent()}}
+            state = {"loop": loop, "learner": self.learner.checkpoint_state(tmp)}
+            if files is not None:
+                files(tmp)
+            write_json(tmp / STATE_FILE, state)
+            _sync_tree(tmp)
+            if version.exists():  # left by a crash before its pointer moved: never pointed to
+                shutil.rmtree(version)
+            os.rename(tmp, version)
+            _sync(self.root)
+            with open(pointer_tmp, "w") as file:
+                file.write(name + "\n")
+                file.flush()
+                os.fsync(file.fileno())
+            os.replace(pointer_tmp, self.root / POINTER_FILE)  # the checkpoint is complete here
+        except BaseException:
+            # a write refused (disk full, file too large...) or Ctrl-C: the pointer still names
+            # the last complete checkpoint; what this save wrote goes (a renamed version folder
+            # that no pointer names is removed by the next save)
+            shutil.rmtree(tmp, ignore_errors=True)
+            with suppress(OSError):
+                pointer_tmp.unlink(missing_ok=True)
+            raise
         _sync(self.root)
         self.path = version
         self.saved_episode = loop["episode"]

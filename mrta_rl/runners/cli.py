@@ -10,9 +10,11 @@ Every script in ``scripts/`` is a thin entry point::
         cli.run(main)
 
 * A **user error** -- a :class:`~mrta_rl.config.UserError` (bad setting, malformed system file,
-  bad checkpoint path), a Hydra composition error (unknown config group option, bad override
-  syntax) or a YAML syntax error in a config or system file -- prints ``error: <message>`` on
-  stderr, the message naming the culprit, and exits with :data:`EXIT_USER_ERROR`.
+  bad checkpoint path), a Hydra composition error (unknown key or config group option, bad
+  override syntax), a YAML syntax error in a config or system file, or an operating-system
+  fault (disk full, file too large, permission denied, a file where a folder goes) -- prints
+  ``error: <message>`` on stderr, one line naming the culprit (``mrta_rl/errors.py``), and exits
+  with :data:`EXIT_USER_ERROR`.
 * **Ctrl-C** prints ``interrupted`` and exits with :data:`EXIT_INTERRUPTED` (130, the shell's
   convention), without a traceback. A training loop that saves on Ctrl-C does so before the
   ``KeyboardInterrupt`` reaches this layer.
@@ -36,33 +38,21 @@ import os
 import shutil
 import sys
 from collections.abc import Callable
+from contextlib import suppress
 from pathlib import Path
 from typing import Any
 
-import yaml
 from hydra.core.hydra_config import HydraConfig
-from hydra.errors import HydraException
 from hydra.types import RunMode
-from omegaconf.errors import OmegaConfBaseException
 
-from mrta_rl.config import UserError
+from mrta_rl.errors import EXIT_INTERRUPTED, EXIT_USER_ERROR, os_fault, user_message
 from mrta_rl.run_files import REFUSED_JOBS_FILE
 from mrta_rl.runners.run_dir import claim_from_args
 
-EXIT_USER_ERROR = 2  # bad input (as argparse); 1 stays Python's exit code for a crash
-EXIT_INTERRUPTED = 130  # 128 + SIGINT
-USER_ERRORS = (UserError, HydraException, yaml.YAMLError)
+__all__ = ["EXIT_INTERRUPTED", "EXIT_USER_ERROR", "job", "remove_unused_run_dir", "run"]
+
 HYDRA_FILES = frozenset({"config.yaml", "hydra.yaml", "overrides.yaml"})  # of <run dir>/.hydra
 SWEEP_FILES = frozenset({"multirun.yaml"})  # what Hydra writes in a sweep dir before the jobs
-
-
-def _message(err: BaseException) -> str:
-    if isinstance(err, yaml.YAMLError):
-        return f"YAML syntax error: {err}"
-    text = str(err)
-    if isinstance(err.__cause__, OmegaConfBaseException):  # Hydra's compact errors
-        text += f"\n{err.__cause__}"
-    return text
 
 
 FAILED_JOBS: list[str] = []  # "job <n> (<overrides>): <message>" of this sweep's failed jobs
@@ -70,10 +60,39 @@ FAILED_JOBS: list[str] = []  # "job <n> (<overrides>): <message>" of this sweep'
 # error, whose run dir is removed (reports/collect.py shows the job as refused, with the reason)
 
 
+_HANDLE_ERROR = logging.FileHandler.handleError  # logging's own: a traceback on stderr, go on
+
+
+def _log_faults_stop(handler: logging.Handler, record: logging.LogRecord) -> None:
+    """A log file the machine refuses to write (disk full...) stops the command, naming it.
+
+    ``logging`` prints a traceback for every record it cannot write and goes on; the job log is
+    one of the run's files, so its refused write ends the command as any other does: in one
+    line (:func:`run`), with the newest checkpoint kept.
+    """
+    err = sys.exc_info()[1]
+    fault = os_fault(err) if err is not None else None
+    if fault is not None and isinstance(handler, logging.FileHandler):
+        raise OSError(fault.errno, fault.strerror, handler.baseFilename) from err
+    _HANDLE_ERROR(handler, record)
+
+
+def _quiet_faults_at_exit(unraisable: Any) -> None:
+    """After a refused write has been named, files that cannot flush as they close say nothing.
+
+    Loggers close their files when the interpreter exits; after a full disk those closes fail
+    again, and Python would print a traceback for each.
+    """
+    if os_fault(unraisable.exc_value) is None:
+        sys.__unraisablehook__(unraisable)
+
+
 def _exit(err: BaseException) -> None:
     """Print the one message of a user error or Ctrl-C and exit, unless tracebacks are wanted."""
     if _FULL_ERROR:
         return  # the caller re-raises: the traceback is printed
+    if os_fault(err) is not None:
+        sys.unraisablehook = _quiet_faults_at_exit
     if isinstance(err, KeyboardInterrupt):
         print("interrupted", file=sys.stderr)
         sys.exit(EXIT_INTERRUPTED)
@@ -81,7 +100,7 @@ def _exit(err: BaseException) -> None:
         lines = "".join(f"\n  {failure}" for failure in FAILED_JOBS)
         print(f"error: {len(FAILED_JOBS)} jobs of the sweep failed:{lines}", file=sys.stderr)
         sys.exit(EXIT_USER_ERROR)
-    print(f"error: {_message(err)}", file=sys.stderr)
+    print(f"error: {user_message(err)}", file=sys.stderr)
     sys.exit(EXIT_USER_ERROR)
 
 
@@ -99,11 +118,17 @@ def run(main: Callable[[], Any]) -> None:
     """
     # Hydra then re-raises instead of printing its own stack trace; the handlers below decide
     os.environ["HYDRA_FULL_ERROR"] = "1"
+    logging.FileHandler.handleError = _log_faults_stop  # type: ignore[method-assign]
+    claimed = None
     try:
-        with claim_from_args(sys.argv[1:]):  # before Hydra writes into the run dir
+        with claim_from_args(sys.argv[1:]) as claimed:  # before Hydra writes into the run dir
             main()
-    except (*USER_ERRORS, KeyboardInterrupt) as err:
-        _exit(err)
+    except (Exception, KeyboardInterrupt) as err:
+        if isinstance(err, KeyboardInterrupt) or user_message(err) is not None:
+            # Hydra's files of a job that never ran (Hydra's own write refused); Hydra names
+            # the job after the module of its task function
+            remove_unused_run_dir(claimed, main.__module__.rpartition(".")[2])
+            _exit(err)
         raise
 
 
@@ -124,13 +149,17 @@ def job(task: Callable[[Any], Any]) -> Callable[[Any], Any]:
     def wrapper(cfg: Any) -> Any:
         try:
             return task(cfg)
-        except (*USER_ERRORS, KeyboardInterrupt) as err:
+        except (Exception, KeyboardInterrupt) as err:
+            message = None if isinstance(err, KeyboardInterrupt) else user_message(err)
+            if message is None and not isinstance(err, KeyboardInterrupt):
+                raise  # a bug: its traceback
             sweep = HydraConfig.get().mode == RunMode.MULTIRUN
-            if sweep and not isinstance(err, KeyboardInterrupt):
+            if sweep and message is not None:
                 hydra_job = HydraConfig.get().job
                 overrides = " ".join(hydra_job.override_dirname.split(",")) or "-"
-                FAILED_JOBS.append(f"job {hydra_job.num} ({overrides}): {_message(err)}")
-                _record_refusal(_message(err))  # first: the sweep dir then keeps it
+                FAILED_JOBS.append(f"job {hydra_job.num} ({overrides}): {message}")
+                if os_fault(err) is None:  # refused by its input; a fault of the machine is not
+                    _record_refusal(message)  # first: the sweep dir then keeps it
             remove_unused_run_dir()
             if not sweep:
                 _exit(err)
@@ -149,18 +178,26 @@ def _record_refusal(reason: str) -> None:
         handle.write(json.dumps(record) + "\n")
 
 
-def remove_unused_run_dir() -> Path | None:
+def remove_unused_run_dir(run_dir: Path | None = None, job_name: str = "") -> Path | None:
     """Remove the current Hydra job's run dir if it holds only Hydra's own files.
+
+    Args:
+        run_dir: The run dir when no Hydra job is current: Hydra lets go of a job's config when
+            its own writes into the run dir fail, before the job starts. Ignored in a job.
+        job_name: The job's name, with ``run_dir`` (its log file is ``<job_name>.log``).
 
     Returns:
         The removed directory, or None when nothing was removed.
     """
-    if not HydraConfig.initialized():
+    if HydraConfig.initialized():
+        hydra_cfg = HydraConfig.get()
+        run_dir, top = Path(hydra_cfg.runtime.output_dir), Path(hydra_cfg.runtime.cwd)
+        job_name = hydra_cfg.job.name
+    elif run_dir is None:
         return None
-    hydra_cfg = HydraConfig.get()
-    run_dir = Path(hydra_cfg.runtime.output_dir).resolve()
-    top = Path(hydra_cfg.runtime.cwd).resolve()
-    log_file = f"{hydra_cfg.job.name}.log"
+    else:
+        top = Path.cwd()
+    run_dir, top, log_file = run_dir.resolve(), top.resolve(), f"{job_name}.log"
     if run_dir == top or top.is_relative_to(run_dir) or not _only_hydra_files(run_dir, log_file):
         return None
     for handler in list(logging.root.handlers):  # Hydra's job log is open in the run dir
@@ -168,14 +205,15 @@ def remove_unused_run_dir() -> Path | None:
             isinstance(handler, logging.FileHandler)
             and Path(handler.baseFilename).parent == run_dir
         ):
-            handler.close()
+            with suppress(OSError):  # its last lines cannot be written: it closes anyway
+                handler.close()
             logging.root.removeHandler(handler)
-    shutil.rmtree(run_dir)
+    shutil.rmtree(run_dir, ignore_errors=True)  # a folder it cannot remove stays
     parent = run_dir.parent
     while parent != top and parent.is_relative_to(top):
         if any(p.name not in SWEEP_FILES for p in parent.iterdir()):
             break
-        shutil.rmtree(parent)
+        shutil.rmtree(parent, ignore_errors=True)
         parent = parent.parent
     return run_dir
 

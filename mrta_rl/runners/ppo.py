@@ -29,6 +29,7 @@ from torchrl.collectors import Collector
 
 from mrta_rl.checked_files import read_tensors
 from mrta_rl.envs.torchrl_env import AuctionTorchRLEnv
+from mrta_rl.learners.neural.common import write_tensors
 from mrta_rl.run_files import RunDirError
 from mrta_rl.runners.checkpoint import LoopTime
 from mrta_rl.runners.episodes import EpisodeReturns
@@ -124,7 +125,7 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         torch.set_rng_state(torch_rng)
 
     def save_files(folder: Path) -> None:
-        torch.save(torch.get_rng_state(), folder / RNG_FILE)
+        write_tensors(torch.get_rng_state(), folder / RNG_FILE)
 
     with (
         instantiate(cfg.logger)(run_dir=run_dir) as curve,

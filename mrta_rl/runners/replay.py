@@ -29,6 +29,7 @@ from torchrl.data import TensorDictReplayBuffer
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from mrta_rl.checked_files import PT_OVERHEAD, PT_PER_TENSOR, read_tensors
+from mrta_rl.learners.neural.common import write_tensors
 from mrta_rl.run_files import RunDirError
 
 if TYPE_CHECKING:
@@ -84,7 +85,7 @@ def save_replay(buffer: TensorDictReplayBuffer, path: Path) -> None:
         # buffer would double the run's peak memory for the time of the save.
         rows = rows.clone()
     payload = {"transitions": rows.to_dict(), "torch_rng": torch.get_rng_state()}
-    torch.save(payload, path)
+    write_tensors(payload, path)
 
 
 def _describe(value: Any) -> str:

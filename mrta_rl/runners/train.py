@@ -24,6 +24,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 
 from mrta_rl.config import ConfigError, UserError
 from mrta_rl.envs import AuctionEnv, AuctionParams
+from mrta_rl.errors import check_output_file
 from mrta_rl.learners import Learner
 from mrta_rl.learners.tabular.qtable import TableGrowthError, limit_growth
 from mrta_rl.metrics.logger import finish_run
@@ -174,6 +175,31 @@ def build_saved_run(cfg: DictConfig, run_dir: Path, name: str | None) -> RunSetu
         return build_run(cfg, name=name)
     except UserError as err:
         raise RunDirError(f"{run_dir / CONFIG_FILE}: {err}") from None
+
+
+def _check_saved_config(cfg: DictConfig, run_dir: Path) -> None:
+    """Validate a run dir's own config; a refusal names ``.hydra/config.yaml``.
+
+    Raises:
+        RunDirError: naming the file and the setting.
+    """
+    try:
+        validate_config(cfg)
+    except UserError as err:
+        raise RunDirError(f"{run_dir / CONFIG_FILE}: {err}") from None
+
+
+def _blame(arguments: dict[str, tuple[str, Any]], message: str) -> str:
+    """A refusal of the run config with the command line's arguments, said of the arguments.
+
+    A message about the key an argument sets (``eval.batch_size: ...``) names the argument
+    instead (``batch_size: ...``); any other is prefixed with every argument given.
+    """
+    for name, (key, _) in arguments.items():
+        if message.startswith(f"{key}:"):
+            return f"{name}:{message[len(key) + 1 :]}"
+    given = " ".join(f"{name}={value}" for name, (_, value) in arguments.items())
+    return f"{given}: {message}"
 
 
 def _write_refusal(run_dir: Path, cfg: DictConfig, reason: str) -> None:
@@ -369,19 +395,39 @@ def evaluate_checkpoint(
         The content of ``eval_metrics.json`` (as metrics.json, without the training block).
 
     Raises:
-        RunDirError: on a missing, tampered or damaged run dir (a ``ValueError``).
-        ValueError: on an invalid run config.
+        RunDirError: on a missing, tampered or damaged run dir (a ``ValueError``), or a setting
+            of its config that is refused (naming ``.hydra/config.yaml``).
+        ConfigError: if ``episodes``, ``batch_size`` or ``split`` make the run config refused
+            (naming the argument).
+        UserError: if ``eval_metrics.json`` could not be written in the run dir; checked first,
+            before any work.
     """
     run_dir = Path(checkpoint)
     cfg = read_run_config(run_dir)
-    if episodes is not None:
-        cfg.eval.episodes = int(episodes)
-    if batch_size is not None:
-        cfg.eval.batch_size = int(batch_size)
-    if split is not None:
-        with open_dict(cfg):  # a run written before eval.split existed has no such key
-            cfg.eval.split = str(split)
-            cfg.eval.seed = None  # the split names the streams, not the seed the run recorded
+    check_output_file(run_dir / EVAL_METRICS_FILE, EVAL_METRICS_FILE)  # before any work
+    arguments = {  # argument -> (key of the run config, value)
+        name: (key, value)
+        for name, key, value in (
+            ("episodes", "eval.episodes", episodes),
+            ("batch_size", "eval.batch_size", batch_size),
+            ("eval.split", "eval.split", split),
+        )
+        if value is not None
+    }
+    if arguments:
+        _check_saved_config(cfg, run_dir)  # a refusal names the file: the run's own settings
+        if episodes is not None:
+            cfg.eval.episodes = int(episodes)
+        if batch_size is not None:
+            cfg.eval.batch_size = int(batch_size)
+        if split is not None:
+            with open_dict(cfg):  # a run written before eval.split existed has no such key
+                cfg.eval.split = str(split)
+                cfg.eval.seed = None  # the split names the streams, not the seed recorded
+        try:  # now a refusal is the arguments' doing: it names them
+            validate_config(cfg)
+        except UserError as err:
+            raise ConfigError(_blame(arguments, str(err))) from None
     choices = run_choices(run_dir)
     run = load_run(run_dir, cfg)
     metrics = {

@@ -29,8 +29,16 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from mrta_rl.config import Choices, ConfigError, Range, check_fields, check_keywords
+from mrta_rl.config import (
+    Choices,
+    ConfigError,
+    Range,
+    check_fields,
+    check_keywords,
+    check_value,
+)
 from mrta_rl.envs import AuctionParams
+from mrta_rl.envs.auction import check_limits
 from mrta_rl.learners import Learner
 from mrta_rl.learners.base import learner_from_target
 from mrta_rl.learners.memory import (
@@ -162,6 +170,27 @@ def check_evaluate_config(cfg: DictConfig) -> dict[str, Any]:
     )
     args["split"] = check_fields(EvaluateStreams, streams or {}, "eval").get("split")
     return args
+
+
+# mrta-partition format=: a plain-text table, or JSON (Partition.to_json)
+PARTITION_FORMAT = Annotated[str, Choices("table", "json")]
+
+
+def check_partition_config(cfg: DictConfig) -> dict[str, Any]:
+    """The checked arguments of ``mrta-partition`` (``conf/partition.yaml``) besides the system.
+
+    Returns:
+        ``{"format": "table" | "json", "max_group_size": int | None}``.
+
+    Raises:
+        ConfigError: naming the argument (``partition.max_group_size: ...``, ``format: ...``).
+    """
+    known = ("format", "partition", "system")
+    for key in cfg:
+        _check(key in {*known, "hydra"}, f"{key}: unknown setting (known: {', '.join(known)})")
+    output = check_value("format", _plain(cfg, "format"), PARTITION_FORMAT)
+    bound = check_fields(PartitionSettings, _plain(cfg, "partition") or {}, "partition")
+    return {"format": output, "max_group_size": bound.get("max_group_size")}
 
 
 def check_streams(train: dict[str, Any], evaluation: dict[str, Any]) -> None:
@@ -351,9 +380,9 @@ def memory_limit(limits: dict[str, Any]) -> int:
 def check_team_size(
     system_cfg: dict[str, Any],
     file: str,
-    train: dict[str, Any],
-    eval_copies: int,
     limit: int,
+    train: dict[str, Any] | None = None,
+    eval_copies: int = 0,
 ) -> None:
     """Refuse a team too big to run, from its shape alone, before it is built.
 
@@ -362,7 +391,7 @@ def check_team_size(
     A random team of 10^8 robots would take 28 GB to draw; the floor
     (:func:`~mrta_rl.learners.memory.team_floor_bytes`) counts the system while it is built
     and the env copies alive at once: training's and evaluation's, the learner's and the greedy
-    baseline's.
+    baseline's (none without ``train``: a command that builds the team only).
 
     Raises:
         SystemConfigError: naming the system, its shape, the floor and the limit.
@@ -376,7 +405,9 @@ def check_team_size(
             f"system {file}: {m:,} robots x {n:,} task types = {m * n:,} robot-task pairs, more "
             f"than the limit of {MAX_PAIRS:,} (mrta_rl.systems.MAX_PAIRS); use a smaller team"
         )
-    copies = training_copies(train["batch_size"], train.get("robot_copies"), m) + 2 * eval_copies
+    copies = 2 * eval_copies  # the learner's and the greedy baseline's
+    if train is not None:
+        copies += training_copies(train["batch_size"], train.get("robot_copies"), m)
     parts = team_floor_bytes(m, n, copies)
     floor = sum(parts.values())
     if floor > limit:
@@ -422,21 +453,11 @@ def validate_config(cfg: DictConfig) -> CheckedConfig:
     hyperparameters = check_keywords(cls, _plain(cfg, "learner"), "learner")
     _check_logger(_plain(cfg, "logger"))
 
-    system_cfg = _plain(cfg, "system")
-    _check(isinstance(system_cfg, dict), f"system: must be a system file, got {system_cfg!r}")
-    file = hydra_choice("system", str(system_cfg.get("name", "?")))
     eval_copies = min(evaluation["batch_size"], evaluation["episodes"])
-    check_team_size(system_cfg, file, train, eval_copies, memory_limit(limits))
     env_overrides = _plain(cfg, "env") or {}
-    try:
-        family = build_family(system_cfg)
-        system = build_system(system_cfg)
-        params = team_params(system, env_overrides)
-    except SystemConfigError as err:
-        message = str(err)
-        raise SystemConfigError(
-            message if message.startswith("system") else f"system {file}: {message}"
-        ) from None
+    file, family, system, params = checked_team(
+        _plain(cfg, "system"), memory_limit(limits), env_overrides, train, eval_copies
+    )
     if family is not None:
         check_family(cls, family, file, train)
     init = check_init(cls, _plain(cfg, "init"))
@@ -498,6 +519,54 @@ def validate_config(cfg: DictConfig) -> CheckedConfig:
         env_overrides,
         init,
     )
+
+
+def checked_team(
+    system_cfg: Any,
+    limit: int,
+    env_overrides: dict[str, Any],
+    train: dict[str, Any] | None = None,
+    eval_copies: int = 0,
+) -> tuple[str, TeamFamily | None, RobotSystem, AuctionParams]:
+    """The team of a system config within the limits of a run, refused before it is built if not.
+
+    Its shape against :data:`MAX_PAIRS` and the memory limit (:func:`check_team_size`), then
+    its parameters against the env's limits (:func:`~mrta_rl.envs.auction.check_limits`),
+    before anything that grows with the team (a partition, an env, a learner) is built.
+
+    Args:
+        system_cfg: The content of the ``system`` group (a system file), plain Python.
+        limit: Memory limit in bytes (:func:`memory_limit`).
+        env_overrides: The run's ``env.*``.
+        train: The checked ``train`` block of a run, None for a command that builds the team
+            only (:func:`check_team_size`).
+        eval_copies: Evaluation copies played at once.
+
+    Returns:
+        ``(name, family, system, params)``: the system's name in messages (its config group
+        choice in a Hydra job, else its ``name``), the family of teams it draws from (or
+        None), the team and its parameters.
+
+    Raises:
+        ConfigError: naming the system and what is wrong (``SystemConfigError`` for its file).
+    """
+    _check(isinstance(system_cfg, dict), f"system: must be a system file, got {system_cfg!r}")
+    file = hydra_choice("system", str(system_cfg.get("name", "?")))
+    check_team_size(system_cfg, file, limit, train, eval_copies)
+    try:
+        family = build_family(system_cfg)
+        system = build_system(system_cfg)
+        params = team_params(system, env_overrides)
+    except SystemConfigError as err:
+        message = str(err)
+        raise SystemConfigError(
+            message if message.startswith("system") else f"system {file}: {message}"
+        ) from None
+    try:
+        check_limits(system, params)
+    except ValueError as err:
+        raise ConfigError(f"env: {err} (system {file}, {system.n_robots:,} robots)") from None
+    return file, family, system, params
 
 
 def team_params(system: RobotSystem, env_overrides: dict[str, Any]) -> AuctionParams:

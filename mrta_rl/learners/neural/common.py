@@ -661,7 +661,7 @@ class NeuralLearner(Learner, abstract=True):
         state = self.networks.state_dict()
         check_finite_weights(state, f"{self.label} after gradient step {self.gradient_steps}")
         directory.mkdir(parents=True, exist_ok=True)
-        torch.save(state, directory / WEIGHTS_FILE)
+        write_tensors(state, directory / WEIGHTS_FILE)
         meta = {
             "class": type(self).__name__,
             "group_map": self.group_map,
@@ -722,7 +722,7 @@ class NeuralLearner(Learner, abstract=True):
             "losses": {name: loss.state_dict() for name, loss in self.losses.items()},
             "egreedy": [module.state_dict() for module in self.egreedy],
         }
-        torch.save(extra, Path(directory) / TRAINING_FILE)
+        write_tensors(extra, Path(directory) / TRAINING_FILE)
         return {
             **super().checkpoint_state(directory),
             "gradient_steps": self.gradient_steps,
@@ -773,6 +773,18 @@ def read_meta(path: Path, schema: dict[str, Any]) -> dict[str, Any]:
     if meta["gradient_steps"] < 0:
         raise RunDirError(f"{path}: gradient_steps: must be >= 0, got {meta['gradient_steps']}")
     return meta
+
+
+def write_tensors(payload: Any, path: Path) -> None:
+    """``torch.save`` through a Python file object, so that a refused write is an ``OSError``.
+
+    Given a path, torch's own writer turns a full disk or a file size limit into a
+    ``RuntimeError`` that names neither the fault nor the file; through a file object the
+    ``OSError`` is that error's context, which the commands report in one line naming the file
+    (``mrta_rl/errors.py``). The bytes written are the same.
+    """
+    with open(path, "wb") as file:
+        torch.save(payload, file)
 
 
 def read_weights(path: Path, networks: nn.Module) -> dict[str, torch.Tensor]:

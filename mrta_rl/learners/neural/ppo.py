@@ -63,6 +63,7 @@ from mrta_rl.learners.neural.common import (
     read_meta,
     read_weights,
     require_torchrl,
+    write_tensors,
 )
 from mrta_rl.learners.neural.networks import PerRobotQ
 from mrta_rl.learners.neural.set_network import ROBOT_ATTENTION, SetWithPrior, check_fits
@@ -531,7 +532,7 @@ class PPOLearner(Learner, abstract=True):
         state = self.networks.state_dict()
         check_finite_weights(state, f"{self.label} after gradient step {self.gradient_steps}")
         directory.mkdir(parents=True, exist_ok=True)
-        torch.save(state, directory / WEIGHTS_FILE)
+        write_tensors(state, directory / WEIGHTS_FILE)
         meta = {
             "class": type(self).__name__,
             "group_map": self.group_map,
@@ -569,7 +570,7 @@ class PPOLearner(Learner, abstract=True):
 
     def checkpoint_state(self, directory: Path) -> dict[str, Any]:
         """Counters; the optimizer in ``training.pt`` (torch's generator is the runner's)."""
-        torch.save({"optimizer": self.optimizer.state_dict()}, Path(directory) / TRAINING_FILE)
+        write_tensors({"optimizer": self.optimizer.state_dict()}, Path(directory) / TRAINING_FILE)
         return {**super().checkpoint_state(directory), "gradient_steps": self.gradient_steps}
 
     def restore_state(self, state: dict[str, Any], directory: Path) -> None:
