@@ -25,7 +25,7 @@ import errno
 import io
 import os
 import tempfile
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from types import FrameType
 
@@ -33,7 +33,7 @@ import yaml
 from hydra.errors import HydraException, MissingConfigException, OverrideParseException
 from omegaconf.errors import ConfigAttributeError, ConfigKeyError, OmegaConfBaseException
 
-from mrta_rl.config import UserError
+from mrta_rl.config import UserError, short_list
 
 EXIT_USER_ERROR = 2  # bad input or a refused write (as argparse); 1 stays Python's for a crash
 EXIT_INTERRUPTED = 130  # 128 + SIGINT
@@ -51,16 +51,7 @@ OS_FAULTS = frozenset(
         errno.EISDIR,  # a folder where a file is written
     }
 )
-LIST_ITEMS = 5  # items a message lists before "and <n> more"
 SEARCH_PATH = ("Config search path:", "Search path:")  # where Hydra's messages list its sources
-
-
-def format_list(items: Iterable[object], keep: int = LIST_ITEMS) -> str:
-    """``a, b, c`` or, past ``keep`` items, ``a, b, c, d, e and 355 more``."""
-    names = [str(item) for item in items]
-    if len(names) <= keep:
-        return ", ".join(names)
-    return f"{', '.join(names[:keep])} and {len(names) - keep} more"
 
 
 def user_message(err: BaseException) -> str | None:
@@ -230,12 +221,12 @@ def hydra_message(err: HydraException) -> str:
         return f"{err.override}: {err.message.splitlines()[0]}"
     if isinstance(err, MissingConfigException) and err.options and err.missing_cfg_file:
         group, _, option = err.missing_cfg_file.rpartition("/")
-        return f"{group}={option}: no such option (available: {format_list(err.options)})"
+        return f"{group}={option}: no such option (available: {short_list(err.options)})"
     cause = err.__cause__
     if isinstance(cause, (ConfigAttributeError, ConfigKeyError)) and cause.full_key:
         parent = cause.parent_node
         keys = [str(k) for k in parent.keys() if not str(k).startswith("_") and k != "hydra"]
-        known = f"known: {format_list(keys)}" if keys else "it has no keys"
+        known = f"known: {short_list(keys)}" if keys else "it has no keys"
         return f"{cause.full_key}: unknown key ({known})"
     return _one_line(str(err), cause)
 
@@ -252,7 +243,7 @@ def _one_line(message: str, cause: BaseException | None) -> str:
             words.append(line.strip())
     text = " ".join(words)
     if items:
-        text += f" {format_list(items)}"
+        text += f" {short_list(items)}"
     if isinstance(cause, OmegaConfBaseException):  # its first line: what is wrong
         text += f": {str(cause).splitlines()[0]}" if str(cause) else ""
     return text

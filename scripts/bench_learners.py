@@ -30,8 +30,8 @@ from mrta_rl.bench.learners import (
 )
 from mrta_rl.commands import CommandLineParser
 from mrta_rl.conf_files import learner_files
-from mrta_rl.config import Range, UserError, check_arguments
-from mrta_rl.errors import check_output_file, format_list
+from mrta_rl.config import Range, UserError, check_arguments, short_list
+from mrta_rl.errors import check_output_file
 from mrta_rl.runners import cli
 
 
@@ -69,7 +69,7 @@ def main() -> None:
     unknown = sorted(set(args.learners or ()) - set(known))
     if unknown:
         raise UserError(
-            f"--learners: unknown {', '.join(unknown)} (known: {format_list(sorted(known))})"
+            f"--learners: unknown {', '.join(unknown)} (known: {short_list(sorted(known))})"
         )
     learners = args.learners or trained_learners(args.config_dir)
     if args.list:
