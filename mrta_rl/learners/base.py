@@ -22,18 +22,16 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, ClassVar, Literal, NamedTuple
+from typing import Any, ClassVar, Literal
 
 import numpy as np
 
 from mrta_rl.config import RUNNER_ARGUMENTS, ConfigError, UserError, check_keywords
 from mrta_rl.envs import AuctionEnv, StepResult
+from mrta_rl.learners.resources import MemoryQuery, ResourceEstimate
 from mrta_rl.loops import NO_TRAINING, PPO_LOOP, TICK_LOOP, TORCHRL_LOOP  # noqa: F401 - for plugins
 from mrta_rl.partition import Partition
 from mrta_rl.run_files import RunDirError, check_schema, read_json
-
-if TYPE_CHECKING:  # memory.py imports the encodings, which import the learners package
-    from mrta_rl.learners.memory import ResourceEstimate
 
 LearnerKind = Literal["fixed", "tabular", "neural", "search"]
 
@@ -73,16 +71,6 @@ class NonFiniteState(UserError):
         )
 
 
-class MemoryQuery(NamedTuple):
-    """What a learner's memory estimate depends on, asked before the learner is built."""
-
-    env: AuctionEnv  # a probe env of the run's team and parameters
-    partition: Partition | None  # the subG partition, for learners that need one
-    settings: dict[str, Any]  # the learner's hyperparameters from the run config
-    decisions: int  # copy-ticks of training: the most states a table can meet
-    copies: int  # training copies (collector batch of the neural learners)
-
-
 # what every concrete learner class answers for (besides its own ``label``, see Learner)
 FACTS = ("kind", "training_loop", "estimate_memory", "learning_space_dimension")
 
@@ -110,7 +98,7 @@ class Learner(ABC):
       ``PPO_LOOP``, ``NO_TRAINING`` of ``mrta_rl/loops.py``, or ``"module:function"`` of one's
       own);
     * ``estimate_memory(query)``: a classmethod, given a :class:`MemoryQuery`,
-      returning the :class:`~mrta_rl.learners.memory.ResourceEstimate` of its own state
+      returning the :class:`~mrta_rl.learners.resources.ResourceEstimate` of its own state
       (tables, networks, buffers) before it is built; the env copies are counted by
       :func:`~mrta_rl.learners.memory.estimate_resources`, which calls it;
     * ``learning_space_dimension(env, partition, settings)``: a classmethod returning the
@@ -341,8 +329,6 @@ class FixedLearner(Learner, abstract=True):
     @classmethod
     def estimate_memory(cls, query: MemoryQuery) -> ResourceEstimate:
         """Nothing beyond the env copies (counted by ``estimate_resources``)."""
-        from mrta_rl.learners.memory import ResourceEstimate
-
         return ResourceEstimate(cls.__name__)
 
     @classmethod

@@ -41,13 +41,8 @@ from mrta_rl.envs import AuctionParams
 from mrta_rl.envs.auction import check_limits
 from mrta_rl.learners import Learner
 from mrta_rl.learners.base import learner_from_target
-from mrta_rl.learners.memory import (
-    ResourceEstimate,
-    estimate_resources,
-    format_bytes,
-    machine_memory,
-    team_floor_bytes,
-)
+from mrta_rl.learners.memory import estimate_resources, machine_memory, team_floor_bytes
+from mrta_rl.learners.resources import ResourceEstimate, format_bytes
 from mrta_rl.partition import Partition, subg_partition
 from mrta_rl.splits import DEFAULT_SPLIT, FAMILY_SEEDS, SEED_STRIDE, SPLIT_SEEDS, SPLIT_WIDTH
 from mrta_rl.systems import (
