@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, Any
 
 from mrta_rl.checked_files import read_yaml
 from mrta_rl.config import UserError, short_list
-from mrta_rl.systems.files import check_yaml_file
+from mrta_rl.config_guard import check_yaml_file
 
 if TYPE_CHECKING:
     from mrta_rl.learners.base import Learner
@@ -78,7 +78,7 @@ def system_file(system: str | os.PathLike) -> Path:
 
     Raises:
         UserError: naming the system, the file looked for and the shipped systems, or the file
-            and the bound it passes (size, encoding, nesting, aliases: ``systems/files.py``).
+            and the bound it passes (size, encoding, nesting, aliases: ``mrta_rl/config_guard.py``).
     """
     path = Path(system).expanduser() if is_system_path(system) else system_dir() / f"{system}.yaml"
     if not path.exists():
