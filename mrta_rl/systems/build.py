@@ -28,8 +28,9 @@ def system_shape(cfg: Mapping[str, Any]) -> tuple[int, int] | None:
         cfg: The ``system`` config group content (table, random or family form).
 
     Returns:
-        ``(m, n)``, for a family its largest team's; for a table, ``n`` counts the distinct task type names. None when the config
-        is malformed (:func:`build_system` then names what is wrong).
+        ``(m, n)``, for a family its largest team's; for a table, ``n`` counts the distinct task
+        type names. None when the config is malformed (:func:`build_system` then names what is
+        wrong).
     """
     if "family" in cfg:  # the largest team the family can draw
         try:
