@@ -42,6 +42,7 @@ from mrta_rl.envs.auction import check_limits
 from mrta_rl.learners import Learner
 from mrta_rl.learners.base import learner_from_target
 from mrta_rl.learners.memory import estimate_resources, machine_memory, team_floor_bytes
+from mrta_rl.learners.registry import any_team_learners
 from mrta_rl.learners.resources import ResourceEstimate, format_bytes
 from mrta_rl.partition import Partition, subg_partition
 from mrta_rl.splits import DEFAULT_SPLIT, FAMILY_SEEDS, SEED_STRIDE, SPLIT_SEEDS, SPLIT_WIDTH
@@ -574,13 +575,6 @@ def team_params(system: RobotSystem, env_overrides: dict[str, Any]) -> AuctionPa
         check_fields(AuctionParams, system.env_overrides, "system.env", null_is_default=True),
         env_overrides,
     )
-
-
-def any_team_learners() -> list[str]:
-    """The shipped learners that learn a state fitting any team (``Learner.any_team``)."""
-    from mrta_rl.conf_files import learner_files, learner_named
-
-    return [n for n in learner_files() if learner_named(n).trains() and learner_named(n).any_team]
 
 
 def check_family(cls: type[Learner], family: TeamFamily, file: str, train: dict[str, Any]) -> None:

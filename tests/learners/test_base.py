@@ -7,11 +7,11 @@ from typing import ClassVar
 
 import pytest
 
-from mrta_rl.conf_files import learner_files, learner_named
 from mrta_rl.envs import AuctionParams
 from mrta_rl.learners import GreedyLearner, Learner
 from mrta_rl.learners.base import FACTS, TICK_LOOP
 from mrta_rl.learners.memory import ResourceEstimate, estimate_resources
+from mrta_rl.learners.registry import learner_files, learner_named
 from mrta_rl.partition import subg_partition
 from tests.conftest import paper_system
 
