@@ -31,7 +31,7 @@ from mrta_rl.envs import AuctionEnv, StepResult
 from mrta_rl.learners.resources import MemoryQuery, ResourceEstimate
 from mrta_rl.loops import NO_TRAINING, PPO_LOOP, TICK_LOOP, TORCHRL_LOOP  # noqa: F401 - for plugins
 from mrta_rl.partition import Partition
-from mrta_rl.run_files import RunDirError, check_schema, read_json
+from mrta_rl.run_layout import RunDirError, check_schema, read_json
 
 LearnerKind = Literal["fixed", "tabular", "neural", "search"]
 
@@ -41,7 +41,7 @@ def read_description(path: Path, schema: dict[str, Any]) -> dict[str, Any]:
 
     Args:
         path: The file.
-        schema: What ``save`` writes (``run_files.check_schema``'s form).
+        schema: What ``save`` writes (``run_layout.check_schema``'s form).
 
     Returns:
         The content.

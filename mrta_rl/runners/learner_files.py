@@ -13,7 +13,7 @@ import numpy as np
 
 from mrta_rl.config import short_list
 from mrta_rl.learners import Learner
-from mrta_rl.run_files import (
+from mrta_rl.run_layout import (
     NUMBER,
     STR,
     TEAM_FILE,

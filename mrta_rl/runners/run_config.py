@@ -24,7 +24,7 @@ from omegaconf import DictConfig, OmegaConf
 from mrta_rl.checked_files import YamlSyntaxError, read_config, read_yaml_text
 from mrta_rl.learners import Learner
 from mrta_rl.metrics.logger import CSVLogger
-from mrta_rl.run_files import CONFIG_FILE, HYDRA_FILE, RunDirError
+from mrta_rl.run_layout import CONFIG_FILE, HYDRA_FILE, RunDirError
 
 logger = logging.getLogger(__name__)
 

@@ -30,7 +30,7 @@ from mrta_rl.learners.tabular.qtable import TableGrowthError, limit_growth
 from mrta_rl.metrics.logger import finish_run
 from mrta_rl.metrics.usage import RunResources
 from mrta_rl.partition import Partition
-from mrta_rl.run_files import (
+from mrta_rl.run_layout import (
     CONFIG_FILE,
     EVAL_METRICS_FILE,
     LEARNER_DIR,

@@ -607,7 +607,7 @@ def check_init(cls: type[Learner], init: Any) -> Path | None:
     """
     if init is None:
         return None
-    from mrta_rl.run_files import LEARNER_DIR, RunDirError
+    from mrta_rl.run_layout import LEARNER_DIR, RunDirError
     from mrta_rl.runners.run_config import read_run_config
 
     _check(isinstance(init, str) and init != "", f"init: must be a run dir, got {init!r}")

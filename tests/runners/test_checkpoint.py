@@ -27,7 +27,7 @@ from omegaconf import OmegaConf, open_dict
 
 from mrta_rl.envs import AuctionEnv
 from mrta_rl.loops import PPO_LOOP, TICK_LOOP
-from mrta_rl.run_files import RunDirError
+from mrta_rl.run_layout import RunDirError
 from mrta_rl.runners import build_run, evaluate_checkpoint, train
 from mrta_rl.runners.checkpoint import TrainingCheckpoint, latest_checkpoint
 from mrta_rl.runners.validation import learner_class

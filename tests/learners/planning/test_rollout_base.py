@@ -16,7 +16,7 @@ import pytest
 from mrta_rl.envs import AuctionEnv, AuctionParams
 from mrta_rl.learners.planning import rollout
 from mrta_rl.learners.planning.rollout import RolloutPlanner, neighbours
-from mrta_rl.run_files import read_metrics
+from mrta_rl.run_layout import read_metrics
 from mrta_rl.runners import train as run_train
 from mrta_rl.runners.train import load_run
 from tests.commands.test_cli import assert_user_error, train
