@@ -37,7 +37,7 @@ from mrta_rl.run_layout import (
     read_training_state,
     write_json,
 )
-from mrta_rl.runners.learner_files import load_learner, save_learner
+from mrta_rl.runners.learner_state import load_learner, save_learner
 
 logger = logging.getLogger(__name__)
 POINTER_BYTES = 64  # the pointer file holds a version folder's name: an episode number

@@ -41,7 +41,7 @@ from mrta_rl.run_layout import (
 )
 from mrta_rl.runners.checkpoint import TrainingCheckpoint, TrainingInterrupted
 from mrta_rl.runners.evaluate import evaluate_run
-from mrta_rl.runners.learner_files import load_learner, save_learner
+from mrta_rl.runners.learner_state import load_learner, save_learner
 from mrta_rl.runners.run_config import read_run_config, run_choices
 from mrta_rl.runners.run_dir import claim_run_dir, releases_run_dirs
 from mrta_rl.runners.validation import (

@@ -252,7 +252,7 @@ class RolloutPlanner(FixedLearner):
             ConfigError: naming ``learner.base`` and the culprit.
         """
         # imported here: learner modules do not import the runners; only a run dir base needs them
-        from mrta_rl.runners.learner_files import team_record
+        from mrta_rl.runners.learner_state import team_record
         from mrta_rl.runners.train import load_run
 
         key = "learner.base"
