@@ -27,7 +27,7 @@ from mrta_rl.envs import AuctionEnv, AuctionParams
 from mrta_rl.errors import check_output_file
 from mrta_rl.learners import Learner
 from mrta_rl.learners.tabular.qtable import TableGrowthError, limit_growth
-from mrta_rl.metrics.logger import finish_run
+from mrta_rl.metrics.run_logger import finish_run
 from mrta_rl.metrics.usage import RunResources
 from mrta_rl.partition import Partition
 from mrta_rl.run_layout import (

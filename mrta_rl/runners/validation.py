@@ -287,12 +287,12 @@ def hydra_choice(group: str, default: str) -> str:
 
 def _check_logger(settings: Any) -> None:
     """The curve logger's settings: declared keywords, and file names that stay in the run dir."""
-    from mrta_rl.metrics.logger import CSVLogger  # every logger of a run is one (checkpoint.py)
+    from mrta_rl.metrics.run_logger import RunLogger  # every logger of a run is one (checkpoint.py)
 
     if settings is None:
         return
     _check(isinstance(settings, dict), f"logger: must be a logger config, got {settings!r}")
-    checked = check_keywords(CSVLogger, settings, "logger")
+    checked = check_keywords(RunLogger, settings, "logger")
     for key, refused in (("filename", ("", ".", "..")), ("log_dir", ("", ".."))):
         name = checked.get(key)  # log_dir "." is the run dir itself (wandb adds its wandb/)
         _check(
