@@ -92,8 +92,9 @@ class Learner(ABC):
 
     * ``label``: the display name in reports (``subG-CQL``), declared by the class itself (a
       subclass is another learner, never silently labelled as its parent);
-    * ``kind``: the family, ``"fixed"``, ``"tabular"``, ``"neural"`` or ``"search"``, recorded
-      in metrics.json;
+    * ``kind``: how it is trained, recorded in metrics.json: ``"fixed"`` (not at all),
+      ``"tabular"`` (Q-tables), ``"neural"`` (gradient steps on TorchRL networks) or
+      ``"search"`` (policy search on team returns: ``reserve_es``, ``net_es``);
     * ``training_loop``: the runner's loop that trains it (``TICK_LOOP``, ``TORCHRL_LOOP``,
       ``PPO_LOOP``, ``NO_TRAINING`` of ``mrta_rl/loops.py``, or ``"module:function"`` of one's
       own);
@@ -106,7 +107,7 @@ class Learner(ABC):
 
     Attributes:
         label: Display name in reports.
-        kind: The learner's family (see above).
+        kind: How the learner is trained (see above).
         training_loop: ``"module:function"`` of the loop that trains it.
         requires_partition: True if the learner needs the subG partition (paper §4); the runner
             then builds the env with ``Lambda_i = partition.active_tasks(system)``.
