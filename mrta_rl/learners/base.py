@@ -21,6 +21,7 @@ parameters and active tasks) and reads ``B`` from the arrays it passes.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, ClassVar, Literal
 
@@ -154,6 +155,25 @@ class Learner(ABC):
     def trains(cls) -> bool:
         """True if the learner has a training loop (and so a learned state to save)."""
         return cls.training_loop != NO_TRAINING
+
+    @classmethod
+    def base_run(cls, settings: Mapping[str, Any]) -> Path | None:
+        """The run dir whose trained learner this learner plays, named by its setting ``base``.
+
+        A learner never loads a run: the runner loads that run's learner (checked to be of the
+        run's team, its chain of bases without a loop) and passes it as the runner argument
+        ``base_policy``, as it passes ``env``. The default: none.
+
+        Args:
+            settings: The learner's settings (a ``learner`` config block).
+
+        Returns:
+            The run dir, or None if the settings name none.
+
+        Raises:
+            ConfigError: naming ``learner.base`` if its value is neither a run dir nor valid.
+        """
+        return None
 
     def __new__(cls, *args: Any, **hyperparameters: Any) -> Learner:
         """Check the hyperparameters against their declarations before ``__init__`` runs.

@@ -45,6 +45,9 @@ from mrta_rl.learners.memory import estimate_resources, machine_memory, team_flo
 from mrta_rl.learners.registry import any_team_learners
 from mrta_rl.learners.resources import ResourceEstimate, format_bytes
 from mrta_rl.partition import Partition, subg_partition
+from mrta_rl.run_layout import LEARNER_DIR, RunDirError
+from mrta_rl.runners.bases import check_base
+from mrta_rl.runners.run_config import read_run_config
 from mrta_rl.splits import DEFAULT_SPLIT, FAMILY_SEEDS, SEED_STRIDE, SPLIT_SEEDS, SPLIT_WIDTH
 from mrta_rl.systems import (
     MAX_PAIRS,
@@ -251,6 +254,8 @@ class CheckedConfig:
             ``system`` is its evaluation team.
         env_overrides: The run's ``env.*`` (every team's parameters take them last).
         init: The run dir whose learner state the learner starts from (``init=``), else None.
+        base: The run dir whose trained learner the learner plays (``learner.base``,
+            :func:`check_base`), else None.
     """
 
     learner_cls: type[Learner]
@@ -264,6 +269,7 @@ class CheckedConfig:
     family: TeamFamily | None = None
     env_overrides: dict[str, Any] | None = None
     init: Path | None = None
+    base: Path | None = None
 
     @property
     def active_tasks(self) -> np.ndarray | None:
@@ -457,6 +463,7 @@ def validate_config(cfg: DictConfig) -> CheckedConfig:
     if family is not None:
         check_family(cls, family, file, train)
     init = check_init(cls, _plain(cfg, "init"))
+    base = check_base(cls, hyperparameters)
     partition = (
         subg_partition(system, bound.get("max_group_size")) if cls.requires_partition else None
     )
@@ -514,6 +521,7 @@ def validate_config(cfg: DictConfig) -> CheckedConfig:
         family,
         env_overrides,
         init,
+        base,
     )
 
 
@@ -607,9 +615,6 @@ def check_init(cls: type[Learner], init: Any) -> Path | None:
     """
     if init is None:
         return None
-    from mrta_rl.run_layout import LEARNER_DIR, RunDirError
-    from mrta_rl.runners.run_config import read_run_config
-
     _check(isinstance(init, str) and init != "", f"init: must be a run dir, got {init!r}")
     name = hydra_choice("learner", cls.__name__)
     _check(
