@@ -14,7 +14,6 @@ and run seed is evaluated on identical streams.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -23,13 +22,12 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from mrta_rl.config import ConfigError, UserError, short_list
-from mrta_rl.envs import AuctionEnv, AuctionParams
+from mrta_rl.envs import AuctionEnv
 from mrta_rl.errors import check_output_file
 from mrta_rl.learners import Learner
 from mrta_rl.learners.tabular.qtable import TableGrowthError, limit_growth
 from mrta_rl.metrics.run_logger import finish_run
 from mrta_rl.metrics.usage import RunResources
-from mrta_rl.partition import Partition
 from mrta_rl.run_layout import (
     CONFIG_FILE,
     EVAL_METRICS_FILE,
@@ -44,6 +42,7 @@ from mrta_rl.runners.evaluate import evaluate_run
 from mrta_rl.runners.learner_state import load_learner, save_learner, team_record
 from mrta_rl.runners.run_config import read_run_config, run_choices
 from mrta_rl.runners.run_dir import claim_run_dir, releases_run_dirs
+from mrta_rl.runners.run_setup import RunSetup
 from mrta_rl.runners.validation import (
     SEED_STRIDE,
     ResourceRefusal,
@@ -54,40 +53,8 @@ from mrta_rl.runners.validation import (
 )
 from mrta_rl.splits import FAMILY_SEEDS
 from mrta_rl.systems import RobotSystem
-from mrta_rl.systems.family import TeamFamily
 
 logger = logging.getLogger(__name__)
-
-
-@dataclass
-class RunSetup:
-    """Everything a run is built from, validated (see :func:`build_run`).
-
-    Attributes:
-        name: Learner name, the yaml stem (``greedy``, ``subg_cql``...).
-        system: The robot team.
-        params: Resolved dynamics parameters.
-        partition: The subG partition if the learner requires one, else None.
-        active_tasks: ``[m, n]`` bool ``Lambda_i`` of the learner's envs, None = ``Gamma_i``.
-        env: The training env (``train.batch_size`` copies, capped by ``train.robot_copies``).
-        learner: The learner, built on ``env``.
-        checkpoint: Periodic training checkpoints and resuming (set by :func:`train`; None:
-            none).
-        family: The family of teams training draws one team per episode from
-            (:func:`family_env`), else None; ``system`` is then its evaluation team.
-        env_overrides: The run's ``env.*``, applied to every team of a family.
-    """
-
-    name: str
-    system: RobotSystem
-    params: AuctionParams
-    partition: Partition | None
-    active_tasks: np.ndarray | None
-    env: AuctionEnv
-    learner: Learner
-    checkpoint: TrainingCheckpoint | None = None
-    family: TeamFamily | None = None
-    env_overrides: dict[str, Any] | None = None
 
 
 def build_run(cfg: DictConfig, name: str | None = None) -> RunSetup:
