@@ -13,8 +13,8 @@ dataclass (``AuctionParams``, the run settings), annotated with its type and, th
 Supported types: ``bool``, ``int`` (not bool), ``float`` (int accepted, finite), ``str``,
 ``Literal[...]``, ``X | None``, fixed-length ``tuple[...]`` and any-length ``tuple[X, ...]`` (a
 list or tuple in a config; a ``Range`` or ``Choices`` applies to each item). Any other
-annotation is not a hyperparameter's (the runner supplies ``env``, ``rng``, ``partition``) and
-is not checked.
+annotation is not a hyperparameter's (the runner supplies ``env``, ``rng``, ``partition`` and
+``base_policy``: :data:`RUNNER_ARGUMENTS`) and is not checked.
 
 :func:`check_value` checks one value, :func:`check_keywords` a config mapping against a class's
 ``__init__`` (following ``**kwargs`` up the base classes) or a function, :func:`check_fields`
@@ -52,7 +52,9 @@ __all__ = [
     "short_list",
 ]
 
-RUNNER_ARGUMENTS = frozenset({"env", "rng", "partition"})  # supplied by the runner, not the config
+# supplied by the runner, not the config: the env, the generator, the subG partition, and the
+# trained learner a setting names by its run dir (``Learner.base_run``)
+RUNNER_ARGUMENTS = frozenset({"env", "rng", "partition", "base_policy"})
 
 
 class UserError(ValueError):
@@ -316,7 +318,7 @@ def declared_keywords(target: type | Callable[..., Any]) -> dict[str, Declared]:
 
     For a class, ``**kwargs`` of an ``__init__`` are followed up the method resolution order, so
     a subclass that passes ``**hyperparameters`` to its base declares the base's parameters too.
-    The runner's own arguments (``env``, ``rng``, ``partition``) are left out.
+    The runner's own arguments (:data:`RUNNER_ARGUMENTS`) are left out.
 
     Args:
         target: A class or a function.

@@ -29,9 +29,9 @@ from mrta_rl.bench.learners import (
     trained_learners,
 )
 from mrta_rl.commands import CommandLineParser
-from mrta_rl.conf_files import learner_files
 from mrta_rl.config import Range, UserError, check_arguments, short_list
 from mrta_rl.errors import check_output_file
+from mrta_rl.learners.registry import learner_files
 from mrta_rl.runners import cli
 
 

@@ -9,7 +9,8 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
-from mrta_rl.metrics.learning_space import format_learning_space_table, learning_space_table
+from mrta_rl.learners.registry import learning_space_table
+from mrta_rl.metrics.learning_space import format_learning_space_table
 from mrta_rl.runners import cli
 from mrta_rl.systems import build_system
 

@@ -252,7 +252,7 @@ def test_metrics_json_linked_to_dev_zero_is_refused_without_reading_it(es_runs, 
         "hard = resource.getrlimit(resource.RLIMIT_AS)[1]\n"
         "resource.setrlimit(resource.RLIMIT_AS, (2**31, hard))\n"
         "from mrta_rl.config import UserError\n"
-        "from mrta_rl.run_files import read_metrics\n"
+        "from mrta_rl.run_layout import read_metrics\n"
         "try:\n"
         f"    read_metrics(__import__('pathlib').Path({str(path)!r}))\n"
         "except UserError as err:\n"

@@ -55,7 +55,7 @@ def trained_learners(config_dirs: Sequence[str | os.PathLike] = ()) -> list[str]
     Returns:
         Their names, sorted.
     """
-    from mrta_rl.conf_files import learner_files, learner_named
+    from mrta_rl.learners.registry import learner_files, learner_named
 
     return [
         name for name in learner_files(config_dirs) if learner_named(name, config_dirs).trains()
@@ -76,10 +76,10 @@ def _compose(overrides: list[str]) -> Any:
     from hydra.core.global_hydra import GlobalHydra
 
     GlobalHydra.instance().clear()
-    # a checkout's own conf/ first: a --baseline checkout may predate mrta_rl.conf_files
+    # a checkout's own conf/ first: a --baseline checkout may predate mrta_rl.conf_paths
     config_dir = _repo_root() / "conf"
     if not (config_dir / "config.yaml").is_file():
-        from mrta_rl.conf_files import conf_dir
+        from mrta_rl.conf_paths import conf_dir
 
         config_dir = conf_dir()
     with initialize_config_dir(config_dir=str(config_dir), version_base=None):

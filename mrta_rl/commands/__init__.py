@@ -21,7 +21,7 @@ from typing import Any, NoReturn
 from hydra.core.config_store import ConfigStore
 
 from mrta_rl.checked_files import read_yaml
-from mrta_rl.conf_files import is_system_path, shipped_systems, system_file
+from mrta_rl.conf_paths import is_system_path, shipped_systems, system_file
 from mrta_rl.config import UserError
 from mrta_rl.systems import build_system
 

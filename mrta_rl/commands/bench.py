@@ -22,7 +22,7 @@ from tqdm import tqdm
 from mrta_rl.bench.env import bench_env, bench_plain_loop, format_table
 from mrta_rl.checked_files import read_yaml
 from mrta_rl.commands import CommandLineParser
-from mrta_rl.conf_files import system_file
+from mrta_rl.conf_paths import system_file
 from mrta_rl.config import Range, check_arguments
 from mrta_rl.envs.params import AuctionParams
 from mrta_rl.errors import check_output_file

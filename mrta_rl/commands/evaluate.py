@@ -11,7 +11,7 @@ from __future__ import annotations
 import hydra
 from omegaconf import DictConfig
 
-from mrta_rl.conf_files import conf_dir
+from mrta_rl.conf_paths import conf_dir
 from mrta_rl.runners import cli, evaluate_checkpoint, format_summary
 from mrta_rl.runners.validation import check_evaluate_config
 

@@ -15,7 +15,7 @@ import hydra
 from omegaconf import DictConfig, OmegaConf
 
 from mrta_rl.commands import use_team_files
-from mrta_rl.conf_files import conf_dir
+from mrta_rl.conf_paths import conf_dir
 from mrta_rl.partition import format_partition, subg_partition
 from mrta_rl.runners import cli
 from mrta_rl.runners.validation import check_partition_config, checked_team, memory_limit

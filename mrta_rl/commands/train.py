@@ -14,7 +14,7 @@ import hydra
 from omegaconf import DictConfig
 
 from mrta_rl.commands import use_team_files
-from mrta_rl.conf_files import conf_dir
+from mrta_rl.conf_paths import conf_dir
 from mrta_rl.runners import cli, format_summary, train
 
 

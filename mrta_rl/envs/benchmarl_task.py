@@ -21,7 +21,7 @@ from benchmarl.environments.common import TaskClass
 from torchrl.data import Composite
 from torchrl.envs import EnvBase
 
-from mrta_rl.conf_files import system_file
+from mrta_rl.conf_paths import system_file
 from mrta_rl.envs import AuctionEnv, AuctionParams
 from mrta_rl.envs.torchrl_env import AuctionTorchRLEnv
 from mrta_rl.envs.view_inputs import resolve_system

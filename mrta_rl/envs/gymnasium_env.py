@@ -17,7 +17,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from mrta_rl.conf_files import shipped_systems
+from mrta_rl.conf_paths import shipped_systems
 from mrta_rl.envs import encodings, view_inputs
 from mrta_rl.envs.params import AuctionParams
 from mrta_rl.envs.view_inputs import InvalidAction, SystemLike

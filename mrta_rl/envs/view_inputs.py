@@ -2,7 +2,7 @@
 
 * **Systems** by name (``"system1"``, ``"system2"``, ``"random"``: the files of ``conf/system/``,
   shipped in the package), by the path of a team yaml anywhere
-  (:func:`mrta_rl.conf_files.system_file`), as a system config mapping (the content of such a
+  (:func:`mrta_rl.conf_paths.system_file`), as a system config mapping (the content of such a
   file) or as a :class:`RobotSystem`.
 * **Params** as :class:`AuctionParams` or as a mapping of overrides on top of the spec defaults
   and the system file's ``env:`` block (``{"horizon": 200}``).
@@ -22,7 +22,7 @@ from typing import Any, Literal
 import numpy as np
 
 from mrta_rl.checked_files import read_yaml
-from mrta_rl.conf_files import system_file
+from mrta_rl.conf_paths import system_file
 from mrta_rl.envs.auction import AuctionEnv
 from mrta_rl.envs.params import AuctionParams
 from mrta_rl.systems import RobotSystem, build_system

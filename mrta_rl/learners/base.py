@@ -21,19 +21,18 @@ parameters and active tasks) and reads ``B`` from the arrays it passes.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from collections.abc import Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, ClassVar, Literal, NamedTuple
+from typing import Any, ClassVar, Literal
 
 import numpy as np
 
 from mrta_rl.config import RUNNER_ARGUMENTS, ConfigError, UserError, check_keywords
 from mrta_rl.envs import AuctionEnv, StepResult
+from mrta_rl.learners.resources import MemoryQuery, ResourceEstimate
 from mrta_rl.loops import NO_TRAINING, PPO_LOOP, TICK_LOOP, TORCHRL_LOOP  # noqa: F401 - for plugins
 from mrta_rl.partition import Partition
-from mrta_rl.run_files import RunDirError, check_schema, read_json
-
-if TYPE_CHECKING:  # memory.py imports the encodings, which import the learners package
-    from mrta_rl.learners.memory import ResourceEstimate
+from mrta_rl.run_layout import RunDirError, check_schema, read_json
 
 LearnerKind = Literal["fixed", "tabular", "neural", "search"]
 
@@ -43,7 +42,7 @@ def read_description(path: Path, schema: dict[str, Any]) -> dict[str, Any]:
 
     Args:
         path: The file.
-        schema: What ``save`` writes (``run_files.check_schema``'s form).
+        schema: What ``save`` writes (``run_layout.check_schema``'s form).
 
     Returns:
         The content.
@@ -73,16 +72,6 @@ class NonFiniteState(UserError):
         )
 
 
-class MemoryQuery(NamedTuple):
-    """What a learner's memory estimate depends on, asked before the learner is built."""
-
-    env: AuctionEnv  # a probe env of the run's team and parameters
-    partition: Partition | None  # the subG partition, for learners that need one
-    settings: dict[str, Any]  # the learner's hyperparameters from the run config
-    decisions: int  # copy-ticks of training: the most states a table can meet
-    copies: int  # training copies (collector batch of the neural learners)
-
-
 # what every concrete learner class answers for (besides its own ``label``, see Learner)
 FACTS = ("kind", "training_loop", "estimate_memory", "learning_space_dimension")
 
@@ -104,13 +93,14 @@ class Learner(ABC):
 
     * ``label``: the display name in reports (``subG-CQL``), declared by the class itself (a
       subclass is another learner, never silently labelled as its parent);
-    * ``kind``: the family, ``"fixed"``, ``"tabular"``, ``"neural"`` or ``"search"``, recorded
-      in metrics.json;
+    * ``kind``: how it is trained, recorded in metrics.json: ``"fixed"`` (not at all),
+      ``"tabular"`` (Q-tables), ``"neural"`` (gradient steps on TorchRL networks) or
+      ``"search"`` (policy search on team returns: ``reserve_es``, ``net_es``);
     * ``training_loop``: the runner's loop that trains it (``TICK_LOOP``, ``TORCHRL_LOOP``,
       ``PPO_LOOP``, ``NO_TRAINING`` of ``mrta_rl/loops.py``, or ``"module:function"`` of one's
       own);
     * ``estimate_memory(query)``: a classmethod, given a :class:`MemoryQuery`,
-      returning the :class:`~mrta_rl.learners.memory.ResourceEstimate` of its own state
+      returning the :class:`~mrta_rl.learners.resources.ResourceEstimate` of its own state
       (tables, networks, buffers) before it is built; the env copies are counted by
       :func:`~mrta_rl.learners.memory.estimate_resources`, which calls it;
     * ``learning_space_dimension(env, partition, settings)``: a classmethod returning the
@@ -118,7 +108,7 @@ class Learner(ABC):
 
     Attributes:
         label: Display name in reports.
-        kind: The learner's family (see above).
+        kind: How the learner is trained (see above).
         training_loop: ``"module:function"`` of the loop that trains it.
         requires_partition: True if the learner needs the subG partition (paper §4); the runner
             then builds the env with ``Lambda_i = partition.active_tasks(system)``.
@@ -165,6 +155,25 @@ class Learner(ABC):
     def trains(cls) -> bool:
         """True if the learner has a training loop (and so a learned state to save)."""
         return cls.training_loop != NO_TRAINING
+
+    @classmethod
+    def base_run(cls, settings: Mapping[str, Any]) -> Path | None:
+        """The run dir whose trained learner this learner plays, named by its setting ``base``.
+
+        A learner never loads a run: the runner loads that run's learner (checked to be of the
+        run's team, its chain of bases without a loop) and passes it as the runner argument
+        ``base_policy``, as it passes ``env``. The default: none.
+
+        Args:
+            settings: The learner's settings (a ``learner`` config block).
+
+        Returns:
+            The run dir, or None if the settings name none.
+
+        Raises:
+            ConfigError: naming ``learner.base`` if its value is neither a run dir nor valid.
+        """
+        return None
 
     def __new__(cls, *args: Any, **hyperparameters: Any) -> Learner:
         """Check the hyperparameters against their declarations before ``__init__`` runs.
@@ -341,8 +350,6 @@ class FixedLearner(Learner, abstract=True):
     @classmethod
     def estimate_memory(cls, query: MemoryQuery) -> ResourceEstimate:
         """Nothing beyond the env copies (counted by ``estimate_resources``)."""
-        from mrta_rl.learners.memory import ResourceEstimate
-
         return ResourceEstimate(cls.__name__)
 
     @classmethod

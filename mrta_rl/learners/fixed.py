@@ -5,7 +5,8 @@ evaluates them exactly like trained learners. ``greedy`` is the plain auction wi
 the baseline every run reports next to its learner. ``team_reserve`` and ``subg_reserve`` are not
 in the spec: a hand-written reserve rule over a grouping of the robots (the whole team, or the
 subG sub-groups on the partition), yardsticks of what a rule on the learners' signals reaches.
-The rules themselves are :mod:`mrta_rl.rules`' compiled ones, applied to every copy.
+The rules themselves are :mod:`mrta_rl.rules`' compiled ones, applied to every copy; the
+reserve rule over a grouping is :class:`mrta_rl.priors.TeamReserveRule`, which the priors share.
 """
 
 from __future__ import annotations
@@ -15,11 +16,10 @@ from typing import Annotated, ClassVar
 import numpy as np
 
 from mrta_rl import rules
-from mrta_rl.config import Choices, Range
+from mrta_rl.config import Choices
 from mrta_rl.envs import AuctionEnv
-from mrta_rl.envs.encodings import N_RECENCY_LEVELS, recency_level
 from mrta_rl.learners.base import FixedLearner
-from mrta_rl.partition import subg_partition
+from mrta_rl.priors import GROUPINGS, HOLD_SCOPES, ORDERS, HoldLevel, Reserve, TeamReserveRule
 
 
 class GreedyLearner(FixedLearner):
@@ -113,28 +113,13 @@ class HighOnlyLearner(FixedLearner):
         return rules.high_only_actions(mask, view)
 
 
-# the rule's two numbers, declared once for team_reserve and subg_reserve (mrta_rl.config)
-Reserve = Annotated[int, Range(0)]  # idle robots kept back for H work
-HoldLevel = Annotated[int, Range(0, N_RECENCY_LEVELS)]  # recency level below which L waits
-GROUPINGS = ("team", "subg")  # team_reserve: one group of all robots, or the subG sub-groups
-HOLD_SCOPES = ("group", "robot")  # whose recency level holds an L bid back
-ORDERS = ("fewest_types", "index")  # which idle robot of a group is asked first
-
-
 class TeamReserveLearner(FixedLearner):
     """A hand-written reserve rule over any grouping of the robots: a yardstick for the learners.
 
     It reads no more than a centralized learner's group view (spec "Observations": slot contents,
     which robots are idle, the recency level of an H arrival) and bids for the robots' active
-    types ``Lambda_i`` only. Per group ``G`` and copy it bids the reserve rule
-    (:func:`mrta_rl.rules.reserve`): H slots first, then L slots, one robot per slot, so no bid is
-    lost (spec step 7). Robots are asked in ``order`` (``fewest_types``: fewest active types
-    first, ties to the lowest index, so versatile robots stay free; ``index``: lowest index). An
-    L bid needs at least ``reserve`` other idle robots of ``G`` left without a bid, and a robot
-    whose recency level is at least ``hold_level`` (``hold_scope="group"``: the level over the
-    group's types ``T_g``; ``"robot"``: over the robot's own ``Lambda_i``). ``hold_level=1``: no
-    such H task arrived within 3 ticks; ``0``: never hold; ``2``: within 10 ticks; ``3``: never
-    bid for L.
+    types ``Lambda_i`` only, by the rule :class:`~mrta_rl.priors.TeamReserveRule` (its docstring
+    says how ``reserve``, ``hold_level``, ``hold_scope`` and ``order`` shape the bids).
 
     ``grouping="team"`` (default) is one group of all robots; ``"subg"`` the sub-groups of the
     subG partition (paper §4), computed from the env's system if the runner gave none. On the
@@ -168,42 +153,27 @@ class TeamReserveLearner(FixedLearner):
         **kwargs,
     ) -> None:
         super().__init__(**kwargs)  # types, ranges and choices: the annotations (mrta_rl.config)
-        self.reserve, self.hold_level, self.hold_scope = reserve, hold_level, hold_scope
-        active = self.env.active_tasks  # Lambda_i, [m, n]
-        if grouping == "team":
-            groups = [list(range(self.n_robots))]
-        else:
-            partition = self.partition or subg_partition(self.env.system)
-            groups = [
-                [self.env.system.robots.index(r) for r in robots]
-                for robots in partition.group_map().values()
-            ]
-        self._groups = []  # (robots in bidding preference order, T_g)
-        for ids in groups:
-            ids = np.asarray(ids, np.int64)
-            if order == "fewest_types":
-                ids = np.sort(ids)  # ties go to the lowest index
-                ids = ids[rules.fewest_types_first(active[ids])]
-            self._groups.append((ids, active[ids].any(axis=0)))
-        # the recency scope of each robot: its group's types T_g, or its own Lambda_i
-        self._scope = active.copy()
-        if hold_scope == "group":
-            for robots, types in self._groups:
-                self._scope[robots] = types
+        self.rule = TeamReserveRule(
+            self.env,
+            reserve=reserve,
+            hold_level=hold_level,
+            hold_scope=hold_scope,
+            grouping=grouping,
+            order=order,
+            partition=self.partition,
+        )
 
     def encode(self, env: AuctionEnv) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Slot priorities ``[B, K]``, idle flags ``[B, m]``, recency levels ``[B, m]``.
 
-        The mask alone cannot tell an idle robot with nothing to bid for from a busy one, and the
-        reserve counts every idle robot of the group. Robot ``i``'s recency level is over its
-        ``hold_scope``: its group's types or its own.
+        The rule's view (:meth:`~mrta_rl.priors.TeamReserveRule.encode`).
         """
-        return env.slot_high.copy(), env.idle.copy(), recency_level(env, self._scope)
+        return self.rule.encode(env)
 
     def act(
         self, view: tuple[np.ndarray, np.ndarray, np.ndarray], mask: np.ndarray, *, explore: bool
     ) -> np.ndarray:
-        """Bid per the rule of the class docstring.
+        """Bid per the rule of the class docstring (:meth:`~mrta_rl.priors.TeamReserveRule.act`).
 
         Args:
             view: Slot priorities, idle flags and recency levels from :meth:`encode`.
@@ -213,14 +183,7 @@ class TeamReserveLearner(FixedLearner):
         Returns:
             ``[B, m]`` int64 conflict-free actions.
         """
-        slot_high, idle, recency = view
-        actions = np.zeros(mask.shape[:2], np.int64)
-        may_take_low = recency >= self.hold_level  # [B, m]
-        for robots, _ in self._groups:
-            rules.reserve_actions(
-                mask, slot_high, idle, may_take_low, robots, self.reserve, actions
-            )
-        return actions
+        return self.rule.act(view, mask)
 
 
 class SubGReserveLearner(TeamReserveLearner):

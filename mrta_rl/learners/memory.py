@@ -30,7 +30,6 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
-from dataclasses import dataclass, field
 from typing import Any
 
 from mrta_rl.config import declared_keywords
@@ -43,7 +42,7 @@ from mrta_rl.envs.encodings import (
     local_feature_size,
     prior_dtype,
 )
-from mrta_rl.learners.base import MemoryQuery
+from mrta_rl.learners.resources import MemoryQuery, ResourceEstimate
 from mrta_rl.partition import Partition, subg_partition
 from mrta_rl.systems import RobotSystem
 
@@ -54,63 +53,6 @@ GROWTH = 2  # growable arrays double their capacity
 TABLE_ENTRY_BYTES = 8 + 8  # dense tables: Q float64 and visits int64
 # per float32 weight: itself, its target copy, its gradient and Adam's two moments
 BYTES_PER_WEIGHT = 4 * 5
-
-
-@dataclass(frozen=True)
-class ResourceEstimate:
-    """What a learner needs on a system (see module docstring).
-
-    Attributes:
-        learner: Class name.
-        up_front: Bytes the learner takes for sure.
-        worst: Upper bound of the bytes, tables grown to every state they could meet.
-        parts: Bytes by part (``"G1 table"``, ``"replay buffer"``, ``"networks"``...), worst case.
-        per_copy: Bytes each env copy of a tick takes up front, by part (``"G1 row (44,001
-            joint actions)"``); :func:`estimate_resources` counts them for the most copies
-            that play one tick, training's or evaluation's.
-        up_front_parts: ``up_front`` by part where it is not ``parts`` (set with ``per_copy``
-            by :func:`estimate_resources`); empty: ``parts``.
-        reason: Why the learner cannot run at all (e.g. joint actions beyond int64), else None.
-        advice: What to change, for the messages.
-    """
-
-    learner: str
-    up_front: int = 0
-    worst: int = 0
-    parts: dict[str, int] = field(default_factory=dict)
-    per_copy: dict[str, int] = field(default_factory=dict)
-    up_front_parts: dict[str, int] = field(default_factory=dict)
-    reason: str | None = None
-    advice: str = ""
-
-    def refusal(self, limit_bytes: int) -> str | None:
-        """Why the run must not start under a memory limit, or None if it may.
-
-        Args:
-            limit_bytes: The memory allowed.
-
-        Returns:
-            The reason (what is too big), without advice, or None.
-        """
-        if self.reason is not None:
-            return self.reason
-        if self.up_front > limit_bytes:
-            parts = self.up_front_parts or self.parts
-            biggest = sorted(parts.items(), key=lambda kv: -kv[1])[:3]
-            detail = ", ".join(f"{name} {format_bytes(b)}" for name, b in biggest)
-            return (
-                f"needs about {format_bytes(self.up_front)} up front ({detail}), more than the "
-                f"limit of {format_bytes(limit_bytes)}"
-            )
-        return None
-
-
-def format_bytes(n: float) -> str:
-    """``1.5 GB``, ``12 MB``: decimal units, three significant digits."""
-    for unit, size in (("TB", 1e12), ("GB", 1e9), ("MB", 1e6), ("kB", 1e3)):
-        if n >= size:
-            return f"{n / size:.3g} {unit}"
-    return f"{int(n)} B"
 
 
 def conflict_free_joint_actions(n_robots: int, n_slots: int) -> int:

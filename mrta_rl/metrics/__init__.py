@@ -12,12 +12,12 @@ from mrta_rl.metrics.episode import (
     return_by_type,
     summarize,
 )
-from mrta_rl.metrics.logger import CURVE_COLUMNS, CSVLogger
+from mrta_rl.metrics.run_logger import CURVE_COLUMNS, RunLogger
 
 __all__ = [
     "CURVE_COLUMNS",
-    "CSVLogger",
     "EpisodeSummary",
+    "RunLogger",
     "concat_stats",
     "ctr",
     "ctr_overall",

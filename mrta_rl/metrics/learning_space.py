@@ -1,9 +1,11 @@
 """Learning space dimension of the tabular learners, paper §5.2 eqs. (10)-(16), as exact ints.
 
 Each tabular learner class answers for its own dimension (``learning_space_dimension``, a
-classmethod built on the formulas here); :func:`learning_space_dimension` asks the class of a
-learner name. The state counts come from the project's encodings (``mrta_rl.envs.encodings``)
-and every robot has ``|A_i| = K + 1`` actions (wait or bid for one of ``K`` slots, spec step 4):
+classmethod built on the formulas here); :func:`mrta_rl.learners.registry.learning_space_dimension`
+asks the class of a learner name, and :func:`mrta_rl.learners.registry.learning_space_table` every
+tabular learner of a system. The state counts come from the project's encodings
+(``mrta_rl.envs.encodings``) and every robot has ``|A_i| = K + 1`` actions (wait or bid for one
+of ``K`` slots, spec step 4):
 
 * DQL, eqs. (10)-(11): ``sum_i |S_i| |A_i|`` with ``S_i`` the local view of robot ``i``.
 * semi-CQL, eq. (11) with each robot's state the whole-system state: ``sum_i |S| |A_i|``; with
@@ -22,11 +24,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import Any, Literal
-
-from mrta_rl.envs import AuctionEnv, AuctionParams
-from mrta_rl.partition import Partition, subg_partition
-from mrta_rl.systems import RobotSystem
+from typing import Literal
 
 TabularLearnerName = Literal["cql", "semi_cql", "dql", "subg_cql"]
 # the rows of the paper's Table 9, in its order (each learner's formula is its class's)
@@ -76,65 +74,6 @@ def subgroup_dimension(groups: Sequence[tuple[int, Sequence[int]]]) -> int:
     return sum(centralized_dimension(s, a) for s, a in groups)
 
 
-def learning_space_dimension(
-    learner: str,
-    env: AuctionEnv,
-    partition: Partition | None = None,
-    features: str = "paper",
-    **settings: Any,
-) -> int:
-    """Analytic learning space dimension of one learner of ``conf/learner`` on ``env``.
-
-    The formula is the learner class's own (``learning_space_dimension``, see
-    :class:`~mrta_rl.learners.base.Learner`); settings it does not pass take the paper's
-    values (semi-CQL's ``state="system"``, subG-CQL's ``state="group"``).
-
-    Args:
-        learner: The learner's name (``"cql"``, ``"semi_cql"``, ``"dql"``, ``"subg_cql"``...).
-        env: The env the learner runs on (for subG-CQL: built with the partition's ``Lambda_i``).
-        partition: The subG partition (required for ``"subg_cql"``).
-        features: The learner's encoding, ``"paper"`` or ``"time_to_free"``
-            (``envs/encodings.py``).
-        **settings: Further settings of the learner's state (``state``).
-
-    Returns:
-        The exact dimension.
-
-    Raises:
-        ValueError: on a learner without a learning space, or ``"subg_cql"`` without a
-            partition.
-    """
-    from mrta_rl.conf_files import learner_named  # the learners import this module
-
-    cls = learner_named(learner)
-    dimension = cls.learning_space_dimension(env, partition, {"features": features, **settings})
-    if dimension is None:
-        raise ValueError(f"learner {learner!r} ({cls.__name__}) has no learning space dimension")
-    return dimension
-
-
-def learning_space_table(
-    system: RobotSystem, params: AuctionParams | None = None
-) -> dict[TabularLearnerName, int]:
-    """Table-9 analogue for one system: the dimension of every tabular learner.
-
-    Args:
-        system: The robot team.
-        params: Dynamics parameters (default: spec defaults plus the system's overrides); only
-            ``slots`` and the durations matter.
-
-    Returns:
-        ``{learner: dimension}`` in :data:`TABULAR_LEARNERS` order.
-    """
-    env = AuctionEnv(system, params, batch_size=1)
-    partition = subg_partition(system)
-    sub_env = AuctionEnv(system, params, batch_size=1, active_tasks=partition.active_tasks(system))
-    return {
-        name: learning_space_dimension(name, sub_env if name == "subg_cql" else env, partition)
-        for name in TABULAR_LEARNERS
-    }
-
-
 def factorize(value: int) -> str:
     """Prime factorisation as in paper Table 9 (``2^12 * 3^4 * 17``), for display.
 
@@ -162,7 +101,8 @@ def format_learning_space_table(tables: dict[str, dict[TabularLearnerName, int]]
     """Table 9 layout: one row per learner, one column per system, exact value and factors.
 
     Args:
-        tables: ``{system name: learning_space_table(system)}``.
+        tables: ``{system name: learning_space_table(system)}``
+            (:func:`mrta_rl.learners.registry.learning_space_table`).
 
     Returns:
         A plain-text table.

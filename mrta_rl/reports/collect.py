@@ -33,7 +33,7 @@ from mrta_rl.checked_files import (
     read_json,
 )
 from mrta_rl.config import UserError
-from mrta_rl.run_files import (
+from mrta_rl.run_layout import (
     CONFIG_FILE,
     METRICS_FILE,
     REFUSED_FILE,

@@ -43,7 +43,7 @@ from mrta_rl.reports.stats import (
     probability_of_improvement,
 )
 from mrta_rl.reports.tables import image, markdown_table, paragraphs, signed, write_csv
-from mrta_rl.run_files import CONFIG_FILE, EVAL_METRICS_FILE, read_json
+from mrta_rl.run_layout import CONFIG_FILE, EVAL_METRICS_FILE, read_json
 
 # swept setting (dotted config key) -> (axis label, file stem, log-scale x axis)
 DIMENSIONS: dict[str, tuple[str, str, bool]] = {

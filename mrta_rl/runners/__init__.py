@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+from mrta_rl.config_guard import guard_config_files
 from mrta_rl.runners.evaluate import evaluate_policy, evaluate_run, format_summary
 from mrta_rl.runners.run_config import register_resolvers
-from mrta_rl.runners.train import RunSetup, build_run, evaluate_checkpoint, train
+from mrta_rl.runners.run_setup import RunSetup
+from mrta_rl.runners.train import build_run, evaluate_checkpoint, train
 from mrta_rl.runners.validation import validate_config
-from mrta_rl.systems.files import guard_config_files
 
 register_resolvers()  # before Hydra composes conf/config.yaml (run dirs, see checkpoint.py)
 guard_config_files()  # before Hydra reads a config file: size, encoding, depth, aliases

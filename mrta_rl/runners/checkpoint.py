@@ -28,15 +28,16 @@ from typing import Any
 from mrta_rl.checked_files import read_text
 from mrta_rl.learners import Learner
 from mrta_rl.metrics.usage import RunResources
-from mrta_rl.run_files import (
+from mrta_rl.run_layout import (
     CHECKPOINT_DIR,
     LEARNER_DIR,
     POINTER_FILE,
     STATE_FILE,
     RunDirError,
+    read_training_state,
     write_json,
 )
-from mrta_rl.runners.learner_files import load_learner, save_learner
+from mrta_rl.runners.learner_state import load_learner, save_learner
 
 logger = logging.getLogger(__name__)
 POINTER_BYTES = 64  # the pointer file holds a version folder's name: an episode number
@@ -75,7 +76,7 @@ class LoopTime:
         return self._before["wall_s"] + time.perf_counter() - self._start
 
     def spent(self) -> dict[str, float]:
-        """The ``loop.spent`` block of a checkpoint taken now (:data:`~mrta_rl.run_files.SPENT`)."""
+        """The ``loop.spent`` block of a checkpoint taken now (``run_layout.SPENT``)."""
         return {"wall_s": self.wall(), **{part: self.total(part) for part in self.PARTS}}
 
 
@@ -200,8 +201,6 @@ class TrainingCheckpoint:
         version = require_checkpoint(self.run_dir)
         self.path = version  # the loop reads its own files from here
         state_path = version / STATE_FILE
-        from mrta_rl.run_files import read_training_state  # it imports this module
-
         loop, learner_state = read_training_state(
             state_path, self.learner.training_loop, self.episodes
         )

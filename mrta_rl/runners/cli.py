@@ -46,7 +46,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 
 from mrta_rl.errors import EXIT_INTERRUPTED, EXIT_USER_ERROR, os_fault, user_message
-from mrta_rl.run_files import REFUSED_JOBS_FILE
+from mrta_rl.run_layout import REFUSED_JOBS_FILE
 from mrta_rl.runners.run_dir import claim_from_args
 
 __all__ = ["EXIT_INTERRUPTED", "EXIT_USER_ERROR", "job", "remove_unused_run_dir", "run"]

@@ -29,7 +29,7 @@ from mrta_rl.partition import Partition
 from mrta_rl.splits import DEFAULT_SPLIT, split_seed
 
 if TYPE_CHECKING:
-    from mrta_rl.runners.train import RunSetup
+    from mrta_rl.runners.run_setup import RunSetup
 
 logger = logging.getLogger(__name__)
 

@@ -30,7 +30,7 @@ from torchrl.collectors import Collector
 from mrta_rl.checked_files import read_tensors
 from mrta_rl.envs.torchrl_env import AuctionTorchRLEnv
 from mrta_rl.learners.neural.common import write_tensors
-from mrta_rl.run_files import RunDirError
+from mrta_rl.run_layout import RunDirError
 from mrta_rl.runners.checkpoint import LoopTime
 from mrta_rl.runners.episodes import EpisodeReturns
 from mrta_rl.runners.progress import progress_bar

@@ -30,7 +30,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from mrta_rl.checked_files import PT_OVERHEAD, PT_PER_TENSOR, read_tensors
 from mrta_rl.learners.neural.common import write_tensors
-from mrta_rl.run_files import RunDirError
+from mrta_rl.run_layout import RunDirError
 
 if TYPE_CHECKING:
     from mrta_rl.envs.torchrl_env import AuctionTorchRLEnv

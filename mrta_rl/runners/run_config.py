@@ -23,8 +23,8 @@ from omegaconf import DictConfig, OmegaConf
 
 from mrta_rl.checked_files import YamlSyntaxError, read_config, read_yaml_text
 from mrta_rl.learners import Learner
-from mrta_rl.metrics.logger import CSVLogger
-from mrta_rl.run_files import CONFIG_FILE, HYDRA_FILE, RunDirError
+from mrta_rl.metrics.run_logger import RunLogger
+from mrta_rl.run_layout import CONFIG_FILE, HYDRA_FILE, RunDirError
 
 logger = logging.getLogger(__name__)
 
@@ -183,7 +183,7 @@ def check_run_config(config: dict[str, Any], source: Path) -> None:
         if key == "learner":
             _check_component(value, "learner", Learner, source, flat=True, known=True)
         elif key == "logger":
-            _check_component(value, "logger", CSVLogger, source, flat=True)
+            _check_component(value, "logger", RunLogger, source, flat=True)
         else:
             _check_data({key: value}, "", source)
 

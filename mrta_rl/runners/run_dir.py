@@ -24,7 +24,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, NoReturn, TypeVar
 
-from mrta_rl.run_files import CHECKPOINT_DIR, CONFIG_FILE, METRICS_FILE, RunDirError
+from mrta_rl.run_layout import CHECKPOINT_DIR, CONFIG_FILE, METRICS_FILE, RunDirError
 from mrta_rl.runners.checkpoint import require_checkpoint
 
 _HELD: dict[str, int] = {}  # realpath of a run dir -> descriptor holding its lock (this process)

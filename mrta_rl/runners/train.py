@@ -14,7 +14,6 @@ and run seed is evaluated on identical streams.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -22,15 +21,14 @@ import numpy as np
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from mrta_rl.config import ConfigError, UserError
-from mrta_rl.envs import AuctionEnv, AuctionParams
+from mrta_rl.config import ConfigError, UserError, short_list
+from mrta_rl.envs import AuctionEnv
 from mrta_rl.errors import check_output_file
 from mrta_rl.learners import Learner
 from mrta_rl.learners.tabular.qtable import TableGrowthError, limit_growth
-from mrta_rl.metrics.logger import finish_run
+from mrta_rl.metrics.run_logger import finish_run
 from mrta_rl.metrics.usage import RunResources
-from mrta_rl.partition import Partition
-from mrta_rl.run_files import (
+from mrta_rl.run_layout import (
     CONFIG_FILE,
     EVAL_METRICS_FILE,
     LEARNER_DIR,
@@ -41,9 +39,10 @@ from mrta_rl.run_files import (
 )
 from mrta_rl.runners.checkpoint import TrainingCheckpoint, TrainingInterrupted
 from mrta_rl.runners.evaluate import evaluate_run
-from mrta_rl.runners.learner_files import load_learner, save_learner
+from mrta_rl.runners.learner_state import load_learner, save_learner, team_record
 from mrta_rl.runners.run_config import read_run_config, run_choices
 from mrta_rl.runners.run_dir import claim_run_dir, releases_run_dirs
+from mrta_rl.runners.run_setup import RunSetup
 from mrta_rl.runners.validation import (
     SEED_STRIDE,
     ResourceRefusal,
@@ -54,40 +53,8 @@ from mrta_rl.runners.validation import (
 )
 from mrta_rl.splits import FAMILY_SEEDS
 from mrta_rl.systems import RobotSystem
-from mrta_rl.systems.family import TeamFamily
 
 logger = logging.getLogger(__name__)
-
-
-@dataclass
-class RunSetup:
-    """Everything a run is built from, validated (see :func:`build_run`).
-
-    Attributes:
-        name: Learner name, the yaml stem (``greedy``, ``subg_cql``...).
-        system: The robot team.
-        params: Resolved dynamics parameters.
-        partition: The subG partition if the learner requires one, else None.
-        active_tasks: ``[m, n]`` bool ``Lambda_i`` of the learner's envs, None = ``Gamma_i``.
-        env: The training env (``train.batch_size`` copies, capped by ``train.robot_copies``).
-        learner: The learner, built on ``env``.
-        checkpoint: Periodic training checkpoints and resuming (set by :func:`train`; None:
-            none).
-        family: The family of teams training draws one team per episode from
-            (:func:`family_env`), else None; ``system`` is then its evaluation team.
-        env_overrides: The run's ``env.*``, applied to every team of a family.
-    """
-
-    name: str
-    system: RobotSystem
-    params: AuctionParams
-    partition: Partition | None
-    active_tasks: np.ndarray | None
-    env: AuctionEnv
-    learner: Learner
-    checkpoint: TrainingCheckpoint | None = None
-    family: TeamFamily | None = None
-    env_overrides: dict[str, Any] | None = None
 
 
 def build_run(cfg: DictConfig, name: str | None = None) -> RunSetup:
@@ -114,11 +81,16 @@ def build_run(cfg: DictConfig, name: str | None = None) -> RunSetup:
         active_tasks=checked.active_tasks,
         seed=cfg.seed * SEED_STRIDE,
     )
+    # a trained learner a setting names by its run dir (learner.base): the runner loads it
+    runner_supplied = {}
+    if checked.base is not None:
+        runner_supplied["base_policy"] = load_base(checked.base, checked.system)
     try:  # the settings are checked plain values: the class is called, nothing else is built
         learner = cls(
             env=env,
             rng=np.random.default_rng(cfg.seed),
             partition=checked.partition,
+            **runner_supplied,
             **checked.hyperparameters,
         )
     except (TypeError, ValueError) as err:  # a relation between settings (eps_end <= eps_start)
@@ -367,6 +339,41 @@ def load_run(run_dir: Path | str, cfg: DictConfig | None = None) -> RunSetup:
     if run.learner.trains():
         load_learner(run.learner, run_dir / LEARNER_DIR)
     return run
+
+
+def load_base(run_dir: Path, system: RobotSystem) -> Learner:
+    """The trained learner of the run dir a learner plays as its base (``learner.base``).
+
+    The run is rebuilt as re-evaluation rebuilds it (:func:`load_run`), so its learner plays
+    as it was trained; its team must be ``system``, the run's (tables and weights are indexed
+    by robot and task type). :func:`~mrta_rl.runners.validation.check_base` has checked the
+    run dir and its chain of bases.
+
+    Args:
+        run_dir: The base's run dir of ``scripts/train.py``.
+        system: The team of the run that plays the base.
+
+    Returns:
+        The base's learner, trained as saved.
+
+    Raises:
+        ConfigError: naming ``learner.base`` and the culprit (a run dir refused, or of another
+            team).
+    """
+    key = "learner.base"
+    try:
+        learner = load_run(run_dir).learner
+    except UserError as err:
+        raise ConfigError(f"{key}: {err}") from None
+    theirs, ours = team_record(learner.env.system), team_record(system)
+    for part in ("robots", "task_types", "willingness"):
+        if theirs[part] != ours[part]:
+            raise ConfigError(
+                f"{key}: {run_dir} is a run of another team: its {part} "
+                f"[{short_list(theirs[part], quote=True)}] are not the planner's system's "
+                f"[{short_list(ours[part], quote=True)}]"
+            )
+    return learner
 
 
 def evaluate_checkpoint(

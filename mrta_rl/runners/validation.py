@@ -41,14 +41,13 @@ from mrta_rl.envs import AuctionParams
 from mrta_rl.envs.auction import check_limits
 from mrta_rl.learners import Learner
 from mrta_rl.learners.base import learner_from_target
-from mrta_rl.learners.memory import (
-    ResourceEstimate,
-    estimate_resources,
-    format_bytes,
-    machine_memory,
-    team_floor_bytes,
-)
+from mrta_rl.learners.memory import estimate_resources, machine_memory, team_floor_bytes
+from mrta_rl.learners.registry import any_team_learners
+from mrta_rl.learners.resources import ResourceEstimate, format_bytes
 from mrta_rl.partition import Partition, subg_partition
+from mrta_rl.run_layout import LEARNER_DIR, RunDirError
+from mrta_rl.runners.bases import check_base
+from mrta_rl.runners.run_config import read_run_config
 from mrta_rl.splits import DEFAULT_SPLIT, FAMILY_SEEDS, SEED_STRIDE, SPLIT_SEEDS, SPLIT_WIDTH
 from mrta_rl.systems import (
     MAX_PAIRS,
@@ -255,6 +254,8 @@ class CheckedConfig:
             ``system`` is its evaluation team.
         env_overrides: The run's ``env.*`` (every team's parameters take them last).
         init: The run dir whose learner state the learner starts from (``init=``), else None.
+        base: The run dir whose trained learner the learner plays (``learner.base``,
+            :func:`check_base`), else None.
     """
 
     learner_cls: type[Learner]
@@ -268,6 +269,7 @@ class CheckedConfig:
     family: TeamFamily | None = None
     env_overrides: dict[str, Any] | None = None
     init: Path | None = None
+    base: Path | None = None
 
     @property
     def active_tasks(self) -> np.ndarray | None:
@@ -291,12 +293,12 @@ def hydra_choice(group: str, default: str) -> str:
 
 def _check_logger(settings: Any) -> None:
     """The curve logger's settings: declared keywords, and file names that stay in the run dir."""
-    from mrta_rl.metrics.logger import CSVLogger  # every logger of a run is one (checkpoint.py)
+    from mrta_rl.metrics.run_logger import RunLogger  # every logger of a run is one (checkpoint.py)
 
     if settings is None:
         return
     _check(isinstance(settings, dict), f"logger: must be a logger config, got {settings!r}")
-    checked = check_keywords(CSVLogger, settings, "logger")
+    checked = check_keywords(RunLogger, settings, "logger")
     for key, refused in (("filename", ("", ".", "..")), ("log_dir", ("", ".."))):
         name = checked.get(key)  # log_dir "." is the run dir itself (wandb adds its wandb/)
         _check(
@@ -461,6 +463,7 @@ def validate_config(cfg: DictConfig) -> CheckedConfig:
     if family is not None:
         check_family(cls, family, file, train)
     init = check_init(cls, _plain(cfg, "init"))
+    base = check_base(cls, hyperparameters)
     partition = (
         subg_partition(system, bound.get("max_group_size")) if cls.requires_partition else None
     )
@@ -518,6 +521,7 @@ def validate_config(cfg: DictConfig) -> CheckedConfig:
         family,
         env_overrides,
         init,
+        base,
     )
 
 
@@ -581,13 +585,6 @@ def team_params(system: RobotSystem, env_overrides: dict[str, Any]) -> AuctionPa
     )
 
 
-def any_team_learners() -> list[str]:
-    """The shipped learners that learn a state fitting any team (``Learner.any_team``)."""
-    from mrta_rl.conf_files import learner_files, learner_named
-
-    return [n for n in learner_files() if learner_named(n).trains() and learner_named(n).any_team]
-
-
 def check_family(cls: type[Learner], family: TeamFamily, file: str, train: dict[str, Any]) -> None:
     """Refuse training on a family of teams by a learner whose state is tied to one team.
 
@@ -618,9 +615,6 @@ def check_init(cls: type[Learner], init: Any) -> Path | None:
     """
     if init is None:
         return None
-    from mrta_rl.run_files import LEARNER_DIR, RunDirError
-    from mrta_rl.runners.run_config import read_run_config
-
     _check(isinstance(init, str) and init != "", f"init: must be a run dir, got {init!r}")
     name = hydra_choice("learner", cls.__name__)
     _check(

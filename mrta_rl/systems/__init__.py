@@ -2,15 +2,14 @@
 
 from __future__ import annotations
 
+from mrta_rl.systems.build import build_system, system_shape
 from mrta_rl.systems.robot_system import (
     MAX_PAIRS,
     DurationRange,
     RobotSystem,
     SystemConfigError,
-    build_system,
     natural_key,
     random_system,
-    system_shape,
 )
 
 __all__ = [

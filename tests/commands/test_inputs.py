@@ -1,7 +1,7 @@
 """Bad inputs refused up front by the scripts: one ``error:`` line naming the file, exit 2.
 
 Oversized teams and hostile system files are refused before Hydra composes them or anything is
-built, and leave no run dir (``mrta_rl/systems/files.py``, ``runners/validation.py``).
+built, and leave no run dir (``mrta_rl/config_guard.py``, ``runners/validation.py``).
 """
 
 from __future__ import annotations

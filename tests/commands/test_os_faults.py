@@ -25,7 +25,7 @@ import pytest
 from mrta_rl.errors import user_message
 from mrta_rl.runners import build_run, train
 from mrta_rl.runners.checkpoint import TrainingCheckpoint, latest_checkpoint
-from mrta_rl.runners.learner_files import save_learner
+from mrta_rl.runners.learner_state import save_learner
 from tests.commands.test_arguments import assert_one_line, run
 from tests.commands.test_cli import ROOT
 from tests.commands.test_inputs import copy_run, finished_run  # noqa: F401 (a fixture)

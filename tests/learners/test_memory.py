@@ -13,8 +13,8 @@ from mrta_rl.learners.memory import (
     BYTES_PER_WEIGHT,
     conflict_free_joint_actions,
     estimate_resources,
-    format_bytes,
 )
+from mrta_rl.learners.resources import format_bytes
 from mrta_rl.learners.tabular.dql import DQLLearner
 from mrta_rl.learners.tabular.joint_actions import JointActions
 from mrta_rl.learners.tabular.qtable import JointQStorage, TableGrowthError

@@ -16,10 +16,10 @@ from pathlib import Path
 
 import pytest
 
-from mrta_rl.conf_files import learner_files, learner_named
 from mrta_rl.config import UserError
 from mrta_rl.envs import AuctionParams
 from mrta_rl.learners.memory import estimate_resources
+from mrta_rl.learners.registry import learner_files, learner_named
 from mrta_rl.reports import build_report
 from mrta_rl.runners import evaluate_checkpoint
 from tests.conftest import paper_system

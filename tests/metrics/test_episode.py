@@ -11,7 +11,7 @@ import pytest
 from mrta_rl.envs import AuctionEnv, AuctionParams, EpisodeStats
 from mrta_rl.learners import GreedyLearner
 from mrta_rl.metrics import (
-    CSVLogger,
+    RunLogger,
     ctr,
     ctr_overall,
     format_percent,
@@ -134,7 +134,7 @@ def test_summary_of_real_episodes_is_consistent(tiny_system, tiny_params, rng):
 
 
 def test_csv_logger(tmp_path):
-    with CSVLogger(run_dir=tmp_path) as logger:
+    with RunLogger(run_dir=tmp_path) as logger:
         logger.log({"env_ticks": 10, "episode": 1, "team_return_mean": 2.5})
         with pytest.raises(ValueError, match="columns"):
             logger.log({"episode": 2})

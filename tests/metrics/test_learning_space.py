@@ -3,12 +3,11 @@ from __future__ import annotations
 import pytest
 
 from mrta_rl.envs import AuctionEnv
+from mrta_rl.learners.registry import learning_space_dimension, learning_space_table
 from mrta_rl.metrics.learning_space import (
     centralized_dimension,
     decentralized_dimension,
     factorize,
-    learning_space_dimension,
-    learning_space_table,
     subgroup_dimension,
 )
 from mrta_rl.partition import subg_partition

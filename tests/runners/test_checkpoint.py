@@ -26,8 +26,8 @@ from hypothesis import strategies as st
 from omegaconf import OmegaConf, open_dict
 
 from mrta_rl.envs import AuctionEnv
-from mrta_rl.loops import PPO_LOOP, TICK_LOOP
-from mrta_rl.run_files import RunDirError
+from mrta_rl.loops import PPO_LOOP
+from mrta_rl.run_layout import RunDirError
 from mrta_rl.runners import build_run, evaluate_checkpoint, train
 from mrta_rl.runners.checkpoint import TrainingCheckpoint, latest_checkpoint
 from mrta_rl.runners.validation import learner_class
@@ -277,14 +277,10 @@ TRAINED = sorted(name for name, kind in KINDS.items() if kind != "fixed")
 
 
 def budget(name: str) -> list[str]:
-    """The kill-and-resume budget of a learner: its loop's, then its kind's.
-
-    A network trained by policy search on the tick loop (net_es) takes the search budget.
-    """
-    loop, kind = learner_loop(name), KINDS[name]
-    if loop == PPO_LOOP:
+    """The kill-and-resume budget of a learner: its loop's, then its kind's."""
+    if learner_loop(name) == PPO_LOOP:
         return BUDGETS["on_policy"]
-    return BUDGETS["search" if loop == TICK_LOOP and kind == "neural" else kind]
+    return BUDGETS[KINDS[name]]
 
 
 # budgets per kind: long enough that a kill lands well before the end, short enough for seconds

@@ -21,7 +21,7 @@ from pathlib import Path
 import pytest
 from omegaconf import OmegaConf
 
-from mrta_rl.run_files import RunDirError
+from mrta_rl.run_layout import RunDirError
 from mrta_rl.runners import build_run, train
 from mrta_rl.runners.checkpoint import TrainingCheckpoint, latest_checkpoint
 from mrta_rl.runners.run_dir import run_dir_of

@@ -104,9 +104,9 @@ from mrta_rl.learners.neural.set_network import (
     SetWithPrior,
     check_fits,
 )
-from mrta_rl.learners.tabular.priors import HOLD_PRIORS, GreedyPrior, HoldRule, SpreadWaitPrior
 from mrta_rl.partition import Partition
-from mrta_rl.run_files import ANY, INT, STR, RunDirError
+from mrta_rl.priors import HOLD_PRIORS, GreedyPrior, HoldRule, SpreadWaitPrior
+from mrta_rl.run_layout import ANY, INT, STR, RunDirError
 from mrta_rl.types import GroupMap
 
 logger = logging.getLogger(__name__)

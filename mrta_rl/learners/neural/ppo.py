@@ -67,9 +67,9 @@ from mrta_rl.learners.neural.common import (
 )
 from mrta_rl.learners.neural.networks import PerRobotQ
 from mrta_rl.learners.neural.set_network import ROBOT_ATTENTION, SetWithPrior, check_fits
-from mrta_rl.learners.tabular.priors import GreedyPrior
 from mrta_rl.partition import Partition
-from mrta_rl.run_files import ANY, INT, STR, RunDirError
+from mrta_rl.priors import GreedyPrior
+from mrta_rl.run_layout import ANY, INT, STR, RunDirError
 from mrta_rl.types import GroupMap
 
 TRAINING_FILE = "training.pt"  # optimizer state (training checkpoints)

@@ -22,8 +22,8 @@ from mrta_rl.learners.memory import (
 )
 from mrta_rl.learners.neural.common import JOINT, NeuralLearner
 from mrta_rl.learners.neural.networks import JointDecode, JointQ
-from mrta_rl.learners.tabular.priors import JOINT_PRIORS, PRIOR_ORDERS, SpreadWaitPrior
 from mrta_rl.partition import Partition
+from mrta_rl.priors import JOINT_PRIORS, PRIOR_ORDERS, SpreadWaitPrior
 from mrta_rl.types import GroupMap
 
 

@@ -8,12 +8,14 @@ rollout return is played (ties to the base policy). Every candidate is scored on
 futures (common random numbers), so their differences are not drowned by arrival noise.
 
 The base policy is a rule of :data:`CANDIDATES` (``base=hold_group``) or a trained run
-(``base=<run dir>``: a path, a run dir of ``scripts/train.py`` on the same team). A run is
-rebuilt from its own config, read as data, with its saved learner state, as re-evaluation does
-(``mrta_rl.runners.train.load_run``), and plays on the rollout copies through its own ``encode``
-/ ``act`` without exploration. Its own action at the current tick is then one more candidate,
-``base``, scored first (ties go to it), so planning can only improve on the learned policy in
-expectation. A value that names a rule is the rule: write ``./hold`` for a run dir named ``hold``.
+(``base=<run dir>``: a path, a run dir of ``scripts/train.py`` on the same team). The planner
+loads no run: :meth:`RolloutPlanner.base_run` tells the runner which value is a run dir, and the
+runner rebuilds that run from its own config, read as data, with its saved learner state, as
+re-evaluation does, and hands its trained learner to the planner (``base_policy``, a runner
+argument like ``env``). It plays on the rollout copies through its own ``encode`` / ``act``
+without exploration. Its own action at the current tick is then one more candidate, ``base``,
+scored first (ties go to it), so planning can only improve on the learned policy in expectation.
+A value that names a rule is the rule: write ``./hold`` for a run dir named ``hold``.
 
 ``neighbours`` adds local candidates around the base policy's joint action (:func:`neighbours`):
 the base action with one of its bids dropped (``drop``: that robot waits) or with one waiting
@@ -37,15 +39,15 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Annotated, Any, ClassVar
 
 import numpy as np
 
-from mrta_rl.config import Choices, ConfigError, Range, UserError, short_list
+from mrta_rl.config import Choices, ConfigError, Range
 from mrta_rl.envs import AuctionEnv
-from mrta_rl.learners.base import FixedLearner, Learner, learner_from_target
+from mrta_rl.learners.base import FixedLearner, Learner
 from mrta_rl.learners.fixed import GreedyLearner, TeamReserveLearner
 
 logger = logging.getLogger(__name__)
@@ -71,7 +73,6 @@ CANDIDATES: dict[str, dict[str, Any] | None] = {
 
 
 BASE_RUN = "base"  # the candidate name of a trained base policy's own action
-MAX_BASES = 16  # run dirs in a chain of trained bases (a base whose own base is a run...)
 # local moves around the base policy's joint action (neighbours())
 NEIGHBOURS = ("drop", "add")
 
@@ -120,55 +121,6 @@ def is_rule(base: str) -> bool:
     return base in CANDIDATES
 
 
-def check_base_chain(run_dir: Path) -> None:
-    """Follow the trained bases from ``run_dir`` through their configs; refuse a loop.
-
-    A run dir's planner may itself play a run dir as its base, and so on: loading such a base
-    loads the chain. A run dir that is its own base, or a chain that comes back to one of its
-    run dirs, would load forever; it is refused before anything is loaded. A config that cannot
-    be read ends the walk (loading the run names what is wrong with it).
-
-    Raises:
-        ConfigError: naming ``learner.base`` and the loop (or a chain of more than
-            :data:`MAX_BASES` run dirs).
-    """
-    from mrta_rl.runners.run_config import read_run_config  # learner modules import no runner
-
-    chain: list[Path] = []
-    current = Path(run_dir)
-    while True:
-        chain.append(current)
-        try:
-            learner = read_run_config(current).get("learner")
-            planner = issubclass(
-                learner_from_target(str(learner.get("_target_")), "learner._target_"),
-                RolloutPlanner,
-            )
-        except (UserError, AttributeError):
-            return
-        base = learner.get("base")  # absent: the class's default, a rule
-        if not planner or not isinstance(base, str) or is_rule(base):
-            return
-        current = Path(base)
-        seen = [p.resolve() for p in chain]
-        if current.resolve() in seen:
-            loop = chain[seen.index(current.resolve()) :]
-            if len(loop) == 1:
-                raise ConfigError(
-                    f"learner.base: {loop[0]} is its own base; give a rule or another run dir"
-                )
-            shown = " -> ".join(str(p) for p in loop[:3])
-            more = f" -> {len(loop) - 3} more" if len(loop) > 3 else ""
-            raise ConfigError(
-                f"learner.base: the bases loop: {shown}{more} -> back to the first; give a rule "
-                "or another run dir"
-            )
-        if len(chain) >= MAX_BASES:
-            raise ConfigError(
-                f"learner.base: {run_dir}: a chain of more than {MAX_BASES} trained bases"
-            )
-
-
 def restore(env: AuctionEnv, state: dict[str, np.ndarray], rows: np.ndarray) -> None:
     """Load copy ``rows[i]`` of ``state`` (``AuctionEnv.get_state``) into copy ``i`` of ``env``.
 
@@ -187,6 +139,8 @@ class RolloutPlanner(FixedLearner):
         base: The policy that plays after the first tick of a rollout, and on ties: the name of
             a rule of :data:`CANDIDATES`, or a run dir of ``scripts/train.py`` on the same team
             (module docstring).
+        base_policy: The trained learner of the run dir ``base`` names, supplied by the runner
+            (:meth:`base_run`); None for a rule.
         gamma: Discount per tick of the rollout return (1 = plain sum).
         neighbours: Local candidates around the base policy's joint action (:func:`neighbours`):
             ``drop`` (one bid dropped), ``add`` (one waiting robot bids for a free slot).
@@ -200,8 +154,9 @@ class RolloutPlanner(FixedLearner):
 
     Raises:
         ConfigError: on a setting outside its declaration, or a ``base`` that is neither a rule
-            nor a usable run dir (missing, not a run dir, refused, or of another team), naming
-            ``learner.base``.
+            nor a run dir, naming ``learner.base``.
+        ValueError: if ``base`` names a run dir and no ``base_policy`` is given, or a rule and
+            one is.
     """
 
     label: ClassVar[str] = "rollout"
@@ -223,20 +178,24 @@ class RolloutPlanner(FixedLearner):
         margin: Annotated[float, Range(0)] = 0.0,
         # none: only the rules' whole-team joint actions compete with the base's
         neighbours: Annotated[tuple[str, ...], Choices(*NEIGHBOURS)] = (),
+        base_policy: Learner | None = None,
         **kwargs,
     ) -> None:
         super().__init__(**kwargs)  # types and ranges: the annotations (mrta_rl.config)
         self.samples, self.horizon, self.gamma, self.margin = samples, horizon, gamma, margin
         self.neighbours = neighbours
-        if is_rule(base):
-            self.base_run = None
+        run_dir = self.base_run({"base": base})
+        if (run_dir is None) != (base_policy is None):
+            raise ValueError(
+                f"learner.base={base!r}: the runner passes base_policy exactly when base names a "
+                f"run dir ({'none' if base_policy is None else 'one'} given)"
+            )
+        if base_policy is None:
             names = [base, *(c for c in candidates if c != base)]  # the base first: ties to it
             self._rules = [self._rule(CANDIDATES[name]) for name in names]
         else:
-            self.base_run = Path(base)
             names = [BASE_RUN, *candidates]  # the learned action first: ties go to it
-            learned = self._trained_base(self.base_run)
-            self._rules = [learned, *(self._rule(CANDIDATES[name]) for name in candidates)]
+            self._rules = [base_policy, *(self._rule(CANDIDATES[name]) for name in candidates)]
         self.names = names
         self._base = self._rules[0]
         self._rollout_envs: dict[int, AuctionEnv] = {}  # batch size -> env
@@ -245,39 +204,25 @@ class RolloutPlanner(FixedLearner):
         self.ticks = 0  # decisions made (calls of act)
         self.decision_s = 0.0  # wall time of encode and act: candidates and rollouts
 
-    def _trained_base(self, run_dir: Path) -> Learner:
-        """The trained learner of ``run_dir``, checked to be of the planner's team.
+    @classmethod
+    def base_run(cls, settings: Mapping[str, Any]) -> Path | None:
+        """The run dir ``base`` names, or None for a rule (:meth:`Learner.base_run`).
 
         Raises:
-            ConfigError: naming ``learner.base`` and the culprit.
+            ConfigError: naming ``learner.base`` for a bare word that is no rule and no path (a
+                misspelt rule).
         """
-        # imported here: learner modules do not import the runners; only a run dir base needs them
-        from mrta_rl.runners.learner_files import team_record
-        from mrta_rl.runners.train import load_run
-
-        key = "learner.base"
+        base = settings.get("base")
+        if not isinstance(base, str) or is_rule(base):
+            return None
+        run_dir = Path(base)
         if not run_dir.exists() and len(run_dir.parts) == 1:  # a bare word: a misspelt rule
             rules = ", ".join(repr(name) for name in CANDIDATES)
             raise ConfigError(
-                f"{key}: must be one of {rules} or a run dir of scripts/train.py, got "
-                f"{str(run_dir)!r}"
+                f"learner.base: must be one of {rules} or a run dir of scripts/train.py, got "
+                f"{base!r}"
             )
-        if not run_dir.is_dir():
-            raise ConfigError(f"{key}: no such run dir: {run_dir}")
-        check_base_chain(run_dir)
-        try:
-            learner = load_run(run_dir).learner
-        except UserError as err:
-            raise ConfigError(f"{key}: {err}") from None
-        theirs, ours = team_record(learner), team_record(self)
-        for part in ("robots", "task_types", "willingness"):
-            if theirs[part] != ours[part]:
-                raise ConfigError(
-                    f"{key}: {run_dir} is a run of another team: its {part} "
-                    f"[{short_list(theirs[part], quote=True)}] are not the planner's system's "
-                    f"[{short_list(ours[part], quote=True)}]"
-                )
-        return learner
+        return run_dir
 
     def _rule(self, settings: dict[str, Any] | None) -> Learner:
         """The fixed policy of a candidate's settings, on the planner's env and partition."""

@@ -1,7 +1,8 @@
-"""Policy-search learners: the weights of a parametric rule learned from team returns."""
+"""Policy-search learners: the weights of a parametric policy learned from team returns by ES."""
 
 from __future__ import annotations
 
+from mrta_rl.learners.search.net_es import NetESLearner
 from mrta_rl.learners.search.reserve_es import ReserveESLearner
 
-__all__ = ["ReserveESLearner"]
+__all__ = ["NetESLearner", "ReserveESLearner"]

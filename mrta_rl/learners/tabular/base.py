@@ -22,7 +22,7 @@ from mrta_rl.envs import AuctionEnv, StepResult
 from mrta_rl.learners.base import TICK_LOOP, Learner, LearnerKind, read_description
 from mrta_rl.learners.tabular.schedules import LinearSchedule
 from mrta_rl.partition import Partition
-from mrta_rl.run_files import INT, STR, RunDirError
+from mrta_rl.run_layout import INT, STR, RunDirError
 
 logger = logging.getLogger(__name__)
 

@@ -19,14 +19,13 @@ from mrta_rl.config import Choices, Range
 from mrta_rl.envs import AuctionEnv, StepResult
 from mrta_rl.envs.encodings import FEATURES, local_state_count
 from mrta_rl.learners.base import MemoryQuery
-from mrta_rl.learners.fixed import HOLD_SCOPES, HoldLevel, Reserve
 from mrta_rl.learners.memory import TABLE_ENTRY_BYTES, ResourceEstimate, Unfit
 from mrta_rl.learners.tabular import robot_kernels as kernels
 from mrta_rl.learners.tabular.base import NO_UNIFORMS, TabularLearner
 from mrta_rl.learners.tabular.encoding import LocalEncoder, busy_arrays, env_arrays
-from mrta_rl.learners.tabular.priors import HOLD_PRIORS, HoldRule
 from mrta_rl.metrics.learning_space import decentralized_dimension
 from mrta_rl.partition import Partition
+from mrta_rl.priors import HOLD_PRIORS, HOLD_SCOPES, HoldLevel, HoldRule, Reserve
 from mrta_rl.rules import greedy_actions
 
 
@@ -323,7 +322,7 @@ class DQLLearner(RobotQLearner):
         super().__init__(**hyperparameters)  # types, ranges and choices: the annotations
         self.prior, self.prior_in_state, self.features = prior, prior_in_state, features
         self.team_reward, self.min_visits = reward == "team", min_visits
-        self.rule = None  # the hold rule (tabular.priors.HoldRule)
+        self.rule = None  # the hold rule (priors.HoldRule)
         if prior == "hold":
             self.rule = HoldRule(
                 self.env,

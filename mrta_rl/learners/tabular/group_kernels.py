@@ -30,7 +30,6 @@ from numba import njit
 
 from mrta_rl.envs.state_codes import EnvArrays, encode_groups
 from mrta_rl.learners.tabular.joint_actions import enumerate_row
-from mrta_rl.learners.tabular.priors import PRIOR_CODES
 from mrta_rl.learners.tabular.qtable import (
     ENTRY_CODE,
     ENTRY_VISITS,
@@ -46,6 +45,7 @@ from mrta_rl.learners.tabular.qtable import (
     random_entry,
 )
 from mrta_rl.learners.tabular.schedules import alpha_of_visits
+from mrta_rl.priors import PRIOR_CODES
 from mrta_rl.rules import deconflict as deconflict_row
 from mrta_rl.rules import greedy as lowest_bid_row
 from mrta_rl.rules import spread as spread_row

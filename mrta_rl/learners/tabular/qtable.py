@@ -29,7 +29,7 @@ import numpy as np
 from numba import njit
 
 from mrta_rl.config import UserError
-from mrta_rl.learners.memory import format_bytes
+from mrta_rl.learners.resources import format_bytes
 
 ROW_STATE, ROW_GROUP, ROW_OFFSET, ROW_LENGTH, ROW_PRIOR = range(5)  # rows of ``rows``
 ENTRY_CODE, ENTRY_VISITS = range(2)  # rows of ``entries``

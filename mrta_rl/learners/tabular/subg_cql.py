@@ -31,7 +31,6 @@ from mrta_rl.learners.tabular.encoding import (
     subgroup_state_count,
 )
 from mrta_rl.learners.tabular.joint_actions import JointActions, max_valid_joint_actions
-from mrta_rl.learners.tabular.priors import PRIOR_CODES, PRIOR_ORDERS, PRIORS, spread_order
 from mrta_rl.learners.tabular.qtable import (
     ROW_GROUP,
     ROW_LENGTH,
@@ -41,6 +40,7 @@ from mrta_rl.learners.tabular.qtable import (
 )
 from mrta_rl.metrics.learning_space import subgroup_dimension
 from mrta_rl.partition import Partition
+from mrta_rl.priors import PRIOR_CODES, PRIOR_ORDERS, PRIORS, spread_order
 
 # what each sub-group's eq. (3) learns from (docs/learners.md, "Credit"): ``group``, the sum of
 # its robots' rewards (spec step 8, the paper's); ``team``, the team reward of the tick

@@ -25,8 +25,8 @@ from mrta_rl.learners.neural.networks import (
     joint_decode,
     stacked_forward,
 )
-from mrta_rl.learners.tabular.priors import GreedyPrior
 from mrta_rl.partition import subg_partition
+from mrta_rl.priors import GreedyPrior
 from mrta_rl.runners import build_run, evaluate_checkpoint, train
 from mrta_rl.runners.evaluate import evaluate_policy
 from mrta_rl.systems import build_system

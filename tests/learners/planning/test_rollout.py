@@ -181,3 +181,18 @@ def test_restored_copies_replay_the_source_and_reseeding_changes_arrivals():
         dst.step(greedy.act(None, dst.action_mask, explore=False))
     assert dst.queued_tasks(0) == dst.queued_tasks(1)
     assert dst.queued_tasks(0) != dst.queued_tasks(2) != dst.queued_tasks(3)
+
+
+def test_the_planner_plays_the_base_policy_the_runner_hands_it(tmp_path):
+    """A run dir ``base`` is the runner's to load: the planner takes the policy, reads no file."""
+    env = AuctionEnv(paper_system("system1"), AuctionParams(horizon=60), 3, seed=2)
+    policy = TeamReserveLearner(env=env, rng=np.random.default_rng(1), hold_scope="robot")
+    nowhere = tmp_path / "not" / "a_run"  # never read: no such dir
+    planner = RolloutPlanner(
+        env=env, rng=np.random.default_rng(0), horizon=0, base=str(nowhere), base_policy=policy
+    )
+    ours, theirs = play(planner, env, policy)
+    np.testing.assert_array_equal(ours, theirs)
+    assert planner.names[0] == "base"  # the handed policy's action is the first candidate
+    with pytest.raises(ValueError, match="base_policy"):  # a run dir without its policy
+        RolloutPlanner(env=env, rng=np.random.default_rng(0), base=str(nowhere))

@@ -1,7 +1,7 @@
 """``rollout`` with a trained run as its base policy (``learner.base=<run dir>``).
 
-The base is a tiny ``reserve_es`` run on System-I; the planner rebuilds it from its run dir and
-plays it on its own env and on the rollout copies. Bad bases are refused through
+The base is a tiny ``reserve_es`` run on System-I; the runner rebuilds it from its run dir and
+the planner plays it on its own env and on the rollout copies. Bad bases are refused through
 ``scripts/train.py``: one ``error:`` line naming ``learner.base`` and the culprit, no run dir.
 """
 
@@ -16,9 +16,9 @@ import pytest
 from mrta_rl.envs import AuctionEnv, AuctionParams
 from mrta_rl.learners.planning import rollout
 from mrta_rl.learners.planning.rollout import RolloutPlanner, neighbours
-from mrta_rl.run_files import read_metrics
+from mrta_rl.run_layout import read_metrics
 from mrta_rl.runners import train as run_train
-from mrta_rl.runners.train import load_run
+from mrta_rl.runners.train import load_base, load_run
 from tests.commands.test_cli import assert_user_error, train
 from tests.conftest import compose_config, paper_system
 from tests.learners.planning.test_rollout import play
@@ -43,8 +43,13 @@ def base_run(tmp_path_factory) -> Path:
 
 
 def planner_on(run_dir: Path | str, seed: int = 3, **hp) -> tuple[RolloutPlanner, AuctionEnv]:
+    """The planner on ``run_dir``'s trained learner, which the runner loads (``load_base``)."""
     env = AuctionEnv(paper_system("system1"), AuctionParams(horizon=60), 3, seed=seed)
-    return RolloutPlanner(env=env, rng=np.random.default_rng(0), base=str(run_dir), **hp), env
+    base = load_base(Path(run_dir), paper_system("system1"))
+    planner = RolloutPlanner(
+        env=env, rng=np.random.default_rng(0), base=str(run_dir), base_policy=base, **hp
+    )
+    return planner, env
 
 
 def test_without_planning_it_plays_the_trained_base_tick_by_tick(base_run):

@@ -13,7 +13,6 @@ from mrta_rl.learners.tabular.cql import CQLLearner
 from mrta_rl.learners.tabular.dql import DQLLearner
 from mrta_rl.learners.tabular.encoding import GroupEncoder, LocalEncoder
 from mrta_rl.learners.tabular.joint_actions import JointActions, max_valid_joint_actions
-from mrta_rl.learners.tabular.priors import PRIOR_CODES, spread_order
 from mrta_rl.learners.tabular.qtable import (
     ENTRY_CODE,
     ROW_PRIOR,
@@ -25,6 +24,7 @@ from mrta_rl.learners.tabular.schedules import LinearSchedule, visit_alpha
 from mrta_rl.learners.tabular.semi_cql import SemiCQLLearner
 from mrta_rl.learners.tabular.subg_cql import SubGCQLLearner
 from mrta_rl.partition import subg_partition
+from mrta_rl.priors import PRIOR_CODES, spread_order
 from mrta_rl.rules import deconflict_actions as deconflict
 from mrta_rl.rules import greedy_actions, random_valid_actions, spread_actions
 from mrta_rl.systems import build_system

@@ -28,7 +28,7 @@ from mrta_rl.config import UserError
 from mrta_rl.learners.base import TORCHRL_LOOP
 from mrta_rl.learners.neural.common import check_state_dict
 from mrta_rl.reports import build_report
-from mrta_rl.run_files import read_training_state
+from mrta_rl.run_layout import read_training_state
 from mrta_rl.runners import evaluate_checkpoint, train
 from mrta_rl.runners.checkpoint import TrainingCheckpoint
 from tests.conftest import compose_config

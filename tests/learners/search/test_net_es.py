@@ -9,7 +9,7 @@ import pytest
 
 from mrta_rl.envs import AuctionEnv, AuctionParams
 from mrta_rl.learners import GreedyLearner, TeamReserveLearner
-from mrta_rl.learners.neural.net_es import N_HEADS, N_INPUTS, NetESLearner
+from mrta_rl.learners.search.net_es import N_HEADS, N_INPUTS, NetESLearner
 from mrta_rl.learners.search.reserve_es import N_FEATURES, ReserveESLearner
 from tests.conftest import paper_system
 

@@ -1,9 +1,10 @@
-"""One checked loader per run-dir file: schema and values, every refusal naming the file and key.
+"""The files of a run dir: their names, and one checked loader per file, refusals naming the key.
 
-A run dir is data that anyone may have edited, truncated or damaged. Its files are read here,
-checked against what the code that wrote them writes (types, ranges, finite numbers), and refused
-with a :class:`RunDirError` naming the file and the key, so that a
-damaged file is never half-used and never ends in a traceback:
+The names of a run dir's files are declared here once, for the runners that write them and the
+reports that read them. A run dir is data that anyone may have edited, truncated or damaged. Its
+files are read here, checked against what the code that wrote them writes (types, ranges, finite
+numbers), and refused with a :class:`RunDirError` naming the file and the key, so that a damaged
+file is never half-used and never ends in a traceback:
 
 * ``training.json`` of a training checkpoint (:func:`read_training_state`): the training loop's
   ``loop`` block (``episode`` in ``[0, train.episodes]``, the counters of the learner's

@@ -13,7 +13,7 @@ import numpy as np
 
 from mrta_rl.config import short_list
 from mrta_rl.learners import Learner
-from mrta_rl.run_files import (
+from mrta_rl.run_layout import (
     NUMBER,
     STR,
     TEAM_FILE,
@@ -22,18 +22,21 @@ from mrta_rl.run_files import (
     read_json,
     write_json,
 )
+from mrta_rl.systems import RobotSystem
 
 TEAM = {"robots": [STR], "task_types": [STR], "willingness": [[NUMBER]]}  # team_record's
 
 
 # ---------------------------------------------------------------------------------- learner state
-def team_record(learner: Learner) -> dict[str, Any]:
+def team_record(system: RobotSystem) -> dict[str, Any]:
     """The team a learner state belongs to: robots, task types and willingness, in order.
 
     Tables and weights are indexed by robot and task type, so a state of another team of the
     same shape would load and then act for robots that cannot do what it chooses.
+
+    Args:
+        system: The team (a learner's: ``learner.env.system``).
     """
-    system = learner.env.system
     return {
         "robots": list(system.robots),
         "task_types": list(system.task_types),
@@ -44,7 +47,7 @@ def team_record(learner: Learner) -> dict[str, Any]:
 def save_learner(learner: Learner, directory: Path) -> None:
     """``learner.save`` into ``directory``, with the team it was trained on (:data:`TEAM_FILE`)."""
     learner.save(directory)
-    write_json(directory / TEAM_FILE, team_record(learner))
+    write_json(directory / TEAM_FILE, team_record(learner.env.system))
 
 
 def _check_team(learner: Learner, directory: Path) -> None:
@@ -54,7 +57,7 @@ def _check_team(learner: Learner, directory: Path) -> None:
         raise RunDirError(f"{path}: missing (the team the learner state was trained on)")
     saved = read_json(path)
     check_schema(saved, TEAM, path, "")
-    expected = team_record(learner)
+    expected = team_record(learner.env.system)
     for key in ("robots", "task_types"):
         if saved[key] != expected[key]:
             raise RunDirError(

@@ -6,7 +6,7 @@ import pytest
 from hydra.core.config_store import ConfigStore
 
 from mrta_rl.commands import use_team_files
-from mrta_rl.conf_files import conf_dir, system_file
+from mrta_rl.conf_paths import conf_dir, system_file
 from mrta_rl.config import UserError
 from mrta_rl.envs.view_inputs import resolve_system
 

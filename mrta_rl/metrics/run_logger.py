@@ -12,7 +12,7 @@ supplies the run dir, and receives one row per training episode. Two outputs:
   uploads later) or ``mlflow`` (a file store in the run dir, tracking uri
   ``file:<run dir>/mlruns``).
   None needs a network. It gets the curve (``train/team_return``), what the training loop adds
-  through :attr:`CSVLogger.torchrl_logger` (the neural runner: losses, epsilon, frames per
+  through :attr:`RunLogger.torchrl_logger` (the neural runner: losses, epsilon, frames per
   second; the tabular runner: epsilon) and, from :func:`finish_run`, the run's final metrics
   (evaluation, training speed, resources) under their ``metrics.json`` paths
   (``eval/team_return/mean``).
@@ -40,7 +40,7 @@ EXPERIMENT = "train"  # TorchRL's exp_name: the tracker run's name
 _TRACKERS: dict[Path, Any] = {}  # run dir -> its open TorchRL logger (module docstring)
 
 
-class CSVLogger:
+class RunLogger:
     """curve.csv in the run dir, flushed after every row, and the run's TorchRL logger.
 
     Used as a context manager, curve.csv is closed even if training fails; the rows written so
@@ -106,7 +106,7 @@ class CSVLogger:
         if not self._file.closed:
             self._file.close()
 
-    def __enter__(self) -> CSVLogger:
+    def __enter__(self) -> RunLogger:
         return self
 
     def __exit__(

@@ -47,7 +47,7 @@ from mrta_rl.envs.encodings import (
 )
 from mrta_rl.envs.state_codes import queue_levels_of, recency
 from mrta_rl.envs.tasks import EMPTY, task_due, task_duration, task_high, task_round, task_type
-from mrta_rl.learners.base import LearnerKind, MemoryQuery
+from mrta_rl.learners.base import MemoryQuery
 from mrta_rl.learners.memory import ResourceEstimate
 from mrta_rl.learners.search.reserve_es import (
     FEATURES,
@@ -339,7 +339,6 @@ class NetESLearner(ReserveESLearner):
     """
 
     label: ClassVar[str] = "net-ES"
-    kind: ClassVar[LearnerKind] = "neural"
     state_file: ClassVar[str] = STATE_FILE  # net_es.npz: the rule's weights, then the network's
     weight_names: ClassVar[tuple[str, ...]] = WEIGHT_NAMES + INPUTS
 

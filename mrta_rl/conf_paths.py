@@ -1,0 +1,83 @@
+"""Where the shipped configs are, and which yaml file a system name or path means.
+
+The repository keeps its configs in ``conf/`` at the top level; pyproject.toml ships that folder
+inside the package as ``mrta_rl.conf``, so a wheel carries it and an editable install maps it
+back to ``conf/``. :func:`conf_dir` finds it in either case, and in a source checkout used
+without installing it (``PYTHONPATH=<checkout>``), where it is the checkout's own ``conf/``.
+
+A system is named by a file of ``conf/system/`` (``system2``) or given as the path of a team
+yaml anywhere (``/path/to/team.yaml``); :func:`system_file` turns both into the file, with one
+message for a name or path that has none. The commands, the Gymnasium and PettingZoo views and
+the BenchMARL task all go through it.
+
+Which learners the configs hold is :mod:`mrta_rl.learners.registry`'s; this module imports no
+learner and no env, so that every floor of the package may ask where the configs are.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+from pathlib import Path
+
+from mrta_rl.config import UserError
+from mrta_rl.config_guard import check_yaml_file
+
+CONF_PACKAGE = "mrta_rl.conf"
+SYSTEM_SUFFIXES = (".yaml", ".yml")  # a system argument ending so is a path, anything else a name
+
+
+def conf_dir() -> Path:
+    """The folder of the shipped configs (``config.yaml``, ``system/``, ``learner/``...).
+
+    Returns:
+        The ``conf/`` of the source checkout the package runs from (a ``pyproject.toml`` beside
+        the package: so a checkout on ``PYTHONPATH`` reads its own configs), else the installed
+        package ``mrta_rl.conf`` (a wheel, or an editable install's mapping).
+    """
+    checkout = Path(__file__).resolve().parents[1]
+    if (checkout / "pyproject.toml").is_file() and (checkout / "conf" / "config.yaml").is_file():
+        return checkout / "conf"
+    spec = importlib.util.find_spec(CONF_PACKAGE)
+    if spec is None or not spec.submodule_search_locations:
+        raise RuntimeError(f"the package {CONF_PACKAGE} is missing: reinstall mrta_rl")
+    return Path(next(iter(spec.submodule_search_locations)))
+
+
+def system_dir() -> Path:
+    """The folder of the shipped systems (``conf/system``)."""
+    return conf_dir() / "system"
+
+
+def shipped_systems() -> list[str]:
+    """Names of the shipped systems, sorted (``random``, ``system1``, ``system2``)."""
+    return sorted(p.stem for p in system_dir().glob("*.yaml"))
+
+
+def is_system_path(system: str | os.PathLike) -> bool:
+    """True if ``system`` is a yaml path rather than the name of a shipped system."""
+    return Path(system).suffix in SYSTEM_SUFFIXES
+
+
+def system_file(system: str | os.PathLike) -> Path:
+    """The yaml file of a system name (``system2``) or path (``team.yaml``, ``/a/b/team.yml``).
+
+    Args:
+        system: A shipped system's name, or the path of a team yaml (relative to the working
+            directory, or absolute).
+
+    Returns:
+        The file (absolute), which exists.
+
+    Raises:
+        UserError: naming the system, the file looked for and the shipped systems, or the file
+            and the bound it passes (size, encoding, nesting, aliases: ``mrta_rl/config_guard.py``).
+    """
+    path = Path(system).expanduser() if is_system_path(system) else system_dir() / f"{system}.yaml"
+    if not path.exists():
+        raise UserError(
+            f"unknown system {str(system)!r}: no file {path}; known: {shipped_systems()} "
+            "or the path of a team yaml"
+        )
+    check_yaml_file(path)
+    return path.resolve()

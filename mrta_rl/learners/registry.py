@@ -1,0 +1,151 @@
+"""The learners by name: the ``learner/`` yaml files of the config search path and their classes.
+
+The learners are the yaml files of the ``learner/`` config group: the shipped ones
+(:func:`~mrta_rl.conf_paths.conf_dir`) and those of any user config dir (Hydra's
+``--config-dir`` or ``hydra.searchpath``), each naming its class with ``_target_``.
+:func:`learner_files` lists them and :func:`learner_named` imports a class; the validation, the
+benchmarks and the learning space table ask a learner by its name here and keep no list.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any
+
+from mrta_rl.checked_files import read_yaml
+from mrta_rl.conf_paths import conf_dir
+from mrta_rl.config import UserError, short_list
+from mrta_rl.envs import AuctionEnv, AuctionParams
+from mrta_rl.learners.base import Learner, learner_from_target
+from mrta_rl.metrics.learning_space import TABULAR_LEARNERS, TabularLearnerName
+from mrta_rl.partition import Partition, subg_partition
+from mrta_rl.systems import RobotSystem
+
+
+def learner_files(config_dirs: Iterable[str | os.PathLike] = ()) -> dict[str, Path]:
+    """The learners of the config search path: name (the yaml stem) -> its file.
+
+    Args:
+        config_dirs: User config dirs (``--config-dir``, ``hydra.searchpath``) after the
+            shipped ``conf/``; a learner's name is its file's stem in any ``learner/`` of them.
+
+    Returns:
+        Every learner, sorted by name; where two dirs hold one name, the shipped or the first
+        given file.
+
+    Raises:
+        UserError: if a given config dir does not exist.
+    """
+    files: dict[str, Path] = {}
+    for folder in (conf_dir(), *(Path(d).expanduser() for d in config_dirs)):
+        if not folder.is_dir():
+            raise UserError(f"config dir {str(folder)!r}: no such directory")
+        for path in sorted((folder / "learner").glob("*.yaml")):
+            files.setdefault(path.stem, path.resolve())
+    return dict(sorted(files.items()))
+
+
+def learner_named(name: str, config_dirs: Iterable[str | os.PathLike] = ()) -> type[Learner]:
+    """The learner class of ``learner/<name>.yaml`` in the config search path, imported.
+
+    The configs are the user's own (like the code they run), so their ``_target_`` is imported.
+
+    Args:
+        name: The learner's name (``subg_cql``).
+        config_dirs: User config dirs after the shipped ``conf/`` (:func:`learner_files`).
+
+    Returns:
+        The :class:`~mrta_rl.learners.base.Learner` subclass.
+
+    Raises:
+        UserError: naming the learner or the file and key.
+    """
+    files = learner_files(config_dirs)
+    if name not in files:
+        raise UserError(f"unknown learner {name!r}; known: {short_list(files, 12)}")
+    return learner_from_target(_learner_target(name, files), f"{files[name]}: _target_")
+
+
+def _learner_target(name: str, files: dict[str, Path], seen: tuple[str, ...] = ()) -> Any:
+    """A learner yaml's ``_target_``, else that of the learner it extends (its defaults list).
+
+    ``defaults: [qmix, _self_]`` in ``learner/qmix_set.yaml`` composes ``learner/qmix.yaml``
+    under it, as Hydra does: the last such entry that names a ``_target_`` wins.
+    """
+    block: Any = read_yaml(files[name])
+    if not isinstance(block, dict):
+        return None
+    if "_target_" in block:
+        return block["_target_"]
+    entries = block.get("defaults") or []
+    parents = [e.removesuffix(".yaml") for e in entries if isinstance(e, str) and e != "_self_"]
+    for parent in reversed(parents):
+        if parent in files and parent not in (*seen, name):
+            target = _learner_target(parent, files, (*seen, name))
+            if target is not None:
+                return target
+    return None
+
+
+def any_team_learners() -> list[str]:
+    """The shipped learners that learn a state fitting any team (``Learner.any_team``)."""
+    return [n for n in learner_files() if learner_named(n).trains() and learner_named(n).any_team]
+
+
+def learning_space_dimension(
+    learner: str,
+    env: AuctionEnv,
+    partition: Partition | None = None,
+    features: str = "paper",
+    **settings: Any,
+) -> int:
+    """Analytic learning space dimension of one learner of ``conf/learner`` on ``env``.
+
+    The formula is the learner class's own (``learning_space_dimension``, see
+    :class:`~mrta_rl.learners.base.Learner`); settings it does not pass take the paper's
+    values (semi-CQL's ``state="system"``, subG-CQL's ``state="group"``).
+
+    Args:
+        learner: The learner's name (``"cql"``, ``"semi_cql"``, ``"dql"``, ``"subg_cql"``...).
+        env: The env the learner runs on (for subG-CQL: built with the partition's ``Lambda_i``).
+        partition: The subG partition (required for ``"subg_cql"``).
+        features: The learner's encoding, ``"paper"`` or ``"time_to_free"``
+            (``envs/encodings.py``).
+        **settings: Further settings of the learner's state (``state``).
+
+    Returns:
+        The exact dimension.
+
+    Raises:
+        ValueError: on a learner without a learning space, or ``"subg_cql"`` without a
+            partition.
+    """
+    cls = learner_named(learner)
+    dimension = cls.learning_space_dimension(env, partition, {"features": features, **settings})
+    if dimension is None:
+        raise ValueError(f"learner {learner!r} ({cls.__name__}) has no learning space dimension")
+    return dimension
+
+
+def learning_space_table(
+    system: RobotSystem, params: AuctionParams | None = None
+) -> dict[TabularLearnerName, int]:
+    """Table-9 analogue for one system: the dimension of every tabular learner.
+
+    Args:
+        system: The robot team.
+        params: Dynamics parameters (default: spec defaults plus the system's overrides); only
+            ``slots`` and the durations matter.
+
+    Returns:
+        ``{learner: dimension}`` in :data:`~mrta_rl.metrics.learning_space.TABULAR_LEARNERS` order.
+    """
+    env = AuctionEnv(system, params, batch_size=1)
+    partition = subg_partition(system)
+    sub_env = AuctionEnv(system, params, batch_size=1, active_tasks=partition.active_tasks(system))
+    return {
+        name: learning_space_dimension(name, sub_env if name == "subg_cql" else env, partition)
+        for name in TABULAR_LEARNERS
+    }
