@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any, ClassVar
 
 from tensordict import TensorDictBase
@@ -9,7 +10,7 @@ from torchrl.objectives import DQNLoss
 
 from mrta_rl.envs import AuctionEnv
 from mrta_rl.learners.memory import feature_sizes, mlp_weights
-from mrta_rl.learners.neural.common import PerRobotQLearner
+from mrta_rl.learners.neural.q_learning import PerRobotQLearner
 from mrta_rl.partition import Partition
 
 GROUP = "agents"
@@ -30,6 +31,11 @@ class IQLLearner(PerRobotQLearner):
     label: ClassVar[str] = "IQL"
 
     @classmethod
+    def fits_any_team(cls, settings: Mapping[str, Any]) -> bool:
+        """With the set network: shared weights, no robot id, a loss per robot of any team."""
+        return settings.get("network") == "set"
+
+    @classmethod
     def network_weights(
         cls, env: AuctionEnv, partition: Partition | None, settings: dict[str, Any]
     ) -> int:
@@ -42,9 +48,9 @@ class IQLLearner(PerRobotQLearner):
         return env.n_robots * mlp_weights(n_in, env.n_actions, depth, hidden)
 
     def _build(self) -> None:
-        self.policy, self.explore_policy = self._per_robot_policy(GROUP, share_params=False)
+        self._policy, self._collection = self._per_robot_policy(GROUP, share_params=False)
         loss = DQNLoss(
-            self.policy,
+            self._policy,
             loss_function=self.hp["loss_function"],
             delay_value=True,
             action_space="categorical",
@@ -59,9 +65,9 @@ class IQLLearner(PerRobotQLearner):
         )
         self.losses[GROUP] = loss
 
-    def transitions(self, data: TensorDictBase) -> TensorDictBase:
+    def process_batch(self, data: TensorDictBase) -> TensorDictBase:
         """Scaled rewards, root episode flags repeated for every robot (``[N, m, 1]``)."""
-        data = super().transitions(data)
+        data = super().process_batch(data)
         n = self.n_robots
         for key in ("done", "terminated"):
             for prefix in ((), ("next",)):

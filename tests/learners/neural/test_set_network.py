@@ -174,7 +174,7 @@ def test_untrained_set_network_is_the_plain_auction(cls, attention):
     """Zero output layers + the auction prior: an untrained network=set bids like greedy."""
     system = paper_system("system2")
     learner, env = make(cls, system, batch=4, robot_attention=attention, **SET)
-    assert learner.set_inputs and "robots" in learner.encode(env)["agents"].keys()
+    assert learner.view_options["set_inputs"] and "robots" in learner.encode(env)["agents"].keys()
     for _ in range(30):
         mask = env.action_mask.copy()
         actions = learner.act(learner.encode(env), mask, explore=False)
