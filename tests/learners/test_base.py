@@ -69,7 +69,7 @@ def test_an_abstract_base_leaves_the_facts_to_its_subclasses():
 def test_a_neural_learner_without_its_network_count_fails_when_created():
     from mrta_rl.learners.neural.torch_learner import TorchLearner
 
-    with pytest.raises(TypeError, match=r"Uncounted does not declare network_weights"):
+    with pytest.raises(TypeError, match=r"Uncounted does not declare .*network_weights"):
 
         class Uncounted(TorchLearner):
             label: ClassVar[str] = "uncounted"

@@ -414,14 +414,18 @@ class TorchLearner(Learner, abstract=True):
         directory = Path(directory)
         meta_path = directory / META_FILE
         meta = read_meta(meta_path, META)
-        if meta["class"] != type(self).__name__:
-            raise RunDirError(f"{directory} holds a {meta['class']}, not a {type(self).__name__}")
         if meta["group_map"] != self.group_map and not type(self).fits_any_team(self.hp):
             groups = short_list(meta["group_map"])
             raise RunDirError(f"{meta_path}: saved for the groups {groups}, not this run's")
-        if meta["inputs"] != self.inputs:
+        if meta["class"] != type(self).__name__:
+            raise RunDirError(f"{directory} holds a {meta['class']}, not a {type(self).__name__}")
+        saved, ours = meta["inputs"], self.inputs
+        if saved != ours:
+            saved = saved if isinstance(saved, dict) else {}
+            key = next(k for k in sorted({*saved, *ours}) if saved.get(k) != ours.get(k))
             raise RunDirError(
-                f"{meta_path}: the networks read {meta['inputs']}, this run's read {self.inputs}"
+                f"{meta_path}: trained with {key}={saved.get(key)}, this run's learner has "
+                f"{key}={ours.get(key)} (the networks' inputs differ)"
             )
         self.networks.load_state_dict(read_weights(directory / WEIGHTS_FILE, self.networks))
 

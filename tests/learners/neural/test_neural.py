@@ -316,7 +316,7 @@ def test_checkpoint_of_other_features_is_refused(system, tmp_path):
         make(QMIXLearner, system)[0].load(tmp_path)
 
 
-@pytest.mark.parametrize("key", ["class", "group_map", "prior", "hyperparameters"])
+@pytest.mark.parametrize("key", ["class", "group_map", "inputs", "hyperparameters"])
 def test_weights_without_their_description_are_refused_naming_the_file(system, tmp_path, key):
     learner, _ = make(QMIXLearner, system)
     learner.save(tmp_path)
