@@ -191,15 +191,23 @@ class Learner(ABC):
             ConfigError: naming the hyperparameter and what it allows.
         """
         settings = {k: v for k, v in hyperparameters.items() if k not in RUNNER_ARGUMENTS}
-        checked = check_keywords(cls, settings, cls.__name__)
         learner = super().__new__(cls)
+        learner.hp = cls.complete_settings(check_keywords(cls, settings, cls.__name__))
+        return learner
+
+    @classmethod
+    def complete_settings(cls, settings: Mapping[str, Any]) -> dict[str, Any]:
+        """Checked settings with the declared defaults of those they leave out.
+
+        Args:
+            settings: Checked settings (``check_keywords``), maybe partial.
+        """
         defaults = {
             name: declared.default
             for name, declared in declared_keywords(cls).items()
             if declared.default is not inspect.Parameter.empty
         }
-        learner.hp = {**defaults, **checked}
-        return learner
+        return {**defaults, **settings}
 
     def __init__(
         self, *, env: AuctionEnv, rng: np.random.Generator, partition: Partition | None = None
@@ -284,6 +292,21 @@ class Learner(ABC):
             settings: The learner's settings (``hp``, or a checked config's).
         """
         return cls.any_team
+
+    @classmethod  # noqa: B027 - optional hook, deliberately a no-op
+    def check_family_settings(cls, settings: Mapping[str, Any], horizon: int, copies: int) -> None:
+        """Refuse settings that cannot train on a family of teams (one team per episode).
+
+        Default: nothing to refuse.
+
+        Args:
+            settings: The learner's settings, defaults filled in.
+            horizon: Ticks of an episode.
+            copies: Training copies.
+
+        Raises:
+            ConfigError: naming the setting.
+        """
 
     def bind_env(self, env: AuctionEnv) -> None:
         """Train on ``env`` from now on: the next team of a family (``system.family``).

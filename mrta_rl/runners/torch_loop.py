@@ -156,8 +156,14 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
                 env = family_env(run, int(team), cfg.seed)
                 learner.bind_env(env)
                 view = _view(learner, env)
+            # building a collector may draw from torch (its policy runs once): the one collector
+            # of a team is built before the run's first draw, and a family's next one after the
+            # checkpoint, so the checkpoint's generator goes in after, or before, building it
+            if torch_rng is not None and family:
+                torch.set_rng_state(torch_rng)
+                torch_rng = None
             collector = _collector(learner, view, settings.frames_per_batch, team_frames)
-            if torch_rng is not None:  # after building the collector, which may draw from torch
+            if torch_rng is not None:
                 torch.set_rng_state(torch_rng)
                 torch_rng = None
             for data in collector:

@@ -459,8 +459,8 @@ def validate_config(cfg: DictConfig) -> CheckedConfig:
         _plain(cfg, "system"), memory_limit(limits), env_overrides, train, eval_copies
     )
     if family is not None:
-        check_family(cls, family, file, train)
-    init = check_init(cls, _plain(cfg, "init"))
+        check_family(cls, hyperparameters, family, file, train, params.horizon)
+    init = check_init(cls, hyperparameters, _plain(cfg, "init"))
     partition = (
         subg_partition(system, bound.get("max_group_size")) if cls.requires_partition else None
     )
@@ -582,32 +582,59 @@ def team_params(system: RobotSystem, env_overrides: dict[str, Any]) -> AuctionPa
 
 
 def any_team_learners() -> list[str]:
-    """The shipped learners that learn a state fitting any team (``Learner.any_team``)."""
+    """The shipped learners that learn a state fitting any team, at their settings or another.
+
+    ``vdn (network=set)``: a learner whose settings decide it (``Learner.fits_any_team``) is
+    listed with the setting that makes it fit.
+    """
+    from mrta_rl.checked_files import read_yaml
     from mrta_rl.conf_files import learner_files, learner_named
 
-    return [n for n in learner_files() if learner_named(n).trains() and learner_named(n).any_team]
+    names = []
+    for name, path in learner_files().items():
+        cls = learner_named(name)
+        block = read_yaml(path)
+        defaults = {k: v for k, v in block.items() if not k.startswith("_") and k != "defaults"}
+        if not cls.trains():
+            continue
+        if cls.fits_any_team(defaults):
+            names.append(name)
+        elif cls.fits_any_team({**defaults, "network": "set"}):
+            names.append(f"{name} (learner.network=set)")
+    return names
 
 
-def check_family(cls: type[Learner], family: TeamFamily, file: str, train: dict[str, Any]) -> None:
+def check_family(
+    cls: type[Learner],
+    settings: dict[str, Any],
+    family: TeamFamily,
+    file: str,
+    train: dict[str, Any],
+    horizon: int,
+) -> None:
     """Refuse training on a family of teams by a learner whose state is tied to one team.
 
     Raises:
-        ConfigError: naming the learner and the system, or ``train.episodes``.
+        ConfigError: naming the learner and the system, ``train.episodes``, or a learner
+            setting that cannot work on a family (``Learner.check_family_settings``).
     """
+    full = cls.complete_settings(settings)
     _check(
-        not cls.trains() or cls.any_team,
+        not cls.trains() or cls.fits_any_team(full),
         f"system {file}: learner {hydra_choice('learner', cls.__name__)} ({cls.__name__}) is "
-        f"tied to one team's robots and cannot train on a family of teams; learners that can: "
-        f"{', '.join(any_team_learners())}",
+        f"tied to one team's robots at these settings and cannot train on a family of teams; "
+        f"learners that can: {', '.join(any_team_learners())}",
     )
     _check(
         (train["episodes"] + 1) * train["batch_size"] <= FAMILY_SEEDS,
         f"train.episodes: {train['episodes']} episodes of {train['batch_size']} copies on a "
         f"family of teams need more env seeds than a run seed owns ({FAMILY_SEEDS:,})",
     )
+    if cls.trains():
+        cls.check_family_settings(full, horizon, train["batch_size"])
 
 
-def check_init(cls: type[Learner], init: Any) -> Path | None:
+def check_init(cls: type[Learner], settings: dict[str, Any], init: Any) -> Path | None:
     """The run dir of ``init=`` (the learner starts from its saved state), checked.
 
     Its learner must be of the same class and hold nothing of one team (``Learner.any_team``),
@@ -624,8 +651,9 @@ def check_init(cls: type[Learner], init: Any) -> Path | None:
     _check(isinstance(init, str) and init != "", f"init: must be a run dir, got {init!r}")
     name = hydra_choice("learner", cls.__name__)
     _check(
-        cls.any_team,
-        f"init: learner {name} ({cls.__name__}) is tied to one team's robots; only a learner "
+        cls.fits_any_team(cls.complete_settings(settings)),
+        f"init: learner {name} ({cls.__name__}) is tied to one team's robots at these settings; "
+        "only a learner "
         f"whose state fits any team starts from another run ({', '.join(any_team_learners())})",
     )
     run_dir = Path(init)

@@ -35,6 +35,7 @@ valid policy.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Annotated, Any, ClassVar
 
 import torch
@@ -327,6 +328,11 @@ class PPOLearner(SetNetworkOption, TorchLearner, abstract=True):
     def collection_policy(self) -> TensorDictModuleBase:
         """The actor (it samples under the collector's random exploration)."""
         return self.actor
+
+    @classmethod
+    def batch_frames(cls, settings: Mapping[str, Any], copies: int, horizon: int) -> int:
+        """``frames_per_batch`` (a multiple of the copies)."""
+        return int(settings["frames_per_batch"])
 
     def loop_settings(self, copies: int, total_frames: int) -> LoopSettings:
         """One batch of ``frames_per_batch`` frames, ``epochs`` passes of whole minibatches.

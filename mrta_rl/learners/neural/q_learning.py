@@ -43,6 +43,7 @@ IQL with ``network=set`` fit any team (and train on a family of teams).
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Annotated, Any, ClassVar, Literal
 
 import torch
@@ -344,6 +345,11 @@ class QLearner(TorchLearner, abstract=True):
         return policy, explore
 
     # -------------------------------------------------------------- the loop's protocol
+    @classmethod
+    def batch_frames(cls, settings: Mapping[str, Any], copies: int, horizon: int) -> int:
+        """``collect_ticks`` ticks (at most an episode's) of every copy."""
+        return min(int(settings["collect_ticks"]), horizon) * copies
+
     def loop_settings(self, copies: int, total_frames: int) -> LoopSettings:
         """Replay of ``buffer_size`` transitions; ``updates_per_collect`` steps per batch.
 
@@ -352,7 +358,7 @@ class QLearner(TorchLearner, abstract=True):
         """
         hp = self.hp
         return LoopSettings(
-            frames_per_batch=min(int(hp["collect_ticks"]), self.env.params.horizon) * copies,
+            frames_per_batch=self.batch_frames(hp, copies, self.env.params.horizon),
             buffer_size=int(hp["buffer_size"]),
             minibatch_size=int(hp["batch_size"]),
             updates_per_batch=int(hp["updates_per_collect"]),

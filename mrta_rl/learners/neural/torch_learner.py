@@ -33,6 +33,7 @@ from __future__ import annotations
 import json
 import weakref
 from abc import abstractmethod
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Annotated, Any, ClassVar, NamedTuple
 
@@ -45,7 +46,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.objectives import LossModule
 
 from mrta_rl.checked_files import read_tensors, tensor_file_limit
-from mrta_rl.config import Choices, Range, short_list
+from mrta_rl.config import Choices, ConfigError, Range, short_list
 from mrta_rl.envs import AuctionEnv, encodings
 from mrta_rl.envs.torchrl_env import AuctionTorchRLEnv
 from mrta_rl.learners.base import FACTS, TORCH_LOOP, Learner, LearnerKind
@@ -190,7 +191,10 @@ class TorchLearner(Learner, abstract=True):
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(int(rng.integers(2**31)))
             self._build()
-        params = list(dict.fromkeys(p for loss in self.losses.values() for p in loss.parameters()))
+        # what the optimiser trains: the losses' parameters (a learner without a TorchRL loss
+        # module: its networks')
+        trained = list(self.losses.values()) or [self.networks]
+        params = list(dict.fromkeys(p for module in trained for p in module.parameters()))
         self.optimizer = torch.optim.Adam(params, lr=lr, fused=self.fused_optimizer or None)
         self.gradient_steps = 0
         self._views: weakref.WeakKeyDictionary[AuctionEnv, AuctionTorchRLEnv] = (
@@ -247,6 +251,32 @@ class TorchLearner(Learner, abstract=True):
         }
 
     # -------------------------------------------------------------- the loop's protocol
+    @classmethod
+    @abstractmethod
+    def batch_frames(cls, settings: Mapping[str, Any], copies: int, horizon: int) -> int:
+        """Frames per collected batch of a learner of these settings (whole ticks of every copy).
+
+        Args:
+            settings: The learner's settings.
+            copies: Training copies ``B``.
+            horizon: Ticks of an episode.
+        """
+
+    @classmethod
+    def check_family_settings(cls, settings: Mapping[str, Any], horizon: int, copies: int) -> None:
+        """On a family, a batch must end with its team's episode: its frames divide an episode's.
+
+        Raises:
+            ConfigError: naming the learner's batch setting.
+        """
+        frames = cls.batch_frames(settings, copies, horizon)
+        if (horizon * copies) % frames:
+            raise ConfigError(
+                f"learner: a collected batch of {frames} frames does not divide an episode of "
+                f"{horizon} ticks x {copies} copies: on a family of teams each episode plays "
+                "another team, so a batch must not straddle two"
+            )
+
     @abstractmethod
     def loop_settings(self, copies: int, total_frames: int) -> LoopSettings:
         """How the loop collects and trains (:class:`LoopSettings`).

@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any, ClassVar
 
+import torch
 from tensordict.nn import TensorDictModule
 from torchrl.modules import VDNMixer
 
@@ -28,13 +29,21 @@ class VDNLearner(MixedQLearner):
         return settings.get("network") == "set"
 
     def _mixer(self) -> TensorDictModule:
-        """TorchRL ``VDNMixer``: the sum of the robots' chosen Q-values (no state input)."""
+        """TorchRL's ``VDNMixer`` sum of the robots' chosen Q-values (no state input)."""
         return TensorDictModule(
-            VDNMixer(n_agents=self.n_robots, device=self.device),
+            TeamSum(n_agents=self.n_robots, device=self.device),
             in_keys=[("agents", "chosen_action_value")],
             out_keys=["chosen_action_value"],
         )
 
-    def _rebind(self) -> None:
-        super()._rebind()
-        self.networks["mixer"].n_agents = self.n_robots  # the sum checks the robots it is given
+
+class TeamSum(VDNMixer):
+    """TorchRL's ``VDNMixer`` over however many robots a batch has.
+
+    ``VDNMixer`` checks the robots against the count it was built with; on a family of teams a
+    replayed batch holds the robots of the team it was collected on.
+    """
+
+    def forward(self, chosen_action_value: torch.Tensor) -> torch.Tensor:
+        """The sum over the robots: ``[*, m, 1]`` -> ``[*, 1]``."""
+        return self.mix(chosen_action_value, None)
