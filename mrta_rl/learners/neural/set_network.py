@@ -45,20 +45,21 @@ ROBOT_ATTENTION = ("full", "pooled")  # robots attend to each other, or to a poo
 SET_INPUT_KEYS = ("robots", "robot_types", "slots", "slot_type", "types")  # forward's order
 
 
-def check_task_types(n_task_types: int, max_task_types: int) -> None:
+def check_task_types(n_task_types: int, max_task_types: int, system: str = "the team") -> None:
     """Refuse a team whose task types do not fit the type embedding.
 
     Args:
         n_task_types: The team's ``n``.
         max_task_types: The network's ``max_task_types``.
+        system: The team's name, for the message.
 
     Raises:
-        ValueError: naming ``learner.max_task_types`` and ``n``.
+        ConfigError: naming ``learner.max_task_types`` and ``n``.
     """
     if n_task_types > max_task_types:
-        raise ValueError(
-            f"learner.max_task_types={max_task_types} is smaller than the team's "
-            f"{n_task_types} task types: set learner.max_task_types >= {n_task_types}"
+        raise ConfigError(
+            f"learner.max_task_types: {max_task_types} is smaller than the {n_task_types} task "
+            f"types of {system}: set learner.max_task_types>={n_task_types}"
         )
 
 
@@ -133,14 +134,10 @@ def check_fits(n_task_types: int, system: str, settings: dict) -> None:
 
     Raises:
         ConfigError: ``learner.max_task_types`` below ``n`` (the type embedding has one row per
-            type), or ``learner.embed_dim`` not a multiple of ``learner.heads``.
+            type, :func:`check_task_types`), or ``learner.embed_dim`` not a multiple of
+            ``learner.heads``.
     """
-    most = int(settings["max_task_types"])
-    if n_task_types > most:
-        raise ConfigError(
-            f"learner.max_task_types: {most} is smaller than the team's {n_task_types} task "
-            f"types (system {system}): set learner.max_task_types>={n_task_types}"
-        )
+    check_task_types(n_task_types, int(settings["max_task_types"]), f"system {system}")
     if int(settings["embed_dim"]) % int(settings["heads"]):
         raise ConfigError(
             f"learner.embed_dim: {settings['embed_dim']} must be a multiple of "
