@@ -8,10 +8,7 @@ from typing import Any, ClassVar
 from tensordict import TensorDictBase
 from torchrl.objectives import DQNLoss
 
-from mrta_rl.envs import AuctionEnv
-from mrta_rl.learners.memory import feature_sizes, mlp_weights
 from mrta_rl.learners.neural.q_learning import PerRobotQLearner
-from mrta_rl.partition import Partition
 
 GROUP = "agents"
 
@@ -29,23 +26,12 @@ class IQLLearner(PerRobotQLearner):
     """
 
     label: ClassVar[str] = "IQL"
+    shared_mlp: ClassVar[bool] = False  # network=mlp: one independent network per robot
 
     @classmethod
     def fits_any_team(cls, settings: Mapping[str, Any]) -> bool:
         """With the set network: shared weights, no robot id, a loss per robot of any team."""
         return settings.get("network") == "set"
-
-    @classmethod
-    def network_weights(
-        cls, env: AuctionEnv, partition: Partition | None, settings: dict[str, Any]
-    ) -> int:
-        """One network per robot (``mlp``), or one set network shared by all (``set``)."""
-        shared = cls.robot_network_weights(env, settings)
-        if shared is not None:
-            return shared
-        n_in, _ = feature_sizes(env, settings)
-        depth, hidden = int(settings["depth"]), int(settings["hidden"])
-        return env.n_robots * mlp_weights(n_in, env.n_actions, depth, hidden)
 
     def _build(self) -> None:
         self._policy, self._collection = self._per_robot_policy(GROUP, share_params=False)

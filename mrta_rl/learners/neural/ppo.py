@@ -67,15 +67,26 @@ PPO_ADVICE = "lower learner.frames_per_batch or learner.hidden, or use a smaller
 LOSS_TERMS = ("loss_objective", "loss_critic", "loss_entropy", "entropy")
 
 
-class PerRobotValue(nn.Module):
+class RobotValue(nn.Module):
     """Value per robot ``[*, m, 1]``: one MLP shared by the robots, on its inputs [and the state].
 
-    ``centralized=True`` (MAPPO) concatenates the global state to every robot's features, so the
-    value sees the whole team; ``False`` (IPPO) reads the robot's own features only.
+    The robot's inputs are its local features (``network=mlp``) or its set-token features
+    (``network=set``: the critic reads the robot's own token, without attention or pooling; a
+    critic with its own set network would double the cost of a PPO update, for a value that is
+    only read in training). ``centralized=True`` (MAPPO) concatenates the global ``state`` to
+    every robot's inputs, so the value sees the whole team; ``False`` (IPPO) reads the robot's
+    own inputs only.
     """
 
     def __init__(
-        self, n_features: int, state_size: int, *, centralized: bool, hidden: int, depth: int
+        self,
+        n_features: int,
+        state_size: int,
+        *,
+        centralized: bool,
+        hidden: int,
+        depth: int,
+        device: Any = None,
     ) -> None:
         """Build the MLP.
 
@@ -85,6 +96,7 @@ class PerRobotValue(nn.Module):
             centralized: Whether the global state is an input.
             hidden: Units per hidden layer.
             depth: Hidden layers.
+            device: Parameter device.
         """
         super().__init__()
         self.centralized = centralized
@@ -95,48 +107,15 @@ class PerRobotValue(nn.Module):
             depth=depth,
             num_cells=hidden,
             activation_class=nn.Tanh,
-        )
-
-    def forward(self, observation: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
-        """Values ``[*, m, 1]`` of ``observation`` ``[*, m, F]`` (and ``state`` ``[*, G]``)."""
-        if self.centralized:
-            team = state.unsqueeze(-2).expand(*observation.shape[:-1], state.shape[-1])
-            observation = torch.cat([observation, team], -1)
-        return self.mlp(observation)
-
-
-class SetValue(nn.Module):
-    """Value per robot ``[*, m, 1]``: an MLP on the robot's own token features [and the state].
-
-    ``centralized=True`` (MAPPO) concatenates the global ``state`` to the robot's token features
-    (``SET_KEYS``' robots), so the value sees the whole team; ``False`` (IPPO) reads the robot's
-    own token features only, without attention or pooling. A critic with its own set network
-    (the pooled team embedding) doubles the cost of a PPO update, for a value that is only read
-    in training.
-    """
-
-    def __init__(
-        self, state_size: int, *, centralized: bool, hidden: int, depth: int, device: Any = None
-    ) -> None:
-        """Build the MLP (``state_size``: ``G``, read when centralised)."""
-        super().__init__()
-        self.centralized = centralized
-        n_in = encodings.ROBOT_TOKEN_SIZE + (state_size if centralized else 0)
-        self.mlp = MLP(
-            in_features=n_in,
-            out_features=1,
-            depth=depth,
-            num_cells=hidden,
-            activation_class=nn.Tanh,
             device=device,
         )
 
-    def forward(self, robots: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
-        """Values of the robots' token features ``[*, m, R]`` (and ``state`` ``[*, G]``)."""
+    def forward(self, inputs: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
+        """Values ``[*, m, 1]`` of the robots' ``inputs`` ``[*, m, F]`` (and ``state``)."""
         if self.centralized:
-            team = state.unsqueeze(-2).expand(*robots.shape[:-1], state.shape[-1])
-            robots = torch.cat([robots, team], -1)
-        return self.mlp(robots)
+            team = state.unsqueeze(-2).expand(*inputs.shape[:-1], state.shape[-1])
+            inputs = torch.cat([inputs, team], -1)
+        return self.mlp(inputs)
 
 
 class PPOLearner(SetNetworkOption, TorchLearner, abstract=True):
@@ -248,7 +227,8 @@ class PPOLearner(SetNetworkOption, TorchLearner, abstract=True):
         state_size = self.state_size
         if hp["network"] == "set":
             logits: nn.Module = self._set_network()
-            value: nn.Module = SetValue(
+            value = RobotValue(
+                encodings.ROBOT_TOKEN_SIZE,
                 state_size,
                 centralized=self.centralized_critic,
                 hidden=hp["hidden"],
@@ -269,13 +249,14 @@ class PPOLearner(SetNetworkOption, TorchLearner, abstract=True):
                 auction_prior=hp["auction_prior"],
                 device=self.device,
             )
-            value = PerRobotValue(
+            value = RobotValue(
                 n_features,
                 state_size,
                 centralized=self.centralized_critic,
                 hidden=hp["hidden"],
                 depth=hp["depth"],
-            ).to(self.device)
+                device=self.device,
+            )
             actor_keys = [(GROUP, "observation"), (GROUP, PRIOR_KEY)]
             critic_keys = [(GROUP, "observation"), "state"]
         self.networks["actor"], self.networks["critic"] = logits, value

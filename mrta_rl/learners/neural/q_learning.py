@@ -469,12 +469,19 @@ class PerRobotQLearner(SetNetworkOption, QLearner, abstract=True):
     (``mlp`` ignores them; ``hidden`` and ``depth`` are the MLP's).
     """
 
+    # network=mlp: one MLP shared by the robots (True), or one per robot
+    shared_mlp: ClassVar[bool] = True
+
     @classmethod
-    def robot_network_weights(cls, env: AuctionEnv, settings: dict[str, Any]) -> int | None:
-        """Weights of the shared set network with ``network=set``, else None (the MLP's)."""
-        if settings.get("network", "mlp") != "set":
-            return None
-        return cls.check_set_network(env.n_task_types, env.system.name, settings)
+    def network_weights(
+        cls, env: AuctionEnv, partition: Partition | None, settings: dict[str, Any]
+    ) -> int:
+        """The shared set network (``set``), or the MLP(s) (``mlp``); a mixer adds its own."""
+        if settings.get("network", "mlp") == "set":
+            return cls.check_set_network(env.n_task_types, env.system.name, settings)
+        n_in, _ = feature_sizes(env, settings)
+        mlp = mlp_weights(n_in, env.n_actions, int(settings["depth"]), int(settings["hidden"]))
+        return mlp if cls.shared_mlp else env.n_robots * mlp
 
     def _q_network(self, group: str, share_params: bool) -> tuple[nn.Module, list]:
         """With ``network=set``: :class:`SetWithPrior` over the set inputs, mask and prior."""
@@ -493,17 +500,6 @@ class MixedQLearner(PerRobotQLearner, abstract=True):
     """
 
     replay_loss_keys_only: ClassVar[bool] = True  # process_batch keeps the loss's in_keys
-
-    @classmethod
-    def network_weights(
-        cls, env: AuctionEnv, partition: Partition | None, settings: dict[str, Any]
-    ) -> int:
-        """One network shared by the robots (a mixer with weights adds its own)."""
-        shared = cls.robot_network_weights(env, settings)
-        if shared is not None:
-            return shared
-        n_in, _ = feature_sizes(env, settings)
-        return mlp_weights(n_in, env.n_actions, int(settings["depth"]), int(settings["hidden"]))
 
     def _mixer(self) -> TensorDictModule:
         """The mixer module.

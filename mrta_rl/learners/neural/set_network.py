@@ -224,25 +224,6 @@ class SetNetwork(nn.Module):
             h, s = block(h, s, present)
         return self.norm(h), self.norm(s)
 
-    def embed(
-        self,
-        robots: torch.Tensor,
-        robot_types: torch.Tensor,
-        slots: torch.Tensor,
-        slot_type: torch.Tensor,
-        types: torch.Tensor,
-        action_mask: torch.Tensor | None = None,
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Robot embeddings ``[*, m, d]`` and the team embedding ``[*, d]`` (their mean).
-
-        For value heads: a centralized critic reads the team embedding. ``action_mask`` is not
-        read (it is accepted so that ``embed`` takes the same keys as :meth:`forward`).
-        """
-        lead = robots.shape[:-2]
-        h, _ = self._tokens(robots, robot_types, slots, slot_type, types)
-        h = h.reshape(*lead, *h.shape[-2:])
-        return h, h.mean(-2)
-
     def forward(
         self,
         robots: torch.Tensor,
