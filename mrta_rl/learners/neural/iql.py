@@ -35,13 +35,9 @@ class IQLLearner(PerRobotQLearner):
 
     def _build(self) -> None:
         self._policy, self._collection = self._per_robot_policy(GROUP, share_params=False)
-        loss = DQNLoss(
+        self.losses[GROUP] = self._td_loss(
+            DQNLoss,
             self._policy,
-            loss_function=self.hp["loss_function"],
-            delay_value=True,
-            action_space="categorical",
-        )
-        loss.set_keys(
             action_value=(GROUP, "action_value"),
             value=(GROUP, "chosen_action_value"),
             action=(GROUP, "action"),
@@ -49,7 +45,6 @@ class IQLLearner(PerRobotQLearner):
             done=(GROUP, "done"),
             terminated=(GROUP, "terminated"),
         )
-        self.losses[GROUP] = loss
 
     def process_batch(self, data: TensorDictBase) -> TensorDictBase:
         """Scaled rewards, root episode flags repeated for every robot (``[N, m, 1]``)."""

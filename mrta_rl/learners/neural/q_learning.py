@@ -52,7 +52,7 @@ from tensordict.nn import TensorDictModule, TensorDictModuleBase, TensorDictSequ
 from torch import nn
 from torchrl.envs.utils import ExplorationType, exploration_type
 from torchrl.modules import QValueModule
-from torchrl.objectives import HardUpdate, SoftUpdate
+from torchrl.objectives import HardUpdate, LossModule, SoftUpdate
 
 from mrta_rl.config import Choices, Range
 from mrta_rl.envs import AuctionEnv
@@ -289,6 +289,21 @@ class QLearner(TorchLearner, abstract=True):
         self.egreedy.append(module)
         return module
 
+    def _td_loss(self, loss_class: type[LossModule], *modules: Any, **keys: Any) -> LossModule:
+        """A TorchRL TD loss (``DQNLoss``, ``QMixerLoss``) of the settings, reading ``keys``.
+
+        With a target network (``delay_value``), over categorical actions, the TD loss
+        ``loss_function``; ``keys`` are its ``set_keys`` (which reward, which flags).
+        """
+        loss = loss_class(
+            *modules,
+            loss_function=self.hp["loss_function"],
+            delay_value=True,
+            action_space="categorical",
+        )
+        loss.set_keys(**keys)
+        return loss
+
     def _q_network(self, group: str, share_params: bool) -> tuple[nn.Module, list]:
         """The per-robot Q-network of a group and the keys it reads, in its arguments' order.
 
@@ -483,6 +498,21 @@ class PerRobotQLearner(SetNetworkOption, QLearner, abstract=True):
         mlp = mlp_weights(n_in, env.n_actions, int(settings["depth"]), int(settings["hidden"]))
         return mlp if cls.shared_mlp else env.n_robots * mlp
 
+    def _td_loss(self, loss_class: type[LossModule], *modules: Any, **keys: Any) -> LossModule:
+        """A TorchRL TD loss (``DQNLoss``, ``QMixerLoss``) of the settings, reading ``keys``.
+
+        With a target network (``delay_value``), over categorical actions, the TD loss
+        ``loss_function``; ``keys`` are its ``set_keys`` (which reward, which flags).
+        """
+        loss = loss_class(
+            *modules,
+            loss_function=self.hp["loss_function"],
+            delay_value=True,
+            action_space="categorical",
+        )
+        loss.set_keys(**keys)
+        return loss
+
     def _q_network(self, group: str, share_params: bool) -> tuple[nn.Module, list]:
         """With ``network=set``: :class:`SetWithPrior` over the set inputs, mask and prior."""
         if self.hp["network"] != "set":
@@ -517,14 +547,10 @@ class MixedQLearner(PerRobotQLearner, abstract=True):
         self._policy, self._collection = self._per_robot_policy(group, share_params=True)
         mixer = self._mixer()
         self.networks["mixer"] = mixer.module
-        loss = QMixerLoss(
+        self.losses[group] = self._td_loss(
+            QMixerLoss,
             self._policy,
             mixer,
-            loss_function=self.hp["loss_function"],
-            delay_value=True,
-            action_space="categorical",
-        )
-        loss.set_keys(
             action_value=(group, "action_value"),
             local_value=(group, "chosen_action_value"),
             global_value="chosen_action_value",
@@ -533,7 +559,6 @@ class MixedQLearner(PerRobotQLearner, abstract=True):
             done="done",
             terminated="terminated",
         )
-        self.losses[group] = loss
 
     def process_batch(self, data: TensorDictBase) -> TensorDictBase:
         """Scaled team reward, also at the root ``[N, 1]`` where ``QMixerLoss`` reads it.

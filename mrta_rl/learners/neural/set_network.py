@@ -290,18 +290,15 @@ class SetWithPrior(nn.Module):
         self.net = SetNetwork(**settings)
         self.auction_prior = auction_prior
 
-    def forward(
-        self,
-        robots: torch.Tensor,
-        robot_types: torch.Tensor,
-        slots: torch.Tensor,
-        slot_type: torch.Tensor,
-        types: torch.Tensor,
-        action_mask: torch.Tensor,
-        prior_action: torch.Tensor,
-    ) -> torch.Tensor:
-        """Masked scores; ``prior_action`` ``[*, m]``: the prior's action (-1: none)."""
-        values = self.net(robots, robot_types, slots, slot_type, types, action_mask)
+    def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
+        """Masked scores of :class:`SetNetwork`'s inputs and mask, plus the prior's bonus.
+
+        Args:
+            *inputs: :meth:`SetNetwork.forward`'s arguments (the set inputs, the action mask),
+                then ``prior_action`` ``[*, m]``, the prior's action (-1: none).
+        """
+        *network_inputs, prior_action = inputs
+        values = self.net(*network_inputs)
         prior = prior_one_hot(prior_action, values.shape[-1])
         return values + self.auction_prior * prior.to(values.dtype)
 

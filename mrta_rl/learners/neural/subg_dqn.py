@@ -157,13 +157,9 @@ class SubGDQNLearner(QLearner):
             )
             greedy += [value, decode]
             explore += [qvalues, egreedy]
-            loss = DQNLoss(
+            self.losses[group] = self._td_loss(
+                DQNLoss,
                 value,
-                loss_function=self.hp["loss_function"],
-                delay_value=True,
-                action_space="categorical",
-            )
-            loss.set_keys(
                 action_value=(JOINT, group, "action_value"),
                 value=(JOINT, group, "chosen_action_value"),
                 action=(JOINT, group, "action"),
@@ -171,7 +167,6 @@ class SubGDQNLearner(QLearner):
                 done=(JOINT, group, "done"),
                 terminated=(JOINT, group, "terminated"),
             )
-            self.losses[group] = loss
         self._policy = TensorDictSequential(*greedy)
         self._collection = TensorDictSequential(*explore)
 
