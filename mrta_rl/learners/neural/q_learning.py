@@ -498,21 +498,6 @@ class PerRobotQLearner(SetNetworkOption, QLearner, abstract=True):
         mlp = mlp_weights(n_in, env.n_actions, int(settings["depth"]), int(settings["hidden"]))
         return mlp if cls.shared_mlp else env.n_robots * mlp
 
-    def _td_loss(self, loss_class: type[LossModule], *modules: Any, **keys: Any) -> LossModule:
-        """A TorchRL TD loss (``DQNLoss``, ``QMixerLoss``) of the settings, reading ``keys``.
-
-        With a target network (``delay_value``), over categorical actions, the TD loss
-        ``loss_function``; ``keys`` are its ``set_keys`` (which reward, which flags).
-        """
-        loss = loss_class(
-            *modules,
-            loss_function=self.hp["loss_function"],
-            delay_value=True,
-            action_space="categorical",
-        )
-        loss.set_keys(**keys)
-        return loss
-
     def _q_network(self, group: str, share_params: bool) -> tuple[nn.Module, list]:
         """With ``network=set``: :class:`SetWithPrior` over the set inputs, mask and prior."""
         if self.hp["network"] != "set":
