@@ -29,7 +29,6 @@ from typing import Any
 
 from mrta_rl.checked_files import RunDirError, read_json
 from mrta_rl.config import short_list
-from mrta_rl.loops import LOOP_COUNTERS
 
 # the files of a run dir, written by the runners and read by the runners and the reports
 CONFIG_FILE = Path(".hydra") / "config.yaml"
@@ -119,13 +118,13 @@ def _refuse(path: Path, key: str, what: str, value: Any) -> RunDirError:
     return RunDirError(f"{path}: {key}: must be {what}, got {shown[:80]}")
 
 
-def check_loop(loop: Any, path: Path, training_loop: str, episodes: int) -> dict[str, Any]:
+def check_loop(loop: Any, path: Path, counters: tuple[str, ...], episodes: int) -> dict[str, Any]:
     """Check the ``loop`` block of a ``training.json``.
 
     Args:
         loop: The block.
         path: The file, for messages.
-        training_loop: The learner's ``training_loop`` (its counters: :data:`LOOP_COUNTERS`).
+        counters: The counters the learner's training loop keeps (its module's ``COUNTERS``).
         episodes: The run's ``train.episodes`` (the most episodes a checkpoint can follow).
 
     Returns:
@@ -141,7 +140,7 @@ def check_loop(loop: Any, path: Path, training_loop: str, episodes: int) -> dict
         raise _refuse(
             path, "loop.episode", f"an integer in [0, {episodes}] (train.episodes)", episode
         )
-    for key in LOOP_COUNTERS.get(training_loop, ()):
+    for key in counters:
         if not _is_int(loop.get(key)) or loop[key] < 0:
             raise _refuse(path, f"loop.{key}", "an integer >= 0", loop.get(key, "nothing"))
     spent = loop.get("spent", {})  # absent from checkpoints written before it existed: none
@@ -173,13 +172,13 @@ def check_loop(loop: Any, path: Path, training_loop: str, episodes: int) -> dict
 
 
 def read_training_state(
-    path: Path, training_loop: str, episodes: int
+    path: Path, counters: tuple[str, ...], episodes: int
 ) -> tuple[dict[str, Any], dict]:
     """Read and check a checkpoint's ``training.json``.
 
     Args:
         path: The file.
-        training_loop: The learner's ``training_loop`` (``"module:function"``).
+        counters: The counters of the learner's training loop (``COUNTERS`` of its module).
         episodes: The run's ``train.episodes``.
 
     Returns:
@@ -199,7 +198,7 @@ def read_training_state(
         raise _refuse(
             path, "learner", "a mapping (the learner's checkpoint state)", state["learner"]
         )
-    return check_loop(state["loop"], path, training_loop, episodes), state["learner"]
+    return check_loop(state["loop"], path, counters, episodes), state["learner"]
 
 
 def check_schema(value: Any, schema: Any, path: Path, key: str) -> None:

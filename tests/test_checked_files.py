@@ -489,13 +489,13 @@ def test_a_nan_loss_stops_a_torch_learner_before_its_step(stopped_qmix, tmp_path
     """The replayed rewards made NaN: the loss is NaN; the step it would feed is not taken."""
     run_dir = tmp_path / "run"
     shutil.copytree(stopped_qmix, run_dir)
-    transitions = QMIXLearner.transitions
+    process_batch = QMIXLearner.process_batch
 
     def poisoned(self, data):
-        data = transitions(self, data)
+        data = process_batch(self, data)
         return data.apply(lambda t: t * math.nan if t.is_floating_point() else t)
 
-    monkeypatch.setattr(QMIXLearner, "transitions", poisoned)
+    monkeypatch.setattr(QMIXLearner, "process_batch", poisoned)
     with pytest.raises(UserError) as err:
         resume(run_dir)
     assert_one_line(str(err.value), "QMIX", "gradient step", "the loss is nan", "last checkpoint")

@@ -25,12 +25,12 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from mrta_rl.config import UserError
-from mrta_rl.learners.base import TORCHRL_LOOP
-from mrta_rl.learners.neural.common import check_state_dict
+from mrta_rl.learners.neural.tensor_files import check_state_dict
 from mrta_rl.reports import build_report
 from mrta_rl.run_layout import read_training_state
 from mrta_rl.runners import evaluate_checkpoint, train
 from mrta_rl.runners.checkpoint import TrainingCheckpoint
+from mrta_rl.runners.torch_loop import COUNTERS as TORCH_COUNTERS
 from tests.conftest import compose_config
 from tests.runners.test_checkpoint import save_hydra_files, without_timings
 
@@ -180,7 +180,7 @@ def test_torchrl_loop_training_json_without_frames_is_refused(tmp_path):
     loop = {"episode": 0, "replayed": 0, "curve": []}
     path.write_text(json.dumps({"loop": loop, "learner": {}}))
     with pytest.raises(UserError, match=r"training.json: loop.frames: must be an integer >= 0"):
-        read_training_state(path, TORCHRL_LOOP, episodes=4)
+        read_training_state(path, TORCH_COUNTERS, episodes=4)
 
 
 def test_undamaged_checkpoint_resumes_to_the_same_end(pristine, tmp_path):

@@ -35,7 +35,7 @@ import numpy as np
 
 logger = logging.getLogger(__name__)
 
-NEURAL_RATES = ("fps_collection", "fps_training", "gradient_steps")  # runners/torchrl.py info
+NEURAL_RATES = ("fps_collection", "fps_training", "gradient_steps")  # runners/torch_loop.py info
 WARMUP_OVERRIDES = ("env.horizon=20", "train.episodes=1")  # loads compiled code, fills caches
 TEAM_KEYS = ("system.", "env.")  # overrides that also set the yardsticks' team and dynamics
 
@@ -306,7 +306,7 @@ def format_neural_table(rows: list[dict[str, Any]]) -> str:
     """Markdown table of the neural rows: collection frames/s and training transitions/s apart.
 
     Collection counts copy-ticks per second spent in the Collector; training counts replayed
-    transitions per second spent in gradient steps (``runners/torchrl.py``). Speed-ups are
+    transitions per second spent in gradient steps (``runners/torch_loop.py``). Speed-ups are
     medians over the first code label's.
     """
     rows = [r for r in rows if "fps_collection_median" in r]

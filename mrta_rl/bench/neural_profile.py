@@ -59,7 +59,7 @@ PARTS: list[tuple[str, str, str, str | None]] = [
     ),
     ("replay write (transitions, extend)", "torchrl.data.TensorDictReplayBuffer", "extend", None),
     ("replay sampling", "torchrl.data.TensorDictReplayBuffer", "sample", None),
-    ("gradient step", "mrta_rl.learners.neural.common.NeuralLearner", "train_step", None),
+    ("gradient step", "mrta_rl.learners.neural.torch_learner.TorchLearner", "train_step", None),
     ("backward", "torch.Tensor", "backward", "gradient step"),
     ("gradient clipping + Adam step", "torch.nn.utils", "clip_grad_norm_", "gradient step"),
     ("gradient clipping + Adam step", "torch.optim.Adam", "step", "gradient step"),

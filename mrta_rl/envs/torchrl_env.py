@@ -30,7 +30,7 @@ from mrta_rl.types import GroupMap
 log_torchrl_plainly()  # TorchRL's lines without colour codes, in the run's log (mrta_rl/logs.py)
 
 GroupMapArg = Mapping[str, Sequence[str | int]] | MarlGroupMapType | str | None
-# a prior policy read from the core env: ``[B, m]`` int64 actions (``learners.tabular.priors``)
+# a prior policy read from the core env: ``[B, m]`` int64 actions (``mrta_rl/priors.py``)
 PriorActions = Callable[[AuctionEnv], np.ndarray]
 PRIOR_KEY = "prior_action"  # (group, PRIOR_KEY): the prior's action per robot, -1 if none
 GROUP_SET_KEYS = ("robots", "robot_types")  # set inputs per group: (group, key) [B, n_g, ...]
@@ -48,34 +48,6 @@ def set_input_tensors(env: AuctionEnv) -> dict[str, torch.Tensor]:
     out = {k: torch.from_numpy(v) for k, v in inputs.items() if k != "robot_types"}
     out["robot_types"] = torch.from_numpy(env.active_tasks).expand(inputs["robot_types"].shape)
     return out
-
-
-def set_inputs_td(env: AuctionEnv, group_map: GroupMap, mask: np.ndarray) -> TensorDict:
-    """The set inputs of the env's decision point, as ``AuctionTorchRLEnv(set_inputs=True)``.
-
-    What ``learners.neural.common.observation_td`` is for the local features: evaluation on the
-    core env sees the inputs that training saw.
-
-    Args:
-        env: The core env at a decision point (any batch size ``B``).
-        group_map: ``{group: [robot ids]}``.
-        mask: ``[B, m, K + 1]`` bool valid actions (copied).
-
-    Returns:
-        TensorDict of batch ``[B]``: root ``slots``, ``slot_type``, ``types``; per group
-        ``robots``, ``robot_types`` and ``action_mask``.
-    """
-    tensors = set_input_tensors(env)
-    mask_t = torch.from_numpy(np.ascontiguousarray(mask, dtype=bool))
-    B = mask_t.shape[0]
-    out: dict[str, object] = {k: tensors[k] for k in ROOT_SET_KEYS}
-    robots = env.system.robots
-    for group, ids in group_map.items():
-        idx = torch.tensor([robots.index(r) for r in ids], dtype=torch.int64)
-        leaves = {k: tensors[k][:, idx] for k in GROUP_SET_KEYS}
-        leaves["action_mask"] = mask_t[:, idx].clone()
-        out[group] = TensorDict(leaves, batch_size=(B, len(idx)))
-    return TensorDict(out, batch_size=(B,))
 
 
 def prior_index(actions: np.ndarray, n_actions: int) -> torch.Tensor:
@@ -304,21 +276,15 @@ class AuctionTorchRLEnv(EnvBase):
             spec[group, "action"].update_mask(out.get((group, "action_mask")))
 
     # ------------------------------------------------------------------ EnvBase hooks
-    def _output(
-        self,
-        team: torch.Tensor | None,
-        robot: torch.Tensor | None,
-        done: torch.Tensor,
-        invalid: torch.Tensor | None,
-    ) -> TensorDict:
-        """The TensorDict of a decision point: observations, rewards (None: zero) and flags.
+    def observe(self) -> TensorDict:
+        """The observations of the core's current decision point, as the view writes them.
 
-        Args:
-            team: ``[B]`` float32 team reward, None after a reset (no reward then).
-            robot: ``[B, m]`` float32 individual rewards, None after a reset (zeros).
-            done: ``[B]`` bool episode-end flags.
-            invalid: ``[B, m]`` bool actions played as waits (``invalid_action="wait"``), None
-                after a reset (none).
+        Training collects them through :meth:`_reset` and :meth:`_step`, and a learner acting on
+        a core env (evaluation, a planner's rollouts) reads them here: one path from the core's
+        state to a network's inputs. Per group: ``observation`` (with ``local_features``),
+        ``action_mask``, ``prior_action`` (with a ``prior``) and the set inputs' ``robots`` and
+        ``robot_types`` (with ``set_inputs``); at the root ``state`` and the set inputs'
+        ``slots``, ``slot_type``, ``types``.
 
         Returns:
             A TensorDict of batch ``[B]`` on cpu; every tensor is fresh (never aliases the core).
@@ -334,10 +300,6 @@ class AuctionTorchRLEnv(EnvBase):
             batch_size=self.batch_size,
             device=cpu,
         )
-        if robot is None:
-            robot = torch.zeros(B, core.n_robots)
-        if invalid is None and self.invalid_action == "wait":
-            invalid = torch.zeros(B, core.n_robots, dtype=torch.bool)
         prior = None if self.prior is None else prior_index(self.prior(core), core.n_actions)
         tensors = set_input_tensors(core) if self.set_inputs else {}
         for key in ROOT_SET_KEYS if self.set_inputs else ():
@@ -345,24 +307,52 @@ class AuctionTorchRLEnv(EnvBase):
         for group, cols in self._columns.items():
             n_g = len(self._group_index[group])
             whole = self._whole[group]
-            group_robot = robot[:, cols].unsqueeze(-1)  # [B, n_g, 1]
             leaves = {} if local is None else {"observation": local if whole else local[:, cols]}
-            leaves |= {
-                # the mask is copied: the core overwrites its buffer next tick
-                "action_mask": mask.clone() if whole else mask[:, cols].clone(),
-                "robot_reward": group_robot,
-                "group_reward": group_robot.sum(1, keepdim=True).expand(B, n_g, 1).clone(),
-            }
-            if invalid is not None:
-                leaves["invalid_action"] = invalid[:, cols].unsqueeze(-1)
+            # the mask is copied: the core overwrites its buffer next tick
+            leaves["action_mask"] = mask.clone() if whole else mask[:, cols].clone()
             if prior is not None:
                 leaves[PRIOR_KEY] = prior if whole else prior[:, cols]
             for key in GROUP_SET_KEYS if self.set_inputs else ():
                 # robot_types is an expanded view of the team's Lambda: copied per group
                 leaves[key] = tensors[key][:, cols].clone()
-            if team is not None:
-                leaves["reward"] = team.reshape(B, 1, 1).expand(B, n_g, 1).clone()
             out.set(group, TensorDict(leaves, batch_size=(B, n_g), device=cpu))
+        return out
+
+    def _output(
+        self,
+        team: torch.Tensor | None,
+        robot: torch.Tensor | None,
+        done: torch.Tensor,
+        invalid: torch.Tensor | None,
+    ) -> TensorDict:
+        """The TensorDict of a decision point: :meth:`observe`, rewards (None: zero) and flags.
+
+        Args:
+            team: ``[B]`` float32 team reward, None after a reset (no reward then).
+            robot: ``[B, m]`` float32 individual rewards, None after a reset (zeros).
+            done: ``[B]`` bool episode-end flags.
+            invalid: ``[B, m]`` bool actions played as waits (``invalid_action="wait"``), None
+                after a reset (none).
+
+        Returns:
+            A TensorDict of batch ``[B]`` on cpu; every tensor is fresh (never aliases the core).
+        """
+        B = self.auction.batch_size
+        out = self.observe()
+        if robot is None:
+            robot = torch.zeros(B, self.auction.n_robots)
+        if invalid is None and self.invalid_action == "wait":
+            invalid = torch.zeros(B, self.auction.n_robots, dtype=torch.bool)
+        for group, cols in self._columns.items():
+            n_g = len(self._group_index[group])
+            leaves = out.get(group)
+            group_robot = robot[:, cols].unsqueeze(-1)  # [B, n_g, 1]
+            leaves.set("robot_reward", group_robot)
+            leaves.set("group_reward", group_robot.sum(1, keepdim=True).expand(B, n_g, 1).clone())
+            if invalid is not None:
+                leaves.set("invalid_action", invalid[:, cols].unsqueeze(-1))
+            if team is not None:
+                leaves.set("reward", team.reshape(B, 1, 1).expand(B, n_g, 1).clone())
         done = done.reshape(B, 1)
         out.set("done", done)
         out.set("terminated", torch.zeros_like(done))  # no terminal state, only the horizon

@@ -20,6 +20,7 @@ parameters and active tasks) and reads ``B`` from the arrays it passes.
 
 from __future__ import annotations
 
+import inspect
 from abc import ABC, abstractmethod
 from collections.abc import Mapping
 from pathlib import Path
@@ -27,10 +28,16 @@ from typing import Any, ClassVar, Literal
 
 import numpy as np
 
-from mrta_rl.config import RUNNER_ARGUMENTS, ConfigError, UserError, check_keywords
+from mrta_rl.config import (
+    RUNNER_ARGUMENTS,
+    ConfigError,
+    UserError,
+    check_keywords,
+    declared_keywords,
+)
 from mrta_rl.envs import AuctionEnv, StepResult
 from mrta_rl.learners.resources import MemoryQuery, ResourceEstimate
-from mrta_rl.loops import NO_TRAINING, PPO_LOOP, TICK_LOOP, TORCHRL_LOOP  # noqa: F401 - for plugins
+from mrta_rl.loops import NO_TRAINING, NUMPY_LOOP, TORCH_LOOP  # noqa: F401 - for plugins
 from mrta_rl.partition import Partition
 from mrta_rl.run_layout import RunDirError, check_schema, read_json
 
@@ -96,8 +103,8 @@ class Learner(ABC):
     * ``kind``: how it is trained, recorded in metrics.json: ``"fixed"`` (not at all),
       ``"tabular"`` (Q-tables), ``"neural"`` (gradient steps on TorchRL networks) or
       ``"search"`` (policy search on team returns: ``reserve_es``, ``net_es``);
-    * ``training_loop``: the runner's loop that trains it (``TICK_LOOP``, ``TORCHRL_LOOP``,
-      ``PPO_LOOP``, ``NO_TRAINING`` of ``mrta_rl/loops.py``, or ``"module:function"`` of one's
+    * ``training_loop``: the runner's loop that trains it (``NUMPY_LOOP``, ``TORCH_LOOP``,
+      ``NO_TRAINING`` of ``mrta_rl/loops.py``, or ``"module:function"`` of one's
       own);
     * ``estimate_memory(query)``: a classmethod, given a :class:`MemoryQuery`,
       returning the :class:`~mrta_rl.learners.resources.ResourceEstimate` of its own state
@@ -113,6 +120,7 @@ class Learner(ABC):
         requires_partition: True if the learner needs the subG partition (paper §4); the runner
             then builds the env with ``Lambda_i = partition.active_tasks(system)``.
         any_team: True if the learned state fits any team (see :meth:`bind_env`).
+        hp: The learner's settings, checked, declared defaults filled in (:meth:`__new__`).
         env: The env the learner acts in (built by the runner).
         rng: The learner's only source of randomness.
         partition: The subG partition, or None.
@@ -129,6 +137,7 @@ class Learner(ABC):
     # team (``init=<run dir>``)
     any_team: ClassVar[bool] = False
     facts: ClassVar[tuple[str, ...]] = FACTS  # a base class may require more of its subclasses
+    hp: dict[str, Any]  # the checked settings (__new__)
 
     def __init_subclass__(cls, *, abstract: bool = False, **kwargs: Any) -> None:
         """Refuse a concrete learner class that lacks one of its facts (see the class docstring).
@@ -182,12 +191,31 @@ class Learner(ABC):
         each hyperparameter's type and range (``mrta_rl.config``); the runner checks a config
         against them before any work, and this checks a learner built directly in Python.
 
+        The checked settings, declared defaults filled in, become the learner's :attr:`hp`
+        before ``__init__`` runs: one record of what the learner was built with, which its
+        ``save`` writes and its ``load`` compares.
+
         Raises:
             ConfigError: naming the hyperparameter and what it allows.
         """
         settings = {k: v for k, v in hyperparameters.items() if k not in RUNNER_ARGUMENTS}
-        check_keywords(cls, settings, cls.__name__)
-        return super().__new__(cls)
+        learner = super().__new__(cls)
+        learner.hp = cls.complete_settings(check_keywords(cls, settings, cls.__name__))
+        return learner
+
+    @classmethod
+    def complete_settings(cls, settings: Mapping[str, Any]) -> dict[str, Any]:
+        """Checked settings with the declared defaults of those they leave out.
+
+        Args:
+            settings: Checked settings (``check_keywords``), maybe partial.
+        """
+        defaults = {
+            name: declared.default
+            for name, declared in declared_keywords(cls).items()
+            if declared.default is not inspect.Parameter.empty
+        }
+        return {**defaults, **settings}
 
     def __init__(
         self, *, env: AuctionEnv, rng: np.random.Generator, partition: Partition | None = None
@@ -260,10 +288,39 @@ class Learner(ABC):
         """
         return {}
 
+    @classmethod
+    def fits_any_team(cls, settings: Mapping[str, Any]) -> bool:
+        """True if a learner of these settings holds nothing of one team (:attr:`any_team`).
+
+        Such a learner trains on a family of teams (:meth:`bind_env`) and its saved state plays
+        any team (``init=<run dir>``). Default: the class's :attr:`any_team`; a learner whose
+        settings decide it (a network that may or may not read a robot id) overrides this.
+
+        Args:
+            settings: The learner's settings (``hp``, or a checked config's).
+        """
+        return cls.any_team
+
+    @classmethod  # noqa: B027 - optional hook, deliberately a no-op
+    def check_family_settings(cls, settings: Mapping[str, Any], horizon: int, copies: int) -> None:
+        """Refuse settings that cannot train on a family of teams (one team per episode).
+
+        Default: nothing to refuse.
+
+        Args:
+            settings: The learner's settings, defaults filled in.
+            horizon: Ticks of an episode.
+            copies: Training copies.
+
+        Raises:
+            ConfigError: naming the setting.
+        """
+
     def bind_env(self, env: AuctionEnv) -> None:
         """Train on ``env`` from now on: the next team of a family (``system.family``).
 
-        Only a learner with :attr:`any_team` is trained on a family; the default refuses.
+        Only a learner that fits any team (:meth:`fits_any_team`) is trained on a family; the
+        default refuses.
 
         Raises:
             NotImplementedError: for a learner tied to one team.

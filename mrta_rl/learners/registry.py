@@ -90,8 +90,23 @@ def _learner_target(name: str, files: dict[str, Path], seen: tuple[str, ...] = (
 
 
 def any_team_learners() -> list[str]:
-    """The shipped learners that learn a state fitting any team (``Learner.any_team``)."""
-    return [n for n in learner_files() if learner_named(n).trains() and learner_named(n).any_team]
+    """The shipped learners that learn a state fitting any team, at their settings or another.
+
+    ``vdn (learner.network=set)``: a learner whose settings decide it
+    (``Learner.fits_any_team``) is listed with the setting that makes it fit.
+    """
+    names = []
+    for name, path in learner_files().items():
+        cls = learner_named(name)
+        if not cls.trains():
+            continue
+        block = read_yaml(path)
+        defaults = {k: v for k, v in block.items() if not k.startswith("_") and k != "defaults"}
+        if cls.fits_any_team(defaults):
+            names.append(name)
+        elif cls.fits_any_team({**defaults, "network": "set"}):
+            names.append(f"{name} (learner.network=set)")
+    return names
 
 
 def learning_space_dimension(

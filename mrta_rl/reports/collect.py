@@ -3,7 +3,7 @@
 The expected grid of a multirun (a sweep dir given, or found below an input) is rebuilt as
 Hydra's ``BasicSweeper`` builds its jobs, so a job that failed or never started is *missing*.
 Run dirs outside a sweep expect nothing: they are reported as the runs they are. A run whose
-files cannot be read (a :class:`~mrta_rl.run_files.RunDirError`) is left out by name. Every
+files cannot be read (a :class:`~mrta_rl.run_layout.RunDirError`) is left out by name. Every
 setting that differs among the runs of a learner on a system names a configuration of its own,
 so only the same configuration and seed is a duplicate, and test and validation runs are never
 averaged together.

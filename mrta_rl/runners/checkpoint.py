@@ -15,6 +15,7 @@ checkpoint: the newest one written completely (:func:`latest_checkpoint`).
 
 from __future__ import annotations
 
+import importlib
 import logging
 import os
 import shutil
@@ -81,6 +82,16 @@ class LoopTime:
 
 
 # ---------------------------------------------------------------------------------- checkpoints
+def loop_counters(training_loop: str) -> tuple[str, ...]:
+    """The counters a training loop keeps in its checkpoints (``COUNTERS`` of its module).
+
+    Args:
+        training_loop: A learner's ``training_loop`` (``"module:function"``).
+    """
+    module = importlib.import_module(training_loop.partition(":")[0])
+    return tuple(getattr(module, "COUNTERS", ()))
+
+
 def latest_checkpoint(run_dir: Path | str) -> Path | None:
     """The run's current training checkpoint: the version folder the pointer file names.
 
@@ -202,7 +213,7 @@ class TrainingCheckpoint:
         self.path = version  # the loop reads its own files from here
         state_path = version / STATE_FILE
         loop, learner_state = read_training_state(
-            state_path, self.learner.training_loop, self.episodes
+            state_path, loop_counters(self.learner.training_loop), self.episodes
         )
         load_learner(self.learner, version / LEARNER_DIR)
         try:

@@ -1,7 +1,7 @@
-"""Episode accounting of the TorchRL loops: team returns of collected batches, curve rows.
+"""Episode accounting of the torch loop: team returns of collected batches, curve rows.
 
-Both the Q-learning loop (``runners/torchrl.py``) and the on-policy loop (``runners/ppo.py``)
-collect ``[B, T]`` batches of whole ticks of every copy; the copies share the horizon, so they
+The torch loop (``runners/torch_loop.py``), on-policy and off-policy alike, collects ``[B, T]``
+batches of whole ticks of every copy; the copies share the horizon, so they
 finish their episodes together, and an episode's row in curve.csv is the copies' mean team return.
 """
 

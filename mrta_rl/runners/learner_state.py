@@ -80,9 +80,9 @@ def load_learner(learner: Learner, directory: Path) -> None:
     """Restore a saved learner state into the learner built for the run, or refuse it.
 
     The state must have been saved for the run's team (:func:`save_learner`), unless it holds
-    nothing of one team (``Learner.any_team``: a family run's, or ``init=`` on another team), and
-    the learner's ``load`` checks the files against itself (keys, shapes, dtypes, consistency);
-    any problem names the file.
+    nothing of one team (``Learner.fits_any_team``: a family run's, or ``init=`` on another
+    team), and the learner's ``load`` checks the files against itself (keys, shapes, dtypes,
+    consistency); any problem names the file.
 
     Args:
         learner: The learner built for the run.
@@ -93,7 +93,7 @@ def load_learner(learner: Learner, directory: Path) -> None:
     """
     if not directory.is_dir():
         raise RunDirError(f"no saved learner state: {directory} is missing")
-    if not type(learner).any_team:
+    if not type(learner).fits_any_team(learner.hp):
         _check_team(learner, directory)
     try:
         learner.load(directory)

@@ -461,8 +461,8 @@ def validate_config(cfg: DictConfig) -> CheckedConfig:
         _plain(cfg, "system"), memory_limit(limits), env_overrides, train, eval_copies
     )
     if family is not None:
-        check_family(cls, family, file, train)
-    init = check_init(cls, _plain(cfg, "init"))
+        check_family(cls, hyperparameters, family, file, train, params.horizon)
+    init = check_init(cls, hyperparameters, _plain(cfg, "init"))
     base = check_base(cls, hyperparameters)
     partition = (
         subg_partition(system, bound.get("max_group_size")) if cls.requires_partition else None
@@ -585,26 +585,37 @@ def team_params(system: RobotSystem, env_overrides: dict[str, Any]) -> AuctionPa
     )
 
 
-def check_family(cls: type[Learner], family: TeamFamily, file: str, train: dict[str, Any]) -> None:
+def check_family(
+    cls: type[Learner],
+    settings: dict[str, Any],
+    family: TeamFamily,
+    file: str,
+    train: dict[str, Any],
+    horizon: int,
+) -> None:
     """Refuse training on a family of teams by a learner whose state is tied to one team.
 
     Raises:
-        ConfigError: naming the learner and the system, or ``train.episodes``.
+        ConfigError: naming the learner and the system, ``train.episodes``, or a learner
+            setting that cannot work on a family (``Learner.check_family_settings``).
     """
+    full = cls.complete_settings(settings)
     _check(
-        not cls.trains() or cls.any_team,
+        not cls.trains() or cls.fits_any_team(full),
         f"system {file}: learner {hydra_choice('learner', cls.__name__)} ({cls.__name__}) is "
-        f"tied to one team's robots and cannot train on a family of teams; learners that can: "
-        f"{', '.join(any_team_learners())}",
+        f"tied to one team's robots at these settings and cannot train on a family of teams; "
+        f"learners that can: {', '.join(any_team_learners())}",
     )
     _check(
         (train["episodes"] + 1) * train["batch_size"] <= FAMILY_SEEDS,
         f"train.episodes: {train['episodes']} episodes of {train['batch_size']} copies on a "
         f"family of teams need more env seeds than a run seed owns ({FAMILY_SEEDS:,})",
     )
+    if cls.trains():
+        cls.check_family_settings(full, horizon, train["batch_size"])
 
 
-def check_init(cls: type[Learner], init: Any) -> Path | None:
+def check_init(cls: type[Learner], settings: dict[str, Any], init: Any) -> Path | None:
     """The run dir of ``init=`` (the learner starts from its saved state), checked.
 
     Its learner must be of the same class and hold nothing of one team (``Learner.any_team``),
@@ -618,8 +629,9 @@ def check_init(cls: type[Learner], init: Any) -> Path | None:
     _check(isinstance(init, str) and init != "", f"init: must be a run dir, got {init!r}")
     name = hydra_choice("learner", cls.__name__)
     _check(
-        cls.any_team,
-        f"init: learner {name} ({cls.__name__}) is tied to one team's robots; only a learner "
+        cls.fits_any_team(cls.complete_settings(settings)),
+        f"init: learner {name} ({cls.__name__}) is tied to one team's robots at these settings; "
+        "only a learner "
         f"whose state fits any team starts from another run ({', '.join(any_team_learners())})",
     )
     run_dir = Path(init)

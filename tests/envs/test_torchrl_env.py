@@ -20,7 +20,6 @@ from mrta_rl.envs.torchrl_env import (
     prior_index,
     prior_one_hot,
     resolve_group_map,
-    set_inputs_td,
 )
 from mrta_rl.partition import subg_partition
 from mrta_rl.rules import greedy_actions
@@ -372,7 +371,7 @@ def test_action_mask_transform():
 @pytest.mark.parametrize("kind", GROUP_MAPS)
 def test_set_inputs_keys_have_specs_and_match_the_core(kind):
     """set_inputs=True: the set network's tokens under each group and at the root, specs checked,
-    and the same TensorDict as set_inputs_td builds from the core env (evaluation's inputs)."""
+    and the same TensorDict as another view of the core observes (evaluation's inputs)."""
     env = make(load_system("system2"), kind, 3, horizon=4, set_inputs=True)
     check_env_specs(env, break_when_any_done="both")
     core = env.auction
@@ -382,7 +381,7 @@ def test_set_inputs_keys_have_specs_and_match_the_core(kind):
     td = env.reset()
     rng = np.random.default_rng(0)
     for _ in range(3):
-        expected = set_inputs_td(core, env.group_map, core.action_mask)
+        expected = AuctionTorchRLEnv(core, env.group_map, set_inputs=True).observe()
         for key in ("slots", "slot_type", "types"):
             torch.testing.assert_close(td.get(key), expected.get(key))
         for group, idx in group_index(env).items():

@@ -122,12 +122,12 @@ def test_network_and_transition_sizes_match_built_learners(learner, network, tea
     )
     collector = Collector(
         env,
-        run.learner.explore_policy,
+        run.learner.collection_policy,
         frames_per_batch=run.env.batch_size,
         total_frames=run.env.batch_size,
         auto_register_policy_transforms=False,
     )
-    data = run.learner.transitions(next(iter(collector)))
+    data = run.learner.process_batch(next(iter(collector)))
     collector.shutdown()
     measured = (
         sum(

@@ -15,7 +15,7 @@ import numpy as np
 
 from mrta_rl.config import Range
 from mrta_rl.envs import AuctionEnv, StepResult
-from mrta_rl.learners.base import TICK_LOOP, Learner, MemoryQuery
+from mrta_rl.learners.base import NUMPY_LOOP, Learner, MemoryQuery
 from mrta_rl.learners.memory import ResourceEstimate
 from mrta_rl.partition import Partition
 
@@ -36,7 +36,7 @@ class ToyLearner(Learner):
 
     label: ClassVar[str] = "Toy bidder"
     kind: ClassVar[str] = "tabular"
-    training_loop: ClassVar[str] = TICK_LOOP
+    training_loop: ClassVar[str] = NUMPY_LOOP
 
     def __init__(
         self,

@@ -26,7 +26,6 @@ from hypothesis import strategies as st
 from omegaconf import OmegaConf, open_dict
 
 from mrta_rl.envs import AuctionEnv
-from mrta_rl.loops import PPO_LOOP
 from mrta_rl.run_layout import RunDirError
 from mrta_rl.runners import build_run, evaluate_checkpoint, train
 from mrta_rl.runners.checkpoint import TrainingCheckpoint, latest_checkpoint
@@ -265,11 +264,9 @@ def learner_kind(name: str) -> str:
     ).kind
 
 
-def learner_loop(name: str) -> str:
-    """The ``training_loop`` of the learner class ``conf/learner/<name>.yaml`` builds."""
-    return learner_class(
-        yaml.safe_load((ROOT / "conf" / "learner" / f"{name}.yaml").read_text())
-    ).training_loop
+def learner_cls(name: str) -> type:
+    """The learner class ``conf/learner/<name>.yaml`` builds."""
+    return learner_class(yaml.safe_load((ROOT / "conf" / "learner" / f"{name}.yaml").read_text()))
 
 
 KINDS = {path.stem: learner_kind(path.stem) for path in (ROOT / "conf" / "learner").glob("*.yaml")}
@@ -277,8 +274,8 @@ TRAINED = sorted(name for name, kind in KINDS.items() if kind != "fixed")
 
 
 def budget(name: str) -> list[str]:
-    """The kill-and-resume budget of a learner: its loop's, then its kind's."""
-    if learner_loop(name) == PPO_LOOP:
+    """The kill-and-resume budget of a learner: its regime's, then its kind's."""
+    if getattr(learner_cls(name), "on_policy", False):
         return BUDGETS["on_policy"]
     return BUDGETS[KINDS[name]]
 
@@ -722,18 +719,23 @@ def test_a_full_replay_buffer_is_saved_without_a_copy_and_a_filling_one_as_its_r
     """A copy of a full buffer would double a large run's peak memory during the save; a filling
     buffer's slice is a view of the whole storage, so only its rows are copied and written."""
     from tensordict import TensorDict
-    from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
-    from mrta_rl.runners.replay import save_replay
+    from mrta_rl.learners.neural.torch_learner import LoopSettings
+    from mrta_rl.runners.replay import LoopBuffer
 
-    buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(4))
-    buffer.extend(TensorDict({"obs": torch.arange(rows * 2.0).reshape(rows, 2)}, [rows]))
+    settings = LoopSettings(
+        2, buffer_size=4, minibatch_size=2, updates_per_batch=1, warmup_frames=0
+    )
+    loop_buffer = LoopBuffer(
+        settings, on_policy=False, device=torch.device("cpu"), episode_frames=8
+    )
+    loop_buffer.extend(TensorDict({"obs": torch.arange(rows * 2.0).reshape(rows, 2)}, [rows]))
     saved = []
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(torch, "save", lambda payload, path: saved.append(payload))
-        save_replay(buffer, tmp_path / "replay.pt")
-    obs = saved[0]["transitions"]["obs"]
-    storage = buffer.storage._storage["obs"]
+        loop_buffer.save(tmp_path / "replay.pt")
+    obs = saved[0]["transitions"]["team"]["rows"]["obs"]
+    storage = next(iter(loop_buffer.buffers.values())).storage._storage["obs"]
     assert obs.tolist() == storage[: min(rows, 4)].tolist()
     if rows > 4:  # full: the storage itself
         assert obs.data_ptr() == storage.data_ptr()

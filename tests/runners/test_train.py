@@ -13,7 +13,7 @@ import pytest
 from omegaconf import OmegaConf, open_dict
 
 from mrta_rl.learners import GreedyLearner, RandomLearner
-from mrta_rl.learners.base import TICK_LOOP
+from mrta_rl.learners.base import NUMPY_LOOP
 from mrta_rl.runners import train
 from mrta_rl.systems import SystemConfigError
 
@@ -36,7 +36,7 @@ class CountingLearner(RandomLearner):
 
     label = "counting"
     kind = "tabular"
-    training_loop = TICK_LOOP
+    training_loop = NUMPY_LOOP
 
     def __init__(self, *, env, rng, partition=None, epsilon_start: float = 1.0) -> None:
         super().__init__(env=env, rng=rng, partition=partition)

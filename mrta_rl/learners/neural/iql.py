@@ -2,15 +2,13 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any, ClassVar
 
 from tensordict import TensorDictBase
 from torchrl.objectives import DQNLoss
 
-from mrta_rl.envs import AuctionEnv
-from mrta_rl.learners.memory import feature_sizes, mlp_weights
-from mrta_rl.learners.neural.common import PerRobotQLearner
-from mrta_rl.partition import Partition
+from mrta_rl.learners.neural.q_learning import PerRobotQLearner
 
 GROUP = "agents"
 
@@ -28,28 +26,18 @@ class IQLLearner(PerRobotQLearner):
     """
 
     label: ClassVar[str] = "IQL"
+    shared_mlp: ClassVar[bool] = False  # network=mlp: one independent network per robot
 
     @classmethod
-    def network_weights(
-        cls, env: AuctionEnv, partition: Partition | None, settings: dict[str, Any]
-    ) -> int:
-        """One network per robot (``mlp``), or one set network shared by all (``set``)."""
-        shared = cls.robot_network_weights(env, settings)
-        if shared is not None:
-            return shared
-        n_in, _ = feature_sizes(env, settings)
-        depth, hidden = int(settings["depth"]), int(settings["hidden"])
-        return env.n_robots * mlp_weights(n_in, env.n_actions, depth, hidden)
+    def fits_any_team(cls, settings: Mapping[str, Any]) -> bool:
+        """With the set network: shared weights, no robot id, a loss per robot of any team."""
+        return settings.get("network") == "set"
 
     def _build(self) -> None:
-        self.policy, self.explore_policy = self._per_robot_policy(GROUP, share_params=False)
-        loss = DQNLoss(
-            self.policy,
-            loss_function=self.hp["loss_function"],
-            delay_value=True,
-            action_space="categorical",
-        )
-        loss.set_keys(
+        self._policy, self._collection = self._per_robot_policy(GROUP, share_params=False)
+        self.losses[GROUP] = self._td_loss(
+            DQNLoss,
+            self._policy,
             action_value=(GROUP, "action_value"),
             value=(GROUP, "chosen_action_value"),
             action=(GROUP, "action"),
@@ -57,11 +45,10 @@ class IQLLearner(PerRobotQLearner):
             done=(GROUP, "done"),
             terminated=(GROUP, "terminated"),
         )
-        self.losses[GROUP] = loss
 
-    def transitions(self, data: TensorDictBase) -> TensorDictBase:
+    def process_batch(self, data: TensorDictBase) -> TensorDictBase:
         """Scaled rewards, root episode flags repeated for every robot (``[N, m, 1]``)."""
-        data = super().transitions(data)
+        data = super().process_batch(data)
         n = self.n_robots
         for key in ("done", "terminated"):
             for prefix in ((), ("next",)):

@@ -1,7 +1,7 @@
 """Q-networks of the TorchRL learners: per-robot and joint-action nets, joint-action coding.
 
 The auction prior (see ``common.py``) enters as an input: the env's ``prior_action`` is the
-prior rule's action of every robot (computed from the env by ``tabular.priors``, with the rules
+prior rule's action of every robot (computed from the env by ``priors``, with the rules
 of ``mrta_rl/rules.py``), expanded here to a one-hot; its bonus is added to the output, and the
 output layers start at zero, so an untrained network plays the prior rule.
 """

@@ -12,7 +12,7 @@ from torchrl.modules import QMixer
 from mrta_rl.config import Range
 from mrta_rl.envs import AuctionEnv
 from mrta_rl.learners.memory import feature_sizes
-from mrta_rl.learners.neural.common import MixedQLearner
+from mrta_rl.learners.neural.q_learning import MixedQLearner
 from mrta_rl.partition import Partition
 
 
@@ -20,11 +20,11 @@ class QMIXLearner(MixedQLearner):
     """Monotonic mixing: ``Q_team = f_s(Q_1, ..., Q_m)`` with ``df/dQ_i >= 0``, hypernetworks on s.
 
     The mixer reads the global ``state`` (:func:`~mrta_rl.envs.encodings.global_features`);
-    everything else is :class:`~mrta_rl.learners.neural.common.MixedQLearner`.
+    everything else is :class:`~mrta_rl.learners.neural.q_learning.MixedQLearner`.
     """
 
     label: ClassVar[str] = "QMIX"
-    replay_state_bytes: ClassVar[int] = 1  # the state is stored as bool (transitions)
+    replay_state_bytes: ClassVar[int] = 1  # the state is stored as bool (process_batch)
 
     @classmethod
     def network_weights(
@@ -44,9 +44,8 @@ class QMIXLearner(MixedQLearner):
 
         Args:
             mixing_embed_dim: Width of the QMIX mixing layer (hypernetwork output).
-            **hyperparameters: Those of :class:`~mrta_rl.learners.neural.common.NeuralLearner`.
+            **hyperparameters: Those of :class:`~mrta_rl.learners.neural.q_learning.MixedQLearner`.
         """
-        self.mixing_embed_dim = mixing_embed_dim
         super().__init__(**hyperparameters)
 
     def _mixer(self) -> TensorDictModule:
@@ -54,7 +53,7 @@ class QMIXLearner(MixedQLearner):
         return TensorDictModule(
             BoolStateQMixer(
                 state_shape=(self.state_size,),
-                mixing_embed_dim=self.mixing_embed_dim,
+                mixing_embed_dim=self.hp["mixing_embed_dim"],
                 n_agents=self.n_robots,
                 device=self.device,
             ),
@@ -62,7 +61,7 @@ class QMIXLearner(MixedQLearner):
             out_keys=["chosen_action_value"],
         )
 
-    def transitions(self, data: TensorDictBase) -> TensorDictBase:
+    def process_batch(self, data: TensorDictBase) -> TensorDictBase:
         """The mixed learners' transitions, the state and next state kept as bool.
 
         The global features are 0/1 (one-hots and bits, ``encodings.global_features``), so a
@@ -73,7 +72,7 @@ class QMIXLearner(MixedQLearner):
             RuntimeError: if a state holds a value other than 0 and 1 (an encoding that is not
                 binary cannot be stored so).
         """
-        data = super().transitions(data)
+        data = super().process_batch(data)
         for key in ("state", ("next", "state")):
             state = data.get(key)
             stored = state.bool()

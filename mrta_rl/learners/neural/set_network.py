@@ -30,13 +30,13 @@ Its parameter count depends only on its settings (``embed_dim``, ``heads``, ``la
 from __future__ import annotations
 
 import math
-from typing import Literal
+from typing import Annotated, Any, Literal
 
 import torch
 from torch import nn
 from torch.nn import functional as F
 
-from mrta_rl.config import ConfigError
+from mrta_rl.config import Choices, ConfigError, Range
 from mrta_rl.envs.encodings import ROBOT_TOKEN_SIZE, SLOT_TOKEN_SIZE, TYPE_TOKEN_SIZE
 from mrta_rl.envs.torchrl_env import prior_one_hot
 
@@ -45,20 +45,21 @@ ROBOT_ATTENTION = ("full", "pooled")  # robots attend to each other, or to a poo
 SET_INPUT_KEYS = ("robots", "robot_types", "slots", "slot_type", "types")  # forward's order
 
 
-def check_task_types(n_task_types: int, max_task_types: int) -> None:
+def check_task_types(n_task_types: int, max_task_types: int, system: str = "the team") -> None:
     """Refuse a team whose task types do not fit the type embedding.
 
     Args:
         n_task_types: The team's ``n``.
         max_task_types: The network's ``max_task_types``.
+        system: The team's name, for the message.
 
     Raises:
-        ValueError: naming ``learner.max_task_types`` and ``n``.
+        ConfigError: naming ``learner.max_task_types`` and ``n``.
     """
     if n_task_types > max_task_types:
-        raise ValueError(
-            f"learner.max_task_types={max_task_types} is smaller than the team's "
-            f"{n_task_types} task types: set learner.max_task_types >= {n_task_types}"
+        raise ConfigError(
+            f"learner.max_task_types: {max_task_types} is smaller than the {n_task_types} task "
+            f"types of {system}: set learner.max_task_types>={n_task_types}"
         )
 
 
@@ -133,14 +134,10 @@ def check_fits(n_task_types: int, system: str, settings: dict) -> None:
 
     Raises:
         ConfigError: ``learner.max_task_types`` below ``n`` (the type embedding has one row per
-            type), or ``learner.embed_dim`` not a multiple of ``learner.heads``.
+            type, :func:`check_task_types`), or ``learner.embed_dim`` not a multiple of
+            ``learner.heads``.
     """
-    most = int(settings["max_task_types"])
-    if n_task_types > most:
-        raise ConfigError(
-            f"learner.max_task_types: {most} is smaller than the team's {n_task_types} task "
-            f"types (system {system}): set learner.max_task_types>={n_task_types}"
-        )
+    check_task_types(n_task_types, int(settings["max_task_types"]), f"system {system}")
     if int(settings["embed_dim"]) % int(settings["heads"]):
         raise ConfigError(
             f"learner.embed_dim: {settings['embed_dim']} must be a multiple of "
@@ -227,25 +224,6 @@ class SetNetwork(nn.Module):
             h, s = block(h, s, present)
         return self.norm(h), self.norm(s)
 
-    def embed(
-        self,
-        robots: torch.Tensor,
-        robot_types: torch.Tensor,
-        slots: torch.Tensor,
-        slot_type: torch.Tensor,
-        types: torch.Tensor,
-        action_mask: torch.Tensor | None = None,
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Robot embeddings ``[*, m, d]`` and the team embedding ``[*, d]`` (their mean).
-
-        For value heads: a centralized critic reads the team embedding. ``action_mask`` is not
-        read (it is accepted so that ``embed`` takes the same keys as :meth:`forward`).
-        """
-        lead = robots.shape[:-2]
-        h, _ = self._tokens(robots, robot_types, slots, slot_type, types)
-        h = h.reshape(*lead, *h.shape[-2:])
-        return h, h.mean(-2)
-
     def forward(
         self,
         robots: torch.Tensor,
@@ -295,7 +273,7 @@ class SetNetwork(nn.Module):
 class SetWithPrior(nn.Module):
     """Per-robot scores ``[*, m, K + 1]``: the set network plus the prior's bonus.
 
-    The Q-values of the Q-learners' ``network=set`` (``learners/neural/common.py``) and the
+    The Q-values of the Q-learners' ``network=set`` (``learners/neural/q_learning.py``) and the
     logits of the policy-gradient learners' actor (``learners/neural/ppo.py``): the set
     network's output layers start at zero, so an untrained network plays the prior, as
     ``PerRobotQ`` does.
@@ -312,17 +290,90 @@ class SetWithPrior(nn.Module):
         self.net = SetNetwork(**settings)
         self.auction_prior = auction_prior
 
-    def forward(
-        self,
-        robots: torch.Tensor,
-        robot_types: torch.Tensor,
-        slots: torch.Tensor,
-        slot_type: torch.Tensor,
-        types: torch.Tensor,
-        action_mask: torch.Tensor,
-        prior_action: torch.Tensor,
-    ) -> torch.Tensor:
-        """Masked scores; ``prior_action`` ``[*, m]``: the prior's action (-1: none)."""
-        values = self.net(robots, robot_types, slots, slot_type, types, action_mask)
+    def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
+        """Masked scores of :class:`SetNetwork`'s inputs and mask, plus the prior's bonus.
+
+        Args:
+            *inputs: :meth:`SetNetwork.forward`'s arguments (the set inputs, the action mask),
+                then ``prior_action`` ``[*, m]``, the prior's action (-1: none).
+        """
+        *network_inputs, prior_action = inputs
+        values = self.net(*network_inputs)
         prior = prior_one_hot(prior_action, values.shape[-1])
         return values + self.auction_prior * prior.to(values.dtype)
+
+
+NETWORKS = ("mlp", "set")  # a learner's network: per-robot MLP on local features, or set network
+SET_SETTINGS = ("embed_dim", "heads", "layers", "max_task_types", "robot_attention")
+
+
+class SetNetworkOption:
+    """The settings of a torch learner that can play the robot-set network (``network=set``).
+
+    A mixin of the learners whose per-robot network is either the local-feature MLP or the set
+    network (QMIX, VDN, IQL, MAPPO, IPPO): the settings are declared here once, and the class
+    answers whether they fit a team (:meth:`check_set_network`) and how many weights the set
+    network has.
+    """
+
+    hp: dict[str, Any]
+
+    @classmethod
+    def set_settings(cls, settings: dict[str, Any]) -> dict[str, Any]:
+        """The :class:`SetNetwork` keywords among a learner's settings."""
+        return {key: settings[key] for key in SET_SETTINGS}
+
+    @classmethod
+    def check_set_network(cls, n_task_types: int, system: str, settings: dict[str, Any]) -> int:
+        """Check the set network's settings against a team; its trainable weights.
+
+        Raises:
+            ConfigError: naming the key: ``learner.max_task_types`` below the team's task
+                types, ``learner.embed_dim`` not a multiple of ``learner.heads``, or
+                ``learner.prior_in_state`` (the set network has no such input).
+        """
+        check_fits(n_task_types, system, settings)
+        if settings.get("prior_in_state"):
+            raise ConfigError("learner.prior_in_state: needs network=mlp (no such set input)")
+        net = SetNetwork(**cls.set_settings(settings), device="meta")
+        return sum(p.numel() for p in net.parameters())
+
+    def __init__(
+        self,
+        *,
+        network: Annotated[str, Choices(*NETWORKS)] = "mlp",
+        embed_dim: Annotated[int, Range(1)] = 32,
+        heads: Annotated[int, Range(1)] = 4,
+        layers: Annotated[int, Range(1)] = 1,
+        max_task_types: Annotated[int, Range(1)] = 32,
+        robot_attention: Annotated[str, Choices(*ROBOT_ATTENTION)] = "full",
+        **settings: Any,
+    ) -> None:
+        """Check the set network's settings against the team, then build as the learner.
+
+        Args:
+            network: ``mlp`` (local features, robot-id one-hot) or ``set`` (the set network).
+            embed_dim: ``network=set``: token width (a multiple of ``heads``).
+            heads: ``network=set``: attention heads.
+            layers: ``network=set``: attention blocks.
+            max_task_types: ``network=set``: rows of the task-type embedding, the most task
+                types a team may have.
+            robot_attention: ``network=set``: ``full`` (robots attend to each other) or
+                ``pooled`` (to the mean robot token: memory linear in the robots).
+            **settings: Env, generator, partition and the learner's other settings.
+
+        Raises:
+            ConfigError: on set settings that cannot fit the team (:meth:`check_set_network`).
+        """
+        if network == "set":
+            env = settings["env"]
+            self.check_set_network(env.n_task_types, env.system.name, self.hp)
+        super().__init__(**settings)
+
+    def _set_network(self) -> SetWithPrior:
+        """The set network of the settings, with the prior's bonus (``auction_prior``)."""
+        return SetWithPrior(
+            auction_prior=self.hp["auction_prior"],
+            device=self.device,
+            **self.set_settings(self.hp),
+        )

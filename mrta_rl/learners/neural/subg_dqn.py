@@ -20,14 +20,15 @@ from mrta_rl.learners.memory import (
     mlp_weights,
     robot_groups,
 )
-from mrta_rl.learners.neural.common import JOINT, NeuralLearner
 from mrta_rl.learners.neural.networks import JointDecode, JointQ
+from mrta_rl.learners.neural.q_learning import JOINT, Prior, QLearner
+from mrta_rl.learners.neural.torch_learner import TorchLearner
 from mrta_rl.partition import Partition
-from mrta_rl.priors import JOINT_PRIORS, PRIOR_ORDERS, SpreadWaitPrior
+from mrta_rl.priors import JOINT_PRIORS, PRIOR_ORDERS, GreedyPrior, SpreadWaitPrior
 from mrta_rl.types import GroupMap
 
 
-class SubGDQNLearner(NeuralLearner):
+class SubGDQNLearner(QLearner):
     """Centralised DQN inside each subG sub-group ``L_g`` over its joint actions.
 
     The partition (paper §4) splits the robots into sub-groups ``G1, G2, ...`` with active task
@@ -36,7 +37,7 @@ class SubGDQNLearner(NeuralLearner):
     state) to the ``(K + 1)^{m_g}`` joint actions (spec "Observations": the joint action is the
     tuple of the robots' actions). Invalid joint actions are masked: the joint mask is the
     product of the robots' masks, applied by ``QValueModule`` (argmax and target max) and by
-    :class:`~mrta_rl.learners.neural.common.EpsilonGreedy` (random joint actions among valid
+    :class:`~mrta_rl.learners.neural.q_learning.EpsilonGreedy` (random joint actions among valid
     ones, drawn per robot). Each group is trained with its own
     TorchRL ``DQNLoss`` on the sub-group reward (spec step 8), as subG-CQL learns one table per
     sub-group. Joint keys live under the root ``("joint", group)`` (batch ``[*]``).
@@ -70,21 +71,36 @@ class SubGDQNLearner(NeuralLearner):
         prior_order: Annotated[str, Choices(*PRIOR_ORDERS)] = "fewest_types",
         **hp,
     ):
-        """Keep the prior's settings, then build (see :class:`NeuralLearner`).
+        """Build as every Q-learner (:class:`~mrta_rl.learners.neural.q_learning.QLearner`).
 
         Args:
-            prior: What the untrained networks play (``tabular.priors.JOINT_PRIORS``): ``greedy``
+            prior: What the untrained networks play (``priors.JOINT_PRIORS``): ``greedy``
                 (the plain auction) or ``spread_wait`` (subG-CQL's prior, docs/neural.md).
             prior_order: ``spread_wait``: which idle robot is asked first
-                (``tabular.priors.PRIOR_ORDERS``), as subG-CQL's ``prior_order``.
-            **hp: Env, generator, partition and the hyperparameters of :class:`NeuralLearner`.
+                (``priors.PRIOR_ORDERS``), as subG-CQL's ``prior_order``.
+            **hp: Env, generator, partition and the settings of ``QLearner``.
 
         Raises:
             ValueError: on an unknown prior or prior order.
         """
-        # types and choices: the annotations (mrta_rl.config)
-        self.prior, self.prior_order = prior, prior_order
         super().__init__(**hp)
+
+    def _prior(self, env: AuctionEnv) -> Prior:
+        """``greedy`` or subG-CQL's ``spread_wait`` per sub-group, computed from ``env``."""
+        if self.hp["prior"] != "spread_wait":
+            return GreedyPrior()
+        robots = env.system.robots
+        groups = [[robots.index(r) for r in ids] for ids in self.partition.group_map().values()]
+        return SpreadWaitPrior(env, groups, self.hp["prior_order"])
+
+    @property
+    def inputs(self) -> dict[str, Any]:
+        """The networks' inputs and the prior (its action is part of the Q-function)."""
+        return {
+            **TorchLearner.inputs.fget(self),
+            "prior": self.hp["prior"],
+            "prior_order": self.hp["prior_order"],
+        }
 
     def _group_map(self) -> GroupMap:
         assert self.partition is not None  # checked by Learner.__init__ (requires_partition)
@@ -93,14 +109,11 @@ class SubGDQNLearner(NeuralLearner):
     def _build(self) -> None:
         greedy, explore = [], []
         A = self.n_actions
-        env = self.env
-        if self.prior == "spread_wait":  # computed from the env, as every prior (common.py)
-            groups = [[env.system.robots.index(r) for r in ids] for ids in self.group_map.values()]
-            self.rule = SpreadWaitPrior(env, groups, self.prior_order)
+        n_features = self.n_features
         for group, ids in self.group_map.items():
             n_g = len(ids)
             qnet = JointQ(
-                self.n_features,
+                n_features,
                 n_g,
                 A,
                 hidden=self.hp["hidden"],
@@ -144,13 +157,9 @@ class SubGDQNLearner(NeuralLearner):
             )
             greedy += [value, decode]
             explore += [qvalues, egreedy]
-            loss = DQNLoss(
+            self.losses[group] = self._td_loss(
+                DQNLoss,
                 value,
-                loss_function=self.hp["loss_function"],
-                delay_value=True,
-                action_space="categorical",
-            )
-            loss.set_keys(
                 action_value=(JOINT, group, "action_value"),
                 value=(JOINT, group, "chosen_action_value"),
                 action=(JOINT, group, "action"),
@@ -158,11 +167,10 @@ class SubGDQNLearner(NeuralLearner):
                 done=(JOINT, group, "done"),
                 terminated=(JOINT, group, "terminated"),
             )
-            self.losses[group] = loss
-        self.policy = TensorDictSequential(*greedy)
-        self.explore_policy = TensorDictSequential(*explore)
+        self._policy = TensorDictSequential(*greedy)
+        self._collection = TensorDictSequential(*explore)
 
-    def transitions(self, data: TensorDictBase) -> TensorDictBase:
+    def process_batch(self, data: TensorDictBase) -> TensorDictBase:
         """Replay transitions with the sub-group's reward and flags under ``("joint", group)``.
 
         The sub-group reward ``[N, 1]`` and the episode flags are what each group's
@@ -174,7 +182,7 @@ class SubGDQNLearner(NeuralLearner):
         Returns:
             ``[B * T]`` transitions.
         """
-        data = super().transitions(data)
+        data = super().process_batch(data)
         drop = []
         for group in self.group_map:
             for prefix in ((), ("next",)):

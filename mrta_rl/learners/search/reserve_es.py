@@ -47,7 +47,7 @@ from mrta_rl.checked_files import ArraySpec, check_arrays, read_arrays
 from mrta_rl.config import Range
 from mrta_rl.envs import AuctionEnv, StepResult
 from mrta_rl.envs.encodings import N_RECENCY_LEVELS, free_level, queue_level, recency_level
-from mrta_rl.learners.base import TICK_LOOP, Learner, LearnerKind, MemoryQuery, NonFiniteState
+from mrta_rl.learners.base import NUMPY_LOOP, Learner, LearnerKind, MemoryQuery, NonFiniteState
 from mrta_rl.learners.memory import ResourceEstimate
 from mrta_rl.partition import Partition
 
@@ -142,7 +142,7 @@ class ReserveESLearner(Learner):
 
     label: ClassVar[str] = "reserve-ES"
     kind: ClassVar[LearnerKind] = "search"
-    training_loop: ClassVar[str] = TICK_LOOP  # policy search on the numpy tick loop
+    training_loop: ClassVar[str] = NUMPY_LOOP  # policy search on the numpy loop
     # every weight multiplies a feature that reads the team through counts and fractions only
     any_team: ClassVar[bool] = True
 

@@ -19,7 +19,7 @@ import numpy as np
 from mrta_rl.checked_files import ArraySpec, read_arrays
 from mrta_rl.config import Choices, Range
 from mrta_rl.envs import AuctionEnv, StepResult
-from mrta_rl.learners.base import TICK_LOOP, Learner, LearnerKind, read_description
+from mrta_rl.learners.base import NUMPY_LOOP, Learner, LearnerKind, read_description
 from mrta_rl.learners.tabular.schedules import LinearSchedule
 from mrta_rl.partition import Partition
 from mrta_rl.run_layout import INT, STR, RunDirError
@@ -108,7 +108,7 @@ class TabularLearner(Learner, abstract=True):
     """
 
     kind: ClassVar[LearnerKind] = "tabular"
-    training_loop: ClassVar[str] = TICK_LOOP
+    training_loop: ClassVar[str] = NUMPY_LOOP
 
     def __init__(
         self,

@@ -18,13 +18,14 @@ from mrta_rl.envs import encodings as ob
 from mrta_rl.envs.torchrl_env import AuctionTorchRLEnv, prior_index, prior_one_hot
 from mrta_rl.learners import SubGReserveLearner, TeamReserveLearner
 from mrta_rl.learners.neural import IQLLearner, QMIXLearner, SubGDQNLearner, VDNLearner
-from mrta_rl.learners.neural.common import WEIGHTS_FILE, EpsilonGreedy
 from mrta_rl.learners.neural.networks import (
     PerRobotQ,
     joint_combine,
     joint_decode,
     stacked_forward,
 )
+from mrta_rl.learners.neural.q_learning import EpsilonGreedy
+from mrta_rl.learners.neural.tensor_files import WEIGHTS_FILE
 from mrta_rl.partition import subg_partition
 from mrta_rl.priors import GreedyPrior
 from mrta_rl.runners import build_run, evaluate_checkpoint, train
@@ -82,18 +83,18 @@ def collect(learner, env, frames=100, view=None):
 
     ``view``: the view's keywords (default: the prior and features, as the runner builds it).
     """
-    view = view or {"prior": learner.rule, "features": learner.features}
+    view = view or {"prior": learner.rule, "features": learner.hp["features"]}
     view = AuctionTorchRLEnv(env, group_map=learner.group_map, **view)
     collector = Collector(
         view,
-        learner.explore_policy,
+        learner.collection_policy,
         frames_per_batch=frames,
         total_frames=frames,
         auto_register_policy_transforms=False,
     )
     data = next(iter(collector))
     collector.shutdown()
-    return learner.transitions(data)
+    return learner.process_batch(data)
 
 
 def assert_plays_the_rule(learner, env, rule):
@@ -256,10 +257,10 @@ def test_qmix_mixes_a_bool_state_as_its_float_values(system):
 def test_qmix_refuses_to_store_a_state_that_is_not_binary(system):
     learner, env = make(QMIXLearner, system, batch=2)
     view = AuctionTorchRLEnv(env, group_map=learner.group_map, prior=learner.rule)
-    data = view.rollout(3, learner.explore_policy)  # [B, T]
+    data = view.rollout(3, learner.collection_policy)  # [B, T]
     data.set("state", data.get("state") * 0.5)
     with pytest.raises(RuntimeError, match="state: the global features are not 0/1"):
-        learner.transitions(data)
+        learner.process_batch(data)
 
 
 def test_checkpoint_of_another_prior_is_refused(system, tmp_path):
@@ -290,7 +291,7 @@ def test_time_to_free_features_are_what_the_networks_read(cls, system):
             assert first.shape[-1] == len(learner.group_map[name]) * F
         else:
             assert first.shape[-1] == F
-    view = AuctionTorchRLEnv(env, group_map=learner.group_map, features=learner.features)
+    view = AuctionTorchRLEnv(env, group_map=learner.group_map, features=learner.hp["features"])
     td = view.reset()
     encoded = learner.encode(env)
     local = torch.from_numpy(ob.local_features(env, TTF))
@@ -315,7 +316,7 @@ def test_checkpoint_of_other_features_is_refused(system, tmp_path):
         make(QMIXLearner, system)[0].load(tmp_path)
 
 
-@pytest.mark.parametrize("key", ["class", "group_map", "prior", "hyperparameters"])
+@pytest.mark.parametrize("key", ["class", "group_map", "inputs", "hyperparameters"])
 def test_weights_without_their_description_are_refused_naming_the_file(system, tmp_path, key):
     learner, _ = make(QMIXLearner, system)
     learner.save(tmp_path)
@@ -342,7 +343,7 @@ def test_time_to_free_run_evaluates_again_from_its_checkpoint(compose_cfg, tmp_p
     assert f'"features": "{TTF}"' in saved
     again = evaluate_checkpoint(tmp_path)
     assert again["eval"]["team_return"] == metrics["eval"]["team_return"]
-    assert build_run(cfg).learner.features == TTF
+    assert build_run(cfg).learner.hp["features"] == TTF
 
 
 def test_hold_prior_settings_are_checked(system):
@@ -469,12 +470,12 @@ def test_epsilon_in_closed_form_follows_the_egreedy_schedule(system):
     reference = EGreedyModule(Categorical(5), eps_init=0.3, eps_end=0.02, annealing_num_steps=1000)
     assert learner.epsilon == pytest.approx(0.3)
     for frames in (100, 250, 400, 600):  # 100, 350, 750, 1350 frames: past the decay at the end
-        learner.anneal(frames)
+        learner.after_collect(frames)
         reference.step(frames)
         assert learner.epsilon == pytest.approx(float(reference.eps), abs=1e-5)
     assert learner.epsilon == pytest.approx(0.02)
     learner, _ = make(QMIXLearner, system, eps_start=0.3, eps_end=0.02, eps_decay_frames=1000)
-    learner.anneal(500)  # half way: 0.3 - 0.28 / 2, by hand
+    learner.after_collect(500)  # half way: 0.3 - 0.28 / 2, by hand
     assert learner.epsilon == pytest.approx(0.16)
 
 

@@ -132,7 +132,7 @@ def test_multiagent_gae_on_the_team_reward_against_a_hand_computed_case():
         },
         batch_size=(1, 4),
     )
-    out = learner.advantages(data)
+    out = learner.process_batch(data).reshape(1, 4)  # the loop's rows are flattened
     gamma, lam = 0.9, 0.8
     delta = [rewards[t] + gamma * v_next[t] - v[t] for t in range(4)]
     # by hand: delta = [1 - 0.18 - 0.5, 2 + 0.54 + 0.2, 3 + 0.09 - 0.3, 4 + 0.36 - 0.1]

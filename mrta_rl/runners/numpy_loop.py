@@ -34,6 +34,7 @@ if TYPE_CHECKING:
 logger = logging.getLogger(__name__)
 
 RECENT_EPISODES = 10  # the progress bar shows the mean team return over this many episodes
+COUNTERS = ("env_ticks",)  # this loop's counters in a checkpoint, besides the episode
 
 
 def skip_training(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:

@@ -1,0 +1,174 @@
+"""The one torch loop: families of teams, its buffers, and a torch learner from a user module."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from hydra.core.hydra_config import HydraConfig
+from tensordict import TensorDict
+
+from mrta_rl.config import ConfigError
+from mrta_rl.learners.neural.torch_learner import LoopSettings
+from mrta_rl.runners import torch_loop, train
+from mrta_rl.runners.checkpoint import TrainingCheckpoint
+from mrta_rl.runners.replay import LoopBuffer
+from tests.runners.test_checkpoint import save_hydra_files
+
+ROOT = Path(__file__).resolve().parents[2]
+# the torch learners whose settings fit any team
+ANY_TEAM = [
+    ["learner=ippo"],
+    ["learner=vdn", "learner.network=set"],
+    ["learner=iql", "learner.network=set"],
+]
+
+
+@pytest.fixture
+def teams_played(monkeypatch) -> list:
+    """The teams the torch loop binds its learner to, episode by episode."""
+    played = []
+    family_env = torch_loop.family_env
+
+    def spy(run, episode, seed):
+        env = family_env(run, episode, seed)
+        played.append((episode, env.system.name, env.n_robots, env.n_task_types))
+        return env
+
+    monkeypatch.setattr(torch_loop, "family_env", spy)
+    return played
+
+
+@pytest.mark.parametrize("learner", ANY_TEAM, ids=lambda a: " ".join(a))
+def test_a_torch_learner_that_fits_any_team_trains_on_a_family_playing_other_teams(
+    compose_cfg, tmp_path, teams_played, learner
+):
+    args = [*learner, "system=family", "debug=smoke", "train.episodes=3"]
+    metrics = train(compose_cfg(args), run_dir=tmp_path)
+    assert [episode for episode, *_ in teams_played] == [1, 2, 3]
+    teams = {tuple(team) for _, *team in teams_played}
+    assert len(teams) == 3  # three teams of the family, of other sizes
+    assert len({robots for _, _, robots, _ in teams_played}) > 1
+    assert metrics["train"]["episodes"] == 3 and metrics["train"]["gradient_steps"] > 0
+    assert metrics["system"] == "family"  # evaluated on the family's evaluation team
+
+
+@pytest.mark.parametrize("learner", ["qmix", "mappo", "subg_dqn"])
+def test_a_torch_learner_tied_to_one_team_is_refused_on_a_family(compose_cfg, tmp_path, learner):
+    with pytest.raises(ConfigError, match=r"tied to one team's robots.*learners that can:.*ippo"):
+        train(compose_cfg([f"learner={learner}", "system=family", "debug=smoke"]), tmp_path)
+    assert not tmp_path.joinpath("metrics.json").exists()
+
+
+def test_a_batch_that_would_straddle_two_teams_is_refused(compose_cfg, tmp_path):
+    """smoke: 50 ticks x 4 copies = 200 frames an episode; 120 frames do not divide it."""
+    args = ["learner=ippo", "system=family", "debug=smoke", "learner.frames_per_batch=120"]
+    with pytest.raises(ConfigError, match=r"batch of 120 frames does not divide an episode"):
+        train(compose_cfg(args), run_dir=tmp_path)
+
+
+@pytest.mark.parametrize("learner", ANY_TEAM[:2], ids=lambda a: " ".join(a))
+def test_a_family_run_stopped_and_resumed_ends_as_the_uninterrupted_one(
+    compose_cfg, tmp_path, monkeypatch, learner
+):
+    """Stopped after episode 2 of 4 (its buffer holds two teams), resumed in the same process:
+    the same evaluation and weights as the run that was never stopped."""
+    args = [*learner, "system=family", "debug=smoke", "train.episodes=4"]
+    args += ["train.checkpoint_every=1"]
+    full = train(compose_cfg(args), run_dir=tmp_path / "full")
+    episode_end = TrainingCheckpoint.episode_end
+
+    def stop_after_two(self, loop, last, files=None):
+        self.stop_requested = self.stop_requested or loop["episode"] >= 2
+        return episode_end(self, loop, last, files)
+
+    monkeypatch.setattr(TrainingCheckpoint, "episode_end", stop_after_two)
+    cut = tmp_path / "cut"
+    cfg = compose_cfg(args)
+    save_hydra_files(cfg, cut, args[0].split("=")[1], "family")
+    with pytest.raises(SystemExit):
+        train(cfg, run_dir=cut)
+    monkeypatch.setattr(TrainingCheckpoint, "episode_end", episode_end)
+    cfg = compose_cfg([f"resume={cut}"])
+    HydraConfig.instance().cfg = None  # as from the command line: no overrides but resume=
+    resumed = train(cfg)
+    assert resumed["eval"] == full["eval"]
+    weights = [
+        torch.load(run / "learner" / "weights.pt", weights_only=True)
+        for run in (tmp_path / "full", cut)
+    ]
+    assert all(torch.equal(weights[0][k], weights[1][k]) for k in weights[0])
+
+
+def test_a_family_buffer_keeps_the_newest_teams_that_fit_and_samples_each_team_alone():
+    settings = LoopSettings(
+        4, buffer_size=10, minibatch_size=3, updates_per_batch=1, warmup_frames=0
+    )
+    buffer = LoopBuffer(settings, on_policy=False, device=torch.device("cpu"), episode_frames=4)
+    for episode, width in ((1, 2), (2, 3), (3, 5)):  # each team's rows have their own shape
+        rows = TensorDict({"x": torch.full((4, width), float(episode))}, [4])
+        buffer.extend(rows, str(episode))
+        assert buffer.expected(4 * episode, episode, family=True) == {
+            team: (len(b), buffer.written[team]) for team, b in buffer.buffers.items()
+        }
+    assert list(buffer.buffers) == ["2", "3"] and len(buffer) == 8  # team 1 left: 12 > 10
+    torch.manual_seed(0)
+    drawn = {int(buffer.sample()["x"][0, 0]) for _ in range(50)}
+    assert drawn == {2, 3}  # a minibatch is one team's, and both are drawn
+
+
+def test_an_on_policy_buffer_takes_each_epoch_in_one_permutation():
+    """The sampler draws an epoch's order when the epoch starts, as torch.randperm per epoch."""
+    settings = LoopSettings(
+        6, buffer_size=6, minibatch_size=3, updates_per_batch=4, warmup_frames=0
+    )
+    buffer = LoopBuffer(settings, on_policy=True, device=torch.device("cpu"), episode_frames=6)
+    buffer.extend(TensorDict({"x": torch.arange(6.0)}, [6]))
+    torch.manual_seed(1)
+    rows = [buffer.sample()["x"].tolist() for _ in range(4)]
+    torch.manual_seed(1)
+    orders = [torch.randperm(6).tolist() for _ in range(2)]
+    assert rows == [orders[0][:3], orders[0][3:], orders[1][:3], orders[1][3:]]
+    after = torch.rand(1)
+    torch.manual_seed(1)
+    [torch.randperm(6) for _ in range(2)]
+    assert torch.equal(after, torch.rand(1))  # no third order drawn
+
+
+def test_a_torch_learner_from_a_user_module_and_yaml_trains_through_the_torch_loop(tmp_path):
+    """One module (tests/plugins/toy_torch_learner.py) and one yaml: trained, saved, evaluated."""
+    folder = tmp_path / "my_conf" / "learner"
+    folder.mkdir(parents=True)
+    (folder / "toy_pg.yaml").write_text(
+        "_target_: tests.plugins.toy_torch_learner.ToyGradientLearner\n_partial_: true\n"
+        "ticks: 10\nhidden: 16\ndepth: 1\nlr: 0.001\ngamma: 0.95\nreward_scale: 0.1\n"
+        "auction_prior: 1.0\nfeatures: paper\nmax_grad_norm: 10.0\ndevice: cpu\n"
+    )
+    run_dir = tmp_path / "run"
+    env = {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR"}
+    env["PYTHONPATH"] = str(ROOT)
+    done = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "scripts" / "train.py"),
+            "--config-dir",
+            str(tmp_path / "my_conf"),
+        ]
+        + ["learner=toy_pg", "system=system1", "debug=smoke", f"hydra.run.dir={run_dir}"],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    assert metrics["learner"] == {"name": "toy_pg", "label": "Toy gradient", "kind": "neural"}
+    # 2 episodes x 50 ticks x 4 copies, one step per batch of 10 ticks
+    assert metrics["train"]["env_ticks"] == 400 and metrics["train"]["gradient_steps"] == 10
+    assert (run_dir / "learner" / "weights.pt").is_file()
