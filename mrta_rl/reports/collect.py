@@ -35,6 +35,7 @@ from mrta_rl.checked_files import (
 from mrta_rl.config import UserError
 from mrta_rl.run_files import (
     CONFIG_FILE,
+    HYDRA_FILE,
     METRICS_FILE,
     REFUSED_FILE,
     REFUSED_JOBS_FILE,
@@ -51,6 +52,7 @@ FAILED = "failed or unfinished: no metrics.json (see train.log, sweep output)"
 BASIC_SWEEPER = "hydra._internal.core_plugins.basic_sweeper.BasicSweeper"
 # settings that do not change what a run computes: never part of a configuration's name
 NOT_CONFIGURATION = ("seed", "resume", "train.progress_bar", "train.checkpoint_every")
+POLICY_KEY = "report"  # a run config's block of what a report makes of it (reports/study.py)
 
 
 class ReportInputError(UserError):
@@ -70,6 +72,7 @@ class RunRecord:
     config: dict[str, Any]  # .hydra/config.yaml ({} if absent)
     overrides: tuple[str, ...]  # .hydra/overrides.yaml
     variant: str = ""  # what sets the configuration apart (reserve=1), or ""
+    experiment: str = ""  # its experiment (.hydra/hydra.yaml's choice), "" for none
 
     @property
     def name(self) -> str:
@@ -163,8 +166,11 @@ def load_run(run_dir: Path) -> RunRecord:
     learner = str(learner["name"] if isinstance(learner, dict) else learner)
     curve = read_curve(run_dir / CURVE_FILE)
     seed, overrides = int(metrics["seed"]), tuple(str(o) for o in overrides)
+    hydra = read_yaml_config(run_dir / HYDRA_FILE) or {}
+    experiment = config_value(hydra, "hydra.runtime.choices.experiment") or ""
+    system = str(metrics["system"])
     return RunRecord(
-        run_dir, learner, str(metrics["system"]), seed, metrics, curve, config, overrides
+        run_dir, learner, system, seed, metrics, curve, config, overrides, "", str(experiment)
     )
 
 
@@ -180,7 +186,9 @@ def _flatten(config: Any, prefix: str = "") -> dict[str, Any]:
 
 def configuration_variants(records: Sequence[RunRecord]) -> list[str]:
     """What sets each run's configuration apart from the other runs of its learner and system."""
-    flat = [_flatten(named_init(named_streams(r.config))) for r in records]
+    # the report block is what a study makes of its runs, not how a run computes
+    configs = [{k: v for k, v in r.config.items() if k != POLICY_KEY} for r in records]
+    flat = [_flatten(named_init(named_streams(c))) for c in configs]
     variants = [""] * len(records)
     groups: dict[tuple[str, str], list[int]] = {}
     for i, record in enumerate(records):
