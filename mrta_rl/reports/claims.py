@@ -64,15 +64,14 @@ class Cells:
         """The learner's label in this report (its name if it has no run here)."""
         return self.labels.get(name, name)
 
-    def get(self, name: str, metric: str, item: str = "", priority: str = "") -> MeanCI:
-        """A learner's aggregate of one metric value."""
-        return stat(self.by_learner[name], metric, item, priority)
-
     def value(self, name: str, path: str) -> Value:
-        """A value named ``metric/item/priority``; a learning space exact (its first seed's)."""
+        """A learner's value ``metric/item/priority``; a learning space exact (its first seed's).
+
+        A learning space is None where the learner reports none (or has no cell here).
+        """
         metric, item, priority = (*path.split("/"), "", "")[:3]
         if metric != "learning_space":
-            return self.get(name, metric, item, priority)
+            return stat(self.by_learner[name], metric, item, priority)
         rows = self.by_learner.get(name)
         rows = rows[(rows["metric"] == metric) & (rows["item"] == item)] if rows is not None else []
         return int(rows["first"].iloc[0]) if len(rows) else None
@@ -123,7 +122,7 @@ def _above(claim: Claim, cells: Cells, group: Sequence[str]) -> Verdict:
     if not present:
         return NOT_EVALUABLE, "", f"no {claim.group} learner"
     (a_name, a), (b_name, b) = claim.values.items()
-    pairs = [(cells.get(n, *_path(a)), cells.get(n, *_path(b))) for n in present]
+    pairs = [(cells.value(n, a), cells.value(n, b)) for n in present]
     evidence = "; ".join(
         f"{cells.label(n)} {a_name} {x.format(1)} vs {b_name} {y.format(1)}"
         for n, (x, y) in zip(present, pairs, strict=True)
@@ -131,25 +130,21 @@ def _above(claim: Claim, cells: Cells, group: Sequence[str]) -> Verdict:
     return _verdict(all(x.mean > y.mean for x, y in pairs)), _separation(pairs), evidence
 
 
-def _path(path: str) -> tuple[str, str, str]:
-    return (*path.split("/"), "", "")[:3]  # type: ignore[return-value]
-
-
 def _best(claim: Claim, cells: Cells, group: Sequence[str]) -> Verdict:
     """The learner ranks first of the group on each value (highest, or lowest)."""
     sign, results = 1.0 if claim.lowest else -1.0, []
     for name, path in claim.values.items():
-        values = {n: cells.get(n, *_path(path)) for n in group}
+        values = {n: cells.value(n, path) for n in group}
         ranked = sorted(values, key=lambda n: sign * values[n].mean)
         others = [(values[claim.learner], values[n]) for n in group if n != claim.learner]
         evidence = ", ".join(f"{cells.label(n)} {values[n].format(1)}" for n in ranked)
         results.append((ranked[0] == claim.learner, _separation(others), f"{name}: {evidence}"))
     evidence = " | ".join(r[2] for r in results)
     if claim.count:  # the items (robots) of the value's metric where the learner ranks first
-        metric = _path(path)[0]
+        metric = path.partition("/")[0]
         items = cells.items(claim.learner, metric)
         first = sum(
-            min(group, key=lambda n: sign * cells.get(n, metric, i).mean) == claim.learner
+            min(group, key=lambda n: sign * cells.value(n, f"{metric}/{i}").mean) == claim.learner
             for i in items
         )
         word = "lowest" if claim.lowest else "highest"
@@ -161,14 +156,14 @@ def _best(claim: Claim, cells: Cells, group: Sequence[str]) -> Verdict:
 def _best_each(claim: Claim, cells: Cells, group: Sequence[str]) -> Verdict:
     """The learner is the highest of the group in every item x priority cell of the metric."""
     ((name, path),) = claim.values.items()
-    metric, learner = _path(path)[0], claim.learner
+    metric, learner = path.partition("/")[0], claim.learner
     keys = [(t, p) for t in cells.items(learner, metric) for p in PRIORITIES]
     lost = []
     for t, p in keys:
-        best = max(group, key=lambda n: cells.get(n, metric, t, p).mean)
-        if best != learner and not math.isnan(cells.get(best, metric, t, p).mean):
-            ours, theirs = (cells.get(n, metric, t, p).format(1) for n in (learner, best))
-            lost.append(f"{t}{p} ({cells.label(best)} {theirs} vs {cells.label(learner)} {ours})")
+        best = max(group, key=lambda n: cells.value(n, f"{metric}/{t}/{p}").mean)
+        if best != learner and not math.isnan(cells.value(best, f"{metric}/{t}/{p}").mean):
+            ours, theirs = (cells.value(n, f"{metric}/{t}/{p}") for n in (learner, best))
+            lost.append(f"{t}{p} ({cells.text(best, theirs)} vs {cells.text(learner, ours)})")
     evidence = f"{cells.label(learner)} highest in {len(keys) - len(lost)}/{len(keys)} {name} cells"
     return _verdict(not lost), "", evidence + ("; not in: " + ", ".join(lost) if lost else "")
 
@@ -178,7 +173,7 @@ def _gap(claim: Claim, cells: Cells, group: Sequence[str]) -> Verdict:
     (a, b), (low, high) = claim.learners, claim.within
     parts, ok, pairs = [], True, []
     for name, path in claim.values.items():
-        x, y = cells.get(a, *_path(path)), cells.get(b, *_path(path))
+        x, y = cells.value(a, path), cells.value(b, path)
         gap = x.mean - y.mean
         ok = ok and low < gap <= high
         pairs.append((x, y))
@@ -193,7 +188,7 @@ def _order(claim: Claim, cells: Cells, group: Sequence[str]) -> Verdict:
         sets, relations = _chain(chain)
         values = {n: cells.value(n, path) for n in itertools.chain(*sets)}
         if any(v is None for v in values.values()):
-            return NOT_EVALUABLE, "", f"a learner reports no {_path(path)[1]} learning space"
+            return NOT_EVALUABLE, "", f"a learner reports no {path.split('/')[1]} learning space"
         for left, relation, right in zip(sets, relations, sets[1:], strict=False):
             for x, y in itertools.product(left, right):
                 ok = ok and RELATIONS[relation](_mean(values[x]), _mean(values[y]))
@@ -212,9 +207,12 @@ def _capable_robots(claim: Claim, cells: Cells, group: Sequence[str]) -> Verdict
     parts, ok = [], True
     for name in present:
         types = cells.items(name, "ctr")
-        counts = np.array([cells.get(name, "capable_robots", t).mean for t in types])
+        counts = np.array([cells.value(name, f"capable_robots/{t}").mean for t in types])
         ctr = np.array(
-            [np.nanmean([cells.get(name, "ctr", t, p).mean for p in PRIORITIES]) for t in types]
+            [
+                np.nanmean([cells.value(name, f"ctr/{t}/{p}").mean for p in PRIORITIES])
+                for t in types
+            ]
         )
         keep = ~np.isnan(ctr)
         if keep.sum() < 3 or np.std(counts[keep]) == 0:

@@ -35,7 +35,6 @@ from mrta_rl.checked_files import (
 from mrta_rl.config import UserError
 from mrta_rl.run_files import (
     CONFIG_FILE,
-    HYDRA_FILE,
     METRICS_FILE,
     REFUSED_FILE,
     REFUSED_JOBS_FILE,
@@ -72,7 +71,6 @@ class RunRecord:
     config: dict[str, Any]  # .hydra/config.yaml ({} if absent)
     overrides: tuple[str, ...]  # .hydra/overrides.yaml
     variant: str = ""  # what sets the configuration apart (reserve=1), or ""
-    experiment: str = ""  # its experiment (.hydra/hydra.yaml's choice), "" for none
 
     @property
     def name(self) -> str:
@@ -166,11 +164,8 @@ def load_run(run_dir: Path) -> RunRecord:
     learner = str(learner["name"] if isinstance(learner, dict) else learner)
     curve = read_curve(run_dir / CURVE_FILE)
     seed, overrides = int(metrics["seed"]), tuple(str(o) for o in overrides)
-    hydra = read_yaml_config(run_dir / HYDRA_FILE) or {}
-    experiment = config_value(hydra, "hydra.runtime.choices.experiment") or ""
-    system = str(metrics["system"])
     return RunRecord(
-        run_dir, learner, system, seed, metrics, curve, config, overrides, "", str(experiment)
+        run_dir, learner, str(metrics["system"]), seed, metrics, curve, config, overrides
     )
 
 

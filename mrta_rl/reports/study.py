@@ -3,16 +3,16 @@
 Which learners a report compares and in which order, the named groups its claims compare, the
 claims, the yardstick rules, the best learner and the swept settings drawn as x axes are no
 code: each experiment declares its part in a ``report:`` block of its yaml, which training
-ignores and a run records in ``.hydra/config.yaml``. A report applies the blocks of its runs' own
-experiments first (as the runs recorded them, else as shipped), then every other shipped
-experiment's block: runs of no experiment are reported as the shipped studies say. The report's
-prose is ``conf/report/report.md``, whose blocks :class:`Prose` fills with
-:class:`string.Template`.
+ignores and a run records in ``.hydra/config.yaml``. A report applies the blocks its runs
+recorded (a study of one's own), then every shipped experiment's block, so that runs of any
+experiment, or of none, are reported as the shipped studies say. The report's prose is
+``conf/report/report.md``, whose blocks :class:`Prose` fills with :class:`string.Template`.
 """
 
 from __future__ import annotations
 
 import functools
+import json
 import re
 import string
 from collections.abc import Iterable, Mapping
@@ -114,33 +114,29 @@ def merge(studies: Iterable[Study]) -> Study:
 
 
 @functools.cache
-def shipped_studies() -> dict[str, Study]:
-    """The ``report:`` block of every shipped experiment, by experiment name (sorted)."""
-    out = {}
-    for path in sorted((conf_dir() / "experiment").glob("*.yaml")):
-        content = read_yaml(path)
-        if isinstance(content, dict) and POLICY_KEY in content:
-            out[path.stem] = check_block(content[POLICY_KEY], str(path))
-    return out
+def shipped_studies() -> tuple[Study, ...]:
+    """The ``report:`` block of every shipped experiment, in the order of their names."""
+    paths = sorted((conf_dir() / "experiment").glob("*.yaml"))
+    blocks = {path: (read_yaml(path) or {}).get(POLICY_KEY) for path in paths}
+    return tuple(check_block(b, str(path)) for path, b in blocks.items() if b is not None)
 
 
 def study_of(runs: Iterable[RunRecord]) -> Study:
-    """The study of a report: its runs' own experiments' blocks, then every other shipped one.
+    """The study of a report: the blocks its runs recorded, then the shipped experiments' blocks.
 
-    A run's own block is the one it recorded, else its experiment's as shipped.
+    A recorded block that is a shipped one counts once, in its shipped place.
 
     Raises:
         ConfigError: naming the file and key of a block that is not a study, or a claim whose
             group no block declares.
     """
-    shipped, own = shipped_studies(), {}
+    recorded = {}  # each distinct block once, with the first run that recorded it
     for run in runs:
-        block = run.config.get(POLICY_KEY)
-        if run.experiment not in own:
-            recorded = block and check_block(block, str(Path(run.run_dir) / CONFIG_FILE))
-            own[run.experiment] = recorded or shipped.get(run.experiment)
-    rest = [study for name, study in shipped.items() if name not in own]
-    study = merge([s for s in own.values() if s is not None] + rest)
+        if (block := run.config.get(POLICY_KEY)) is not None:
+            recorded.setdefault(json.dumps(block, sort_keys=True), (block, run.run_dir))
+    own = [check_block(block, str(Path(d) / CONFIG_FILE)) for block, d in recorded.values()]
+    shipped = shipped_studies()
+    study = merge([*(s for s in own if s not in shipped), *shipped])
     for claim in study.claims:
         if claim.group and claim.group not in study.groups:
             known = short_list(study.groups)
