@@ -242,24 +242,16 @@ def _larger_on(claim: Claim, by_system: Mapping[str, Cells], group: Sequence[str
     return _verdict(ok), "", "; ".join(parts)
 
 
-# a check: (claim, cells of one system, the learners of its group) -> verdict
+# each check: (claim, cells of one system, the learners of its group) -> verdict, and the keys
+# of the claim it reads; larger_on is checked once across systems (cells by system)
 CHECKS = {
-    "above": _above,
-    "best": _best,
-    "best_each": _best_each,
-    "gap": _gap,
-    "order": _order,
-    "capable_robots": _capable_robots,
-    "larger_on": _larger_on,  # once across systems: (claim, cells by system, group)
-}
-NEEDS = {  # the keys each check reads
-    "above": ("group", "values"),
-    "best": ("learner", "group", "values"),
-    "best_each": ("learner", "group", "values"),
-    "gap": ("learners", "values", "within"),
-    "order": ("values", "order"),
-    "capable_robots": ("group",),
-    "larger_on": ("group", "systems", "values"),
+    "above": (_above, ("group", "values")),
+    "best": (_best, ("learner", "group", "values")),
+    "best_each": (_best_each, ("learner", "group", "values")),
+    "gap": (_gap, ("learners", "values", "within")),
+    "order": (_order, ("values", "order")),
+    "capable_robots": (_capable_robots, ("group",)),
+    "larger_on": (_larger_on, ("group", "systems", "values")),
 }
 
 
@@ -292,7 +284,7 @@ def check_claim(raw: Any, where: str) -> Claim:
     if not isinstance(named, Mapping) or not all(isinstance(v, str) for v in named.values()):
         raise ConfigError(f"{where}.values: must map names to metric/item/priority, got {named!r}")
     claim = Claim(**values | {"values": {str(k): v for k, v in named.items()}})
-    missing = [k for k in NEEDS[claim.check] if not getattr(claim, k)]
+    missing = [k for k in CHECKS[claim.check][1] if not getattr(claim, k)]
     if missing:
         raise ConfigError(f"{where}: check {claim.check} needs {', '.join(missing)}")
     if claim.check == "order" and (
@@ -320,14 +312,10 @@ def check_claims(summary: pd.DataFrame, study: Study) -> list[ClaimResult]:
             verdict = _larger_on(claim, by_system, group)
             across.append(ClaimResult(claim.id, claim.statement, "all", *verdict))
             continue
-        needed = _needed(claim, study, group)
+        needed, check = _needed(claim, study, group), CHECKS[claim.check][0]
         for system, cells in by_system.items():
             missing = cells.missing(needed)
-            verdict = (
-                (NOT_EVALUABLE, "", missing)
-                if missing
-                else CHECKS[claim.check](claim, cells, group)
-            )
+            verdict = (NOT_EVALUABLE, "", missing) if missing else check(claim, cells, group)
             results.append(ClaimResult(claim.id, claim.statement, system, *verdict))
     return [*results, *across]
 

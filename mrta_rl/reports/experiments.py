@@ -12,7 +12,7 @@ import dataclasses
 import itertools
 import math
 from collections import defaultdict
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -70,9 +70,9 @@ def _series(label: str, variant: str) -> str:
     return " ".join([label, *settings])
 
 
-def _point(cell: tuple, config: dict[str, Any], metrics: dict[str, Any], refused: str) -> dict:
-    """One study row; ``cell`` is ``(series, learner, system, seed, swept settings)``."""
-    label, learner, system, seed, along = cell
+def _point(cell: tuple, config: dict, metrics: dict, refused: str, along: Iterable[str]) -> dict:
+    """One study row: ``cell`` is ``(series, learner, system, seed)``, ``along`` the swept keys."""
+    label, learner, system, seed = cell
     ret, greedy = (
         ((metrics.get(k) or {}).get("team_return") or {}).get("mean") for k in EVALUATION_BLOCKS
     )
@@ -109,15 +109,10 @@ def study_points(runs: Sequence[RunRecord], inputs: Sequence[Path], study: Study
 
     Each row has the study's swept settings (``study.along``), and the ``rank`` of its learner.
     """
-    points = [
-        _point(
-            (_series(r.label, r.variant), r.name, r.system, r.seed, study.along),
-            r.config,
-            r.metrics,
-            "",
-        )
-        for r in runs
-    ]
+    points = []
+    for r in runs:
+        cell = (_series(r.label, r.variant), r.name, r.system, r.seed)
+        points.append(_point(cell, r.config, r.metrics, "", study.along))
     found = {p.parent.resolve() for path in inputs for p in Path(path).rglob(REFUSED_FILE)}
     found |= {Path(p).resolve() for p in inputs if (Path(p) / REFUSED_FILE).is_file()}
     for run_dir in sorted(found):
@@ -127,9 +122,8 @@ def study_points(runs: Sequence[RunRecord], inputs: Sequence[Path], study: Study
         path = run_dir / CONFIG_FILE
         config = read_yaml_config(path) or {}
         learner, system = str(record.get("learner", "?")), str(record.get("system", "?"))
-        seed = int(record.get("seed", config.get("seed", 0)))
-        cell = (learner, learner, system, seed, study.along)
-        points.append(_point(cell, config, {}, refusal_reason(run_dir) or ""))
+        cell = (learner, learner, system, int(record.get("seed", config.get("seed", 0))))
+        points.append(_point(cell, config, {}, refusal_reason(run_dir) or "", study.along))
     # objects, not floats: the CSV keeps ints as ints and an absent setting empty
     columns = [*STUDY_KEYS, *study.along, *STUDY_VALUES, "task"]
     points = pd.DataFrame(points, columns=columns, dtype=object)
