@@ -24,8 +24,7 @@ from mrta_rl.checked_files import read_text, read_yaml
 from mrta_rl.conf_files import conf_dir
 from mrta_rl.config import ConfigError, check_fields, check_value, short_list
 from mrta_rl.reports.claims import Claim, check_claim
-from mrta_rl.reports.collect import POLICY_KEY
-from mrta_rl.run_files import CONFIG_FILE
+from mrta_rl.reports.collect import CONFIG_FILE, POLICY_KEY
 
 if TYPE_CHECKING:
     from mrta_rl.reports.collect import RunRecord
