@@ -1,27 +1,48 @@
-"""The claims of paper Section 6 as data, checked on the summary: one verdict per system.
+"""The claims of a study, checked on the summary: one verdict per system.
 
-``separation`` says whether the 95 % intervals of the compared means are disjoint (``clear``):
-with overlapping intervals the ordering of the means may be noise.
+A claim is data, an item of ``report.claims`` (``conf/experiment/paper.yaml`` holds the paper's
+Section 6): its statement, one of the checks of :data:`CHECKS`, the learners it compares and the
+values it compares them on, each named ``metric/item/priority`` of the summary (``ctr/all/H``,
+``itr/mean``, ``learning_space/analytic``). ``separation`` says whether the 95 % intervals of
+the compared means are disjoint (``clear``): with overlapping intervals the ordering of the
+means may be noise.
 """
 
 from __future__ import annotations
 
+import itertools
 import math
-from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
-from typing import Any
+import operator
+import re
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Annotated, Any, Protocol
 
 import numpy as np
 import pandas as pd
 
+from mrta_rl.config import Choices, ConfigError, check_fields
 from mrta_rl.reports.frame import stat, system_label
 from mrta_rl.reports.stats import MeanCI
 from mrta_rl.reports.tables import big_int
+from mrta_rl.types import PRIORITIES
 
-TABULAR = ("cql", "semi_cql", "dql", "subg_cql")  # the four methods the paper compares
-A_BIT_PP = 10.0  # "a bit lower" (§6.1): at most this many percentage points lower
+
+class Study(Protocol):
+    """What the claims read of a study (``reports/study.py``): its claims, groups and order."""
+
+    claims: Sequence[Claim]
+    groups: Mapping[str, Sequence[str]]
+
+    def rank(self, learner: str) -> Any:
+        """The learner's place in the study's row order."""
+
+
 HOLDS, FAILS, NOT_EVALUABLE = "holds", "does not hold", "not evaluable"
 CLAIMS_HEADER = ["claim", "system", "verdict", "separation", "statement", "evidence"]
+RELATIONS = {">": operator.gt, "<": operator.lt, "=": operator.eq}  # of an order's chain
+Value = MeanCI | int | None  # a summary value; a learning space is exact, None if unreported
+Verdict = tuple[str, str, str]  # verdict, separation, evidence
 
 
 @dataclass(frozen=True)
@@ -51,9 +72,17 @@ class Cells:
         """The learner's label in this report (its name if it has no run here)."""
         return self.labels.get(name, name)
 
-    def get(self, name: str, metric: str, item: str = "", priority: str = "") -> MeanCI:
-        """A learner's aggregate of one metric value."""
-        return stat(self.by_learner[name], metric, item, priority)
+    def value(self, name: str, path: str) -> Value:
+        """A learner's value ``metric/item/priority``; a learning space exact (its first seed's).
+
+        A learning space is None where the learner reports none (or has no cell here).
+        """
+        metric, item, priority = (*path.split("/"), "", "")[:3]
+        if metric != "learning_space":
+            return stat(self.by_learner[name], metric, item, priority)
+        rows = self.by_learner.get(name)
+        rows = rows[(rows["metric"] == metric) & (rows["item"] == item)] if rows is not None else []
+        return int(rows["first"].iloc[0]) if len(rows) else None
 
     def items(self, name: str, metric: str) -> list[str]:
         """Task types (``ctr``, ``capable_robots``) or robots (``itr``) of a cell, not ``all``."""
@@ -61,18 +90,14 @@ class Cells:
         items = rows[rows["metric"] == metric]["item"]
         return [i for i in dict.fromkeys(items) if i not in ("all", "mean")]
 
-    def analytic(self, name: str) -> int | None:
-        """The exact analytic learning space of a learner (None if it reports none)."""
-        rows = self.by_learner.get(name)
-        if rows is None:
-            return None
-        rows = rows[(rows["metric"] == "learning_space") & (rows["item"] == "analytic")]
-        return int(rows["first"].iloc[0]) if len(rows) else None
-
     def missing(self, needed: Sequence[str]) -> str:
         """``"missing: CQL, DQL"`` for the needed learners without a cell, else ``""``."""
         gone = [self.label(n) for n in needed if n not in self]
         return f"missing: {', '.join(gone)}" if gone else ""
+
+    def text(self, name: str, value: Value) -> str:
+        """``"CQL 71.5 ± 6.4"``: the learner's label and the value."""
+        return f"{self.label(name)} {_text(value)}"
 
 
 def _separation(pairs: Sequence[tuple[MeanCI, MeanCI]]) -> str:
@@ -84,125 +109,118 @@ def _verdict(ok: bool) -> str:
     return HOLDS if ok else FAILS
 
 
-def _extreme(cells: Cells, value: Callable[[str], MeanCI], target: str, lowest: bool) -> tuple:
-    """Is ``target`` the lowest/highest of the four methods? -> (ok, separation, evidence)."""
-    values = {n: value(n) for n in TABULAR}
-    ranked = sorted(values, key=lambda n: (1.0 if lowest else -1.0) * values[n].mean)
-    others = [values[n] for n in TABULAR if n != target]
-    evidence = ", ".join(f"{cells.label(n)} {values[n].format(1)}" for n in ranked)
-    return ranked[0] == target, _separation([(values[target], o) for o in others]), evidence
+def _text(value: Value) -> str:
+    """``71.5 ± 6.4``; an exact value as :func:`big_int` writes it."""
+    return big_int(value) if isinstance(value, int) else value.format(1)
 
 
-def _h_above_l(cells: Cells) -> tuple[str, str, str]:
-    present = [n for n in TABULAR if n in cells]
+def _mean(value: Value) -> float:
+    return value if isinstance(value, int) else value.mean
+
+
+def _chain(order: str) -> tuple[list[list[str]], list[str]]:
+    """``"a > b > c, d"`` as its learner sets ``[[a], [b], [c, d]]`` and relations ``[>, >]``."""
+    parts = re.split(r"\s*([<>=])\s*", order.strip())
+    return [[n.strip() for n in p.split(",")] for p in parts[::2]], parts[1::2]
+
+
+def _above(claim: Claim, cells: Cells, group: Sequence[str]) -> Verdict:
+    """Every learner of the group that ran: its first value above its second."""
+    present = [n for n in group if n in cells]
     if not present:
-        return NOT_EVALUABLE, "", "no tabular learner"
-    pairs = [(cells.get(n, "ctr", "all", "H"), cells.get(n, "ctr", "all", "L")) for n in present]
+        return NOT_EVALUABLE, "", f"no {claim.group} learner"
+    (a_name, a), (b_name, b) = claim.values.items()
+    pairs = [(cells.value(n, a), cells.value(n, b)) for n in present]
     evidence = "; ".join(
-        f"{cells.label(n)} H {h.format(1)} vs L {low.format(1)}"
-        for n, (h, low) in zip(present, pairs, strict=True)
+        f"{cells.label(n)} {a_name} {x.format(1)} vs {b_name} {y.format(1)}"
+        for n, (x, y) in zip(present, pairs, strict=True)
     )
-    return _verdict(all(h.mean > low.mean for h, low in pairs)), _separation(pairs), evidence
+    return _verdict(all(x.mean > y.mean for x, y in pairs)), _separation(pairs), evidence
 
 
-def _cql_best_overall(cells: Cells) -> tuple[str, str, str]:
-    results = [
-        _extreme(cells, lambda n, p=p: cells.get(n, "ctr", "all", p), "cql", lowest=False)
-        for p in ("L", "H")
-    ]
-    sep = "clear" if all(r[1] == "clear" for r in results) else "CIs overlap"
-    evidence = f"overall CTR L: {results[0][2]} | H: {results[1][2]}"
-    return _verdict(all(r[0] for r in results)), sep, evidence
+def _best(claim: Claim, cells: Cells, group: Sequence[str]) -> Verdict:
+    """The learner ranks first of the group on each value (highest, or lowest)."""
+    sign, results = 1.0 if claim.lowest else -1.0, []
+    for name, path in claim.values.items():
+        values = {n: cells.value(n, path) for n in group}
+        ranked = sorted(values, key=lambda n: sign * values[n].mean)
+        others = [(values[claim.learner], values[n]) for n in group if n != claim.learner]
+        evidence = ", ".join(f"{cells.label(n)} {values[n].format(1)}" for n in ranked)
+        results.append((ranked[0] == claim.learner, _separation(others), f"{name}: {evidence}"))
+    evidence = " | ".join(r[2] for r in results)
+    if claim.count:  # the items (robots) of the value's metric where the learner ranks first
+        metric = path.partition("/")[0]
+        items = cells.items(claim.learner, metric)
+        first = sum(
+            min(group, key=lambda n: sign * cells.value(n, f"{metric}/{i}").mean) == claim.learner
+            for i in items
+        )
+        word = "lowest" if claim.lowest else "highest"
+        evidence += f"; {cells.label(claim.learner)} {word} for {first}/{len(items)} {claim.count}"
+    separation = "clear" if all(r[1] == "clear" for r in results) else "CIs overlap"
+    return _verdict(all(r[0] for r in results)), separation, evidence
 
 
-def _cql_best_each_type(cells: Cells) -> tuple[str, str, str]:
-    keys = [(t, p) for t in cells.items("cql", "ctr") for p in ("L", "H")]
+def _best_each(claim: Claim, cells: Cells, group: Sequence[str]) -> Verdict:
+    """The learner is the highest of the group in every item x priority cell of the metric."""
+    ((name, path),) = claim.values.items()
+    metric, learner = path.partition("/")[0], claim.learner
+    keys = [(t, p) for t in cells.items(learner, metric) for p in PRIORITIES]
     lost = []
     for t, p in keys:
-        best = max(TABULAR, key=lambda n: cells.get(n, "ctr", t, p).mean)
-        if best != "cql" and not math.isnan(cells.get(best, "ctr", t, p).mean):
-            lost.append(
-                f"{t}{p} ({cells.label(best)} {cells.get(best, 'ctr', t, p).format(1)} vs "
-                f"CQL {cells.get('cql', 'ctr', t, p).format(1)})"
-            )
-    evidence = f"CQL highest in {len(keys) - len(lost)}/{len(keys)} task type x priority cells"
+        best = max(group, key=lambda n: cells.value(n, f"{metric}/{t}/{p}").mean)
+        if best != learner and not math.isnan(cells.value(best, f"{metric}/{t}/{p}").mean):
+            ours, theirs = (cells.value(n, f"{metric}/{t}/{p}") for n in (learner, best))
+            lost.append(f"{t}{p} ({cells.text(best, theirs)} vs {cells.text(learner, ours)})")
+    evidence = f"{cells.label(learner)} highest in {len(keys) - len(lost)}/{len(keys)} {name} cells"
     return _verdict(not lost), "", evidence + ("; not in: " + ", ".join(lost) if lost else "")
 
 
-def _subg_bit_lower(cells: Cells) -> tuple[str, str, str]:
+def _gap(claim: Claim, cells: Cells, group: Sequence[str]) -> Verdict:
+    """The first learner's value minus the second's, in percentage points, within (low, high]."""
+    (a, b), (low, high) = claim.learners, claim.within
     parts, ok, pairs = [], True, []
-    for p in ("L", "H"):
-        cql, subg = cells.get("cql", "ctr", "all", p), cells.get("subg_cql", "ctr", "all", p)
-        gap = cql.mean - subg.mean
-        ok = ok and 0.0 < gap <= A_BIT_PP
-        pairs.append((cql, subg))
-        parts.append(f"{p}: CQL {cql.format(1)} vs subG-CQL {subg.format(1)} (gap {gap:+.1f} pp)")
-    return _verdict(ok), _separation(pairs), "; ".join(parts) + f"; 'a bit' = (0, {A_BIT_PP:g}] pp"
+    for name, path in claim.values.items():
+        x, y = cells.value(a, path), cells.value(b, path)
+        gap = x.mean - y.mean
+        ok = ok and low < gap <= high
+        pairs.append((x, y))
+        parts.append(f"{name}: {cells.text(a, x)} vs {cells.text(b, y)} (gap {gap:+.1f} pp)")
+    return _verdict(ok), _separation(pairs), "; ".join(parts) + f"; within ({low:g}, {high:g}] pp"
 
 
-def _dql_lowest_low_ctr(cells: Cells) -> tuple[str, str, str]:
-    ok, sep, evidence = _extreme(cells, lambda n: cells.get(n, "ctr", "all", "L"), "dql", True)
-    return _verdict(ok), sep, f"overall CTR L, ascending: {evidence}"
+def _order(claim: Claim, cells: Cells, group: Sequence[str]) -> Verdict:
+    """On each value, the learners in the order of its chain (``a > b > c, d``: c and d both)."""
+    parts, ok, pairs = [], True, []
+    for (name, path), chain in zip(claim.values.items(), claim.order, strict=True):
+        sets, relations = _chain(chain)
+        values = {n: cells.value(n, path) for n in itertools.chain(*sets)}
+        if any(v is None for v in values.values()):
+            return NOT_EVALUABLE, "", f"a learner reports no {path.split('/')[1]} learning space"
+        for left, relation, right in zip(sets, relations, sets[1:], strict=False):
+            for x, y in itertools.product(left, right):
+                ok = ok and RELATIONS[relation](_mean(values[x]), _mean(values[y]))
+                pairs.append((values[x], values[y]))
+        texts = [", ".join(cells.text(n, values[n]) for n in s) for s in sets]
+        parts.append(f"{name}: {texts[0]}" + "".join(map(" {} {}".format, relations, texts[1:])))
+    exact = all(isinstance(x, int) for pair in pairs for x in pair)
+    return _verdict(ok), "" if exact else _separation(pairs), "; ".join(parts)
 
 
-def _semi_vs_dql_ctr(cells: Cells) -> tuple[str, str, str]:
-    semi, dql = ({p: cells.get(n, "ctr", "all", p) for p in "LH"} for n in ("semi_cql", "dql"))
-    ok = semi["L"].mean > dql["L"].mean and semi["H"].mean < dql["H"].mean
-    evidence = "; ".join(
-        f"{p}: semi-CQL {semi[p].format(1)} vs DQL {dql[p].format(1)}" for p in "LH"
-    )
-    return _verdict(ok), _separation([(semi[p], dql[p]) for p in "LH"]), evidence
-
-
-def _itr_extreme(target: str, lowest: bool) -> Callable[[Cells], tuple[str, str, str]]:
-    def check(cells: Cells) -> tuple[str, str, str]:
-        ok, sep, evidence = _extreme(cells, lambda n: cells.get(n, "itr", "mean"), target, lowest)
-        robots = cells.items(target, "itr")
-        sign = 1.0 if lowest else -1.0
-        per_robot = sum(
-            min(TABULAR, key=lambda n: sign * cells.get(n, "itr", r).mean) == target for r in robots
-        )
-        order, word = ("ascending", "lowest") if lowest else ("descending", "highest")
-        count = f"{cells.label(target)} {word} for {per_robot}/{len(robots)} robots"
-        return _verdict(ok), sep, f"mean ITR over robots, {order}: {evidence}; {count}"
-
-    return check
-
-
-def _semi_itr_between(cells: Cells) -> tuple[str, str, str]:
-    cql, semi, dql = (cells.get(n, "itr", "mean") for n in ("cql", "semi_cql", "dql"))
-    return (
-        _verdict(cql.mean < semi.mean < dql.mean),
-        _separation([(cql, semi), (semi, dql)]),
-        f"mean ITR: CQL {cql.format(1)} < semi-CQL {semi.format(1)} < DQL {dql.format(1)} expected",
-    )
-
-
-def _space_order(cells: Cells) -> tuple[str, str, str]:
-    dims = {n: cells.analytic(n) for n in TABULAR}
-    if any(v is None for v in dims.values()):
-        return NOT_EVALUABLE, "", "a learner reports no analytic learning space"
-    ok = dims["cql"] > dims["subg_cql"] > max(dims["semi_cql"], dims["dql"])
-    return _verdict(ok), "", ", ".join(f"{cells.label(n)} {big_int(dims[n])}" for n in TABULAR)
-
-
-def _space_semi_eq_dql(cells: Cells) -> tuple[str, str, str]:
-    semi, dql = cells.analytic("semi_cql"), cells.analytic("dql")
-    if semi is None or dql is None:
-        return NOT_EVALUABLE, "", "a learner reports no analytic learning space"
-    return _verdict(semi == dql), "", f"semi-CQL {big_int(semi)}, DQL {big_int(dql)}"
-
-
-def _more_robots_higher_ctr(cells: Cells) -> tuple[str, str, str]:
-    present = [n for n in TABULAR if n in cells and cells.items(n, "capable_robots")]
+def _capable_robots(claim: Claim, cells: Cells, group: Sequence[str]) -> Verdict:
+    """Per learner, Pearson r between a type's number of capable robots and its mean L/H CTR."""
+    present = [n for n in group if n in cells and cells.items(n, "capable_robots")]
     if not present:
-        return NOT_EVALUABLE, "", "no tabular learner with a known system table"
+        return NOT_EVALUABLE, "", f"no {claim.group} learner with a known system table"
     parts, ok = [], True
     for name in present:
         types = cells.items(name, "ctr")
-        counts = np.array([cells.get(name, "capable_robots", t).mean for t in types])
+        counts = np.array([cells.value(name, f"capable_robots/{t}").mean for t in types])
         ctr = np.array(
-            [np.nanmean([cells.get(name, "ctr", t, p).mean for p in "LH"]) for t in types]
+            [
+                np.nanmean([cells.value(name, f"ctr/{t}/{p}").mean for p in PRIORITIES])
+                for t in types
+            ]
         )
         keep = ~np.isnan(ctr)
         if keep.sum() < 3 or np.std(counts[keep]) == 0:
@@ -215,64 +233,99 @@ def _more_robots_higher_ctr(cells: Cells) -> tuple[str, str, str]:
     return _verdict(ok), "", text + ", ".join(parts)
 
 
-SEMI_DQL, CQL_SUBG = ("semi_cql", "dql"), ("cql", "subg_cql")
-# (id, statement, learners it needs (None: checks for itself), check): once per system
-CLAIMS: tuple[tuple[str, str, tuple[str, ...] | None, Callable[[Cells], tuple]], ...] = (
-    ("h_above_l", "CTR of high-priority tasks is higher than of low-priority tasks, for every "
-     "method (§6.1)", None, _h_above_l),
-    ("cql_best_ctr", "CQL has the best CTR, for low- and high-priority tasks (§6 summary; overall "
-     "CTR per priority)", TABULAR, _cql_best_overall),
-    ("cql_best_each_type", "CQL has the highest CTR for each type of task (§6.1)", TABULAR,
-     _cql_best_each_type),
-    ("subg_ctr_bit_lower", "subG-CQL's CTR is a bit lower than CQL's, for both priorities (§6.1, "
-     "§6 summary)", CQL_SUBG, _subg_bit_lower),
-    ("dql_lowest_ctr_l", "DQL has the lowest CTR for low-priority tasks (§6.1)", TABULAR,
-     _dql_lowest_low_ctr),
-    ("semi_vs_dql_ctr", "semi-CQL's CTR is higher than DQL's for low-priority tasks and lower for "
-     "high-priority tasks (§6.1)", SEMI_DQL, _semi_vs_dql_ctr),
-    ("subg_lowest_itr", "subG-CQL has the lowest ITR (§6.2, §6 summary)", TABULAR,
-     _itr_extreme("subg_cql", lowest=True)),
-    ("dql_highest_itr", "DQL has the highest ITR (§6.2)", TABULAR, _itr_extreme("dql", False)),
-    ("semi_itr_between", "semi-CQL's ITR is better than DQL's and worse than CQL's (§6.2)",
-     ("cql", "semi_cql", "dql"), _semi_itr_between),
-    ("space_order", "Learning space: CQL > subG-CQL > semi-CQL, DQL (§6.3, Table 9)", TABULAR,
-     _space_order),
-    ("space_semi_eq_dql", "semi-CQL and DQL have the same learning space dimension (Table 9)",
-     SEMI_DQL, _space_semi_eq_dql),
-    ("more_robots_higher_ctr", "Task types more robots can do have higher CTR (§6.1)", None,
-     _more_robots_higher_ctr),
-)  # fmt: skip
-
-
-def check_claims(summary: pd.DataFrame) -> list[ClaimResult]:
-    """Verdicts of every claim on every system, plus the cross-system learning space claim."""
-    by_system = {s: Cells(rows) for s, rows in summary.groupby("system", sort=False)}
-    results = []
-    for claim, statement, needed, check in CLAIMS:
-        for system, cells in by_system.items():
-            missing = cells.missing(needed or ())
-            verdict = (NOT_EVALUABLE, "", missing) if missing else check(cells)
-            results.append(ClaimResult(claim, statement, system, *verdict))
-    return [*results, _system2_larger(by_system)]
-
-
-def _system2_larger(by_system: Mapping[str, Cells]) -> ClaimResult:
-    statement = "System-II's learning space is larger than System-I's, for every method (§6.3)"
-    one, two = by_system.get("system1"), by_system.get("system2")
+def _larger_on(claim: Claim, by_system: Mapping[str, Cells], group: Sequence[str]) -> Verdict:
+    """Across systems: every learner of the group has a larger value on the second system."""
+    (small, large), ((_, path),) = claim.systems, claim.values.items()
+    one, two = by_system.get(small), by_system.get(large)
     parts, ok = [], True
-    for name in TABULAR if one and two else ():
-        small, large = one.analytic(name), two.analytic(name)
-        if small is None or large is None:
+    for name in group if one and two else ():
+        x, y = one.value(name, path), two.value(name, path)
+        if x is None or y is None:
             continue
-        ok = ok and large > small
-        parts.append(
-            f"{one.label(name)}: {system_label('system1')} {big_int(small)}, "
-            f"{system_label('system2')} {big_int(large)}"
-        )
+        ok = ok and _mean(y) > _mean(x)
+        sizes = f"{system_label(small)} {_text(x)}, {system_label(large)} {_text(y)}"
+        parts.append(f"{one.label(name)}: {sizes}")
     if not parts:
-        evidence = "needs a tabular learner on both system1 and system2"
-        return ClaimResult("space_system2_larger", statement, "all", NOT_EVALUABLE, "", evidence)
-    return ClaimResult("space_system2_larger", statement, "all", _verdict(ok), "", "; ".join(parts))
+        return NOT_EVALUABLE, "", f"needs a {claim.group} learner on both {small} and {large}"
+    return _verdict(ok), "", "; ".join(parts)
+
+
+# each check: (claim, cells of one system, the learners of its group) -> verdict, and the keys
+# of the claim it reads; larger_on is checked once across systems (cells by system)
+CHECKS = {
+    "above": (_above, ("group", "values")),
+    "best": (_best, ("learner", "group", "values")),
+    "best_each": (_best_each, ("learner", "group", "values")),
+    "gap": (_gap, ("learners", "values", "within")),
+    "order": (_order, ("values", "order")),
+    "capable_robots": (_capable_robots, ("group",)),
+    "larger_on": (_larger_on, ("group", "systems", "values")),
+}
+
+
+@dataclass(frozen=True)
+class Claim:
+    """One claim (an item of ``report.claims``): what it says, and what its check reads."""
+
+    id: str  # its name in claims.csv
+    statement: str  # as the report prints it
+    check: Annotated[str, Choices(*CHECKS)]  # how it is checked
+    group: str = ""  # the learners compared: a group of report.groups
+    learner: str = ""  # the learner the claim is about (best, best_each)
+    learners: tuple[str, ...] = ()  # gap: the first learner's value minus the second's
+    values: dict[str, str] = field(default_factory=dict)  # name in the evidence -> value
+    order: tuple[str, ...] = ()  # order: a chain per value (``a > b > c, d``)
+    lowest: bool = False  # best: the lowest ranks first, not the highest
+    count: str = ""  # best: also count the items where the learner ranks first (robots)
+    within: tuple[float, float] = (0.0, 0.0)  # gap: (low, high] in percentage points
+    systems: tuple[str, str] = ("", "")  # larger_on: the system with the smaller value first
+
+
+def check_claim(raw: Any, where: str) -> Claim:
+    """An item of ``report.claims`` as a :class:`Claim`, the keys its check reads present.
+
+    Raises:
+        ConfigError: naming the key (``<file>: report.claims[2].order``).
+    """
+    values = check_fields(Claim, raw, where, require=True)
+    named = values.get("values", {})
+    if not isinstance(named, Mapping) or not all(isinstance(v, str) for v in named.values()):
+        raise ConfigError(f"{where}.values: must map names to metric/item/priority, got {named!r}")
+    claim = Claim(**values | {"values": {str(k): v for k, v in named.items()}})
+    missing = [k for k in CHECKS[claim.check][1] if not getattr(claim, k)]
+    if missing:
+        raise ConfigError(f"{where}: check {claim.check} needs {', '.join(missing)}")
+    if claim.check == "order" and (
+        len(claim.order) != len(claim.values) or any(len(_chain(c)[0]) < 2 for c in claim.order)
+    ):
+        raise ConfigError(f"{where}.order: one chain (a > b) per value, got {list(claim.order)}")
+    return claim
+
+
+def _needed(claim: Claim, study: Study, group: Sequence[str]) -> list[str]:
+    """The learners a claim cannot be checked without, in the study's order."""
+    if claim.check in ("best", "best_each"):
+        return list(group)
+    named = [n for chain in claim.order for s in _chain(chain)[0] for n in s]
+    return sorted(dict.fromkeys([*named, *claim.learners]), key=study.rank)
+
+
+def check_claims(summary: pd.DataFrame, study: Study) -> list[ClaimResult]:
+    """Verdicts of every claim of the study on every system, then those across systems."""
+    by_system = {s: Cells(rows) for s, rows in summary.groupby("system", sort=False)}
+    results, across = [], []
+    for claim in study.claims:
+        group = study.groups.get(claim.group, ())
+        if claim.check == "larger_on":
+            verdict = _larger_on(claim, by_system, group)
+            across.append(ClaimResult(claim.id, claim.statement, "all", *verdict))
+            continue
+        needed, check = _needed(claim, study, group), CHECKS[claim.check][0]
+        for system, cells in by_system.items():
+            missing = cells.missing(needed)
+            verdict = (NOT_EVALUABLE, "", missing) if missing else check(claim, cells, group)
+            results.append(ClaimResult(claim.id, claim.statement, system, *verdict))
+    return [*results, *across]
 
 
 def claims_table(results: Sequence[ClaimResult]) -> pd.DataFrame:
@@ -281,10 +334,10 @@ def claims_table(results: Sequence[ClaimResult]) -> pd.DataFrame:
     return pd.DataFrame(rows, columns=CLAIMS_HEADER)
 
 
-def claims_along(summaries: Mapping[Any, pd.DataFrame]) -> pd.DataFrame:
+def claims_along(summaries: Mapping[Any, pd.DataFrame], study: Study) -> pd.DataFrame:
     """Per claim and system, the values of a swept setting where it holds, fails, cannot tell."""
     table = pd.concat(
-        [claims_table(check_claims(summaries[v])).assign(value=v) for v in sorted(summaries)]
+        [claims_table(check_claims(summaries[v], study)).assign(value=v) for v in sorted(summaries)]
     )
     columns = {"holds_at": HOLDS, "fails_at": FAILS, "not_evaluable_at": NOT_EVALUABLE}
     return (

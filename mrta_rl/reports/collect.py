@@ -51,6 +51,7 @@ FAILED = "failed or unfinished: no metrics.json (see train.log, sweep output)"
 BASIC_SWEEPER = "hydra._internal.core_plugins.basic_sweeper.BasicSweeper"
 # settings that do not change what a run computes: never part of a configuration's name
 NOT_CONFIGURATION = ("seed", "resume", "train.progress_bar", "train.checkpoint_every")
+POLICY_KEY = "report"  # a run config's block of what a report makes of it (reports/study.py)
 
 
 class ReportInputError(UserError):
@@ -180,7 +181,9 @@ def _flatten(config: Any, prefix: str = "") -> dict[str, Any]:
 
 def configuration_variants(records: Sequence[RunRecord]) -> list[str]:
     """What sets each run's configuration apart from the other runs of its learner and system."""
-    flat = [_flatten(named_init(named_streams(r.config))) for r in records]
+    # the report block is what a study makes of its runs, not how a run computes
+    configs = [{k: v for k, v in r.config.items() if k != POLICY_KEY} for r in records]
+    flat = [_flatten(named_init(named_streams(c))) for c in configs]
     variants = [""] * len(records)
     groups: dict[tuple[str, str], list[int]] = {}
     for i, record in enumerate(records):

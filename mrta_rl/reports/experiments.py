@@ -12,7 +12,7 @@ import dataclasses
 import itertools
 import math
 from collections import defaultdict
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -42,22 +42,19 @@ from mrta_rl.reports.stats import (
     performance_profile,
     probability_of_improvement,
 )
-from mrta_rl.reports.tables import image, markdown_table, paragraphs, signed, write_csv
+from mrta_rl.reports.study import Axis, Prose, Study, paragraphs
+from mrta_rl.reports.tables import markdown_table, signed, write_csv
 from mrta_rl.run_layout import CONFIG_FILE, EVAL_METRICS_FILE, read_json
 
-# swept setting (dotted config key) -> (axis label, file stem, log-scale x axis)
-DIMENSIONS: dict[str, tuple[str, str, bool]] = {
-    "system.n_robots": ("team size (robots)", "team_size", True),
-    "env.switch_ticks": ("task-switch setup ticks s", "switch_ticks", False),
-}
 BOUND_KEY = "partition.max_group_size"
 TEAM_SEED_KEY = "system.seed"
 # learning space columns of the study drawn as lines, with the suffix of their series
 SPACE_LINES = {"space_analytic": "", "space_visited": " (visited)", "parameters": " (parameters)"}
 PROFILE_POINTS = 101  # thresholds of a performance profile
-STUDY_COLUMNS = ["series", "learner", "system", *DIMENSIONS, "team_seed", "seed"]
-STUDY_COLUMNS += ["return_vs_greedy", "team_return", "space_analytic", "space_visited"]
-STUDY_COLUMNS += ["parameters", "wall_s", "peak_rss_mb", "refused"]
+# study.csv: the columns before the swept settings, then those after them
+STUDY_KEYS = ["series", "learner", "system"]
+STUDY_VALUES = ["team_seed", "seed", "return_vs_greedy", "team_return", "space_analytic"]
+STUDY_VALUES += ["space_visited", "parameters", "wall_s", "peak_rss_mb", "refused"]
 # a run's evaluation and greedy's on the same streams: what a re-evaluation replaces
 EVALUATION_BLOCKS = ("eval", "baseline_greedy")
 FIELD_STATS_HEADER = ["statistic", "x", "y", "value", "ci_low", "ci_high", "n_runs"]
@@ -73,8 +70,8 @@ def _series(label: str, variant: str) -> str:
     return " ".join([label, *settings])
 
 
-def _point(cell: tuple, config: dict[str, Any], metrics: dict[str, Any], refused: str) -> dict:
-    """One study row; ``cell`` is ``(series, learner, system, seed)``."""
+def _point(cell: tuple, config: dict, metrics: dict, refused: str, along: Iterable[str]) -> dict:
+    """One study row: ``cell`` is ``(series, learner, system, seed)``, ``along`` the swept keys."""
     label, learner, system, seed = cell
     ret, greedy = (
         ((metrics.get(k) or {}).get("team_return") or {}).get("mean") for k in EVALUATION_BLOCKS
@@ -85,7 +82,7 @@ def _point(cell: tuple, config: dict[str, Any], metrics: dict[str, Any], refused
     wall = resources.get("wall_s", (metrics.get("train") or {}).get("wall_s"))
     space = {k: int(v) for k, v in (metrics.get("learning_space") or {}).items()}
     bound = config_value(config, BOUND_KEY)
-    settings = {k: config_value(config, k) for k in DIMENSIONS}
+    settings = {k: config_value(config, k) for k in along}
     random_team = "n_robots" in (config.get("system") or {})
     team_seed = config_value(config, TEAM_SEED_KEY) if random_team else None
     return {
@@ -107,12 +104,15 @@ def _point(cell: tuple, config: dict[str, Any], metrics: dict[str, Any], refused
     }
 
 
-def study_points(runs: Sequence[RunRecord], inputs: Sequence[Path]) -> pd.DataFrame:
-    """Every finished run and every refused run below the inputs, one row each."""
-    points = [
-        _point((_series(r.label, r.variant), r.name, r.system, r.seed), r.config, r.metrics, "")
-        for r in runs
-    ]
+def study_points(runs: Sequence[RunRecord], inputs: Sequence[Path], study: Study) -> pd.DataFrame:
+    """Every finished run and every refused run below the inputs, one row each.
+
+    Each row has the study's swept settings (``study.along``), and the ``rank`` of its learner.
+    """
+    points = []
+    for r in runs:
+        cell = (_series(r.label, r.variant), r.name, r.system, r.seed)
+        points.append(_point(cell, r.config, r.metrics, "", study.along))
     found = {p.parent.resolve() for path in inputs for p in Path(path).rglob(REFUSED_FILE)}
     found |= {Path(p).resolve() for p in inputs if (Path(p) / REFUSED_FILE).is_file()}
     for run_dir in sorted(found):
@@ -123,23 +123,23 @@ def study_points(runs: Sequence[RunRecord], inputs: Sequence[Path]) -> pd.DataFr
         config = read_yaml_config(path) or {}
         learner, system = str(record.get("learner", "?")), str(record.get("system", "?"))
         cell = (learner, learner, system, int(record.get("seed", config.get("seed", 0))))
-        points.append(_point(cell, config, {}, refusal_reason(run_dir) or ""))
+        points.append(_point(cell, config, {}, refusal_reason(run_dir) or "", study.along))
     # objects, not floats: the CSV keeps ints as ints and an absent setting empty
-    return pd.DataFrame(points, columns=[*STUDY_COLUMNS, "task"], dtype=object)
+    columns = [*STUDY_KEYS, *study.along, *STUDY_VALUES, "task"]
+    points = pd.DataFrame(points, columns=columns, dtype=object)
+    learners = order_learners(points["learner"], study.learners)
+    return points.assign(rank=[learners.index(n) for n in points["learner"]])
 
 
-def swept_dimensions(points: pd.DataFrame) -> list[str]:
-    """The :data:`DIMENSIONS` that take at least two values among the points."""
-    return [k for k in DIMENSIONS if points[k].dropna().nunique() >= 2]
+def swept_dimensions(points: pd.DataFrame, study: Study) -> list[str]:
+    """The study's swept settings that take at least two values among the points."""
+    return [k for k in study.along if points[k].dropna().nunique() >= 2]
 
 
 def order_series(points: pd.DataFrame) -> list[str]:
-    """Series in the paper's learner order, bounds after the unbounded learner."""
-    learners = order_learners(points["learner"])
-    rank = {}
-    for series, learner in zip(points["series"], points["learner"], strict=True):
-        rank[series] = min(rank.get(series, len(learners)), learners.index(learner))
-    return sorted(rank, key=lambda s: (rank[s], s))
+    """Series in the study's learner order, bounds after the unbounded learner."""
+    rank = points.groupby("series")["rank"].min()
+    return sorted(rank.index, key=lambda s: (rank[s], s))
 
 
 def _line(points: pd.DataFrame, dim: str, column: str) -> pd.DataFrame | None:
@@ -153,7 +153,7 @@ def _line(points: pd.DataFrame, dim: str, column: str) -> pd.DataFrame | None:
     return pd.DataFrame(rows, columns=["x", "mean", "low", "high"]) if rows else None
 
 
-def dimension_table(points: pd.DataFrame, dim: str, system: str) -> str:
+def dimension_table(points: pd.DataFrame, dim: str, axis: Axis, system: str) -> str:
     """Markdown: series x values of ``dim``, cells ``score mean ± CI`` or ``refused: reason``."""
     mine = points[points["system"] == system]
     xs = sorted(mine[dim].dropna().unique())
@@ -169,12 +169,14 @@ def dimension_table(points: pd.DataFrame, dim: str, system: str) -> str:
                 text += f" ({len(refused)} {refused[0]})"
             row.append(text)
         rows.append(row)
-    return markdown_table([f"learner \\ {DIMENSIONS[dim][0]}", *map(str, xs)], rows)
+    return markdown_table([f"learner \\ {axis.label}", *map(str, xs)], rows)
 
 
-def dimension_figures(points: pd.DataFrame, dim: str, out: Path, colors: dict) -> dict[str, Path]:
+def dimension_figures(
+    points: pd.DataFrame, dim: str, axis: Axis, out: Path, colors: dict
+) -> dict[str, Path]:
     """The figures of one swept dimension (see module docstring), by file stem."""
-    label, stem, log_x = DIMENSIONS[dim]
+    label, stem, log_x = axis.label, axis.stem, axis.log_x
     finished = points[points["refused"] == ""].copy()
     series = order_series(finished)
 
@@ -194,7 +196,7 @@ def dimension_figures(points: pd.DataFrame, dim: str, out: Path, colors: dict) -
         for system in dict.fromkeys(finished["system"])
     ]
     written = {f"{stem}_return": figures.line_figure(returns, out / f"{stem}_return.png", colors)}
-    if dim != "system.n_robots":
+    if not axis.costs:
         return written
     space = {}
     for column, suffix in SPACE_LINES.items():
@@ -219,7 +221,7 @@ def dimension_figures(points: pd.DataFrame, dim: str, out: Path, colors: dict) -
     return written
 
 
-def dimension_claims(runs: Sequence[RunRecord], dim: str) -> str:
+def dimension_claims(runs: Sequence[RunRecord], dim: str, study: Study) -> str:
     """Markdown: per claim and system, the values of ``dim`` where it holds (paper runs only)."""
     by_value: dict[Any, list[RunRecord]] = {}
     for run in runs:
@@ -227,7 +229,8 @@ def dimension_claims(runs: Sequence[RunRecord], dim: str) -> str:
         if value is not None and config_value(run.config, BOUND_KEY) is None:
             plain = dataclasses.replace(run, learner=run.name, variant="")
             by_value.setdefault(value, []).append(plain)
-    along = claims_along({v: summarize(long_table(by_value[v])) for v in by_value})
+    summaries = {v: summarize(long_table(by_value[v]), study.learners) for v in by_value}
+    along = claims_along(summaries, study)
     where = ("holds_at", "fails_at", "not_evaluable_at")
     rows = [
         [
@@ -237,7 +240,7 @@ def dimension_claims(runs: Sequence[RunRecord], dim: str) -> str:
         ]
         for r in along.itertuples()
     ]
-    header = ["claim", "system", f"holds at {DIMENSIONS[dim][0]}", "does not hold at"]
+    header = ["claim", "system", f"holds at {study.along[dim].label}", "does not hold at"]
     return markdown_table([*header, "not evaluable at"], rows)
 
 
@@ -260,7 +263,7 @@ def field_statistics(points: pd.DataFrame) -> pd.DataFrame:
     )
 
 
-def field_statistics_markdown(stats: pd.DataFrame, points: pd.DataFrame) -> str:
+def field_statistics_markdown(stats: pd.DataFrame, points: pd.DataFrame, prose: Prose) -> str:
     """The IQM table and the probability-of-improvement matrix."""
     iqm = stats[stats["statistic"] == "iqm"]
     finished = points[points["refused"] == ""]
@@ -274,12 +277,8 @@ def field_statistics_markdown(stats: pd.DataFrame, points: pd.DataFrame) -> str:
     if len(names) >= 2:
         pairs = stats[stats["statistic"] != "iqm"].set_index(["x", "y"])["estimate"]
         matrix = [[x, *("–" if x == y else pairs[x, y].format(2) for y in names)] for x in names]
-        md += paragraphs(
-            "Probability of improvement P(row > column) [95% CI]: the chance that a run of the "
-            "row learner scores higher than a run of the column learner on the same task "
-            "(ties count one half), averaged over the tasks both ran.",
-            markdown_table(["P(row > column)", *names], matrix),
-        )
+        table = markdown_table(["P(row > column)", *names], matrix)
+        md += prose.section("improvement", table=table)
     return "\n".join(md)
 
 
@@ -307,10 +306,10 @@ def profile_figure(points: pd.DataFrame, path: Path, colors: dict) -> Path | Non
 
 
 def study_sections(
-    runs: Sequence[RunRecord], inputs: Sequence[Path], out: Path
+    runs: Sequence[RunRecord], inputs: Sequence[Path], out: Path, study: Study, prose: Prose
 ) -> tuple[str, dict[str, Path]]:
     """The field-statistics section and one section per swept dimension, with files."""
-    points = study_points(runs, inputs)
+    points = study_points(runs, inputs, study)
     colors = figures.learner_colors(order_series(points))
     colors |= {f"{n} ({k})": c for n, c in list(colors.items()) for k in ("visited", "parameters")}
     stats = field_statistics(points)
@@ -318,58 +317,39 @@ def study_sections(
     profile = profile_figure(points, out / "performance_profile.png", colors)
     if profile is not None:
         files["performance_profile"] = profile
-    md = paragraphs(
-        "## Statistics as the field reports them (IQM, probability of improvement)",
-        "Score of a run = (R - G) / |G|, its evaluation team return R relative to greedy's G on "
-        "the same task streams (0 = greedy, 0.1 = 10 % better). "
-        "IQM = interquartile mean over the runs of all tasks (a task = a system under one "
-        "setting and team seed); 95 % stratified bootstrap intervals (runs resampled within each "
-        f"task, {BOOTSTRAP_REPS} resamples, percentile method; Agarwal et al. 2021, as rliable). "
-        "Exact values: `field_stats.csv`.",
-    )
-    md += [field_statistics_markdown(stats, points), image(profile, "Performance profiles"), ""]
-    dims = swept_dimensions(points)
+    md = prose.section("field", reps=BOOTSTRAP_REPS)
+    md += [field_statistics_markdown(stats, points, prose)]
+    md += [prose.image(profile, "Performance profiles"), ""]
+    dims = swept_dimensions(points, study)
     if dims:
-        files["study"] = write_csv(out / "study.csv", points[STUDY_COLUMNS])
+        columns = [*STUDY_KEYS, *study.along, *STUDY_VALUES]
+        files["study"] = write_csv(out / "study.csv", points[columns])
     for dim in dims:
-        label, stem, _ = DIMENSIONS[dim]
-        written = dimension_figures(points, dim, out, colors)
+        axis = study.along[dim]
+        written = dimension_figures(points, dim, axis, out, colors)
         files.update(written)
-        md += paragraphs(
-            f"## Against the {label} (`{dim}`)",
-            "Team return relative to greedy (mean ± 95 % t interval over team seeds and run "
-            "seeds); `refused: ...` = refused up front, with the reason. Every run: `study.csv`.",
-        )
+        md += prose.section("along", label=axis.label, key=dim)
         for system in dict.fromkeys(points["system"]):
-            md += paragraphs(f"{system_label(system)}:", dimension_table(points, dim, system))
-        md += paragraphs(image(written.get(f"{stem}_return"), f"Team return against the {label}"))
-        if f"{stem}_space" in written:
-            md += paragraphs(
-                "Learning space (log scale; solid: analytic dimension, dashed: entries visited, "
-                "dotted: network parameters), wall time and peak memory (RSS) per run:",
-                image(written[f"{stem}_space"], "Learning space against the team size"),
-                image(written[f"{stem}_cost"], "Wall time and memory against the team size"),
+            md += paragraphs(f"{system_label(system)}:", dimension_table(points, dim, axis, system))
+        alt = f"Team return against the {axis.label}"
+        md += paragraphs(prose.image(written.get(f"{axis.stem}_return"), alt))
+        if axis.costs:
+            space = prose.image(
+                written[f"{axis.stem}_space"], f"Learning space against the {axis.label}"
             )
-        md += paragraphs(
-            f"Claims of the paper at each value of `{dim}` (runs without a partition bound):",
-            dimension_claims(runs, dim),
-        )
+            cost = prose.image(
+                written[f"{axis.stem}_cost"], f"Wall time and memory against the {axis.label}"
+            )
+            md += prose.section("along_costs", space=space, cost=cost)
+        md += prose.section("along_claims", key=dim, table=dimension_claims(runs, dim, study))
     return "\n".join(md), files
 
 
 # ---------------------------------------------------------------- learning against the rules
 
-TITLE = "Learning against the rules"
-START_TITLE = "Does training beat its own start?"
-RULES = ("team_reserve", "rollout")  # the yardstick rules (fixed learners)
-# the learner every new learner must beat: its trained runs are a yardstick column too
-BEST_LEARNER = "reserve_es"
 GREEDY = "greedy"
-BEST_RESERVE = "team_reserve (best)"
-RESERVE_KEYS = ("reserve", "hold_level", "hold_scope", "grouping", "order")
 CSV_HEADER = ["system", "policy", "seeds", "mean", "ci95_seeds", "versus", "diff", "diff_ci95"]
 CSV_HEADER += ["decision_ms_per_tick"]  # a planner's decision time (eval.decision_time); else empty
-PLANNERS = ("rollout", "subg_rollout")  # rules whose learner.base may be a trained run's dir
 START_HEADER = ["system", "policy", "episodes", "untrained", "seeds", "trained", "trained_ci95"]
 START_HEADER += ["paired_diff", "paired_ci95", "seeds_diff", "seeds_ci95", "met"]
 
@@ -386,6 +366,7 @@ class Policy:
     note: str = ""
     features: str = "paper"
     decision_ms: float | None = None  # mean decision time per tick over the runs that report it
+    best: bool = False  # the trained runs of the study's best learner: a yardstick
 
     @property
     def per_episode(self) -> np.ndarray | None:
@@ -464,21 +445,22 @@ def _base_label(base: str) -> str:
         return Path(base).name
 
 
-def _variant(run: RunRecord, kind: str, trained_variant: str) -> str:
+def _variant(run: RunRecord, kind: str, trained_variant: str, study: Study) -> str:
     """What makes a policy of a run: a rule's setting, or the encoding and other settings.
 
-    A planner whose base is a trained run (``learner.base=<run dir>``, a path) is another
-    policy than with a rule base: ``base=<the base run's learner label>``, so the planners on
-    the runs of several seeds of one learner form one policy.
+    A rule of ``study.best_setting`` is a policy per setting. A planner whose base is a trained
+    run (``learner.base=<run dir>``, a path) is another policy than with a rule base:
+    ``base=<the base run's learner label>``, so the planners on the runs of several seeds of one
+    learner form one policy.
     """
     if kind == "rule":
         cfg = run.config.get("learner") or {}
         base = str(cfg.get("base", ""))
-        if run.name in PLANNERS and "/" in base:
+        if "/" in base:
             moves = cfg.get("neighbours") or []  # candidates around the base's own action
             return f"base={_base_label(base)}" + (f", neighbours={','.join(moves)}" * bool(moves))
-        keys = RESERVE_KEYS if run.name == "team_reserve" else ()
-        return ", ".join(f"{k}={cfg[k]}" for k in keys if k in cfg)
+        keys = [k for k in cfg if not k.startswith("_")] if run.name in study.best_setting else []
+        return ", ".join(f"{k}={cfg[k]}" for k in keys)
     if kind == "untrained":
         return _features(run)
     # eval.* settings do not make a policy: each run is scored on its (re-)evaluation
@@ -502,12 +484,13 @@ def team_of(run: RunRecord) -> str:
     return f"{run.system} ({m:,} robots, team seed {seed})"
 
 
-def collect_policies(runs: Sequence[RunRecord]) -> dict[str, list[Policy]]:
-    """Per team: greedy, the best team_reserve, rollout, the learners (trained and untrained).
+def collect_policies(runs: Sequence[RunRecord], study: Study) -> dict[str, list[Policy]]:
+    """Per team: greedy, the best setting of a rule, the learners (trained and untrained), rules.
 
-    A policy holds one run per seed, the first given (the tables keep it, duplicates follow).
+    No team without a run of a yardstick rule (``study.rules``) or an untrained run. A policy
+    holds one run per seed, the first given (the tables keep it, duplicates follow).
     """
-    if not any(r.name in RULES or _kind(r) == "untrained" for r in runs):
+    if not any(r.name in study.rules or _kind(r) == "untrained" for r in runs):
         return {}
     runs = [dataclasses.replace(with_reevaluation(r), system=team_of(r)) for r in runs]
     # trained configurations are told apart among the trained runs only: the settings in which
@@ -523,7 +506,7 @@ def collect_policies(runs: Sequence[RunRecord]) -> dict[str, list[Policy]]:
             greedy[run.system] = run
         if run.name != GREEDY:
             kind = _kind(run)
-            variant = _variant(run, kind, variants.get(id(run), ""))
+            variant = _variant(run, kind, variants.get(id(run), ""), study)
             members = groups[(run.system, run.name, kind, variant)]
             if run.seed not in {m.seed for m in members}:  # a seed counts once, as in the tables
                 members.append(run)
@@ -533,14 +516,19 @@ def collect_policies(runs: Sequence[RunRecord]) -> dict[str, list[Policy]]:
         block = base.metrics["baseline_greedy"]
         means = [block["team_return"]["mean"]]
         policies = [Policy(GREEDY, GREEDY, "greedy", [_per_episode(block)], means)]
-        reserve = [
-            (v, m) for (s, n, _, v), m in groups.items() if (s, n) == (system, "team_reserve")
-        ]
-        if reserve:
-            variant, members = max(reserve, key=lambda vm: np.mean([_mean(r) for r in vm[1]]))
-            policies.append(_policy(BEST_RESERVE, "rule", members, variant))
-        for (s, learner, kind, variant), members in sorted(groups.items(), key=_order):
-            if s != system or learner == "team_reserve":
+        for rule in study.best_setting:
+            settings = [(v, m) for (s, n, _, v), m in groups.items() if (s, n) == (system, rule)]
+            if settings:
+                variant, members = max(settings, key=lambda vm: np.mean([_mean(r) for r in vm[1]]))
+                policies.append(_policy(f"{rule} (best)", "rule", members, variant))
+
+        def order(item: tuple[tuple[str, str, str, str], list[RunRecord]]) -> tuple:
+            (system, learner, kind, variant), _ = item  # the yardstick rules among the learners
+            rank = {"rule": 0, "untrained": 1, "trained": 2}[kind]
+            return (system, rank == 0 and learner not in study.rules, learner, variant, rank)
+
+        for (s, learner, kind, variant), members in sorted(groups.items(), key=order):
+            if s != system or learner in study.best_setting:
                 continue
             name = members[0].label
             if kind == "rule" and variant.startswith("base="):
@@ -549,15 +537,11 @@ def collect_policies(runs: Sequence[RunRecord]) -> dict[str, list[Policy]]:
                 name += " untrained" if kind == "untrained" else ""
                 name += f" [{variant}]" if variant != "paper" else ""
             features = _features(members[0]) if kind != "rule" else "paper"
-            policies.append(_policy(name, kind, members, features=features))
+            policy = _policy(name, kind, members, features=features)
+            policy.best = kind == "trained" and learner == study.best_learner
+            policies.append(policy)
         out[system] = policies
     return out
-
-
-def _order(item: tuple[tuple[str, str, str, str], list[RunRecord]]) -> tuple:
-    (system, learner, kind, variant), _ = item
-    rank = {"rule": 0, "untrained": 1, "trained": 2}[kind]
-    return (system, rank == 0 and learner != "rollout", learner, variant, rank)
 
 
 def _mean(run: RunRecord) -> float:
@@ -577,9 +561,8 @@ def _policy(name: str, kind: str, runs: list, note: str = "", features="paper") 
 
 
 def _yardsticks(policies: list[Policy]) -> list[Policy]:
-    """Greedy, the rules, and the trained runs of :data:`BEST_LEARNER`."""
-    learned = [p for p in policies if p.kind == "trained" and p.learner == BEST_LEARNER]
-    return [p for p in policies if p.kind in ("greedy", "rule")] + learned
+    """Greedy, the rules, and the trained runs of the study's best learner."""
+    return [p for p in policies if p.kind in ("greedy", "rule")] + [p for p in policies if p.best]
 
 
 def _starting(policy: Policy, policies: list[Policy]) -> Policy | None:
@@ -673,19 +656,20 @@ def _fmt(diff: MeanCI) -> str:
 
 
 def section_markdown(
-    by_system: dict[str, list[Policy]], figure: Path | None, start_plot: Path | None = None
+    by_system: dict[str, list[Policy]],
+    figure: Path | None,
+    start_plot: Path | None,
+    study: Study,
+    prose: Prose,
 ) -> str:
     """The section's text: one table per system, its figure, the start table and its figure."""
-    md = paragraphs(
-        f"## {TITLE}",
-        "Each policy against its untrained starting policy (`train.episodes=0`), greedy, the "
-        "best `team_reserve` setting among these runs, the `rollout` planner and the trained "
-        f"`{BEST_LEARNER}` runs: mean paired "
-        "difference of the evaluation return over the shared evaluation episodes ± the "
-        "half-width of its 95 % t interval (**↑**: the interval is above zero, ↓: below). "
-        "`return` is the mean over training seeds ± its 95 % interval over seeds; `ms per "
-        "tick`: a planner's mean decision time per tick in evaluation (a rollout with "
-        "`[base=...]` plans on a trained run of that learner).",
+    title, start_title = prose.text("rules_title"), prose.text("start_title")
+    md = prose.section(
+        "yardsticks",
+        title=title,
+        best_setting=", ".join(f"`{r}`" for r in study.best_setting),
+        rules=", ".join(f"`{r}`" for r in study.rules if r not in study.best_setting),
+        best_learner=f"`{study.best_learner}`",
     )
     for system, policies in by_system.items():
         sticks = _yardsticks(policies)
@@ -701,8 +685,9 @@ def section_markdown(
             row += [diffs.get(id(s), "") for s in sticks]
             ms = "" if p.decision_ms is None else f"{p.decision_ms:.1f}"
             rows.append(row + [ms] * timed)
-        md += paragraphs(f"### {system_label(system)}", markdown_table(header, rows))
-    md += paragraphs(f"![{TITLE}]({figure.name})" if figure else "")
+        table = markdown_table(header, rows)
+        md += prose.section("yardsticks_system", system=system_label(system), table=table)
+    md += paragraphs(f"![{title}]({figure.name})" if figure else "")
     comparisons = start_comparisons(by_system)
     if comparisons:
         header = ["learner", "system", "untrained", "trained (seeds)"]
@@ -714,20 +699,17 @@ def section_markdown(
             + [signed(c.over_seeds), c.verdict]
             for system, c in comparisons
         ]
-        md += paragraphs(
-            f"### {START_TITLE}",
-            "Trained − untrained: paired over the evaluation episodes (their number in "
-            "parentheses), and over the training seeds (each seed's mean return minus the "
-            "untrained return); met: the paired interval is above zero.",
-            markdown_table(header, rows),
-        )
-    md += paragraphs(f"![{START_TITLE}]({start_plot.name})" if start_plot else "")
+        table = markdown_table(header, rows)
+        md += prose.section("yardsticks_start", title=start_title, table=table)
+    md += paragraphs(f"![{start_title}]({start_plot.name})" if start_plot else "")
     return "\n".join(md)
 
 
-def write_section(runs: Sequence[RunRecord], out_dir: Path) -> tuple[str, dict[str, Path]]:
+def write_section(
+    runs: Sequence[RunRecord], out_dir: Path, study: Study, prose: Prose
+) -> tuple[str, dict[str, Path]]:
     """The section's markdown (``""`` if nothing to compare) and its CSV and PNG files."""
-    by_system = collect_policies(runs)
+    by_system = collect_policies(runs, study)
     if not by_system:
         return "", {}
     files = {
@@ -737,9 +719,9 @@ def write_section(runs: Sequence[RunRecord], out_dir: Path) -> tuple[str, dict[s
             ("yardsticks_start", start_rows, START_HEADER),
         )
     }
-    panels = []
+    panels, best = [], {f"{rule} (best)" for rule in study.best_setting}
     for system, policies in by_system.items():
-        ref = next((p for p in policies if p.name == BEST_RESERVE), policies[0])
+        ref = next((p for p in policies if p.name in best), policies[0])
         others = [p for p in policies if p is not ref]
         diffs = [(p.name, paired_difference(p.per_episode, ref.per_episode)) for p in others]
         if diffs := [(n, d) for n, d in diffs if d.n]:
@@ -756,7 +738,7 @@ def write_section(runs: Sequence[RunRecord], out_dir: Path) -> tuple[str, dict[s
     ]
     start = out_dir / "yardsticks_start.png" if starts else None
     if start is not None:
-        title = f"{START_TITLE} (95 % t intervals)"
+        title = f"{prose.text('start_title')} (95 % t intervals)"
         xlabel = "trained − untrained, paired over the evaluation episodes\n(team return)"
         files["yardsticks_start_png"] = figures.difference_bars([(title, xlabel, starts)], start)
-    return section_markdown(by_system, figure, start), files
+    return section_markdown(by_system, figure, start, study, prose), files

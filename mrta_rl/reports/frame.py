@@ -18,11 +18,6 @@ from mrta_rl.reports.collect import RunRecord, natural_key
 from mrta_rl.reports.stats import MeanCI, mean_ci
 from mrta_rl.types import PRIORITIES
 
-# Row order of the paper's tables (its four methods first); other learners follow alphabetically.
-PAPER_ORDER = (
-    *("cql", "semi_cql", "dql", "subg_cql", "subg_dqn", "vdn", "qmix", "iql", "reserve_es"),
-    *("greedy", "random", "high_only", "subg_reserve", "subg_greedy"),
-)
 SYSTEM_LABELS: dict[str, str] = {"system1": "System-I", "system2": "System-II"}
 PRIORITY_LABELS: dict[str, str] = {"L": "low-priority", "H": "high-priority"}
 RUN_COLUMNS = ("learner", "label", "name", "kind", "system", "seed", "variant", "run_dir")
@@ -37,13 +32,12 @@ def system_label(name: str) -> str:
     return SYSTEM_LABELS.get(name, name)
 
 
-def order_learners(names: Iterable[str]) -> list[str]:
-    """:data:`PAPER_ORDER`, then the rest alphabetically; configurations by their numbers."""
+def order_learners(names: Iterable[str], order: Sequence[str] = ()) -> list[str]:
+    """The learners of ``order`` in it, then the rest alphabetically (configurations by number)."""
 
     def key(name: str) -> tuple[Any, ...]:
         base = name.partition(" ")[0]
-        rank = PAPER_ORDER.index(base) if base in PAPER_ORDER else len(PAPER_ORDER)
-        return (rank, base, natural_key(name))
+        return (order.index(base) if base in order else len(order), base, natural_key(name))
 
     return sorted(set(names), key=key)
 
@@ -136,11 +130,14 @@ def _derived(frame: pd.DataFrame) -> pd.DataFrame:
     return pd.concat(parts).assign(priority="", types="").reset_index()
 
 
-def summarize(frame: pd.DataFrame) -> pd.DataFrame:
-    """Mean and 95 % t interval over seeds of every metric of every ``(system, learner)`` cell."""
+def summarize(frame: pd.DataFrame, order: Sequence[str] = ()) -> pd.DataFrame:
+    """Mean and 95 % t interval over seeds of every metric of every ``(system, learner)`` cell.
+
+    Cells come by system, then by learner as :func:`order_learners` orders them.
+    """
     full = pd.concat([frame, _derived(frame)], ignore_index=True)
     systems = order_systems(full["system"])
-    learners = order_learners(full["learner"])
+    learners = order_learners(full["learner"], order)
     pairs = zip(full["system"], full["learner"], strict=True)
     full["rank"] = [(systems.index(s), learners.index(n)) for s, n in pairs]
     full = full.sort_values("rank", kind="stable")

@@ -20,15 +20,20 @@ from mrta_rl.reports.collect import (
     config_value,
     named_streams,
 )
-from mrta_rl.reports.frame import long_table, summarize, summarize_curve, system_label
+from mrta_rl.reports.frame import (
+    PRIORITY_LABELS,
+    long_table,
+    summarize,
+    summarize_curve,
+    system_label,
+)
+from mrta_rl.reports.study import Prose, study_of
 from mrta_rl.reports.tables import (
     ctr_markdown,
     group_return_markdown,
-    image,
     itr_markdown,
     learning_space_markdown,
     markdown_table,
-    paragraphs,
     team_return_markdown,
     training_time_markdown,
 )
@@ -79,7 +84,11 @@ def _setup_markdown(runs: Sequence[RunRecord], summary: pd.DataFrame) -> str:
 
 
 def build_report(inputs: Iterable[Path | str], out_dir: Path | str | None = None) -> ReportFiles:
-    """Collect the runs under ``inputs`` and write the report, CSVs and figures to ``out_dir``."""
+    """Collect the runs under ``inputs`` and write the report, CSVs and figures to ``out_dir``.
+
+    What the report makes of the runs (row order, claims, yardsticks, swept settings) is their
+    study (:func:`~mrta_rl.reports.study.study_of`), its prose ``conf/report/report.md``.
+    """
     inputs = [Path(p) for p in inputs]
     collection = collect_runs(inputs)
     if not collection.runs:
@@ -91,15 +100,16 @@ def build_report(inputs: Iterable[Path | str], out_dir: Path | str | None = None
         raise ReportInputError(
             f"no finished run (metrics.json) under {[str(p) for p in inputs]}{missing}"
         )
+    study, prose = study_of(collection.runs), Prose.shipped()
     # the yardstick runs are checked (re-evaluations, same task streams) before anything is written
-    experiments.collect_policies(collection.runs + collection.duplicates)
+    experiments.collect_policies(collection.runs + collection.duplicates, study)
     out = Path(out_dir) if out_dir is not None else default_out_dir(inputs)
     out.mkdir(parents=True, exist_ok=True)
     files = ReportFiles(out_dir=out, report=out / REPORT_FILE, collection=collection)
 
     frame = long_table(collection.runs)
-    summary = summarize(frame)
-    claims = check_claims(summary)
+    summary = summarize(frame, study.learners)
+    claims = check_claims(summary, study)
     csvs = tables.csv_tables(frame, summary)
     csvs["claims"] = claims_table(claims)
     csvs["missing"] = pd.DataFrame(
@@ -140,12 +150,12 @@ def build_report(inputs: Iterable[Path | str], out_dir: Path | str | None = None
 
     # "Learning against the rules": every run counts, the settings of a rule grid included
     every_run = [*collection.runs, *collection.duplicates]
-    rules_md, rules_files = experiments.write_section(every_run, out)
-    study_md, study_files = experiments.study_sections(collection.runs, inputs, out)
+    rules_md, rules_files = experiments.write_section(every_run, out, study, prose)
+    study_md, study_files = experiments.study_sections(collection.runs, inputs, out, study, prose)
     for stem, path in {**rules_files, **study_files}.items():
         (files.figures if path.suffix == ".png" else files.csvs)[stem] = path
     files.marl_eval = marl_eval.write_marl_eval(collection.runs, out)
-    markdown = _report_markdown(collection, frame, summary, claims, files, rules_md)
+    markdown = _report_markdown(collection, frame, summary, claims, files, prose, rules_md)
     files.report.write_text(markdown + "\n" + study_md + "\n")
     counts = len(collection.runs), len(collection.missing), len(collection.unreadable)
     logger.info("wrote %s (%d runs, %d missing, %d left out)", files.report, *counts)
@@ -163,38 +173,28 @@ def _report_markdown(
     summary: pd.DataFrame,
     claims: list,
     files: ReportFiles,
+    prose: Prose,
     rules_md: str = "",
 ) -> str:
     runs, missing, duplicates = collection.runs, collection.missing, collection.duplicates
-    unreadable = collection.unreadable
-    verdicts, fig = [c.verdict for c in claims], files.figures.get
+    unreadable, fig = collection.unreadable, files.figures.get
     systems = {s: rows for s, rows in summary.groupby("system", sort=False)}
     if collection.sweep_source:
-        expected = (
-            f" of {collection.expected_jobs} expected (expected grid from "
-            f"{collection.sweep_source}); **{len(missing)} missing**"
-        )
+        jobs, source = collection.expected_jobs, collection.sweep_source
+        expected = prose.text("expected", jobs=jobs, source=source, missing=len(missing))
     else:  # run dirs expect no other runs
-        expected = " (run dirs, not a sweep: no expected grid)"
-    md = paragraphs(
-        "# Experiment report",
-        "Inputs: " + ", ".join(f"`{p}`" for p in collection.inputs),
-        f"**{len(runs)} finished runs**{expected}"
-        + (f"; **{len(unreadable)} left out** (unreadable files)" if unreadable else "")
-        + (f"; {len(duplicates)} duplicate runs ignored" if duplicates else "")
-        + ". Every number is the mean over training seeds ± the half-width of its 95 % t "
-        "confidence interval (no interval with one seed); CTR and ITR are in percent, evaluated "
-        "with exploration off on the same evaluation task streams for every learner and seed. "
-        "Exact values: the CSV files next to this report (`runs.csv` holds every run).",
+        expected = prose.text("no_grid")
+    md = prose.section(
+        "head",
+        inputs=", ".join(f"`{p}`" for p in collection.inputs),
+        runs=len(runs),
+        expected=expected,
+        left_out=prose.text("left_out_count", count=len(unreadable)) if unreadable else "",
+        duplicates=prose.text("duplicates_count", count=len(duplicates)) if duplicates else "",
     )
     if unreadable:
-        md += paragraphs(
-            "## Runs left out",
-            "A file of each of these runs cannot be read; the run is in no table below.",
-            markdown_table(
-                ["run dir", "reason"], [[f"`{u.run_dir}`", u.reason] for u in unreadable]
-            ),
-        )
+        rows = [[f"`{u.run_dir}`", u.reason] for u in unreadable]
+        md += prose.section("left_out", table=markdown_table(["run dir", "reason"], rows))
     if duplicates:
         kept = {r.key: r.run_dir for r in runs}
         rows = [
@@ -202,12 +202,7 @@ def _report_markdown(
             for r in duplicates
         ]
         header = ["configuration", "system", "seed", "left out", "kept"]
-        md += paragraphs(
-            "## Duplicate runs left out",
-            "Each of these runs has the configuration and seed of a run the report keeps (a seed "
-            "counts once); only identical settings make a duplicate.",
-            markdown_table(header, rows),
-        )
+        md += prose.section("duplicates", table=markdown_table(header, rows))
     if missing:
         rows = [
             [m.learner, system_label(m.system), "?" if m.seed is None else m.seed, m.reason]
@@ -215,82 +210,50 @@ def _report_markdown(
             for m in missing
         ]
         header = ["learner", "system", "seed", "reason", "job dir", "overrides"]
-        md += paragraphs(
-            "## Missing jobs",
-            "These jobs of the expected grid left no `metrics.json`; their cells below average "
-            "fewer seeds (or are absent).",
-            markdown_table(header, rows),
-        )
-    md += paragraphs("## Setup", _setup_markdown(runs, summary))
-    md += paragraphs(
-        "## Team return against the greedy auction",
-        "Evaluation team return per episode; `greedy` is the plain auction on the full task "
-        "sets, evaluated on the same task streams (paired per seed for the difference).",
-        team_return_markdown(summary, tables.csv_tables(frame, summary)["team_return"]),
-        image(fig("team_return"), "Team return"),
-    )
+        md += prose.section("missing", table=markdown_table(header, rows))
+    md += prose.section("setup", table=_setup_markdown(runs, summary))
+    table = team_return_markdown(summary, tables.csv_tables(frame, summary)["team_return"])
+    figure = prose.image(fig("team_return"), "Team return")
+    md += prose.section("team_return", table=table, figure=figure)
     groups = {s: t for s, rows in systems.items() if (t := group_return_markdown(rows))}
     if groups:
-        md += paragraphs(
-            "### Team return by subG sub-group",
-            "Every reward is a task's and each task type belongs to one sub-group, so the team "
-            "return splits exactly into the parts its sub-groups' task types earn; the last row "
-            "is what the same types earn under the plain auction on the full team.",
-            *(block for s, t in groups.items() for block in (f"{system_label(s)}:", t)),
-        )
+        blocks = "\n\n".join(f"{system_label(s)}:\n\n{t}" for s, t in groups.items())
+        md += prose.section("group_return", tables=blocks)
     if rules_md:
         md += [rules_md, ""]
-    md += paragraphs(
-        "## Completed task ratio (paper Tables 5-6, Figures 1-4)",
-        "CTR (%) = assigned / (assigned + dropped) per task type and priority; `all` pools the "
-        "counts over types.",
-    )
+    md += prose.section("ctr")
     for system, rows in systems.items():
         label = system_label(system)
-        for p, word in (("L", "low"), ("H", "high")):
-            figure = image(fig(f"ctr_{system}_{p}"), f"{label} CTR {word}-priority")
-            md += paragraphs(f"### {label}: {word}-priority tasks", ctr_markdown(rows, p), figure)
-    md += paragraphs(
-        "## Idle time ratio (paper Tables 7-8, Figures 5-6)",
-        "ITR (%) = (horizon - busy ticks) / horizon per robot (paper eq. 9); lower is better.",
-    )
+        for p, word in PRIORITY_LABELS.items():
+            figure = prose.image(fig(f"ctr_{system}_{p}"), f"{label} CTR {word}")
+            table = ctr_markdown(rows, p)
+            md += prose.section(
+                "ctr_system", system=label, priority=word, table=table, figure=figure
+            )
+    md += prose.section("itr")
     for system, rows in systems.items():
         label = system_label(system)
-        md += paragraphs(
-            f"### {label}", itr_markdown(rows), image(fig(f"itr_{system}"), f"{label} ITR")
-        )
-    md += paragraphs(
-        "## Learning space (paper Table 9)",
-        "`analytic`: learning space dimension of the learner's encoding (paper eqs. 10-16, exact "
-        "integer in `learning_space.csv`); `visited`: table entries updated at least once "
-        "(mean ± CI over seeds); `parameters`: weights of a network learner.",
-        learning_space_markdown(frame, summary),
-    )
-    md += paragraphs(
-        "## Learning curves",
-        "Training team return per episode (with exploration) against training env ticks "
-        "(ticks x parallel copies); line = mean over seeds, band = 95 % CI. The dashed line is "
-        "the greedy auction's evaluation return.",
-        *(image(fig(f"curve_{s}"), f"{system_label(s)} learning curves") for s in systems),
-    )
+        figure = prose.image(fig(f"itr_{system}"), f"{label} ITR")
+        md += prose.section("itr_system", system=label, table=itr_markdown(rows), figure=figure)
+    md += prose.section("learning_space", table=learning_space_markdown(frame, summary))
+    curves = (prose.image(fig(f"curve_{s}"), f"{system_label(s)} learning curves") for s in systems)
+    md += prose.section("curves", figures="\n\n".join(curves))
+    verdicts = [c.verdict for c in claims]
     claim_rows = [
         [r.statement, system_label(r.system) if r.system != "all" else "both", f"**{r.verdict}**"]
         + [r.separation or "", r.evidence]
         for r in claims
     ]
-    md += paragraphs(
-        "## Claims of the paper (Section 6)",
-        f"{verdicts.count(HOLDS)} hold, {verdicts.count(FAILS)} do not hold, "
-        f"{verdicts.count(NOT_EVALUABLE)} not evaluable (a learner they compare is missing). "
-        "Verdicts compare means over seeds; `clear` = the compared 95 % intervals are "
-        "disjoint, `CIs overlap` = the ordering may be noise.",
-        markdown_table(["claim (paper)", "system", "verdict", "95% CIs", "numbers"], claim_rows),
+    header = ["claim (paper)", "system", "verdict", "95% CIs", "numbers"]
+    counts = {k: verdicts.count(v) for k, v in (("holds", HOLDS), ("fails", FAILS))}
+    md += prose.section(
+        "claims",
+        **counts,
+        unknown=verdicts.count(NOT_EVALUABLE),
+        table=markdown_table(header, claim_rows),
     )
     total_wall = sum((r.metrics.get("train") or {}).get("wall_s", 0.0) for r in runs)
-    md += paragraphs(
-        "## Training time",
-        training_time_markdown(summary),
-        f"Sum of the training wall times of all runs: {total_wall:.1f} s "
-        "(evaluation not included).",
+    md += prose.section(
+        "training_time", table=training_time_markdown(summary), seconds=f"{total_wall:.1f}"
     )
     return "\n".join(md)

@@ -41,16 +41,6 @@ def write_csv(path: Path, table: pd.DataFrame) -> Path:
     return path
 
 
-def paragraphs(*blocks: str) -> list[str]:
-    """Markdown lines: each non-empty block (a heading, text, a table) and a blank line."""
-    return [line for block in blocks if block for line in (block, "")]
-
-
-def image(path: Path | None, alt: str) -> str:
-    """A markdown image of a figure, or a note that there was nothing to draw."""
-    return f"![{alt}]({path.name})" if path else f"_No figure: {alt.lower()} (nothing to draw)._"
-
-
 def big_int(value: int) -> str:
     """Exact below a million (``426``, ``12,288``), else scientific (``1.234e+12``)."""
     return f"{value:,}" if abs(value) < 10**6 else f"{value:.3e}"

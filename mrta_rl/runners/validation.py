@@ -72,6 +72,7 @@ RUN_BLOCKS = (
     "learner",
     "partition",
     "logger",
+    "report",  # what scripts/report.py makes of the run (conf/experiment/*.yaml): data, unread here
 )
 MEMORY_FRACTION = 0.5  # default limits.memory_gb: this fraction of the machine's memory
 

@@ -17,6 +17,7 @@ from mrta_rl.reports import build_report, collect_runs, long_table, mean_ci, sum
 from mrta_rl.reports.claims import check_claims
 from mrta_rl.reports.collect import RunRecord, configuration_variants, expected_sweep_jobs
 from mrta_rl.reports.frame import stat, summarize_curve
+from mrta_rl.reports.study import study_of
 
 TYPES, ROBOTS = ("T1", "T2", "T3"), ("R1", "R2")
 ROBOT_TABLE = {"R1": ["T1", "T2", "T3"], "R2": ["T1"]}  # T1: 2 robots, T2/T3: 1
@@ -156,7 +157,7 @@ def test_runs_differing_in_hyperparameters_are_separate_configurations(tmp_path)
     # only the same configuration with the same seed is a duplicate
     assert [d.run_dir.name for d in collection.duplicates] == ["again"]
     frame = long_table(collection.runs)
-    summary = summarize(frame)
+    summary = summarize(frame, study_of([]).learners)
     assert list(dict.fromkeys(summary["learner"])) == ["greedy", *variants]  # paper order, values
     for (reserve, hold), value in returns.items():
         cell = summary[summary["learner"] == f"subg_reserve reserve={reserve} hold_level={hold}"]
@@ -205,7 +206,8 @@ def test_summaries_and_claims(tmp_path):
         for seed in (0, 1):
             shift = {"ctr_l": kwargs["ctr_l"] + seed, "ctr_h": kwargs["ctr_h"] + seed}
             write_run(tmp_path / f"{learner}{seed}", learner, seed, **{**kwargs, **shift})
-    summary = summarize(long_table(collect_runs([tmp_path]).runs))
+    study = study_of([])  # the paper's row order and claims (conf/experiment/paper.yaml)
+    summary = summarize(long_table(collect_runs([tmp_path]).runs), study.learners)
     cells = list(dict.fromkeys(zip(summary["system"], summary["learner"], strict=True)))
     assert cells == [("system1", n) for n in ("cql", "semi_cql", "dql", "subg_cql")]
     cql = summary[summary["learner"] == "cql"]
@@ -214,7 +216,7 @@ def test_summaries_and_claims(tmp_path):
     assert stat(cql, "ctr", "T2", "L").ci95 == pytest.approx(half)
     assert stat(cql, "itr", "mean").mean == pytest.approx(20.5)
     assert stat(cql, "gain").mean == 10.0
-    verdicts = {(r.claim, r.system): r.verdict for r in check_claims(summary)}
+    verdicts = {(r.claim, r.system): r.verdict for r in check_claims(summary, study)}
     for claim in (
         "h_above_l",
         "cql_best_ctr",
@@ -235,7 +237,7 @@ def test_summaries_and_claims(tmp_path):
     assert verdicts[("space_system2_larger", "all")] == "not evaluable"
 
     without_dql = summary[summary["learner"] != "dql"]  # comparisons over all four cannot be made
-    verdicts = {(r.claim, r.system): r.verdict for r in check_claims(without_dql)}
+    verdicts = {(r.claim, r.system): r.verdict for r in check_claims(without_dql, study)}
     assert verdicts[("cql_best_ctr", "system1")] == "not evaluable"
     assert verdicts[("subg_ctr_bit_lower", "system1")] == "holds"
 

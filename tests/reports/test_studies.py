@@ -17,6 +17,7 @@ from mrta_rl.reports import build_report
 from mrta_rl.reports.collect import collect_runs
 from mrta_rl.reports.experiments import study_points, swept_dimensions
 from mrta_rl.reports.stats import iqm_ci, performance_profile, probability_of_improvement
+from mrta_rl.reports.study import study_of
 from tests.reports.test_collect import write_run
 
 # --- statistics on small fixed arrays, against values computed independently -------------------
@@ -134,8 +135,9 @@ def test_scaling_report_from_fabricated_runs(tmp_path):
             study_run(runs / f"c{m}_{team}", "cql", seed, base, 95.0, space={"analytic": 4**m})
         else:
             refused_run(runs / f"c{m}_{team}", "cql", seed, base, "needs 3.1e+28 GB, limit 8 GB")
-    points = study_points(collect_runs([runs]).runs, [runs])
-    assert swept_dimensions(points) == ["system.n_robots"]
+    study = study_of([])  # the swept settings of conf/experiment/scaling.yaml, switch_cost.yaml
+    points = study_points(collect_runs([runs]).runs, [runs], study)
+    assert swept_dimensions(points, study) == ["system.n_robots"]
     assert len(points) == 18 and (points["refused"] != "").sum() == 2
     files = build_report([runs], tmp_path / "out")
     text = files.report.read_text()
@@ -169,7 +171,7 @@ def test_a_learner_with_two_settings_draws_two_lines(tmp_path):
     for m, network in itertools.product((10, 20), ("mlp", "set")):
         settings = {"system.n_robots": m, "learner.network": network}
         study_run(runs / f"q{m}{network}", "qmix", 0, settings, 95.0 + (network == "set"))
-    points = study_points(collect_runs([runs]).runs, [runs])
+    points = study_points(collect_runs([runs]).runs, [runs], study_of([]))
     lines = points.groupby("series")["system.n_robots"].apply(sorted).to_dict()
     assert lines == {"qmix network=mlp": [10, 20], "qmix network=set": [10, 20]}
 

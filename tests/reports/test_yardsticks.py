@@ -12,7 +12,6 @@ import pytest
 
 from mrta_rl.reports.collect import RunRecord
 from mrta_rl.reports.experiments import (
-    BEST_RESERVE,
     collect_policies,
     section_rows,
     start_comparisons,
@@ -20,6 +19,10 @@ from mrta_rl.reports.experiments import (
 )
 from mrta_rl.reports.frame import long_table, runs_wide
 from mrta_rl.reports.stats import t_quantile
+from mrta_rl.reports.study import Prose, study_of
+
+STUDY, PROSE = study_of([]), Prose.shipped()  # the shipped experiments' report blocks
+BEST_RESERVE = "team_reserve (best)"  # the best setting of conf/experiment/yardsticks.yaml's rule
 
 GREEDY = [10.0, 20.0, 30.0]  # per evaluation episode, shared by every run
 LABELS = {
@@ -27,6 +30,7 @@ LABELS = {
     "cql": "CQL",
     "qmix": "QMIX",
     "reserve_es": "reserve-ES",
+    "net_es": "net-ES",
 }  # metrics.json's learner block
 
 
@@ -65,7 +69,7 @@ RUNS = [
 
 
 def test_policies_and_paired_differences_by_hand(tmp_path):
-    policies = collect_policies(RUNS)["system2"]
+    policies = collect_policies(RUNS, STUDY)["system2"]
     names = [p.name for p in policies]
     assert names[:3] == ["greedy", BEST_RESERVE, "rollout"]
     assert set(names[3:]) == {"subG-CQL", "subG-CQL untrained", "subG-CQL [time_to_free]"}
@@ -73,7 +77,7 @@ def test_policies_and_paired_differences_by_hand(tmp_path):
     assert best.note == "reserve=0, hold_level=1"  # the better of the two settings (22 vs 20)
     trained = next(p for p in policies if p.name == "subG-CQL")
     np.testing.assert_array_equal(trained.per_episode, [12.0, 22.0, 33.0])  # mean of 2 seeds
-    md, files = write_section(RUNS, tmp_path)
+    md, files = write_section(RUNS, tmp_path, STUDY, PROSE)
     assert "## Learning against the rules" in md and files["yardsticks_png"].is_file()
     rows = list(csv.DictReader(files["yardsticks"].open()))
     row = next(r for r in rows if r["policy"] == "subG-CQL" and r["versus"] == BEST_RESERVE)
@@ -91,23 +95,31 @@ def test_policies_and_paired_differences_by_hand(tmp_path):
     assert float(ttf["diff"]) == pytest.approx((3 + 4 + 6) / 3, abs=1e-3)
 
 
-def test_trained_reserve_es_is_a_yardstick_of_every_policy(tmp_path):
+def test_the_trained_best_learner_is_a_yardstick_of_every_policy(tmp_path):
+    """conf/experiment/yardsticks.yaml names net_es the best learner, as the README does."""
+    assert STUDY.best_learner == "net_es"
     runs = [
         *RUNS,
-        record("reserve_es", 0, [13.0, 22.0, 35.0], episodes=100),
-        record("reserve_es", 1, [13.0, 24.0, 35.0], episodes=100),
+        record("net_es", 0, [13.0, 22.0, 35.0], episodes=100, space={"parameters": 9}),
+        record("net_es", 1, [13.0, 24.0, 35.0], episodes=100, space={"parameters": 9}),
+        record("reserve_es", 0, [13.0, 22.0, 35.0], episodes=100, space={"analytic": 20}),
     ]
-    md, files = write_section(runs, tmp_path)
-    assert "vs reserve-ES" in md
+    md, files = write_section(runs, tmp_path, STUDY, PROSE)
+    assert "vs net-ES" in md and "vs reserve-ES" not in md
+    assert "the trained `net_es` runs" in md
     rows = list(csv.DictReader(files["yardsticks"].open()))
-    row = next(r for r in rows if r["policy"] == "rollout" and r["versus"] == "reserve-ES")
+    row = next(r for r in rows if r["policy"] == "rollout" and r["versus"] == "net-ES")
     # rollout (14, 26, 36) against the mean of the two seeds (13, 23, 35): (1, 3, 1)
     assert float(row["diff"]) == pytest.approx(5 / 3, abs=1e-3)
     assert not [r for r in rows if r["policy"] == r["versus"]]  # never against itself
+    # the best learner is data: a study that names reserve_es compares every policy to it
+    study = dataclasses.replace(STUDY, best_learner="reserve_es")
+    md, _ = write_section(runs, tmp_path, study, PROSE)
+    assert "vs reserve-ES" in md and "vs net-ES" not in md
 
 
 def test_no_section_without_rules_or_untrained_runs(tmp_path):
-    md, files = write_section([RUNS[3], RUNS[4]], tmp_path)
+    md, files = write_section([RUNS[3], RUNS[4]], tmp_path, STUDY, PROSE)
     assert md == "" and files == {}
 
 
@@ -120,7 +132,7 @@ def test_untrained_run_is_found_when_the_collection_names_configurations():
     ]
     labels = ["cql train.episodes=0 alpha=0.1", "cql train.episodes=30", "cql train.episodes=30"]
     runs = [dataclasses.replace(r, learner=label) for r, label in zip(runs, labels, strict=True)]
-    policies = collect_policies(runs)["system2"]
+    policies = collect_policies(runs, STUDY)["system2"]
     assert [p.name for p in policies] == ["greedy", "CQL untrained", "CQL"]
     rows = [r for r in section_rows({"system2": policies}) if r[1] == "CQL"]
     assert rows[0][5] == "CQL untrained"
@@ -129,7 +141,7 @@ def test_untrained_run_is_found_when_the_collection_names_configurations():
 
 def test_start_table_by_hand(tmp_path):
     """Acceptance 2: trained - untrained paired over episodes and over seeds, with its verdict."""
-    by_system = collect_policies(RUNS)
+    by_system = collect_policies(RUNS, STUDY)
     comparisons = dict((c.trained.name, c) for _, c in start_comparisons(by_system))
     c = comparisons["subG-CQL"]
     # per episode: mean of the seeds (12, 22, 33) - untrained (10, 20, 30) = (2, 2, 3)
@@ -143,7 +155,7 @@ def test_start_table_by_hand(tmp_path):
     )
     assert c.verdict == "yes"  # 7/3 - 1.434 > 0
     assert comparisons["subG-CQL [time_to_free]"].over_seeds.n == 1  # one seed: no interval
-    md, files = write_section(RUNS, tmp_path)
+    md, files = write_section(RUNS, tmp_path, STUDY, PROSE)
     assert "### Does training beat its own start?" in md
     assert "| +2.3 ± 4.2 | yes |" in md  # over seeds: 7/3 ± 12.706 * 0.4714 / sqrt(2)
     assert files["yardsticks_start_png"].is_file() and "(yardsticks_start.png)" in md
@@ -168,7 +180,7 @@ def test_start_verdicts(trained, verdict):
     space = {"analytic": 5}
     runs = [record("cql", 0, [10.0, 20.0, 30.0], space=space)]
     runs += [record("cql", s, r, episodes=30, space=space) for s, r in enumerate(trained)]
-    [(_, c)] = start_comparisons(collect_policies(runs))
+    [(_, c)] = start_comparisons(collect_policies(runs, STUDY))
     assert c.verdict == verdict
 
 
@@ -196,14 +208,14 @@ def test_reevaluated_runs_are_scored_on_their_reevaluation(tmp_path):
             tmp_path, "t", "qmix", [12.0, 21.0, 33.0, 41.0, 53.0], greedy5, episodes=6, space=space
         ),
     ]
-    policies = collect_policies(runs)["system2"]
+    policies = collect_policies(runs, STUDY)["system2"]
     greedy = policies[0]
     np.testing.assert_array_equal(greedy.per_episode, greedy5)  # the run with the most episodes
     qmix = next(p for p in policies if p.name == "QMIX")
     assert qmix.means == [pytest.approx(32.0)]
     [(_, c)] = start_comparisons({"system2": policies})
     assert c.episodes == 5 and c.paired.mean == pytest.approx(2.0)  # (2, 1, 3, 1, 3)
-    md, _ = write_section(runs, tmp_path)
+    md, _ = write_section(runs, tmp_path, STUDY, PROSE)
     row = next(line for line in md.splitlines() if line.startswith("| QMIX |"))
     assert row.split("|")[6].strip() == "–"  # vs team_reserve: 5 episodes against 3, unpaired
 
@@ -212,7 +224,7 @@ def test_a_reevaluation_without_its_blocks_is_refused(tmp_path):
     run = reevaluated(tmp_path, "r", "qmix", [1.0], [1.0], space={"parameters": 7})
     (run.run_dir / "eval_metrics.json").write_text(json.dumps({"eval": {}}))
     with pytest.raises(ValueError, match=r"eval_metrics.json.*baseline_greedy"):
-        collect_policies([RUNS[0], run])
+        collect_policies([RUNS[0], run], STUDY)
 
 
 def test_runs_on_other_task_streams_are_refused(tmp_path):
@@ -220,7 +232,7 @@ def test_runs_on_other_task_streams_are_refused(tmp_path):
     other = record("qmix", 0, [12.0, 21.0, 33.0], episodes=6, space={"parameters": 7})
     other.metrics["baseline_greedy"]["team_return"]["per_episode"] = [10.0, 20.0, 31.0]
     with pytest.raises(ValueError, match=r"different task streams.*eval.batch_size"):
-        collect_policies([*RUNS, other])
+        collect_policies([*RUNS, other], STUDY)
 
 
 def test_a_planner_on_a_trained_base_is_its_own_policy_with_its_decision_time(tmp_path):
@@ -233,11 +245,11 @@ def test_a_planner_on_a_trained_base_is_its_own_policy_with_its_decision_time(tm
         run = record("rollout", seed, returns, learner_cfg={"base": str(base)})
         run.metrics["eval"]["decision_time"] = {"ms_per_tick": ms, "total_s": ms, "ticks": 1000}
         planners.append(run)
-    policies = collect_policies([*RUNS, *planners])["system2"]
+    policies = collect_policies([*RUNS, *planners], STUDY)["system2"]
     learned = next(p for p in policies if p.name == "rollout [base=reserve_es]")
     assert learned.decision_ms == 40.0 and len(learned.means) == 2
     assert next(p for p in policies if p.name == "rollout").decision_ms is None
-    md, files = write_section([*RUNS, *planners], tmp_path)
+    md, files = write_section([*RUNS, *planners], tmp_path, STUDY, PROSE)
     rows = list(csv.DictReader(files["yardsticks"].open()))
     row = next(r for r in rows if r["policy"] == "rollout [base=reserve_es]")
     assert float(row["decision_ms_per_tick"]) == 40.0
@@ -285,7 +297,7 @@ def test_each_random_team_is_a_team_of_its_own_and_an_init_run_is_trained(tmp_pa
         policy = record("reserve_es", 0, [x + 1 for x in rule], space={"analytic": 20})
         policy = dataclasses.replace(policy, config={"init": str(family)})
         runs.append(random_team(policy, m, 0, greedy))
-    by_team = collect_policies(runs)
+    by_team = collect_policies(runs, STUDY)
     assert set(by_team) == {"random (10 robots, team seed 0)", "random (200 robots, team seed 0)"}
     for team, rule in (
         ("random (10 robots, team seed 0)", 22.0),
