@@ -29,6 +29,7 @@ import dataclasses
 import inspect
 import math
 import numbers
+import reprlib
 import types
 import typing
 from collections.abc import Callable, Iterable, Mapping
@@ -375,11 +376,13 @@ def _check_mapping(
 ) -> dict[str, Any]:
     """Unknown keys, then each value's type and range; missing keys when ``require``."""
     if not isinstance(values, Mapping):
-        raise ConfigError(f"{prefix or 'config'}: must be a mapping of settings, got {values!r}")
+        raise ConfigError(
+            f"{prefix or 'config'}: must be a mapping of settings, got {reprlib.repr(values)}"
+        )
     path = f"{prefix}." if prefix else ""
     for key in values:
         if key not in declared:
-            known = f"known: {', '.join(declared)}" if declared else "it takes none"
+            known = f"known: {short_list(declared)}" if declared else "it takes none"
             raise ConfigError(f"{path}{key}: unknown setting of {owner} ({known})")
     out = {}
     for name, decl in declared.items():
