@@ -133,6 +133,11 @@ def _fault_message(fault: OSError, err: BaseException) -> str:
     return f"writing in {run_dir}: {cause}" if run_dir else cause
 
 
+def _cause(err: OSError) -> str:
+    """``File name too long (ENAMETOOLONG)``: the system's reason and its errno name."""
+    return f"{err.strerror} ({errno.errorcode.get(err.errno, err.errno)})"
+
+
 def check_writable(folder: Path | str, what: str) -> None:
     """Refuse a folder this process cannot create files in, before any work.
 
@@ -151,22 +156,33 @@ def check_writable(folder: Path | str, what: str) -> None:
         with tempfile.TemporaryFile(dir=folder):
             pass
     except OSError as err:
-        cause = f"{err.strerror} ({errno.errorcode.get(err.errno, err.errno)})"
-        raise UserError(f"{what}: cannot write in {folder}: {cause}") from None
+        raise UserError(f"{what}: cannot write in {folder}: {_cause(err)}") from None
 
 
-def _existing_ancestor(path: Path) -> Path:
-    """``path`` or its nearest ancestor that exists (lexically: ``..`` is not resolved)."""
-    for candidate in (path, *path.parents):
-        if candidate.exists():
-            return candidate
-    return Path.cwd()
+def _exists(path: Path) -> bool:
+    """Whether ``path`` names an entry, itself (a link is not followed).
+
+    Raises:
+        OSError: for anything but a missing entry: a name too long, no permission to look.
+    """
+    try:
+        os.lstat(path)
+    except (FileNotFoundError, NotADirectoryError):
+        return False
+    return True
+
+
+def _broken_link(path: Path) -> bool:
+    """Whether ``path`` is a link to nothing (a missing target, or a loop of links)."""
+    return path.is_symlink() and not path.exists()
 
 
 def check_output_file(path: Path | str, what: str) -> None:
     """Refuse an output file that could not be written, before any work.
 
-    Its folder must exist and take new files, and the path must not be a folder.
+    Its folder must exist and take new files, and a file already there (or a link to one) must
+    open for writing. An empty path, a folder, a link to nothing or a name the system refuses
+    (too long) is refused.
 
     Args:
         path: The file a command will write (replacing it if it exists).
@@ -175,21 +191,32 @@ def check_output_file(path: Path | str, what: str) -> None:
     Raises:
         UserError: naming ``what``, the path and why.
     """
+    if not os.fspath(path):
+        raise UserError(f"{what}: an empty path; name a file")
     path = Path(path)
     folder = path.parent
-    if path.is_dir():
-        raise UserError(f"{what}: {path} is a folder; name a file")
-    if not folder.is_dir():
-        missing = "is not a folder" if folder.exists() else "does not exist"
-        raise UserError(f"{what}: {path}: the folder {folder} {missing}")
+    try:
+        if _exists(path):  # the write goes through it: it must take one as it is
+            if path.is_dir():
+                raise UserError(f"{what}: {path} is a folder; name a file")
+            if _broken_link(path):
+                raise UserError(f"{what}: {path} is a link to nothing")
+            # O_NONBLOCK: a FIFO without a reader is refused, not waited for; nothing is written
+            os.close(os.open(path, os.O_WRONLY | os.O_APPEND | os.O_NONBLOCK | os.O_CLOEXEC))
+        elif not folder.is_dir():
+            missing = "is not a folder" if _exists(folder) else "does not exist"
+            raise UserError(f"{what}: {path}: the folder {folder} {missing}")
+    except OSError as err:
+        raise UserError(f"{what}: {path}: {_cause(err)}") from None
     check_writable(folder, what)
 
 
 def check_output_folder(path: Path | str, what: str) -> None:
     """Refuse an output folder that could not be made or written, before any work.
 
-    The path, or the nearest of its ancestors that exists, must be a folder that takes new
-    files (the command makes the missing folders).
+    The path, or the nearest of its ancestors that exists, must be a folder (or a link to one)
+    that takes new files (the command makes the missing folders). An empty path, a file or a
+    link to nothing in the way, or a name the system refuses (too long) is refused.
 
     Args:
         path: The folder a command will write into.
@@ -198,10 +225,17 @@ def check_output_folder(path: Path | str, what: str) -> None:
     Raises:
         UserError: naming ``what``, the path and why.
     """
+    if not os.fspath(path):
+        raise UserError(f"{what}: an empty path; name a folder")
     path = Path(path)
-    existing = _existing_ancestor(path)
-    if not existing.is_dir():
-        raise UserError(f"{what}: {path}: {existing} is a file, not a folder")
+    try:
+        # lexically (``..`` is not resolved), as the folders are made
+        existing = next((p for p in (path, *path.parents) if _exists(p)), Path.cwd())
+        if not existing.is_dir():
+            kind = "a link to nothing" if _broken_link(existing) else "a file"
+            raise UserError(f"{what}: {path}: {existing} is {kind}, not a folder")
+    except OSError as err:
+        raise UserError(f"{what}: {path}: {_cause(err)}") from None
     check_writable(existing, what)
 
 
