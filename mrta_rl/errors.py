@@ -7,12 +7,17 @@ keeps its traceback. :func:`user_message` gives the line, or None for a bug:
 * a :class:`~mrta_rl.config.UserError`: its message names the culprit;
 * a YAML syntax error in a config or system file;
 * a Hydra error: an unknown key or config option, or an override it cannot parse, said in one
-  line naming the key or the option (the known ones cut after a few, with a count);
+  line naming the key or the option (the known ones cut after a few, with a count); an override
+  its parser fails on with an error of Python's own (a number past Python's digit limit, lists
+  nested past the recursion limit) is named too;
 * an operating-system fault (:data:`OS_FAULTS`): disk full, file too large, permission denied,
   a read-only file system, a file or folder in the way. The line names the path and the cause:
   the error's own file name, else the file the failing code was writing through a file object
   (such a write fails without a name; the error of ``torch.save`` into a file object carries
   the fault as its context), else the current run dir.
+
+The line is at most :data:`MAX_LINE` characters: a long value or path it quotes is cut in its
+middle (:func:`short_line`).
 
 Where a command writes is checked before any work (:func:`check_output_file`,
 :func:`check_output_folder`, :func:`check_writable`): a command that could not write its results
@@ -52,6 +57,8 @@ OS_FAULTS = frozenset(
     }
 )
 SEARCH_PATH = ("Config search path:", "Search path:")  # where Hydra's messages list its sources
+HYDRA_PARSER = "hydra.core.override_parser.overrides_parser"  # the module that reads overrides
+MAX_LINE = 300  # characters of a message line (a long value or path is cut in its middle)
 
 
 def user_message(err: BaseException) -> str | None:
@@ -64,14 +71,49 @@ def user_message(err: BaseException) -> str | None:
         The message, without the ``error: `` prefix; None if ``err`` is not a user error.
     """
     if isinstance(err, UserError):
-        return str(err)
-    if isinstance(err, yaml.YAMLError):
-        return f"YAML syntax error: {err}"
-    if isinstance(err, HydraException):
-        return hydra_message(err)
-    fault = os_fault(err)
-    if fault is not None:
-        return _fault_message(fault, err)
+        message = str(err)
+    elif isinstance(err, yaml.YAMLError):
+        message = f"YAML syntax error: {err}"
+    elif isinstance(err, HydraException):
+        message = hydra_message(err)
+    elif (fault := os_fault(err)) is not None:
+        message = _fault_message(fault, err)
+    elif (override := _unparsed_override(err)) is not None:
+        reason = "nested too deeply" if isinstance(err, RecursionError) else str(err)
+        message = f"{override}: {reason.split(';')[0]}"  # not Python's advice to programmers
+    else:
+        return None
+    return short_line(message)
+
+
+def short_line(message: str) -> str:
+    """``message`` on one line of at most :data:`MAX_LINE` characters, cut in its middle.
+
+    A message quotes what it names; a value or a path given on the command line can be any
+    length, and its line then keeps its start (the key) and its end, with the count of what
+    was cut between.
+    """
+    message = " ".join(message.splitlines())
+    if len(message) <= MAX_LINE:
+        return message
+    tail = MAX_LINE // 4
+    head = MAX_LINE - tail - 32  # what the count between takes, up to 10**10 characters
+    return f"{message[:head]} [...{len(message) - head - tail:,} characters...] {message[-tail:]}"
+
+
+def _unparsed_override(err: BaseException) -> str | None:
+    """The override Hydra's parser was reading when it failed with an error of Python's own.
+
+    The parser raises its own errors (:func:`hydra_message`) for what it cannot read, but not
+    for a number past Python's digit limit (``ValueError``) or lists nested past the recursion
+    limit (``RecursionError``).
+    """
+    if not isinstance(err, (ValueError, RecursionError)):
+        return None
+    for frame in _frames(err):
+        if frame.f_code.co_name == "parse_rule" and frame.f_globals["__name__"] == HYDRA_PARSER:
+            override = frame.f_locals.get("s")
+            return override if isinstance(override, str) else None
     return None
 
 
