@@ -222,9 +222,10 @@ def _broken_link(path: Path) -> bool:
 def check_output_file(path: Path | str, what: str) -> None:
     """Refuse an output file that could not be written, before any work.
 
-    Its folder must exist and take new files, and a file already there (or a link to one) must
-    open for writing. An empty path, a folder, a link to nothing or a name the system refuses
-    (too long) is refused.
+    Its folder must exist and take new files. A file already there (or the file a link names)
+    must open for writing; a link to a file not yet there needs that file's folder. An empty
+    path, a folder, a link to nothing (a missing folder, a loop of links) or a name the system
+    refuses (too long) is refused.
 
     Args:
         path: The file a command will write (replacing it if it exists).
@@ -236,21 +237,26 @@ def check_output_file(path: Path | str, what: str) -> None:
     if not os.fspath(path):
         raise UserError(f"{what}: an empty path; name a file")
     path = Path(path)
-    folder = path.parent
+    target = Path(os.path.realpath(path))  # where a write through the path lands
+    folders = [path.parent]  # its folder, where an atomic write makes its temporary file
     try:
-        if _exists(path):  # the write goes through it: it must take one as it is
-            if path.is_dir():
+        if not _exists(target):
+            folders.append(target.parent)  # where a write through the path makes the file
+        else:
+            if target.is_dir():
                 raise UserError(f"{what}: {path} is a folder; name a file")
-            if _broken_link(path):
-                raise UserError(f"{what}: {path} is a link to nothing")
+            if _broken_link(target):
+                raise UserError(f"{what}: {path} is a link to nothing (a loop of links)")
             # O_NONBLOCK: a FIFO without a reader is refused, not waited for; nothing is written
-            os.close(os.open(path, os.O_WRONLY | os.O_APPEND | os.O_NONBLOCK | os.O_CLOEXEC))
-        elif not folder.is_dir():
-            missing = "is not a folder" if _exists(folder) else "does not exist"
-            raise UserError(f"{what}: {path}: the folder {folder} {missing}")
+            os.close(os.open(target, os.O_WRONLY | os.O_APPEND | os.O_NONBLOCK | os.O_CLOEXEC))
+        for folder in dict.fromkeys(folders):
+            if not folder.is_dir():
+                missing = "is not a folder" if _exists(folder) else "does not exist"
+                raise UserError(f"{what}: {path}: the folder {folder} {missing}")
     except OSError as err:
         raise UserError(f"{what}: {path}: {_cause(err)}") from None
-    check_writable(folder, what)
+    for folder in dict.fromkeys(folders):
+        check_writable(folder, what)
 
 
 def check_output_folder(path: Path | str, what: str) -> None:
