@@ -57,7 +57,11 @@ OS_FAULTS = frozenset(
     }
 )
 SEARCH_PATH = ("Config search path:", "Search path:")  # where Hydra's messages list its sources
-HYDRA_PARSER = "hydra.core.override_parser.overrides_parser"  # the module that reads overrides
+# Hydra's functions that read and apply one override (module, function) -> the local holding it
+HYDRA_OVERRIDE_FRAMES = {
+    ("hydra.core.override_parser.overrides_parser", "parse_rule"): "s",
+    ("hydra._internal.config_loader_impl", "_apply_overrides_to_config"): "override",
+}
 MAX_LINE = 300  # characters of a message line (a long value or path is cut in its middle)
 
 
@@ -102,17 +106,19 @@ def short_line(message: str) -> str:
 
 
 def _unparsed_override(err: BaseException) -> str | None:
-    """The override Hydra's parser was reading when it failed with an error of Python's own.
+    """The override Hydra was reading or applying when it failed with an error of Python's own.
 
-    The parser raises its own errors (:func:`hydra_message`) for what it cannot read, but not
-    for a number past Python's digit limit (``ValueError``) or lists nested past the recursion
-    limit (``RecursionError``).
+    Hydra raises its own errors (:func:`hydra_message`) for what it cannot read or apply, but
+    not for a number past Python's digit limit (``ValueError``) or lists nested past the
+    recursion limit (``RecursionError``, in its parser or in OmegaConf).
     """
     if not isinstance(err, (ValueError, RecursionError)):
         return None
     for frame in _frames(err):
-        if frame.f_code.co_name == "parse_rule" and frame.f_globals["__name__"] == HYDRA_PARSER:
-            override = frame.f_locals.get("s")
+        local = HYDRA_OVERRIDE_FRAMES.get((frame.f_globals.get("__name__"), frame.f_code.co_name))
+        if local is not None:
+            override = frame.f_locals.get(local)
+            override = getattr(override, "input_line", override)  # applied: an Override
             return override if isinstance(override, str) else None
     return None
 
