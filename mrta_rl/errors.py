@@ -84,24 +84,25 @@ def user_message(err: BaseException) -> str | None:
         message = _fault_message(fault, err)
     elif (override := _unparsed_override(err)) is not None:
         reason = "nested too deeply" if isinstance(err, RecursionError) else str(err)
-        message = f"{override}: {reason.split(';')[0]}"  # not Python's advice to programmers
+        # the override cut short, so that the reason stays whole (not Python's advice after ;)
+        message = f"{short_line(override, MAX_LINE // 2)}: {reason.split(';')[0]}"
     else:
         return None
     return short_line(message)
 
 
-def short_line(message: str) -> str:
-    """``message`` on one line of at most :data:`MAX_LINE` characters, cut in its middle.
+def short_line(message: str, width: int = MAX_LINE) -> str:
+    """``message`` on one line of at most ``width`` characters, cut in its middle.
 
     A message quotes what it names; a value or a path given on the command line can be any
     length, and its line then keeps its start (the key) and its end, with the count of what
     was cut between.
     """
     message = " ".join(message.splitlines())
-    if len(message) <= MAX_LINE:
+    if len(message) <= width:
         return message
-    tail = MAX_LINE // 4
-    head = MAX_LINE - tail - 32  # what the count between takes, up to 10**10 characters
+    tail = width // 4
+    head = width - tail - 32  # what the count between takes, up to 10**10 characters
     return f"{message[:head]} [...{len(message) - head - tail:,} characters...] {message[-tail:]}"
 
 
