@@ -797,3 +797,16 @@ def test_fuzz_es_state_through_evaluate_and_init(es_runs, undamaged, tmp_path_fa
 
     one_case()
     assert outcomes["refused"] >= 8 and outcomes["accepted"] >= 2, outcomes
+
+
+def test_a_state_that_does_not_decompress_is_one_line_from_the_evaluate_script(es_runs, tmp_path):
+    """What the fuzz found, as a user meets it: a traceback of zlib before, one line now."""
+    run_dir = copy_run(es_runs, "net_es", tmp_path)
+    path = state_path(run_dir, "net_es")
+    damage_state(path, ("zip", "deflated_flipped", 9))
+    before = digest(run_dir)
+    proc = script("evaluate.py", f"checkpoint={run_dir}")
+    _, err = proc.communicate(timeout=300)
+    assert_user_error(proc.returncode, err, str(path), "truncated or damaged")
+    assert_one_line(err)
+    assert digest(run_dir) == before

@@ -539,3 +539,17 @@ def test_out_is_accepted_where_it_can_be_written_or_refused_before_any_work(
     if code is not None:
         assert_refused_in_one_line(code, printed, err, "--out")
     assert (code is None) == writes(out, folder=command == "mrta-report"), err
+
+
+@pytest.mark.parametrize(
+    ("value", "named"),
+    [
+        ("9" * 4400, "Exceeds the limit (4300 digits) for integer string conversion"),
+        ("[" * 400 + "]" * 400, "nested too deeply"),
+    ],
+)
+def test_an_override_past_python_s_limits_is_one_line_from_the_script(value, named):
+    """What the fuzz found, as a user meets it: a traceback before, one short line now."""
+    code, out, err = run("partition.py", "system=system1", f"partition.max_group_size={value}")
+    assert_one_line(code, err, "error: partition.max_group_size=", named)
+    assert len(err) <= len("error: \n") + MAX_LINE and out == ""
