@@ -259,7 +259,7 @@ def in_process(main, argv: list[str], work: tuple) -> tuple[int | None, str, str
         contextlib.redirect_stderr(err),
     ):
         patch.setattr(sys, "argv", argv)
-        patch.delenv("HYDRA_FULL_ERROR", raising=False)  # cli.run sets it for Hydra
+        patch.setenv("HYDRA_FULL_ERROR", "0")  # cli.run sets it to 1 for Hydra: undone after
         patch.setattr(logging.FileHandler, "handleError", logging.FileHandler.handleError)
         # Hydra's job logging (disabled) would silence every logger of this test process
         patch.setattr(logging.config, "dictConfig", lambda config: None)
