@@ -277,8 +277,11 @@ def in_process(main, argv: list[str], work: tuple) -> tuple[int | None, str, str
 
 
 def assert_refused_in_one_line(code: int | None, out: str, err: str, argument: str) -> None:
+    """Exit 2, one short ``error:`` line naming the argument (its block at least: ``system``),
+    and no output."""
     assert code == 2, f"exit {code}: {err[-500:]}"
     assert err.startswith("error: ") and err.count("\n") == 1, err
+    assert argument.split(".")[0] in err, f"{err!r} does not name {argument}"
     assert len(err) <= len("error: \n") + MAX_LINE, f"{len(err)} characters: {err}"
     assert out == "", "output before the refusal"
 
