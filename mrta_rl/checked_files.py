@@ -28,10 +28,12 @@ from __future__ import annotations
 import csv
 import io
 import json
+import lzma
 import math
 import os
 import stat
 import zipfile
+import zlib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -54,6 +56,19 @@ NPY_OVERHEAD = 2**16  # bytes of an npz member beyond its data: zip entry and np
 PT_OVERHEAD = 2**20  # bytes of a torch file beyond its tensors' data, plus PT_PER_TENSOR each
 PT_PER_TENSOR = 2**10
 MAX_NAME_LENGTH = 256  # characters of an item of a text array without declared names
+# what the zip reader raises on a damaged archive: besides its own errors, a member's compressed
+# data that does not decompress (zlib, lzma; bz2 raises OSError), and a member it cannot read at
+# all (NotImplementedError: a compression method or zip version it lacks; RuntimeError: encrypted)
+ZIP_FAULTS = (
+    zipfile.BadZipFile,
+    zipfile.LargeZipFile,
+    zlib.error,
+    lzma.LZMAError,
+    EOFError,
+    OSError,
+    ValueError,
+    RuntimeError,
+)
 
 
 class RunDirError(UserError):
@@ -553,7 +568,8 @@ def _check_values(
         return
     if spec.low is not None and array.min() < spec.low:
         raise error(f"{source}: {name} holds {array.min().item()!r}, must be >= {spec.low:g}")
-    if spec.magnitude is not None and np.abs(array).max() > spec.magnitude:
+    # compared as Python floats: a narrow float (float16) never holds the bound, nor warns
+    if spec.magnitude is not None and float(np.abs(array).max()) > spec.magnitude:
         largest = array.flat[np.abs(array).argmax()].item()
         raise error(f"{source}: {name} holds {largest!r}, must be within +-{spec.magnitude:g}")
     if spec.names is not None and tuple(array.tolist()) != spec.names:
@@ -676,7 +692,7 @@ def read_arrays(
                     arrays[name] = _read_member(archive, info, schema[name], str(path))
         except RunDirError:
             raise
-        except (zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, OSError, ValueError) as err:
+        except ZIP_FAULTS as err:
             raise RunDirError(
                 f"{path}: truncated or damaged ({type(err).__name__}: {str(err)[:80]})"
             ) from None

@@ -10,11 +10,11 @@ dataclass (``AuctionParams``, the run settings), annotated with its type and, th
     target_update: Literal["soft", "hard"] = "soft"             # choices
     prior: Annotated[str | None, Choices("spread", "greedy")] = None
 
-Supported types: ``bool``, ``int`` (not bool), ``float`` (int accepted, finite), ``str``,
-``Literal[...]``, ``X | None``, fixed-length ``tuple[...]`` and any-length ``tuple[X, ...]`` (a
-list or tuple in a config; a ``Range`` or ``Choices`` applies to each item). Any other
-annotation is not a hyperparameter's (the runner supplies ``env``, ``rng``, ``partition`` and
-``base_policy``: :data:`RUNNER_ARGUMENTS`) and is not checked.
+Supported types: ``bool``, ``int`` (not bool, within 64 bits), ``float`` (int accepted, finite),
+``str``, ``Literal[...]``, ``X | None``, fixed-length ``tuple[...]`` and any-length
+``tuple[X, ...]`` (a list or tuple in a config; a ``Range`` or ``Choices`` applies to each
+item). Any other annotation is not a hyperparameter's (the runner supplies ``env``, ``rng``,
+``partition`` and ``base_policy``: :data:`RUNNER_ARGUMENTS`) and is not checked.
 
 :func:`check_value` checks one value, :func:`check_keywords` a config mapping against a class's
 ``__init__`` (following ``**kwargs`` up the base classes) or a function, :func:`check_fields`
@@ -29,6 +29,7 @@ import dataclasses
 import inspect
 import math
 import numbers
+import reprlib
 import types
 import typing
 from collections.abc import Callable, Iterable, Mapping
@@ -103,6 +104,11 @@ class Range:
         if self.high is not None:
             return f"{'<' if self.high_open else '<='} {_num(self.high)}"
         return ""
+
+
+# an integer setting is held as numpy's and torch's int64 (counts, sizes, seeds): larger ones
+# would overflow where they are used
+INT64 = Range(-(2**63), 2**63 - 1)
 
 
 class Choices:
@@ -233,7 +239,23 @@ def _rebuild(members: list[Any], extras: list[Any]) -> Any:
 
 
 def _fail(key: str, annotation: Any, value: Any) -> ConfigError:
-    return ConfigError(f"{key}: must be {describe(annotation)}, got {value!r}")
+    beyond = _is_int(value) and not INT64.contains(value)
+    note = " (more than 64 bits hold)" if beyond else ""
+    return ConfigError(f"{key}: must be {describe(annotation)}, got {reprlib.repr(value)}{note}")
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+
+def _is_finite(value: Any) -> bool:
+    """A real number that is finite (an integer past the floats is not)."""
+    try:
+        return (
+            isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value)
+        )
+    except OverflowError:
+        return False
 
 
 def check_value(key: str, value: Any, annotation: Any) -> Any:
@@ -293,10 +315,8 @@ def check_value(key: str, value: Any, annotation: Any) -> Any:
             raise _fail(key, annotation, value) from None
     ok = {
         bool: lambda v: isinstance(v, bool),
-        int: lambda v: isinstance(v, numbers.Integral) and not isinstance(v, bool),
-        float: lambda v: (
-            isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v)
-        ),
+        int: lambda v: _is_int(v) and INT64.contains(v),
+        float: _is_finite,
         str: lambda v: isinstance(v, str),
     }.get(tp)
     if ok is None:
@@ -377,11 +397,13 @@ def _check_mapping(
 ) -> dict[str, Any]:
     """Unknown keys, then each value's type and range; missing keys when ``require``."""
     if not isinstance(values, Mapping):
-        raise ConfigError(f"{prefix or 'config'}: must be a mapping of settings, got {values!r}")
+        raise ConfigError(
+            f"{prefix or 'config'}: must be a mapping of settings, got {reprlib.repr(values)}"
+        )
     path = f"{prefix}." if prefix else ""
     for key in values:
         if key not in declared:
-            known = f"known: {', '.join(declared)}" if declared else "it takes none"
+            known = f"known: {short_list(declared)}" if declared else "it takes none"
             raise ConfigError(f"{path}{key}: unknown setting of {owner} ({known})")
     out = {}
     for name, decl in declared.items():

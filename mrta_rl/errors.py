@@ -7,12 +7,17 @@ keeps its traceback. :func:`user_message` gives the line, or None for a bug:
 * a :class:`~mrta_rl.config.UserError`: its message names the culprit;
 * a YAML syntax error in a config or system file;
 * a Hydra error: an unknown key or config option, or an override it cannot parse, said in one
-  line naming the key or the option (the known ones cut after a few, with a count);
+  line naming the key or the option (the known ones cut after a few, with a count); an override
+  its parser fails on with an error of Python's own (a number past Python's digit limit, lists
+  nested past the recursion limit) is named too;
 * an operating-system fault (:data:`OS_FAULTS`): disk full, file too large, permission denied,
   a read-only file system, a file or folder in the way. The line names the path and the cause:
   the error's own file name, else the file the failing code was writing through a file object
   (such a write fails without a name; the error of ``torch.save`` into a file object carries
   the fault as its context), else the current run dir.
+
+The line is at most :data:`MAX_LINE` characters: a long value or path it quotes is cut in its
+middle (:func:`short_line`).
 
 Where a command writes is checked before any work (:func:`check_output_file`,
 :func:`check_output_folder`, :func:`check_writable`): a command that could not write its results
@@ -52,6 +57,12 @@ OS_FAULTS = frozenset(
     }
 )
 SEARCH_PATH = ("Config search path:", "Search path:")  # where Hydra's messages list its sources
+# Hydra's functions that read and apply one override (module, function) -> the local holding it
+HYDRA_OVERRIDE_FRAMES = {
+    ("hydra.core.override_parser.overrides_parser", "parse_rule"): "s",
+    ("hydra._internal.config_loader_impl", "_apply_overrides_to_config"): "override",
+}
+MAX_LINE = 300  # characters of a message line (a long value or path is cut in its middle)
 
 
 def user_message(err: BaseException) -> str | None:
@@ -64,14 +75,52 @@ def user_message(err: BaseException) -> str | None:
         The message, without the ``error: `` prefix; None if ``err`` is not a user error.
     """
     if isinstance(err, UserError):
-        return str(err)
-    if isinstance(err, yaml.YAMLError):
-        return f"YAML syntax error: {err}"
-    if isinstance(err, HydraException):
-        return hydra_message(err)
-    fault = os_fault(err)
-    if fault is not None:
-        return _fault_message(fault, err)
+        message = str(err)
+    elif isinstance(err, yaml.YAMLError):
+        message = f"YAML syntax error: {err}"
+    elif isinstance(err, HydraException):
+        message = hydra_message(err)
+    elif (fault := os_fault(err)) is not None:
+        message = _fault_message(fault, err)
+    elif (override := _unparsed_override(err)) is not None:
+        reason = "nested too deeply" if isinstance(err, RecursionError) else str(err)
+        # the override cut short, so that the reason stays whole (not Python's advice after ;)
+        message = f"{short_line(override, MAX_LINE // 2)}: {reason.split(';')[0]}"
+    else:
+        return None
+    return short_line(message)
+
+
+def short_line(message: str, width: int = MAX_LINE) -> str:
+    """``message`` on one line of at most ``width`` characters, cut in its middle.
+
+    A message quotes what it names; a value or a path given on the command line can be any
+    length, and its line then keeps its start (the key) and its end, with the count of what
+    was cut between.
+    """
+    message = " ".join(message.splitlines())
+    if len(message) <= width:
+        return message
+    tail = width // 4
+    head = width - tail - 32  # what the count between takes, up to 10**10 characters
+    return f"{message[:head]} [...{len(message) - head - tail:,} characters...] {message[-tail:]}"
+
+
+def _unparsed_override(err: BaseException) -> str | None:
+    """The override Hydra was reading or applying when it failed with an error of Python's own.
+
+    Hydra raises its own errors (:func:`hydra_message`) for what it cannot read or apply, but
+    not for a number past Python's digit limit (``ValueError``) or lists nested past the
+    recursion limit (``RecursionError``, in its parser or in OmegaConf).
+    """
+    if not isinstance(err, (ValueError, RecursionError)):
+        return None
+    for frame in _frames(err):
+        local = HYDRA_OVERRIDE_FRAMES.get((frame.f_globals.get("__name__"), frame.f_code.co_name))
+        if local is not None:
+            override = frame.f_locals.get(local)
+            override = getattr(override, "input_line", override)  # applied: an Override
+            return override if isinstance(override, str) else None
     return None
 
 
@@ -133,6 +182,11 @@ def _fault_message(fault: OSError, err: BaseException) -> str:
     return f"writing in {run_dir}: {cause}" if run_dir else cause
 
 
+def _cause(err: OSError) -> str:
+    """``File name too long (ENAMETOOLONG)``: the system's reason and its errno name."""
+    return f"{err.strerror} ({errno.errorcode.get(err.errno, err.errno)})"
+
+
 def check_writable(folder: Path | str, what: str) -> None:
     """Refuse a folder this process cannot create files in, before any work.
 
@@ -151,22 +205,34 @@ def check_writable(folder: Path | str, what: str) -> None:
         with tempfile.TemporaryFile(dir=folder):
             pass
     except OSError as err:
-        cause = f"{err.strerror} ({errno.errorcode.get(err.errno, err.errno)})"
-        raise UserError(f"{what}: cannot write in {folder}: {cause}") from None
+        raise UserError(f"{what}: cannot write in {folder}: {_cause(err)}") from None
 
 
-def _existing_ancestor(path: Path) -> Path:
-    """``path`` or its nearest ancestor that exists (lexically: ``..`` is not resolved)."""
-    for candidate in (path, *path.parents):
-        if candidate.exists():
-            return candidate
-    return Path.cwd()
+def _exists(path: Path) -> bool:
+    """Whether ``path`` names an entry, itself (a link is not followed).
+
+    Raises:
+        OSError: for anything but a missing entry: a name too long, no permission to look.
+    """
+    try:
+        os.lstat(path)
+    except (FileNotFoundError, NotADirectoryError):
+        return False
+    return True
+
+
+def _broken_link(path: Path) -> bool:
+    """Whether ``path`` is a link to nothing (a missing target, or a loop of links)."""
+    return path.is_symlink() and not path.exists()
 
 
 def check_output_file(path: Path | str, what: str) -> None:
     """Refuse an output file that could not be written, before any work.
 
-    Its folder must exist and take new files, and the path must not be a folder.
+    Its folder must exist and take new files. A file already there (or the file a link names)
+    must open for writing; a link to a file not yet there needs that file's folder. An empty
+    path, a folder, a link to nothing (a missing folder, a loop of links) or a name the system
+    refuses (too long) is refused.
 
     Args:
         path: The file a command will write (replacing it if it exists).
@@ -175,21 +241,37 @@ def check_output_file(path: Path | str, what: str) -> None:
     Raises:
         UserError: naming ``what``, the path and why.
     """
+    if not os.fspath(path):
+        raise UserError(f"{what}: an empty path; name a file")
     path = Path(path)
-    folder = path.parent
-    if path.is_dir():
-        raise UserError(f"{what}: {path} is a folder; name a file")
-    if not folder.is_dir():
-        missing = "is not a folder" if folder.exists() else "does not exist"
-        raise UserError(f"{what}: {path}: the folder {folder} {missing}")
-    check_writable(folder, what)
+    target = Path(os.path.realpath(path))  # where a write through the path lands
+    folders = [path.parent]  # its folder, where an atomic write makes its temporary file
+    try:
+        if not _exists(target):
+            folders.append(target.parent)  # where a write through the path makes the file
+        else:
+            if target.is_dir():
+                raise UserError(f"{what}: {path} is a folder; name a file")
+            if _broken_link(target):
+                raise UserError(f"{what}: {path} is a link to nothing (a loop of links)")
+            # O_NONBLOCK: a FIFO without a reader is refused, not waited for; nothing is written
+            os.close(os.open(target, os.O_WRONLY | os.O_APPEND | os.O_NONBLOCK | os.O_CLOEXEC))
+        for folder in dict.fromkeys(folders):
+            if not folder.is_dir():
+                missing = "is not a folder" if _exists(folder) else "does not exist"
+                raise UserError(f"{what}: {path}: the folder {folder} {missing}")
+    except OSError as err:
+        raise UserError(f"{what}: {path}: {_cause(err)}") from None
+    for folder in dict.fromkeys(folders):
+        check_writable(folder, what)
 
 
 def check_output_folder(path: Path | str, what: str) -> None:
     """Refuse an output folder that could not be made or written, before any work.
 
-    The path, or the nearest of its ancestors that exists, must be a folder that takes new
-    files (the command makes the missing folders).
+    The path, or the nearest of its ancestors that exists, must be a folder (or a link to one)
+    that takes new files (the command makes the missing folders). An empty path, a file or a
+    link to nothing in the way, or a name the system refuses (too long) is refused.
 
     Args:
         path: The folder a command will write into.
@@ -198,10 +280,17 @@ def check_output_folder(path: Path | str, what: str) -> None:
     Raises:
         UserError: naming ``what``, the path and why.
     """
+    if not os.fspath(path):
+        raise UserError(f"{what}: an empty path; name a folder")
     path = Path(path)
-    existing = _existing_ancestor(path)
-    if not existing.is_dir():
-        raise UserError(f"{what}: {path}: {existing} is a file, not a folder")
+    try:
+        # lexically (``..`` is not resolved), as the folders are made
+        existing = next((p for p in (path, *path.parents) if _exists(p)), Path.cwd())
+        if not existing.is_dir():
+            kind = "a link to nothing" if _broken_link(existing) else "a file"
+            raise UserError(f"{what}: {path}: {existing} is {kind}, not a folder")
+    except OSError as err:
+        raise UserError(f"{what}: {path}: {_cause(err)}") from None
     check_writable(existing, what)
 
 

@@ -101,7 +101,9 @@ METRICS = {
     "baseline_greedy": SUMMARY,
     "train?": {"*": NUMBER},
     "learning_space?": {"*": INT},
-    "*": ANY,  # other blocks (resources, checkpoint) are not read as numbers
+    # metrics/usage.py RunResources.to_json: wall_s, cpu_s, peak_rss_mb and peak_rss_scope
+    "resources?": {"peak_rss_scope?": STR, "*": NUMBER},
+    "*": ANY,  # other blocks (checkpoint) are not read as numbers
 }
 
 

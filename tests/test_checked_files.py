@@ -5,19 +5,25 @@ The learner state files of ``net_es`` and ``reserve_es`` (``learner/*.npz``) thr
 file should be; a team file with a YAML syntax error; a curve.csv cell that is not a number; a
 rollout base that is its own base; an update that makes the weights NaN. Each is refused with
 one short line naming the file (or the learner and step) and the culprit, never hangs, never
-reads without bound, and leaves what was there (a checkpoint) usable.
+reads without bound, and leaves what was there (a checkpoint) usable. Explicit cases first, then
+a property-based fuzz of the ES state files through ``evaluate_checkpoint`` and ``init=``.
 """
 
 from __future__ import annotations
 
+import collections
+import hashlib
 import json
 import math
 import os
+import random
 import resource
 import shutil
 import signal
+import struct
 import subprocess
 import sys
+import warnings
 import zipfile
 from contextlib import contextmanager
 from pathlib import Path
@@ -26,11 +32,15 @@ import numpy as np
 import pytest
 import torch
 from hydra.core.hydra_config import HydraConfig
+from hypothesis import HealthCheck, example, given, settings
+from hypothesis import strategies as st
 
 from mrta_rl.commands import use_team_files
 from mrta_rl.config import UserError
+from mrta_rl.learners.base import NonFiniteState
 from mrta_rl.learners.neural.qmix import QMIXLearner
-from mrta_rl.learners.search.reserve_es import ReserveESLearner
+from mrta_rl.learners.search.net_es import NetESLearner
+from mrta_rl.learners.search.reserve_es import N_FEATURES, ReserveESLearner
 from mrta_rl.reports import build_report
 from mrta_rl.reports.collect import read_curve
 from mrta_rl.runners import evaluate_checkpoint, train
@@ -501,3 +511,302 @@ def test_a_nan_loss_stops_a_torch_learner_before_its_step(stopped_qmix, tmp_path
     assert_one_line(str(err.value), "QMIX", "gradient step", "the loss is nan", "last checkpoint")
     assert latest_checkpoint(run_dir).name == "2"
     assert not (run_dir / "learner").exists()
+
+
+# ---------------------------------------------------------------------------------- the fuzz
+FUZZ = settings(
+    max_examples=14,
+    deadline=None,
+    derandomize=True,
+    suppress_health_check=[HealthCheck.too_slow],
+)
+EVAL_METRICS = "eval_metrics.json"  # what a re-evaluation adds to the run dir
+ES_ARRAYS = ("theta", "adam_m", "adam_v")  # the float arrays of an ES state
+MEMBERS = (*ES_ARRAYS, "steps", "features")
+# values written into a float array: out of range, at the bounds, and ordinary ones
+VALUES = (math.nan, math.inf, -math.inf, 1e308, -1e308, 1e9, -1e9, 1e18, -1.0, -0.0, 5e-324, 2.5)
+DTYPES = ("float16", "float32", ">f8", "longdouble", "complex128", "int64", "uint8", "bool")
+DTYPES += ("object", "<U3", ">U20", "S20", "datetime64[s]")
+POSITION = st.integers(0, 2**32)  # where in the file (taken modulo its length) or a seed
+DAMAGES = st.one_of(
+    st.tuples(
+        st.just("value"),
+        st.sampled_from(ES_ARRAYS),
+        st.sampled_from(["one", "all"]),
+        st.sampled_from(VALUES),
+    ),
+    st.tuples(st.just("steps"), st.sampled_from([-5, 0, 2, 2**62, 2**63 - 1, 2**64 - 1])),
+    st.tuples(st.just("dtype"), st.sampled_from(MEMBERS), st.sampled_from(DTYPES)),
+    st.tuples(
+        st.just("shape"),
+        st.sampled_from(MEMBERS),
+        st.sampled_from(["column", "scalar", "shorter", "longer", "empty", "row"]),
+    ),
+    st.tuples(
+        st.just("member"),
+        st.sampled_from(MEMBERS),
+        st.sampled_from(["missing", "extra", "renamed", "duplicate", "in_a_folder"]),
+    ),
+    st.tuples(st.just("names"), st.sampled_from(["renamed", "swapped", "padded", "another"])),
+    st.tuples(
+        st.just("bytes"), st.sampled_from(["truncated", "flipped", "random", "empty"]), POSITION
+    ),
+    st.tuples(
+        st.just("zip"),
+        st.sampled_from(
+            ["deflated", "deflated_flipped", "lzma_flipped", "method", "encrypted", "reordered"]
+        ),
+        POSITION,
+    ),
+    st.tuples(
+        st.just("header"),
+        st.sampled_from(MEMBERS),
+        st.sampled_from([(10**11,), (400_000_000,), (-1,), (2**62, 2**62), ()]),
+    ),
+)
+
+
+def convert(array: np.ndarray, dtype: str) -> np.ndarray:
+    """``array`` as ``dtype``; zeros of that dtype where numpy cannot convert it (text to int)."""
+    try:
+        return array.astype(dtype)
+    except (TypeError, ValueError):
+        return np.zeros(array.shape, dtype)
+
+
+def reshaped(array: np.ndarray, how: str) -> np.ndarray:
+    flat = array.reshape(-1)
+    return {
+        "column": flat[:, None],
+        "scalar": flat[0] if flat.size else np.zeros((), array.dtype),
+        "shorter": flat[:-1],
+        "longer": np.concatenate([flat, flat[:1]]) if flat.size else np.zeros(1, array.dtype),
+        "empty": flat[:0],
+        "row": flat[None, :],
+    }[how]
+
+
+def write_zip(path: Path, members: list, method: int = zipfile.ZIP_STORED) -> None:
+    """An npz of ``(member name, array)`` pairs, compressed with ``method``."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # a duplicate member name is the damage wanted
+        with zipfile.ZipFile(path, "w", compression=method) as archive:
+            for name, array in members:
+                with archive.open(name, "w") as member:
+                    np.lib.format.write_array(member, np.asanyarray(array), allow_pickle=True)
+
+
+def flip(path: Path, position: int) -> None:
+    data = bytearray(path.read_bytes())
+    data[position % len(data)] ^= 0x5A
+    path.write_bytes(bytes(data))
+
+
+def set_central_directory(path: Path, offset: int, fmt: str, value: int) -> None:
+    """A field (``offset`` bytes into each central directory entry) of every member set."""
+    data = bytearray(path.read_bytes())
+    entry = data.find(b"PK\x01\x02")
+    while entry >= 0:
+        struct.pack_into(fmt, data, entry + offset, value)
+        entry = data.find(b"PK\x01\x02", entry + 4)
+    path.write_bytes(bytes(data))
+
+
+def damage_state(path: Path, damage: tuple) -> None:
+    """Apply one drawn damage (:data:`DAMAGES`) to a learner state file."""
+    kind, *how = damage
+    with np.load(path) as saved:
+        arrays = {f"{k}.npy": saved[k] for k in saved.files}
+    if kind == "value":
+        name, where, value = how
+        array = arrays[f"{name}.npy"]
+        if where == "one":
+            array[len(array) // 2] = value
+        else:
+            array[:] = value
+    elif kind == "steps":
+        arrays["steps.npy"] = np.array(how[0])  # int64, or uint64 past it
+    elif kind == "dtype":
+        arrays[f"{how[0]}.npy"] = convert(arrays[f"{how[0]}.npy"], how[1])
+    elif kind == "shape":
+        arrays[f"{how[0]}.npy"] = reshaped(arrays[f"{how[0]}.npy"], how[1])
+    elif kind == "member":
+        name, what = f"{how[0]}.npy", how[1]
+        array = arrays.pop(name)
+        renamed = {"extra": name, "renamed": f"x{name}", "in_a_folder": f"learner/{name}"}
+        if what in renamed:
+            arrays[renamed[what]] = array
+        if what == "extra":
+            arrays["extra.npy"] = np.zeros(3)
+        if what == "duplicate":
+            write_zip(path, [*arrays.items(), (name, array), (name, array)])
+            return
+    elif kind == "names":
+        names = arrays["features.npy"].copy()
+        if how[0] == "renamed":
+            names[0] = "bias_renamed"
+        elif how[0] == "swapped":
+            names[[0, 1]] = names[[1, 0]]
+        elif how[0] == "padded":
+            names = np.char.add(names, " ")
+        else:  # the other learner's names
+            other = ReserveESLearner if len(names) != N_FEATURES else NetESLearner
+            names = np.asarray(other.weight_names)
+        arrays["features.npy"] = names
+    elif kind == "header":
+        fake_npz(path, {k.removesuffix(".npy"): v for k, v in arrays.items()}, {how[0]: how[1]})
+        return
+    if kind == "bytes":
+        what, position = how
+        if what == "truncated":
+            path.write_bytes(path.read_bytes()[: position % path.stat().st_size])
+        elif what == "flipped":
+            flip(path, position)
+        elif what == "random":
+            path.write_bytes(random.Random(position).randbytes(position % 5000))
+        else:
+            path.write_bytes(b"")
+        return
+    if kind == "zip":
+        what, position = how
+        methods = {"deflated": zipfile.ZIP_DEFLATED, "lzma": zipfile.ZIP_LZMA}
+        method = methods.get(what.split("_")[0], zipfile.ZIP_STORED)
+        if what == "reordered":
+            arrays = dict(reversed(arrays.items()))
+        write_zip(path, list(arrays.items()), method)
+        if what.endswith("flipped"):
+            flip(path, 30 + position % (path.stat().st_size - 30))  # past the first header
+        elif what == "method":
+            set_central_directory(path, 10, "<H", 99)  # a compression method zip lacks
+        elif what == "encrypted":
+            set_central_directory(path, 8, "<H", 1)  # flag bit 0: encrypted
+        return
+    write_zip(path, list(arrays.items()))
+
+
+def readable_as_saved(path: Path, pristine: Path) -> bool | None:
+    """Whether numpy reads ``path`` as the same arrays as ``pristine`` (None: it cannot read it)."""
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            with np.load(path) as damaged, np.load(pristine) as saved:
+                if sorted(damaged.files) != sorted(saved.files):
+                    return False
+                return all(
+                    damaged[k].shape == saved[k].shape
+                    and damaged[k].dtype.kind == saved[k].dtype.kind
+                    and np.array_equal(damaged[k], saved[k])
+                    for k in saved.files
+                )
+    except Exception:  # noqa: BLE001 - numpy's reader is the yardstick, whatever it raises
+        return None
+
+
+def digest(folder: Path) -> str:
+    """Hash of every file's path and bytes below ``folder``, but a re-evaluation's metrics."""
+    h = hashlib.sha256()
+    for path in sorted(p for p in folder.rglob("*") if p.is_file() and p.name != EVAL_METRICS):
+        h.update(str(path.relative_to(folder)).encode() + b"\0" + path.read_bytes())
+    return h.hexdigest()
+
+
+@pytest.fixture(scope="module")
+def undamaged(es_runs, tmp_path_factory) -> dict[str, dict]:
+    """What evaluating each ES run and starting a run from it (``init=``) give, undamaged."""
+    results = {}
+    for learner in es_runs:
+        run_dir = copy_run(es_runs, learner, tmp_path_factory.mktemp("undamaged"))
+        results[learner] = {
+            "evaluate": evaluation(evaluate_checkpoint(run_dir)),
+            "init": without_timings(started_from(learner, run_dir, run_dir.parent / "init")),
+        }
+    return results
+
+
+def evaluation(metrics: dict) -> dict:
+    return {k: v for k, v in metrics.items() if k != "checkpoint"}  # the run dir evaluated
+
+
+def started_from(learner: str, source: Path, run_dir: Path) -> dict:
+    overrides = NET_ES if learner == "net_es" else RESERVE_ES
+    try:
+        return train(compose_config([*overrides, f"init={source}"]), run_dir=run_dir)
+    finally:
+        HydraConfig.instance().cfg = None
+
+
+def refused_or_undamaged(call, path: Path, same: bool | None, expected: dict) -> str:
+    """``call()`` ends as the undamaged state's (when the damage changed nothing numpy reads)
+    or is refused in one short line naming the file."""
+    try:
+        result = call()
+    except NonFiniteState as err:  # init=: a state within its ranges whose ES step leaves them
+        assert_one_line(str(err), "ES step", "training stopped")
+        return "stopped"
+    except UserError as err:
+        assert_one_line(str(err), str(path))
+        return "refused"
+    assert same is not None, "accepted a file numpy itself cannot read"
+    if same:
+        assert result == expected
+    return "accepted"
+
+
+def test_fuzz_es_state_through_evaluate_and_init(es_runs, undamaged, tmp_path_factory):
+    """A damaged ``learner/<learner>.npz``: evaluated and started from (``init=``) as the
+    undamaged file is when the damage changes nothing numpy reads, else refused naming the file
+    by both; the fuzz saw both outcomes. The examples are what the fuzz found: each was a
+    traceback, a warning or a message naming the folder, not the file."""
+    outcomes = collections.Counter()
+
+    @FUZZ
+    @given(learner=st.sampled_from(["net_es", "reserve_es"]), damage=DAMAGES)
+    @example("net_es", ("steps", 2**63 - 1))  # OverflowError saving the next step's count
+    @example("reserve_es", ("steps", 2**64 - 1))  # as uint64: the same
+    @example("net_es", ("zip", "deflated_flipped", 9))  # zlib.error
+    @example("net_es", ("zip", "lzma_flipped", 11))  # LZMAError
+    @example("reserve_es", ("zip", "method", 0))  # NotImplementedError, naming the folder only
+    @example("net_es", ("zip", "encrypted", 0))  # RuntimeError, naming the folder only
+    @example("net_es", ("dtype", "theta", "float16"))  # RuntimeWarning of the range check
+    def one_case(learner, damage):
+        run_dir = copy_run(es_runs, learner, tmp_path_factory.mktemp("fuzz"))
+        path = state_path(run_dir, learner)
+        damage_state(path, damage)
+        same = readable_as_saved(path, state_path(es_runs[learner], learner))
+        expected, init_dir = undamaged[learner], run_dir.parent / "init"
+        before = digest(run_dir)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", RuntimeWarning)  # no numpy overflow chatter either
+            evaluated = refused_or_undamaged(
+                lambda: evaluation(evaluate_checkpoint(run_dir)),
+                path,
+                same,
+                expected["evaluate"],
+            )
+            started = refused_or_undamaged(
+                lambda: without_timings(started_from(learner, run_dir, init_dir)),
+                path,
+                same,
+                expected["init"],
+            )
+        assert digest(run_dir) == before, "the damaged run dir changed"
+        if evaluated == "refused":  # the same checks guard both paths, before any output
+            assert started == "refused", damage
+            assert not init_dir.exists() and not (run_dir / EVAL_METRICS).exists()
+        outcomes[evaluated] += 1
+
+    one_case()
+    assert outcomes["refused"] >= 8 and outcomes["accepted"] >= 2, outcomes
+
+
+def test_a_state_that_does_not_decompress_is_one_line_from_the_evaluate_script(es_runs, tmp_path):
+    """What the fuzz found, as a user meets it: a traceback of zlib before, one line now."""
+    run_dir = copy_run(es_runs, "net_es", tmp_path)
+    path = state_path(run_dir, "net_es")
+    damage_state(path, ("zip", "deflated_flipped", 9))
+    before = digest(run_dir)
+    proc = script("evaluate.py", f"checkpoint={run_dir}")
+    _, err = proc.communicate(timeout=300)
+    assert_user_error(proc.returncode, err, str(path), "truncated or damaged")
+    assert_one_line(err)
+    assert digest(run_dir) == before

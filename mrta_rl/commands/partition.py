@@ -12,7 +12,7 @@ import json
 from typing import Any
 
 import hydra
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from mrta_rl.commands import use_team_files
 from mrta_rl.conf_paths import conf_dir
@@ -26,7 +26,7 @@ from mrta_rl.systems import RobotSystem
 @cli.job
 def _task(cfg: DictConfig) -> None:
     args = check_partition_config(cfg)
-    system = _team(OmegaConf.to_container(cfg.system, resolve=True))
+    system = _team(args["system"])
     partition = subg_partition(system, args["max_group_size"])
     if args["format"] == "json":
         print(json.dumps(partition.to_json()))

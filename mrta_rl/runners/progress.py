@@ -18,7 +18,6 @@ import logging
 import sys
 import time
 from collections.abc import Callable, Mapping
-from datetime import timedelta
 from types import TracebackType
 from typing import Any
 
@@ -30,6 +29,17 @@ REDRAW_TERMINAL_S = 0.1  # tqdm's default on a terminal
 REDRAW_LOG_S = 15.0  # in a log file or a pipe every redraw is a new line: a few per minute
 LOG_EVERY_S = 30.0  # seconds between log lines when the caller gives no train.log_every_s
 CLOCK: Callable[[], float] = time.monotonic  # the lines' clock (tests put a fake one here)
+
+
+def _hours(seconds: float) -> str:
+    """``H:MM:SS``, the hours counted on past a day (``230:04:25``) as tqdm's bar shows them.
+
+    Any number of seconds: ``datetime.timedelta`` overflows past a billion days (the time left
+    of a run of 2**62 episodes).
+    """
+    minutes, secs = divmod(round(seconds), 60)
+    hours, minutes = divmod(minutes, 60)
+    return f"{hours}:{minutes:02d}:{secs:02d}"
 
 
 class ProgressLog:
@@ -93,7 +103,7 @@ class ProgressLog:
         episodes = f"{self.n // self.episode_units}/{self.total // self.episode_units}"
         parts = [f"episode {episodes}", f"return {self._postfix.get('return', '-')}"]
         parts += [f"{k} {v}" for k, v in self._postfix.items() if k != "return"]
-        left = timedelta(seconds=round((self.total - self.n) / rate)) if rate > 0 else "?"
+        left = _hours((self.total - self.n) / rate) if rate > 0 else "?"
         parts += [f"{rate:.0f} {self.unit}/s", f"{left} left"]
         return f"{self.desc}: {', '.join(parts)}"
 

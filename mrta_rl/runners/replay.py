@@ -320,11 +320,15 @@ def read_replay(
     for team, (rows, written) in expected.items():
         entry = stored[team]
         where = f"transitions.{team}"
-        if not isinstance(entry, dict) or set(entry) != {"rows", "written"}:
+        if not isinstance(entry, dict):
             raise RunDirError(f"{path}: {where}: expected the keys rows, written")
-        if entry["written"] != written:
+        for name in {"rows", "written"} ^ set(entry):
+            fault = "unknown key" if name in entry else "missing"
+            raise RunDirError(f"{path}: {where}.{name}: {fault} (expected the keys rows, written)")
+        if not isinstance(entry["written"], int) or entry["written"] != written:
             raise RunDirError(f"{path}: {where}.written: {entry['written']}, expected {written}")
-        out[team] = (_check_rows(entry["rows"], layouts[team], rows, path, where), written)
+        checked = _check_rows(entry["rows"], layouts[team], rows, path, f"{where}.rows")
+        out[team] = (checked, written)
     return out, rng
 
 

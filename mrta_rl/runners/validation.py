@@ -177,10 +177,12 @@ PARTITION_FORMAT = Annotated[str, Choices("table", "json")]
 
 
 def check_partition_config(cfg: DictConfig) -> dict[str, Any]:
-    """The checked arguments of ``mrta-partition`` (``conf/partition.yaml``) besides the system.
+    """The checked arguments of ``mrta-partition`` (``conf/partition.yaml``), the system as data.
 
     Returns:
-        ``{"format": "table" | "json", "max_group_size": int | None}``.
+        ``{"format": "table" | "json", "max_group_size": int | None, "system": ...}``: the
+        system config as plain Python, its interpolations resolved (the team is checked by
+        :func:`checked_team`).
 
     Raises:
         ConfigError: naming the argument (``partition.max_group_size: ...``, ``format: ...``).
@@ -190,7 +192,11 @@ def check_partition_config(cfg: DictConfig) -> dict[str, Any]:
         _check(key in {*known, "hydra"}, f"{key}: unknown setting (known: {', '.join(known)})")
     output = check_value("format", _plain(cfg, "format"), PARTITION_FORMAT)
     bound = check_fields(PartitionSettings, _plain(cfg, "partition") or {}, "partition")
-    return {"format": output, "max_group_size": bound.get("max_group_size")}
+    return {
+        "format": output,
+        "max_group_size": bound.get("max_group_size"),
+        "system": _plain(cfg, "system"),
+    }
 
 
 def check_streams(train: dict[str, Any], evaluation: dict[str, Any]) -> None:

@@ -11,6 +11,7 @@ System-I and II). Training episode ``e`` (1, 2, ...) plays team ``e``; the run i
 
 from __future__ import annotations
 
+import reprlib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -18,7 +19,12 @@ from typing import Any
 import numpy as np
 
 from mrta_rl.config import short_list
-from mrta_rl.systems.robot_system import RobotSystem, SystemConfigError, random_system
+from mrta_rl.systems.robot_system import (
+    RobotSystem,
+    SystemConfigError,
+    env_parameters,
+    random_system,
+)
 
 EVAL_TEAM = 0  # the team a family run is evaluated on; training episode e plays team e >= 1
 FAMILY_KEYS = {"name", "family", "seed", "scale_auction", "env"}  # keys of a family config
@@ -77,6 +83,11 @@ class TeamFamily:
             object.__setattr__(self, key, tuple(value))
         if not (isinstance(self.seed, int) and not isinstance(self.seed, bool) and self.seed >= 0):
             raise SystemConfigError(f"system {self.name!r}: seed must be an integer >= 0")
+        if not isinstance(self.scale_auction, bool):
+            raise SystemConfigError(
+                f"system {self.name!r}: scale_auction must be true or false, "
+                f"got {reprlib.repr(self.scale_auction)}"
+            )
 
     @property
     def largest(self) -> tuple[int, int]:
@@ -139,7 +150,7 @@ def build_family(cfg: Mapping[str, Any]) -> TeamFamily | None:
     return TeamFamily(
         **{key: ranges[key] for key in RANGES if key in ranges},
         seed=cfg.get("seed", 0),
-        scale_auction=bool(cfg.get("scale_auction", True)),
+        scale_auction=cfg.get("scale_auction", True),
         name=name,
-        env=dict(cfg.get("env") or {}),
+        env=env_parameters(name, cfg.get("env")),
     )

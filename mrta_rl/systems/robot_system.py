@@ -23,6 +23,7 @@ natural order of their names (digits compared as numbers: ``T2`` before ``T10``)
 from __future__ import annotations
 
 import re
+import reprlib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
@@ -222,7 +223,25 @@ class RobotSystem:
             for task, d in pairs.items():
                 willingness[i, column[task]] = d
         durations = {t: _parse_durations(t, spec) for t, spec in durations_cfg.items()}
-        return cls(name, tuple(entries), names, willingness, durations, dict(env or {}))
+        return cls(name, tuple(entries), names, willingness, durations, env_parameters(name, env))
+
+
+def env_parameters(name: str, env: Any) -> dict[str, Any]:
+    """A system's ``env:`` block as a dict (empty when absent), refused unless it is a mapping.
+
+    Its keys and values are checked with the run's (``runners/validation.py``, ``team_params``).
+
+    Raises:
+        SystemConfigError: naming the system and ``env``.
+    """
+    if env is None:
+        return {}
+    if not isinstance(env, Mapping):
+        raise SystemConfigError(
+            f"system {name!r}: env must be a mapping of env parameters (env: {{horizon: 200}}), "
+            f"got {reprlib.repr(env)}"
+        )
+    return dict(env)
 
 
 def _parse_durations(task: str, spec: Any) -> dict[str, DurationRange]:
@@ -304,7 +323,8 @@ def random_system(
     robots = tuple(f"R{i + 1}" for i in range(n_robots))
     tasks = tuple(f"T{j + 1}" for j in range(n_task_types))
     scaled = auction_for_team(n_robots) if scale_auction else {}
-    return RobotSystem(name, robots, tasks, rtm.astype(np.float64), {}, scaled | dict(env or {}))
+    overrides = scaled | env_parameters(name, env)
+    return RobotSystem(name, robots, tasks, rtm.astype(np.float64), {}, overrides)
 
 
 # System-I and II (paper Tables 1-2): 10 robots, spec defaults slots = 3, queue_capacity = 32,

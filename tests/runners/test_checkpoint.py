@@ -585,10 +585,12 @@ REPLAY_DAMAGES = ("none", "empty", "drop", "extra", "retype", "reshape", "nan", 
 
 
 def tensor_values(tree: dict) -> list[torch.Tensor]:
+    """The tensors of a nested dict (a replay file's team keys hold rows and a count)."""
     return [
         v
         for value in tree.values()
         for v in (tensor_values(value) if isinstance(value, dict) else [value])
+        if isinstance(v, torch.Tensor)
     ]
 
 
@@ -624,8 +626,10 @@ def damage_replay(path: Path, damage: str, data) -> str | None:
     targets = {
         "drop": [("torch_rng",), ("transitions",), *leaves],
         "retype": [("torch_rng",), ("transitions",), *leaves],
-        "reshape": [("torch_rng",), *leaves],
-        "nan": [key for key in leaves if value(key).is_floating_point()],
+        "reshape": [("torch_rng",), *(k for k in leaves if isinstance(value(k), torch.Tensor))],
+        "nan": [
+            k for k in leaves if isinstance(value(k), torch.Tensor) and value(k).is_floating_point()
+        ],
     }.get(damage, [("extra",)])
     key = data.draw(st.sampled_from(targets), label="key")
     *parents, name = key

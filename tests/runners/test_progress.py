@@ -146,6 +146,25 @@ def test_the_rate_leaves_out_the_first_tick(caplog):
     assert left == str(timedelta(seconds=round((1000 - 301) * 0.1)))  # 0:01:10
 
 
+def test_the_time_left_of_any_run_is_hours_minutes_and_seconds(caplog):
+    """A run of 2**62 episodes at 10 ticks/s: its hours counted on, past what a timedelta
+    holds (a billion days)."""
+    clock = FakeClock()
+    log = ProgressLog(
+        total=2**62, unit="tick", desc="train dql", every_s=30, episode_units=1, clock=clock
+    )
+    caplog.set_level(logging.INFO, logger="mrta_rl.runners.progress")
+    clock.now += 60.0
+    log.update(1)
+    for _ in range(400):
+        clock.now += 0.1
+        log.update(1)
+    left = LINE.match(caplog.records[-1].getMessage()).group(7)  # the line of tick 301
+    hours, minutes, seconds = map(int, left.split(":"))
+    assert minutes < 60 and seconds < 60
+    assert hours == pytest.approx(2**62 / 10 / 3600, rel=1e-6)  # 1.3e14 hours
+
+
 def test_the_bar_rate_leaves_out_the_first_tick():
     """The tqdm bar's rate and time left too (here: 10 ticks in 1 s after a first tick of 60 s)."""
     bar = progress_bar(total=1000, unit="tick", desc="x", enabled=True, file=io.StringIO())

@@ -47,6 +47,8 @@ LEARNERS = sorted(p.stem for p in (ROOT / "conf" / "learner").glob("*.yaml"))
         (["learner=vdn", "learner.loss_function=foo"], "learner.loss_function: must be one of"),
         (["learner=subg_cql", "learner.alpha=fast"], "learner.alpha: must be a number"),
         (["learner=greedy", "env.horizon=abc"], "env.horizon: must be an integer >= 1, got 'abc'"),
+        (["learner=dql", f"learner.alpha={'1' * 400}"], r"learner.alpha: must be a number in"),
+        (["learner=greedy", f"train.episodes={2**63}"], r"train.episodes: .* 64 bits hold\)"),
     ],
 )
 def test_nonsense_hyperparameters_are_refused_naming_the_key(overrides, message, compose_cfg):

@@ -115,6 +115,13 @@ def test_labelled_system_trains_and_reports_by_name(compose_cfg, tmp_path):
     assert sorted(t for g in groups.values() for t in g["types"]) == ["T99", "pick"]
 
 
+@pytest.mark.parametrize("env", [[1, 2], "ab", 5])
+@pytest.mark.parametrize("form", [{"robots": {"R1": ["T1"]}}, {"n_robots": 3}])
+def test_an_env_block_that_is_not_a_mapping_is_named(form, env):
+    with pytest.raises(SystemConfigError, match="system 'x': env must be a mapping"):
+        build_system({"name": "x", **form, "env": env})
+
+
 def test_unknown_top_level_key_is_named():
     with pytest.raises(SystemConfigError, match="unknown keys \\['robot'\\]"):
         build_system({"name": "x", "robots": {"R1": ["T1"]}, "robot": 3})

@@ -91,6 +91,8 @@ STATE_FILE = "reserve_es.npz"
 # the bias is 1, so a weight of 1e9 already outweighs any other; larger ones only overflow.
 # Adam moves a weight by at most about 3.2 lr a step, so training never comes near it.
 MAX_WEIGHT = 1e9
+# the most ES steps a state may count: the count is saved as an int64 and grows by one a step
+MAX_STEPS = 2**62
 
 
 def start_theta(reserve: int, hold_level: int) -> np.ndarray:
@@ -357,8 +359,8 @@ class ReserveESLearner(Learner):
 
         ``theta`` and Adam's moments ``adam_m``, ``adam_v`` are real floats of the weights' shape
         (the rule's weights, then a subclass's), finite, within :data:`MAX_WEIGHT` (``adam_v``,
-        a mean of squared gradients: >= 0, within its square); ``steps`` an integer >= 0;
-        ``features`` the names of the weights (:attr:`weight_names`).
+        a mean of squared gradients: >= 0, within its square); ``steps`` an integer in
+        [0, :data:`MAX_STEPS`]; ``features`` the names of the weights (:attr:`weight_names`).
         """
         weights = self.theta.shape
         moment = "Adam's {} moment of the weights"
@@ -368,7 +370,7 @@ class ReserveESLearner(Learner):
             "adam_v": ArraySpec(
                 weights, low=0.0, magnitude=MAX_WEIGHT**2, meaning=moment.format("second")
             ),
-            "steps": ArraySpec((), kinds="iu", low=0, meaning="ES steps made"),
+            "steps": ArraySpec((), kinds="iu", low=0, magnitude=MAX_STEPS, meaning="ES steps made"),
             "features": ArraySpec(
                 (len(self.weight_names),),
                 kinds="U",
