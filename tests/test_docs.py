@@ -210,3 +210,54 @@ def test_a_broken_link_fails_the_site_build(tmp_path):
     result = mkdocs_build(tmp_path / "mkdocs.yml", tmp_path / "site")
     assert result.returncode != 0
     assert "gone.md" in result.stderr and "nowhere" in result.stderr
+
+
+# ------------------------------------------------------------------ the tables of learners
+def marked_pages() -> list[Path]:
+    from mrta_rl.learners.catalog import TABLE_START
+
+    return [p for p in MARKDOWN if TABLE_START in p.read_text()]
+
+
+def test_the_tables_of_learners_are_built_from_the_registry():
+    """Every marked table is the registry's (python scripts/learner_table.py rewrites them)."""
+    from mrta_rl.learners.catalog import learner_table, with_learner_table
+    from mrta_rl.learners.registry import learner_files
+
+    pages = marked_pages()
+    assert {ROOT / "docs" / "index.md", ROOT / "docs" / "guide" / "train.md"} <= set(pages)
+    table = learner_table()
+    for name in learner_files():  # mappo, ippo, net_es, ... every yaml of conf/learner/
+        assert f"\n| `{name}` |" in table, name
+    stale = [
+        str(p.relative_to(ROOT))
+        for p in pages
+        if with_learner_table(p.read_text(), table) != p.read_text()
+    ]
+    assert stale == [], "run python scripts/learner_table.py"
+
+
+def test_a_learner_added_to_the_search_path_makes_the_tables_stale(tmp_path):
+    from mrta_rl.learners.catalog import learner_table, with_learner_table
+
+    (tmp_path / "learner").mkdir()
+    (tmp_path / "learner" / "toy.yaml").write_text(
+        "_target_: tests.plugins.toy_learner.ToyLearner\n_partial_: true\n"
+    )
+    table = learner_table([tmp_path])
+    assert "| `toy` | Toy bidder | tabular | numpy loop | no | Per-robot bid rate," in table
+    page = (ROOT / "docs" / "guide" / "train.md").read_text()
+    assert with_learner_table(page, table) != page
+    with pytest.raises(ValueError, match="without its"):
+        with_learner_table(table.rpartition("\n")[0], table)  # a start marker and no end
+
+
+@pytest.mark.parametrize("page, kind", [("learners.md", "tabular"), ("neural.md", "neural")])
+def test_each_family_page_has_a_row_for_every_learner_of_its_kind(page, kind):
+    """docs/learners.md and docs/neural.md describe every learner of their kind in a table."""
+    from mrta_rl.learners.registry import learner_files, learner_named
+
+    text = (ROOT / "docs" / page).read_text()
+    rows = set(re.findall(r"^\| `(\w+)` \|", text, flags=re.MULTILINE))
+    of_kind = {n for n in learner_files() if learner_named(n).kind == kind}
+    assert sorted(of_kind - rows) == []

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import json
+import re
 import struct
 import time
 from pathlib import Path
@@ -125,3 +126,15 @@ def test_a_run_left_open_does_not_block_the_next(compose_cfg, tmp_path):
         (meta,) = (tmp_path / name / "mlruns").glob("*/*/meta.yaml")
         assert "status: 3" in meta.read_text(), name  # MLflow's RunStatus.FINISHED
         assert (meta.parent / "tags" / "mlflow.runName").read_text() == name  # the run dir's
+
+
+def test_the_loggers_page_names_keys_the_tracker_receives(compose_cfg, tmp_path):
+    """Every final-metric key docs/guide/loggers.md names is a scalar of the tracker's run."""
+    page = (Path(__file__).resolve().parents[2] / "docs" / "guide" / "loggers.md").read_text()
+    named = set(re.findall(r"`((?:eval|baseline_greedy)/[\w/]+)`", page))
+    assert named, "the page names the final metrics' keys"
+    cfg = compose_cfg(["learner=greedy", "system=system1", "debug=smoke", "logger=csv"])
+    train(cfg, run_dir=tmp_path)
+    scalars = tmp_path / "torchrl" / "train" / "scalars"
+    logged = {str(p.relative_to(scalars).with_suffix("")) for p in scalars.rglob("*.csv")}
+    assert sorted(named - logged) == []
