@@ -162,26 +162,6 @@ class EpisodeSummary:
             "return_by_type": {t: _json(v) for t, v in self.return_by_type.items()},
         }
 
-    def flat(self, prefix: str) -> dict[str, float]:
-        """Slash-namespaced scalars for loggers: ``{prefix}/ctr/T1_H``, ``{prefix}/itr/R3``, ...
-
-        Args:
-            prefix: Namespace, e.g. ``"eval"``.
-
-        Returns:
-            Flat mapping of metric key to value (NaN kept).
-        """
-        out = {
-            f"{prefix}/team_return_mean": self.team_return_mean,
-            f"{prefix}/team_return_std": self.team_return_std,
-        }
-        for task, by_priority in self.ctr.items():
-            out.update({f"{prefix}/ctr/{task}_{p}": v for p, v in by_priority.items()})
-        out.update({f"{prefix}/ctr/{p}": v for p, v in self.ctr_overall.items()})
-        out.update({f"{prefix}/itr/{r}": v for r, v in self.itr.items()})
-        out.update({f"{prefix}/return/{t}": v for t, v in self.return_by_type.items()})
-        return out
-
 
 def summarize(
     snapshots: Sequence[EpisodeStats],

@@ -106,9 +106,6 @@ def test_json_and_table_show_missing_ctr():
     assert format_percent(summary.ctr["T2"]["H"]) == "-"
     assert format_percent(None) == "-"
     assert format_percent(summary.ctr["T1"]["L"]) == "80.0"
-    flat = summary.flat("eval")
-    assert flat["eval/ctr/T1_H"] == pytest.approx(75.0)
-    assert flat["eval/itr/R2"] == pytest.approx(100 / 3)
 
 
 def test_bad_input_is_a_clear_error():

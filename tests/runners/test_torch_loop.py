@@ -2,10 +2,6 @@
 
 from __future__ import annotations
 
-import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -138,37 +134,3 @@ def test_an_on_policy_buffer_takes_each_epoch_in_one_permutation():
     torch.manual_seed(1)
     [torch.randperm(6) for _ in range(2)]
     assert torch.equal(after, torch.rand(1))  # no third order drawn
-
-
-def test_a_torch_learner_from_a_user_module_and_yaml_trains_through_the_torch_loop(tmp_path):
-    """One module (tests/plugins/toy_torch_learner.py) and one yaml: trained, saved, evaluated."""
-    folder = tmp_path / "my_conf" / "learner"
-    folder.mkdir(parents=True)
-    (folder / "toy_pg.yaml").write_text(
-        "_target_: tests.plugins.toy_torch_learner.ToyGradientLearner\n_partial_: true\n"
-        "ticks: 10\nhidden: 16\ndepth: 1\nlr: 0.001\ngamma: 0.95\nreward_scale: 0.1\n"
-        "auction_prior: 1.0\nfeatures: paper\nmax_grad_norm: 10.0\ndevice: cpu\n"
-    )
-    run_dir = tmp_path / "run"
-    env = {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR"}
-    env["PYTHONPATH"] = str(ROOT)
-    done = subprocess.run(
-        [
-            sys.executable,
-            str(ROOT / "scripts" / "train.py"),
-            "--config-dir",
-            str(tmp_path / "my_conf"),
-        ]
-        + ["learner=toy_pg", "system=system1", "debug=smoke", f"hydra.run.dir={run_dir}"],
-        cwd=ROOT,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
-    assert done.returncode == 0, done.stderr[-3000:]
-    metrics = json.loads((run_dir / "metrics.json").read_text())
-    assert metrics["learner"] == {"name": "toy_pg", "label": "Toy gradient", "kind": "neural"}
-    # 2 episodes x 50 ticks x 4 copies, one step per batch of 10 ticks
-    assert metrics["train"]["env_ticks"] == 400 and metrics["train"]["gradient_steps"] == 10
-    assert (run_dir / "learner" / "weights.pt").is_file()
