@@ -179,13 +179,13 @@ class PPOLearner(SetNetworkOption, TorchLearner, abstract=True):
     def __init__(
         self,
         *,
-        lmbda: Annotated[float, Range(0, 1)] = 0.95,
-        clip_epsilon: Annotated[float, Range(0, 1, low_open=True)] = 0.2,
-        entropy_coeff: Annotated[float, Range(0)] = 0.01,
-        critic_coeff: Annotated[float, Range(0, low_open=True)] = 1.0,
-        frames_per_batch: Annotated[int, Range(1)] = 2_400,
-        epochs: Annotated[int, Range(1)] = 4,
-        minibatch_size: Annotated[int, Range(1)] = 1_200,
+        lmbda: Annotated[float, Range(0, 1)],
+        clip_epsilon: Annotated[float, Range(0, 1, low_open=True)],
+        entropy_coeff: Annotated[float, Range(0)],
+        critic_coeff: Annotated[float, Range(0, low_open=True)],
+        frames_per_batch: Annotated[int, Range(1)],
+        epochs: Annotated[int, Range(1)],
+        minibatch_size: Annotated[int, Range(1)],
         **settings: Any,
     ) -> None:
         """Build actor, critic, loss (with ``MultiAgentGAE``) and optimiser.

@@ -164,11 +164,11 @@ class SetNetwork(nn.Module):
     def __init__(
         self,
         *,
-        embed_dim: int = 64,
-        heads: int = 4,
-        layers: int = 2,
-        max_task_types: int = 32,
-        robot_attention: Literal["full", "pooled"] = "full",
+        embed_dim: int,
+        heads: int,
+        layers: int,
+        max_task_types: int,
+        robot_attention: Literal["full", "pooled"],
         device: torch.device | str | None = None,
     ) -> None:
         super().__init__()
@@ -341,12 +341,12 @@ class SetNetworkOption:
     def __init__(
         self,
         *,
-        network: Annotated[str, Choices(*NETWORKS)] = "mlp",
-        embed_dim: Annotated[int, Range(1)] = 32,
-        heads: Annotated[int, Range(1)] = 4,
-        layers: Annotated[int, Range(1)] = 1,
-        max_task_types: Annotated[int, Range(1)] = 32,
-        robot_attention: Annotated[str, Choices(*ROBOT_ATTENTION)] = "full",
+        network: Annotated[str, Choices(*NETWORKS)],
+        embed_dim: Annotated[int, Range(1)],
+        heads: Annotated[int, Range(1)],
+        layers: Annotated[int, Range(1)],
+        max_task_types: Annotated[int, Range(1)],
+        robot_attention: Annotated[str, Choices(*ROBOT_ATTENTION)],
         **settings: Any,
     ) -> None:
         """Check the set network's settings against the team, then build as the learner.

@@ -164,11 +164,11 @@ class ReserveESLearner(Learner):
     def __init__(
         self,
         *,
-        pairs: Annotated[int, Range(1)] = 12,
-        sigma: Annotated[float, Range(0, low_open=True)] = 0.3,
-        lr: Annotated[float, Range(0, low_open=True)] = 0.15,
-        reserve: Annotated[int, Range(0, 2)] = 0,
-        hold_level: Annotated[int, Range(0, N_RECENCY_LEVELS)] = 1,
+        pairs: Annotated[int, Range(1)],
+        sigma: Annotated[float, Range(0, low_open=True)],
+        lr: Annotated[float, Range(0, low_open=True)],
+        reserve: Annotated[int, Range(0, 2)],
+        hold_level: Annotated[int, Range(0, N_RECENCY_LEVELS)],
         **kwargs: Any,
     ) -> None:
         super().__init__(**kwargs)

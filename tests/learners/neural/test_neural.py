@@ -255,7 +255,7 @@ def test_qmix_mixes_a_bool_state_as_its_float_values(system):
 
 
 def test_qmix_refuses_to_store_a_state_that_is_not_binary(system):
-    learner, env = make(QMIXLearner, system, batch=2)
+    learner, env = make(QMIXLearner, system, batch=2, features="paper")
     view = AuctionTorchRLEnv(env, group_map=learner.group_map, prior=learner.rule)
     data = view.rollout(3, learner.collection_policy)  # [B, T]
     data.set("state", data.get("state") * 0.5)
@@ -313,7 +313,7 @@ def test_checkpoint_of_other_features_is_refused(system, tmp_path):
     learner.save(tmp_path)
     make(QMIXLearner, system, seed=3, features=TTF)[0].load(tmp_path)
     with pytest.raises(ValueError, match="trained with features=time_to_free"):
-        make(QMIXLearner, system)[0].load(tmp_path)
+        make(QMIXLearner, system, features="paper")[0].load(tmp_path)
 
 
 @pytest.mark.parametrize("key", ["class", "group_map", "inputs", "hyperparameters"])
