@@ -54,7 +54,7 @@ from torchrl.envs.utils import ExplorationType, exploration_type
 from torchrl.modules import QValueModule
 from torchrl.objectives import HardUpdate, LossModule, SoftUpdate
 
-from mrta_rl.config import Choices, Range
+from mrta_rl.config import Choices, ConfigError, Range
 from mrta_rl.envs import AuctionEnv
 from mrta_rl.envs.torchrl_env import GROUP_SET_KEYS, PRIOR_KEY, ROOT_SET_KEYS
 from mrta_rl.learners.base import MemoryQuery
@@ -183,6 +183,30 @@ class QLearner(TorchLearner, abstract=True):
             state_bytes=cls.replay_state_bytes,
         )
 
+    @classmethod
+    def check_settings(
+        cls,
+        settings: Mapping[str, Any],
+        env: AuctionEnv,
+        partition: Partition | None,
+        copies: int,
+    ) -> None:
+        """Refuse ``eps_end`` above ``eps_start``, and ``prior_in_state`` without the hold prior.
+
+        Raises:
+            ConfigError: naming the settings.
+        """
+        super().check_settings(settings, env, partition, copies)
+        if settings["eps_end"] > settings["eps_start"]:
+            raise ConfigError(
+                f"learner.eps_end: {settings['eps_end']} is above learner.eps_start "
+                f"{settings['eps_start']} (epsilon decays from eps_start to eps_end)"
+            )
+        if settings["prior_in_state"] and settings["prior"] != "hold":
+            raise ConfigError(
+                "learner.prior_in_state: needs prior=hold (the plain auction is no input)"
+            )
+
     def __init__(
         self,
         *,
@@ -231,13 +255,10 @@ class QLearner(TorchLearner, abstract=True):
             **settings: Env, generator, partition and the settings of :class:`TorchLearner`.
 
         Raises:
-            ValueError: on settings that contradict each other, or an unavailable device.
+            ConfigError: on settings that contradict each other (:meth:`check_settings`).
+            ValueError: on an unavailable device.
         """
-        # types and ranges: the annotations (mrta_rl.config); here only relations
-        if eps_end > eps_start:
-            raise ValueError(f"need eps_end <= eps_start, got {eps_end}, {eps_start}")
-        if prior_in_state and prior != "hold":
-            raise ValueError("prior_in_state needs prior=hold (the plain auction is no input)")
+        # types and ranges: the annotations (mrta_rl.config); relations: check_settings
         self.egreedy: list[EpsilonGreedy] = []  # the exploration rates (anneal, checkpoints)
         super().__init__(**settings)
         self.rule: Prior = self._prior(self.env)

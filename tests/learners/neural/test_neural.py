@@ -349,7 +349,7 @@ def test_time_to_free_run_evaluates_again_from_its_checkpoint(compose_cfg, tmp_p
 def test_hold_prior_settings_are_checked(system):
     with pytest.raises(ValueError, match="prior: must be one of"):
         make(QMIXLearner, system, prior="spread_wait")
-    with pytest.raises(ValueError, match="prior_in_state needs prior=hold"):
+    with pytest.raises(ValueError, match="prior_in_state: needs prior=hold"):
         make(VDNLearner, system, prior_in_state=True)
     with pytest.raises(ValueError, match="prior_reserve"):
         make(QMIXLearner, system, prior="hold", prior_reserve=-1)
