@@ -20,20 +20,24 @@ parameters and active tasks) and reads ``B`` from the arrays it passes.
 
 from __future__ import annotations
 
+import functools
 import inspect
-from abc import ABC, abstractmethod
+from abc import ABCMeta, abstractmethod
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, ClassVar, Literal
 
 import numpy as np
 
+from mrta_rl.checked_files import read_yaml
+from mrta_rl.conf_paths import learner_block, learner_files, learner_settings
 from mrta_rl.config import (
     RUNNER_ARGUMENTS,
     ConfigError,
     UserError,
     check_keywords,
     declared_keywords,
+    short_list,
 )
 from mrta_rl.envs import AuctionEnv, StepResult
 from mrta_rl.learners.resources import MemoryQuery, ResourceEstimate
@@ -83,14 +87,63 @@ class NonFiniteState(UserError):
 FACTS = ("kind", "training_loop", "estimate_memory", "learning_space_dimension")
 
 
-class Learner(ABC):
+@functools.cache
+def _yaml_defaults(target: str) -> tuple[Path | None, dict[str, Any]]:
+    """The shipped learner file whose own ``_target_`` is ``target``, and its settings.
+
+    A file that extends another (its defaults list) is the class's only if it names the class
+    itself; its settings are then those it composes (``conf_paths.learner_block``).
+
+    Raises:
+        ConfigError: naming the files, if more than one names the class.
+    """
+    files = learner_files()
+    own = [name for name, path in files.items() if _own_target(path) == target]
+    if len(own) > 1:
+        names = short_list(f"learner/{name}.yaml" for name in own)
+        raise ConfigError(
+            f"{target}: {names} all name this class, so its defaults are ambiguous: give it "
+            "every setting, or keep one yaml per class"
+        )
+    if not own:
+        return None, {}
+    return files[own[0]], learner_settings(learner_block(own[0], files))
+
+
+def _own_target(path: Path) -> Any:
+    """The ``_target_`` a learner file names itself (None: it names none, or inherits it)."""
+    block = read_yaml(path)
+    return block.get("_target_") if isinstance(block, dict) else None
+
+
+class LearnerType(ABCMeta):
+    """The type of the learner classes: a learner built without some settings takes its yaml's.
+
+    The yaml of ``conf/learner/`` that names a class is the one home of its defaults
+    (:meth:`Learner.defaults`); the class declares each setting, with no default. Calling a
+    class with some settings left out (``QMIXLearner(env=env, rng=rng)``) fills them in from
+    that yaml before ``__new__`` and ``__init__`` run; the runner passes every setting of the
+    run's config, so a run takes exactly its config's values.
+    """
+
+    def __call__(cls, *args: Any, **keywords: Any) -> Any:
+        """Build a learner; the settings not given are its yaml's (:meth:`Learner.defaults`)."""
+        if any(name not in keywords for name in declared_keywords(cls)):
+            keywords = {**cls.defaults(), **keywords}
+        return super().__call__(*args, **keywords)
+
+
+class Learner(metaclass=LearnerType):
     """Base class of every learner; subclasses implement at least :meth:`act`.
 
-    Hyperparameters are typed keyword-only ``__init__`` arguments with defaults, so the signature
-    is the schema of ``conf/learner/<name>.yaml``; ``Annotated`` ranges and choices complete the
-    declaration (``mrta_rl.config``), checked before ``__init__`` runs. A learner with
-    epsilon-greedy exploration exposes its current value as a float attribute ``epsilon``; the
-    runner shows it when present.
+    Hyperparameters are typed keyword-only ``__init__`` arguments without defaults, so the
+    signature is the schema of ``conf/learner/<name>.yaml``; ``Annotated`` ranges and choices
+    complete the declaration (``mrta_rl.config``), checked before ``__init__`` runs. The defaults
+    are the yaml's, its one home (:meth:`defaults`): a learner built in Python with some
+    settings left out takes the yaml's values of those (:class:`LearnerType`). Settings that
+    must agree with each other or with the team are checked by :meth:`check_settings`, which the
+    runner calls before it builds anything. A learner with epsilon-greedy exploration exposes its
+    current value as a float attribute ``epsilon``; the runner shows it when present.
 
     Every concrete learner class answers for its own facts, so that the runner, the memory
     check, the reports and the benchmarks ask the class and keep no list of learners (as
@@ -120,7 +173,7 @@ class Learner(ABC):
         requires_partition: True if the learner needs the subG partition (paper §4); the runner
             then builds the env with ``Lambda_i = partition.active_tasks(system)``.
         any_team: True if the learned state fits any team (see :meth:`bind_env`).
-        hp: The learner's settings, checked, declared defaults filled in (:meth:`__new__`).
+        hp: The learner's settings, checked, the yaml's defaults filled in (:meth:`__new__`).
         env: The env the learner acts in (built by the runner).
         rng: The learner's only source of randomness.
         partition: The subG partition, or None.
@@ -184,6 +237,23 @@ class Learner(ABC):
         """
         return None
 
+    @classmethod
+    def defaults(cls) -> dict[str, Any]:
+        """The default settings of the class: those of its yaml, their one home.
+
+        The yaml is the file of ``conf/learner/`` whose own ``_target_`` names the class (with
+        the learner files it extends); its keys but Hydra's (``_target_``, ``_partial_``,
+        ``defaults``) are the settings. A class no shipped yaml names (a plugin built from
+        Python) has none: it is given every setting.
+
+        Returns:
+            A new dict of the settings (plain yaml values, lists for tuples).
+
+        Raises:
+            ConfigError: if two yamls name the class.
+        """
+        return dict(_yaml_defaults(f"{cls.__module__}.{cls.__qualname__}")[1])
+
     def __new__(cls, *args: Any, **hyperparameters: Any) -> Learner:
         """Check the hyperparameters against their declarations before ``__init__`` runs.
 
@@ -191,31 +261,81 @@ class Learner(ABC):
         each hyperparameter's type and range (``mrta_rl.config``); the runner checks a config
         against them before any work, and this checks a learner built directly in Python.
 
-        The checked settings, declared defaults filled in, become the learner's :attr:`hp`
-        before ``__init__`` runs: one record of what the learner was built with, which its
-        ``save`` writes and its ``load`` compares.
+        The checked settings (the yaml's defaults filled in by :class:`LearnerType`) become the
+        learner's :attr:`hp` before ``__init__`` runs: one record of what the learner was built
+        with, which its ``save`` writes and its ``load`` compares.
 
         Raises:
-            ConfigError: naming the hyperparameter and what it allows.
+            ConfigError: naming the hyperparameter and what it allows, or the class and the
+                settings it was not given and has no default of.
         """
         settings = {k: v for k, v in hyperparameters.items() if k not in RUNNER_ARGUMENTS}
+        hp = cls.complete_settings(check_keywords(cls, settings, cls.__name__))
+        missing = [name for name in declared_keywords(cls) if name not in hp]
+        if missing:
+            path = _yaml_defaults(f"{cls.__module__}.{cls.__qualname__}")[0]
+            where = f"{path} does not set" if path else "no conf/learner yaml names the class for"
+            raise ConfigError(
+                f"{cls.__name__}: missing settings {short_list(missing)} ({where} them; pass "
+                "them as keywords)"
+            )
         learner = super().__new__(cls)
-        learner.hp = cls.complete_settings(check_keywords(cls, settings, cls.__name__))
+        learner.hp = hp
         return learner
 
     @classmethod
     def complete_settings(cls, settings: Mapping[str, Any]) -> dict[str, Any]:
-        """Checked settings with the declared defaults of those they leave out.
+        """Settings with the defaults of those they leave out, in the order of the declaration.
+
+        The defaults are the yaml's (:meth:`defaults`); a plugin class may also declare a
+        default in its signature, which comes last.
 
         Args:
             settings: Checked settings (``check_keywords``), maybe partial.
+
+        Returns:
+            The declared settings that have a value; those that have none are left out.
         """
-        defaults = {
-            name: declared.default
-            for name, declared in declared_keywords(cls).items()
-            if declared.default is not inspect.Parameter.empty
-        }
-        return {**defaults, **settings}
+        declared = declared_keywords(cls)
+        missing = [name for name in declared if name not in settings]
+        yaml = cls.defaults() if missing else {}
+        filled = check_keywords(cls, {k: yaml[k] for k in missing if k in yaml}, cls.__name__)
+        out = {}
+        for name, declaration in declared.items():
+            if name in settings:
+                out[name] = settings[name]
+            elif name in filled:
+                out[name] = filled[name]
+            elif declaration.default is not inspect.Parameter.empty:
+                out[name] = declaration.default
+        return out
+
+    @classmethod  # noqa: B027 - optional hook, deliberately a no-op
+    def check_settings(
+        cls,
+        settings: Mapping[str, Any],
+        env: AuctionEnv,
+        partition: Partition | None,
+        copies: int,
+    ) -> None:
+        """Refuse settings that contradict each other or the team, before anything is built.
+
+        Each setting's own type and range is its declaration's (checked by ``check_keywords``);
+        this checks the relations: between settings (``eps_end <= eps_start``), or between
+        settings and the team or the training copies (a batch of whole ticks of every copy). The
+        runner calls it before it builds the learner (``validate_config``), and
+        :meth:`__init__` calls it for a learner built in Python. Default: nothing to refuse; a
+        subclass adds its checks and calls ``super().check_settings``.
+
+        Args:
+            settings: The learner's settings, defaults filled in (:meth:`complete_settings`).
+            env: An env of the team (the runner's probe: its sizes, not its copies).
+            partition: The subG partition, or None.
+            copies: Training copies ``B``.
+
+        Raises:
+            ConfigError: naming ``learner.<key>`` and what it contradicts.
+        """
 
     def __init__(
         self, *, env: AuctionEnv, rng: np.random.Generator, partition: Partition | None = None
@@ -229,9 +349,12 @@ class Learner(ABC):
 
         Raises:
             ValueError: if the learner requires a partition and none is given.
+            ConfigError: on settings that contradict each other or the team
+                (:meth:`check_settings`).
         """
         if self.requires_partition and partition is None:
             raise ValueError(f"{type(self).__name__} requires a subG partition (paper §4)")
+        type(self).check_settings(self.hp, env, partition, env.batch_size)
         self.env = env
         self.rng = rng
         self.partition = partition

@@ -19,6 +19,7 @@ from mrta_rl import rules
 from mrta_rl.config import Choices
 from mrta_rl.envs import AuctionEnv
 from mrta_rl.learners.base import FixedLearner
+from mrta_rl.partition import Partition
 from mrta_rl.priors import GROUPINGS, HOLD_SCOPES, ORDERS, HoldLevel, Reserve, TeamReserveRule
 
 
@@ -145,11 +146,11 @@ class TeamReserveLearner(FixedLearner):
     def __init__(
         self,
         *,
-        reserve: Reserve = 0,
-        hold_level: HoldLevel = 1,
-        hold_scope: Annotated[str, Choices(*HOLD_SCOPES)] = "group",
-        grouping: Annotated[str, Choices(*GROUPINGS)] = "team",
-        order: Annotated[str, Choices(*ORDERS)] = "fewest_types",
+        reserve: Reserve,
+        hold_level: HoldLevel,
+        hold_scope: Annotated[str, Choices(*HOLD_SCOPES)],
+        grouping: Annotated[str, Choices(*GROUPINGS)],
+        order: Annotated[str, Choices(*ORDERS)],
         **kwargs,
     ) -> None:
         super().__init__(**kwargs)  # types, ranges and choices: the annotations (mrta_rl.config)
@@ -199,12 +200,31 @@ class SubGReserveLearner(TeamReserveLearner):
     Args:
         reserve: Idle robots a group keeps back for H work when bidding for an L task.
         hold_level: L slots wait while the group's recency level is below this (0 = never).
-        **kwargs: Env, generator and partition of :class:`~mrta_rl.learners.base.Learner`.
+        env: The env built on the partition's ``Lambda_i``.
+        rng: Unused (the rule is deterministic).
+        partition: The subG partition (required).
     """
 
     label: ClassVar[str] = "subG-reserve"
     requires_partition: ClassVar[bool] = True
     _rule_name: ClassVar[str] = "subg_reserve"
 
-    def __init__(self, *, reserve: Reserve = 0, hold_level: HoldLevel = 1, **kwargs) -> None:
-        super().__init__(reserve=reserve, hold_level=hold_level, grouping="subg", **kwargs)
+    def __init__(
+        self,
+        *,
+        env: AuctionEnv,
+        rng: np.random.Generator,
+        partition: Partition | None = None,
+        reserve: Reserve,
+        hold_level: HoldLevel,
+    ) -> None:
+        super().__init__(
+            env=env,
+            rng=rng,
+            partition=partition,
+            reserve=reserve,
+            hold_level=hold_level,
+            hold_scope="group",
+            grouping="subg",
+            order="fewest_types",
+        )

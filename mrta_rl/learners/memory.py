@@ -32,7 +32,6 @@ import math
 import os
 from typing import Any
 
-from mrta_rl.config import declared_keywords
 from mrta_rl.envs import AuctionEnv, AuctionParams
 from mrta_rl.envs.encodings import (
     ROBOT_TOKEN_SIZE,
@@ -158,7 +157,7 @@ def estimate_resources(
         system: The robot team.
         params: Dynamics parameters (``slots``, ``horizon`` and ``queue_capacity`` matter).
         partition: The subG partition, for learners that require one (default: computed).
-        hyperparameters: Settings of the learner; the rest take their declared defaults.
+        hyperparameters: Settings of the learner; the rest take its yaml's (``Learner.defaults``).
         batch_size: Training copies (``train.batch_size``), bounds the states met.
         episodes: Training episodes (``train.episodes``), bounds the states met.
         eval_batch_size: Evaluation copies played at once.
@@ -169,8 +168,7 @@ def estimate_resources(
     Raises:
         ValueError: if the parameters pass the env's limits (see :func:`probe_env`).
     """
-    hp = {k: d.default for k, d in declared_keywords(cls).items() if not d.required}
-    hp.update(hyperparameters or {})
+    hp = cls.complete_settings(hyperparameters or {})
     active = None
     if cls.requires_partition:
         partition = partition if partition is not None else subg_partition(system)

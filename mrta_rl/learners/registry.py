@@ -3,48 +3,24 @@
 The learners are the yaml files of the ``learner/`` config group: the shipped ones
 (:func:`~mrta_rl.conf_paths.conf_dir`) and those of any user config dir (Hydra's
 ``--config-dir`` or ``hydra.searchpath``), each naming its class with ``_target_``.
-:func:`learner_files` lists them and :func:`learner_named` imports a class; the validation, the
-benchmarks and the learning space table ask a learner by its name here and keep no list.
+:func:`~mrta_rl.conf_paths.learner_files` lists them and :func:`learner_named` imports a class;
+the validation, the benchmarks and the learning space table ask a learner by its name here and
+keep no list.
 """
 
 from __future__ import annotations
 
 import os
 from collections.abc import Iterable
-from pathlib import Path
 from typing import Any
 
-from mrta_rl.checked_files import read_yaml
-from mrta_rl.conf_paths import conf_dir
+from mrta_rl.conf_paths import learner_block, learner_files, learner_settings
 from mrta_rl.config import UserError, short_list
 from mrta_rl.envs import AuctionEnv, AuctionParams
 from mrta_rl.learners.base import Learner, learner_from_target
 from mrta_rl.metrics.learning_space import TABULAR_LEARNERS, TabularLearnerName
 from mrta_rl.partition import Partition, subg_partition
 from mrta_rl.systems import RobotSystem
-
-
-def learner_files(config_dirs: Iterable[str | os.PathLike] = ()) -> dict[str, Path]:
-    """The learners of the config search path: name (the yaml stem) -> its file.
-
-    Args:
-        config_dirs: User config dirs (``--config-dir``, ``hydra.searchpath``) after the
-            shipped ``conf/``; a learner's name is its file's stem in any ``learner/`` of them.
-
-    Returns:
-        Every learner, sorted by name; where two dirs hold one name, the shipped or the first
-        given file.
-
-    Raises:
-        UserError: if a given config dir does not exist.
-    """
-    files: dict[str, Path] = {}
-    for folder in (conf_dir(), *(Path(d).expanduser() for d in config_dirs)):
-        if not folder.is_dir():
-            raise UserError(f"config dir {str(folder)!r}: no such directory")
-        for path in sorted((folder / "learner").glob("*.yaml")):
-            files.setdefault(path.stem, path.resolve())
-    return dict(sorted(files.items()))
 
 
 def learner_named(name: str, config_dirs: Iterable[str | os.PathLike] = ()) -> type[Learner]:
@@ -54,7 +30,8 @@ def learner_named(name: str, config_dirs: Iterable[str | os.PathLike] = ()) -> t
 
     Args:
         name: The learner's name (``subg_cql``).
-        config_dirs: User config dirs after the shipped ``conf/`` (:func:`learner_files`).
+        config_dirs: User config dirs after the shipped ``conf/``
+            (:func:`~mrta_rl.conf_paths.learner_files`).
 
     Returns:
         The :class:`~mrta_rl.learners.base.Learner` subclass.
@@ -65,28 +42,8 @@ def learner_named(name: str, config_dirs: Iterable[str | os.PathLike] = ()) -> t
     files = learner_files(config_dirs)
     if name not in files:
         raise UserError(f"unknown learner {name!r}; known: {short_list(files, 12)}")
-    return learner_from_target(_learner_target(name, files), f"{files[name]}: _target_")
-
-
-def _learner_target(name: str, files: dict[str, Path], seen: tuple[str, ...] = ()) -> Any:
-    """A learner yaml's ``_target_``, else that of the learner it extends (its defaults list).
-
-    ``defaults: [qmix, _self_]`` in ``learner/qmix_set.yaml`` composes ``learner/qmix.yaml``
-    under it, as Hydra does: the last such entry that names a ``_target_`` wins.
-    """
-    block: Any = read_yaml(files[name])
-    if not isinstance(block, dict):
-        return None
-    if "_target_" in block:
-        return block["_target_"]
-    entries = block.get("defaults") or []
-    parents = [e.removesuffix(".yaml") for e in entries if isinstance(e, str) and e != "_self_"]
-    for parent in reversed(parents):
-        if parent in files and parent not in (*seen, name):
-            target = _learner_target(parent, files, (*seen, name))
-            if target is not None:
-                return target
-    return None
+    target = learner_block(name, files).get("_target_")
+    return learner_from_target(target, f"{files[name]}: _target_")
 
 
 def any_team_learners() -> list[str]:
@@ -96,12 +53,12 @@ def any_team_learners() -> list[str]:
     (``Learner.fits_any_team``) is listed with the setting that makes it fit.
     """
     names = []
-    for name, path in learner_files().items():
+    files = learner_files()
+    for name in files:
         cls = learner_named(name)
         if not cls.trains():
             continue
-        block = read_yaml(path)
-        defaults = {k: v for k, v in block.items() if not k.startswith("_") and k != "defaults"}
+        defaults = learner_settings(learner_block(name, files))
         if cls.fits_any_team(defaults):
             names.append(name)
         elif cls.fits_any_team({**defaults, "network": "set"}):

@@ -41,7 +41,12 @@ from mrta_rl.envs import AuctionParams
 from mrta_rl.envs.auction import check_limits
 from mrta_rl.learners import Learner
 from mrta_rl.learners.base import learner_from_target
-from mrta_rl.learners.memory import estimate_resources, machine_memory, team_floor_bytes
+from mrta_rl.learners.memory import (
+    estimate_resources,
+    machine_memory,
+    probe_env,
+    team_floor_bytes,
+)
 from mrta_rl.learners.registry import any_team_learners
 from mrta_rl.learners.resources import ResourceEstimate, format_bytes
 from mrta_rl.partition import Partition, subg_partition
@@ -485,7 +490,14 @@ def validate_config(cfg: DictConfig) -> CheckedConfig:
             system.n_robots,
         )
 
-    try:
+    try:  # relations between the settings, and to the team and the copies
+        active = partition.active_tasks(system) if partition is not None else None
+        cls.check_settings(
+            cls.complete_settings(hyperparameters),
+            probe_env(system, params, active),
+            partition,
+            batch_size,
+        )
         estimate = estimate_resources(
             cls,
             system,

@@ -108,6 +108,26 @@ def test_bad_robot_copies_are_refused_naming_the_key(value, compose_cfg):
         validate_config(cfg)
 
 
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        (["learner=qmix", "learner.eps_start=0.1", "learner.eps_end=0.5"], "learner.eps_end: 0.5"),
+        (["learner=vdn", "learner.prior_in_state=true"], "learner.prior_in_state: needs prior"),
+        (["learner=mappo", "learner.frames_per_batch=25"], "learner.frames_per_batch=25 is not"),
+        (["learner=ippo", "learner.minibatch_size=5000"], "learner.minibatch_size=5000 is"),
+        (["learner=reserve_es", "learner.pairs=5"], "multiple of 2 \\* pairs = 10"),
+        (["learner=qmix", "learner.network=set", "learner.max_task_types=2"], "max_task_types"),
+    ],
+)
+def test_settings_that_contradict_each_other_or_the_team_are_refused_before_building(
+    overrides, message, compose_cfg
+):
+    """``validate_config`` refuses them (``Learner.check_settings``) before anything is built."""
+    cfg = compose_cfg([*overrides, "system=system1", "debug=smoke"])
+    with pytest.raises(ConfigError, match=message):
+        validate_config(cfg)
+
+
 def test_system_env_block_is_checked_with_its_own_key(compose_cfg):
     cfg = compose_cfg(["learner=greedy", "debug=smoke"])
     with open_dict(cfg):
@@ -232,7 +252,7 @@ def malformed_config(draw, bases: dict[str, dict]) -> tuple[dict, str]:
 def smoke_or_refusal(cfg: dict, culprit: str) -> str:
     """Validate; when accepted, build the run and play a few ticks. Returns what happened."""
     config = OmegaConf.create(cfg)
-    try:  # build_run checks what relates settings (eps_end <= eps_start) as it builds
+    try:  # validate_config checks what relates settings (eps_end <= eps_start) first
         run = build_run(config)
     except ConfigError as err:
         message = str(err)

@@ -46,7 +46,7 @@ from torchrl.modules import MLP, MaskedCategorical, ProbabilisticActor
 from torchrl.objectives import ValueEstimators
 from torchrl.objectives.multiagent import MAPPOLoss
 
-from mrta_rl.config import Range
+from mrta_rl.config import ConfigError, Range
 from mrta_rl.envs import AuctionEnv, encodings
 from mrta_rl.envs.torchrl_env import GROUP_SET_KEYS, PRIOR_KEY, ROOT_SET_KEYS
 from mrta_rl.learners.base import MemoryQuery
@@ -176,16 +176,42 @@ class PPOLearner(SetNetworkOption, TorchLearner, abstract=True):
         total = sum(parts.values())
         return ResourceEstimate(cls.__name__, total, total, parts, advice=PPO_ADVICE)
 
+    @classmethod
+    def check_settings(
+        cls,
+        settings: Mapping[str, Any],
+        env: AuctionEnv,
+        partition: Partition | None,
+        copies: int,
+    ) -> None:
+        """Refuse a batch that is not whole ticks of every copy, or a minibatch past it.
+
+        Raises:
+            ConfigError: naming ``learner.frames_per_batch`` or ``learner.minibatch_size``.
+        """
+        super().check_settings(settings, env, partition, copies)
+        frames, minibatch = settings["frames_per_batch"], settings["minibatch_size"]
+        if frames % copies:
+            raise ConfigError(
+                f"learner.frames_per_batch={frames} is not a multiple of the {copies} "
+                "training copies (train.batch_size): a batch is whole ticks of every copy"
+            )
+        if minibatch > frames:
+            raise ConfigError(
+                f"learner.minibatch_size={minibatch} is larger than learner.frames_per_batch="
+                f"{frames} (a minibatch is drawn from one collected batch)"
+            )
+
     def __init__(
         self,
         *,
-        lmbda: Annotated[float, Range(0, 1)] = 0.95,
-        clip_epsilon: Annotated[float, Range(0, 1, low_open=True)] = 0.2,
-        entropy_coeff: Annotated[float, Range(0)] = 0.01,
-        critic_coeff: Annotated[float, Range(0, low_open=True)] = 1.0,
-        frames_per_batch: Annotated[int, Range(1)] = 2_400,
-        epochs: Annotated[int, Range(1)] = 4,
-        minibatch_size: Annotated[int, Range(1)] = 1_200,
+        lmbda: Annotated[float, Range(0, 1)],
+        clip_epsilon: Annotated[float, Range(0, 1, low_open=True)],
+        entropy_coeff: Annotated[float, Range(0)],
+        critic_coeff: Annotated[float, Range(0, low_open=True)],
+        frames_per_batch: Annotated[int, Range(1)],
+        epochs: Annotated[int, Range(1)],
+        minibatch_size: Annotated[int, Range(1)],
         **settings: Any,
     ) -> None:
         """Build actor, critic, loss (with ``MultiAgentGAE``) and optimiser.
@@ -208,17 +234,6 @@ class PPOLearner(SetNetworkOption, TorchLearner, abstract=True):
             ValueError: naming the setting, if the batch does not fit the copies or the
                 minibatch, the set network does not fit the team, or the device is unavailable.
         """
-        copies = settings["env"].batch_size
-        if frames_per_batch % copies:
-            raise ValueError(
-                f"learner.frames_per_batch={frames_per_batch} is not a multiple of the {copies} "
-                "training copies (train.batch_size): a batch is whole ticks of every copy"
-            )
-        if minibatch_size > frames_per_batch:
-            raise ValueError(
-                f"learner.minibatch_size={minibatch_size} is larger than learner.frames_per_batch="
-                f"{frames_per_batch} (a minibatch is drawn from one collected batch)"
-            )
         self.rule = GreedyPrior()  # the view writes its action as ("agents", "prior_action")
         super().__init__(**settings)
 

@@ -54,7 +54,7 @@ from torchrl.envs.utils import ExplorationType, exploration_type
 from torchrl.modules import QValueModule
 from torchrl.objectives import HardUpdate, LossModule, SoftUpdate
 
-from mrta_rl.config import Choices, Range
+from mrta_rl.config import Choices, ConfigError, Range
 from mrta_rl.envs import AuctionEnv
 from mrta_rl.envs.torchrl_env import GROUP_SET_KEYS, PRIOR_KEY, ROOT_SET_KEYS
 from mrta_rl.learners.base import MemoryQuery
@@ -183,26 +183,50 @@ class QLearner(TorchLearner, abstract=True):
             state_bytes=cls.replay_state_bytes,
         )
 
+    @classmethod
+    def check_settings(
+        cls,
+        settings: Mapping[str, Any],
+        env: AuctionEnv,
+        partition: Partition | None,
+        copies: int,
+    ) -> None:
+        """Refuse ``eps_end`` above ``eps_start``, and ``prior_in_state`` without the hold prior.
+
+        Raises:
+            ConfigError: naming the settings.
+        """
+        super().check_settings(settings, env, partition, copies)
+        if settings["eps_end"] > settings["eps_start"]:
+            raise ConfigError(
+                f"learner.eps_end: {settings['eps_end']} is above learner.eps_start "
+                f"{settings['eps_start']} (epsilon decays from eps_start to eps_end)"
+            )
+        if settings["prior_in_state"] and settings["prior"] != "hold":
+            raise ConfigError(
+                "learner.prior_in_state: needs prior=hold (the plain auction is no input)"
+            )
+
     def __init__(
         self,
         *,
-        loss_function: Literal["l2", "smooth_l1"] = "smooth_l1",
-        prior: Annotated[str, Choices(*HOLD_PRIORS)] = "greedy",
-        prior_reserve: Reserve = 0,
-        prior_hold_level: HoldLevel = 1,
-        prior_hold_scope: Annotated[str, Choices(*HOLD_SCOPES)] = "robot",
-        prior_in_state: bool = False,
-        eps_start: Annotated[float, Range(0, 1)] = 0.3,
-        eps_end: Annotated[float, Range(0, 1)] = 0.02,
-        eps_decay_frames: Annotated[int, Range(1)] = 200_000,
-        buffer_size: Annotated[int, Range(1)] = 100_000,
-        batch_size: Annotated[int, Range(1)] = 256,
-        collect_ticks: Annotated[int, Range(1)] = 50,
-        updates_per_collect: Annotated[int, Range(0)] = 25,
-        warmup_frames: Annotated[int, Range(0)] = 2_000,
-        target_update: Literal["soft", "hard"] = "soft",
-        tau: Annotated[float, Range(0, 1, low_open=True)] = 0.01,
-        hard_update_interval: Annotated[int, Range(1)] = 500,
+        loss_function: Literal["l2", "smooth_l1"],
+        prior: Annotated[str, Choices(*HOLD_PRIORS)],
+        prior_reserve: Reserve,
+        prior_hold_level: HoldLevel,
+        prior_hold_scope: Annotated[str, Choices(*HOLD_SCOPES)],
+        prior_in_state: bool,
+        eps_start: Annotated[float, Range(0, 1)],
+        eps_end: Annotated[float, Range(0, 1)],
+        eps_decay_frames: Annotated[int, Range(1)],
+        buffer_size: Annotated[int, Range(1)],
+        batch_size: Annotated[int, Range(1)],
+        collect_ticks: Annotated[int, Range(1)],
+        updates_per_collect: Annotated[int, Range(0)],
+        warmup_frames: Annotated[int, Range(0)],
+        target_update: Literal["soft", "hard"],
+        tau: Annotated[float, Range(0, 1, low_open=True)],
+        hard_update_interval: Annotated[int, Range(1)],
         **settings: Any,
     ) -> None:
         """Build as every torch learner, then the TD targets and the target-network updates.
@@ -231,13 +255,10 @@ class QLearner(TorchLearner, abstract=True):
             **settings: Env, generator, partition and the settings of :class:`TorchLearner`.
 
         Raises:
-            ValueError: on settings that contradict each other, or an unavailable device.
+            ConfigError: on settings that contradict each other (:meth:`check_settings`).
+            ValueError: on an unavailable device.
         """
-        # types and ranges: the annotations (mrta_rl.config); here only relations
-        if eps_end > eps_start:
-            raise ValueError(f"need eps_end <= eps_start, got {eps_end}, {eps_start}")
-        if prior_in_state and prior != "hold":
-            raise ValueError("prior_in_state needs prior=hold (the plain auction is no input)")
+        # types and ranges: the annotations (mrta_rl.config); relations: check_settings
         self.egreedy: list[EpsilonGreedy] = []  # the exploration rates (anneal, checkpoints)
         super().__init__(**settings)
         self.rule: Prior = self._prior(self.env)

@@ -37,9 +37,7 @@ class QMIXLearner(MixedQLearner):
         mixer = (S * E * m + E * m) + 3 * (S * E + E) + (E + 1)
         return super().network_weights(env, partition, settings) + mixer
 
-    def __init__(
-        self, *, mixing_embed_dim: Annotated[int, Range(1)] = 32, **hyperparameters
-    ) -> None:
+    def __init__(self, *, mixing_embed_dim: Annotated[int, Range(1)], **hyperparameters) -> None:
         """Keep the mixer width, then build as every mixed learner.
 
         Args:

@@ -30,7 +30,8 @@ Its parameter count depends only on its settings (``embed_dim``, ``heads``, ``la
 from __future__ import annotations
 
 import math
-from typing import Annotated, Any, Literal
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 import torch
 from torch import nn
@@ -39,6 +40,10 @@ from torch.nn import functional as F
 from mrta_rl.config import Choices, ConfigError, Range
 from mrta_rl.envs.encodings import ROBOT_TOKEN_SIZE, SLOT_TOKEN_SIZE, TYPE_TOKEN_SIZE
 from mrta_rl.envs.torchrl_env import prior_one_hot
+
+if TYPE_CHECKING:
+    from mrta_rl.envs import AuctionEnv
+    from mrta_rl.partition import Partition
 
 MASKED = -1e9  # the score of an invalid action: far below any Q-value or logit, and finite
 ROBOT_ATTENTION = ("full", "pooled")  # robots attend to each other, or to a pooled team token
@@ -164,11 +169,11 @@ class SetNetwork(nn.Module):
     def __init__(
         self,
         *,
-        embed_dim: int = 64,
-        heads: int = 4,
-        layers: int = 2,
-        max_task_types: int = 32,
-        robot_attention: Literal["full", "pooled"] = "full",
+        embed_dim: int,
+        heads: int,
+        layers: int,
+        max_task_types: int,
+        robot_attention: Literal["full", "pooled"],
         device: torch.device | str | None = None,
     ) -> None:
         super().__init__()
@@ -338,15 +343,28 @@ class SetNetworkOption:
         net = SetNetwork(**cls.set_settings(settings), device="meta")
         return sum(p.numel() for p in net.parameters())
 
+    @classmethod
+    def check_settings(
+        cls,
+        settings: Mapping[str, Any],
+        env: AuctionEnv,
+        partition: Partition | None,
+        copies: int,
+    ) -> None:
+        """Refuse set settings that cannot fit the team (:meth:`check_set_network`)."""
+        super().check_settings(settings, env, partition, copies)  # type: ignore[misc]
+        if settings["network"] == "set":
+            cls.check_set_network(env.n_task_types, env.system.name, dict(settings))
+
     def __init__(
         self,
         *,
-        network: Annotated[str, Choices(*NETWORKS)] = "mlp",
-        embed_dim: Annotated[int, Range(1)] = 32,
-        heads: Annotated[int, Range(1)] = 4,
-        layers: Annotated[int, Range(1)] = 1,
-        max_task_types: Annotated[int, Range(1)] = 32,
-        robot_attention: Annotated[str, Choices(*ROBOT_ATTENTION)] = "full",
+        network: Annotated[str, Choices(*NETWORKS)],
+        embed_dim: Annotated[int, Range(1)],
+        heads: Annotated[int, Range(1)],
+        layers: Annotated[int, Range(1)],
+        max_task_types: Annotated[int, Range(1)],
+        robot_attention: Annotated[str, Choices(*ROBOT_ATTENTION)],
         **settings: Any,
     ) -> None:
         """Check the set network's settings against the team, then build as the learner.
@@ -365,9 +383,6 @@ class SetNetworkOption:
         Raises:
             ConfigError: on set settings that cannot fit the team (:meth:`check_set_network`).
         """
-        if network == "set":
-            env = settings["env"]
-            self.check_set_network(env.n_task_types, env.system.name, self.hp)
         super().__init__(**settings)
 
     def _set_network(self) -> SetWithPrior:

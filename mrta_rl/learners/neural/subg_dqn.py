@@ -67,8 +67,8 @@ class SubGDQNLearner(QLearner):
     def __init__(
         self,
         *,
-        prior: Annotated[str, Choices(*JOINT_PRIORS)] = "spread_wait",
-        prior_order: Annotated[str, Choices(*PRIOR_ORDERS)] = "fewest_types",
+        prior: Annotated[str, Choices(*JOINT_PRIORS)],
+        prior_order: Annotated[str, Choices(*PRIOR_ORDERS)],
         **hp,
     ):
         """Build as every Q-learner (:class:`~mrta_rl.learners.neural.q_learning.QLearner`).
@@ -83,7 +83,7 @@ class SubGDQNLearner(QLearner):
         Raises:
             ValueError: on an unknown prior or prior order.
         """
-        super().__init__(**hp)
+        super().__init__(prior=prior, **hp)
 
     def _prior(self, env: AuctionEnv) -> Prior:
         """``greedy`` or subG-CQL's ``spread_wait`` per sub-group, computed from ``env``."""

@@ -61,14 +61,14 @@ CLOCK: Callable[[], float] = time.perf_counter  # the decision time's clock (tes
 # rule, subG-CQL's starting policy). All are conflict-free except greedy.
 CANDIDATES: dict[str, dict[str, Any] | None] = {
     "greedy": None,
-    "spread": {"hold_level": 0},
-    "hold": {"hold_level": 1, "hold_scope": "robot"},
+    "spread": {"reserve": 0, "hold_level": 0, "hold_scope": "group"},
+    "hold": {"reserve": 0, "hold_level": 1, "hold_scope": "robot"},
     "hold_reserve1": {"reserve": 1, "hold_level": 1, "hold_scope": "robot"},
-    "hold_group": {"hold_level": 1, "hold_scope": "group"},
-    "hold2": {"hold_level": 2, "hold_scope": "robot"},
-    "reserve1": {"reserve": 1, "hold_level": 0},
-    "reserve2": {"reserve": 2, "hold_level": 0},
-    "high_only": {"hold_level": 3},  # never bids for L
+    "hold_group": {"reserve": 0, "hold_level": 1, "hold_scope": "group"},
+    "hold2": {"reserve": 0, "hold_level": 2, "hold_scope": "robot"},
+    "reserve1": {"reserve": 1, "hold_level": 0, "hold_scope": "group"},
+    "reserve2": {"reserve": 2, "hold_level": 0, "hold_scope": "group"},
+    "high_only": {"reserve": 0, "hold_level": 3, "hold_scope": "group"},  # never bids for L
 }
 
 
@@ -166,18 +166,13 @@ class RolloutPlanner(FixedLearner):
     def __init__(
         self,
         *,
-        samples: Annotated[int, Range(1)] = 4,
-        horizon: Annotated[int, Range(0)] = 20,
-        # every rule of CANDIDATES: more candidates find more, at a little more decision time
-        # (docs/notebook.md, "Learning against the rules")
-        candidates: Annotated[tuple[str, ...], Choices(*CANDIDATES)] = tuple(CANDIDATES),
-        # hold_group, not the best rule (hold): planning over a base that holds more finds more
-        # (docs/notebook.md, "Learning against the rules"); or a trained run's dir
-        base: str = "hold_group",
-        gamma: Annotated[float, Range(0, 1, low_open=True)] = 1.0,
-        margin: Annotated[float, Range(0)] = 0.0,
-        # none: only the rules' whole-team joint actions compete with the base's
-        neighbours: Annotated[tuple[str, ...], Choices(*NEIGHBOURS)] = (),
+        samples: Annotated[int, Range(1)],
+        horizon: Annotated[int, Range(0)],
+        candidates: Annotated[tuple[str, ...], Choices(*CANDIDATES)],
+        base: str,
+        gamma: Annotated[float, Range(0, 1, low_open=True)],
+        margin: Annotated[float, Range(0)],
+        neighbours: Annotated[tuple[str, ...], Choices(*NEIGHBOURS)],
         base_policy: Learner | None = None,
         **kwargs,
     ) -> None:
@@ -229,7 +224,12 @@ class RolloutPlanner(FixedLearner):
         if settings is None:
             return GreedyLearner(env=self.env, rng=self.rng)
         return TeamReserveLearner(
-            env=self.env, rng=self.rng, partition=self.partition, grouping=self.grouping, **settings
+            env=self.env,
+            rng=self.rng,
+            partition=self.partition,
+            grouping=self.grouping,
+            order="fewest_types",
+            **settings,
         )
 
     def encode(self, env: AuctionEnv) -> tuple[Any, np.ndarray]:
@@ -382,34 +382,13 @@ class SubGRolloutPlanner(RolloutPlanner):
     """``rollout`` bound to the subG partition: how far a planner gets inside it.
 
     The runner builds its env on the partition's ``Lambda_i`` (robots bid only for their kept
-    types) and every candidate rule bids per sub-group (``grouping="subg"``); the default base
+    types) and every candidate rule bids per sub-group (``grouping="subg"``); the base
     ``hold_group`` is then the ``subg_reserve`` rule, subG-CQL's starting policy. Its margin over
     ``subg_reserve`` measures what a partition-bound policy can still gain, with the planner's
-    full view of the state.
-
-    Args:
-        candidates: As :class:`RolloutPlanner`; the default keeps six of the nine (all nine
-            do worse on System-I, docs/notebook.md).
-        base: As :class:`RolloutPlanner` (a rule or a run dir), default ``hold_group``.
-        **kwargs: The other settings of :class:`RolloutPlanner`.
+    full view of the state. Its settings are :class:`RolloutPlanner`'s; its yaml compares six
+    of the nine candidates (all nine do worse on System-I, docs/notebook.md).
     """
 
     label: ClassVar[str] = "subg_rollout"
     requires_partition: ClassVar[bool] = True
     grouping: ClassVar[str] = "subg"
-
-    def __init__(
-        self,
-        *,
-        candidates: Annotated[tuple[str, ...], Choices(*CANDIDATES)] = (
-            "greedy",
-            "spread",
-            "hold_group",
-            "hold",
-            "reserve1",
-            "high_only",
-        ),
-        base: str = "hold_group",
-        **kwargs,
-    ) -> None:
-        super().__init__(candidates=candidates, base=base, **kwargs)

@@ -31,7 +31,6 @@ members) and Adam takes the step.
 
 from __future__ import annotations
 
-import inspect
 from collections import namedtuple
 from typing import Annotated, Any, ClassVar
 
@@ -355,14 +354,14 @@ class NetESLearner(ReserveESLearner):
         cls, env: AuctionEnv, partition: Partition | None, settings: dict[str, Any]
     ) -> int:
         """The weights of the rule and the network (no table)."""
-        hidden = settings.get("hidden", inspect.signature(cls).parameters["hidden"].default)
+        hidden = cls.complete_settings(settings)["hidden"]
         return N_FEATURES + sum(int(np.prod(shape)) for shape in network_shapes(hidden))
 
     def __init__(
         self,
         *,
-        hidden: Annotated[int, Range(1)] = 16,
-        init_scale: Annotated[float, Range(0)] = 1.0,
+        hidden: Annotated[int, Range(1)],
+        init_scale: Annotated[float, Range(0)],
         **kwargs: Any,
     ) -> None:
         self.hidden = hidden

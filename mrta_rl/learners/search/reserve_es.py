@@ -37,6 +37,7 @@ queue's order, nor durations, nor batteries.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Annotated, Any, ClassVar
 
@@ -44,7 +45,7 @@ import numpy as np
 
 from mrta_rl import rules
 from mrta_rl.checked_files import ArraySpec, check_arrays, read_arrays
-from mrta_rl.config import Range
+from mrta_rl.config import ConfigError, Range
 from mrta_rl.envs import AuctionEnv, StepResult
 from mrta_rl.envs.encodings import N_RECENCY_LEVELS, free_level, queue_level, recency_level
 from mrta_rl.learners.base import NUMPY_LOOP, Learner, LearnerKind, MemoryQuery, NonFiniteState
@@ -161,14 +162,36 @@ class ReserveESLearner(Learner):
         """The weights of the rule (no table)."""
         return N_FEATURES
 
+    @classmethod
+    def check_settings(
+        cls,
+        settings: Mapping[str, Any],
+        env: AuctionEnv,
+        partition: Partition | None,
+        copies: int,
+    ) -> None:
+        """Refuse training copies that are not a multiple of ``2 * pairs``.
+
+        Raises:
+            ConfigError: naming ``train.batch_size`` and ``learner.pairs``.
+        """
+        super().check_settings(settings, env, partition, copies)
+        pairs = settings["pairs"]
+        if copies % (2 * pairs):
+            raise ConfigError(
+                f"train.batch_size {copies} must be a multiple of 2 * pairs = {2 * pairs} "
+                "(every perturbed policy plays the same number of copies): change learner.pairs "
+                "or train.batch_size"
+            )
+
     def __init__(
         self,
         *,
-        pairs: Annotated[int, Range(1)] = 12,
-        sigma: Annotated[float, Range(0, low_open=True)] = 0.3,
-        lr: Annotated[float, Range(0, low_open=True)] = 0.15,
-        reserve: Annotated[int, Range(0, 2)] = 0,
-        hold_level: Annotated[int, Range(0, N_RECENCY_LEVELS)] = 1,
+        pairs: Annotated[int, Range(1)],
+        sigma: Annotated[float, Range(0, low_open=True)],
+        lr: Annotated[float, Range(0, low_open=True)],
+        reserve: Annotated[int, Range(0, 2)],
+        hold_level: Annotated[int, Range(0, N_RECENCY_LEVELS)],
         **kwargs: Any,
     ) -> None:
         super().__init__(**kwargs)
@@ -188,12 +211,7 @@ class ReserveESLearner(Learner):
             ValueError: if its batch is not a multiple of ``2 * pairs``.
         """
         batch = env.batch_size
-        if batch % (2 * self.pairs):
-            raise ValueError(
-                f"train.batch_size {batch} must be a multiple of 2 * pairs = {2 * self.pairs} "
-                "(every perturbed policy plays the same number of copies): change learner.pairs "
-                "or train.batch_size"
-            )
+        type(self).check_settings(self.hp, env, self.partition, batch)
         self.env, self.n_robots, self.n_actions = env, env.n_robots, env.n_actions
         self.copies = batch // (2 * self.pairs)  # copies per perturbed policy
         # common random numbers: copy b starts as a clone of copy b mod copies (seed and episode

@@ -116,22 +116,20 @@ class TabularLearner(Learner, abstract=True):
         env: AuctionEnv,
         rng: np.random.Generator,
         partition: Partition | None = None,
-        alpha: Annotated[float, Range(0, 1, low_open=True)] = 0.1,
-        alpha_power: Annotated[float, Range(0)] = 0.0,
-        alpha_min: Annotated[float, Range(0, 1)] = 0.0,
-        gamma: Annotated[float, Range(0, 1)] = 0.9,
-        epsilon_start: Annotated[float, Range(0, 1)] = 0.2,
-        epsilon_end: Annotated[float, Range(0, 1)] = 0.0,
-        epsilon_decay_episodes: Annotated[int, Range(0)] = 20,
-        decisions_only: bool = True,
-        target: Annotated[str, Choices(*TARGETS)] = "max",
+        alpha: Annotated[float, Range(0, 1, low_open=True)],
+        alpha_power: Annotated[float, Range(0)],
+        alpha_min: Annotated[float, Range(0, 1)],
+        gamma: Annotated[float, Range(0, 1)],
+        epsilon_start: Annotated[float, Range(0, 1)],
+        epsilon_end: Annotated[float, Range(0, 1)],
+        epsilon_decay_episodes: Annotated[int, Range(0)],
+        decisions_only: bool,
+        target: Annotated[str, Choices(*TARGETS)],
     ) -> None:
-        # types and ranges: the annotations, checked before __init__ (mrta_rl.config)
+        # types and ranges: the annotations, checked before __init__ (mrta_rl.config); the
+        # values: self.hp (the kernels' settings tuple reads them there)
         super().__init__(env=env, rng=rng, partition=partition)
-        self.alpha, self.alpha_power, self.alpha_min = alpha, alpha_power, alpha_min
-        self.gamma = gamma
         self.epsilon_schedule = LinearSchedule(epsilon_start, epsilon_end, epsilon_decay_episodes)
-        self.decisions_only = decisions_only
         self.prior_target = target == "prior"
         self.episodes_done = 0
         self.n_slots = env.n_slots

@@ -51,7 +51,7 @@ class CQLLearner(GroupQLearner):
             Unfit: if the team's joint actions or states pass the int64 codes.
         """
         env, partition, settings, decisions, copies = query
-        features = settings.get("features", "paper")
+        features = settings["features"]
 
         def states(robots: list[int]) -> int:
             return group_state_count(env, robots, features)
@@ -68,9 +68,7 @@ class CQLLearner(GroupQLearner):
         states = group_state_count(env, robots, settings.get("features", "paper"))
         return centralized_dimension(states, [env.n_actions] * env.n_robots)
 
-    def __init__(
-        self, *, features: Annotated[str, Choices(*FEATURES)] = "paper", **hyperparameters
-    ) -> None:
+    def __init__(self, *, features: Annotated[str, Choices(*FEATURES)], **hyperparameters) -> None:
         super().__init__(**hyperparameters)
         self._set_groups(["team"], [list(range(self.env.n_robots))], features)
 

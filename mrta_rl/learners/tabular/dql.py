@@ -53,9 +53,8 @@ class RobotQLearner(TabularLearner, abstract=True):
 
     q: np.ndarray
     visits: np.ndarray
-    features: str = "paper"  # the state encoding (encodings.FEATURES), set by the subclass
-    team_reward: bool = False  # learn from the team reward (spec step 8) instead of the robot's
-    min_visits: int = 0  # updates an entry needs before it competes with the prior (0: always)
+    # learn from the team reward (spec step 8) instead of the robot's: DQL's reward=team
+    team_reward: bool = False
 
     _pending: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
     _last: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # train_tick's last decision
@@ -98,13 +97,13 @@ class RobotQLearner(TabularLearner, abstract=True):
     def _kernel_settings(self) -> tuple:
         """The hyperparameters as a ``robot_kernels.Settings`` tuple (all set by ``__init__``)."""
         settings = kernels.Settings(
-            decisions_only=self.decisions_only,
-            gamma=self.gamma,
-            min_visits=self.min_visits,
+            decisions_only=self.hp["decisions_only"],
+            gamma=self.hp["gamma"],
+            min_visits=self.hp["min_visits"],
             prior_target=self.prior_target,
-            alpha=self.alpha,
-            alpha_power=self.alpha_power,
-            alpha_min=self.alpha_min,
+            alpha=self.hp["alpha"],
+            alpha_power=self.hp["alpha_power"],
+            alpha_min=self.hp["alpha_min"],
         )
         return tuple(settings)
 
@@ -164,7 +163,7 @@ class RobotQLearner(TabularLearner, abstract=True):
         used = kernels.act_robots(
             (self.q, self.visits),
             (bases, mask, self._prior(view, mask)),
-            self.min_visits,
+            self.hp["min_visits"],
             (epsilon, block),
             actions,
         )
@@ -210,7 +209,7 @@ class RobotQLearner(TabularLearner, abstract=True):
         # or when it is the target
         next_prior = (
             self._prior(next_view, next_mask)
-            if self.min_visits or self.prior_target
+            if self.hp["min_visits"] or self.prior_target
             else np.zeros(shape, np.int64)
         )
         td_sum = kernels.close_transitions(
@@ -235,7 +234,7 @@ class RobotQLearner(TabularLearner, abstract=True):
 
     def learning_space(self) -> dict[str, int]:
         """Analytic dimension (eq. 11) and the table entries updated at least once."""
-        settings = {"features": self.features}
+        settings = {"features": self.hp["features"]}
         analytic = self.learning_space_dimension(self.env, self.partition, settings)
         return {"analytic": analytic, "visited": int(np.count_nonzero(self.visits))}
 
@@ -292,7 +291,7 @@ class DQLLearner(RobotQLearner):
         """
         env, partition, settings, decisions, copies = query
         try:
-            stride = max(local_state_count(env, settings.get("features", "paper")))
+            stride = max(local_state_count(env, settings["features"]))
         except OverflowError as err:
             raise Unfit(str(err), "use fewer task types or slots") from None
         tables = env.n_robots * stride * env.n_actions * TABLE_ENTRY_BYTES  # dense, allocated
@@ -309,19 +308,19 @@ class DQLLearner(RobotQLearner):
     def __init__(
         self,
         *,
-        prior: Annotated[str, Choices(*DQL_PRIORS)] = "greedy",
-        prior_reserve: Reserve = 0,
-        prior_hold_level: HoldLevel = 1,
-        prior_hold_scope: Annotated[str, Choices(*HOLD_SCOPES)] = "robot",
-        prior_in_state: bool = False,
-        reward: Annotated[str, Choices(*DQL_REWARDS)] = "individual",
-        min_visits: Annotated[int, Range(0)] = 0,
-        features: Annotated[str, Choices(*FEATURES)] = "paper",
+        prior: Annotated[str, Choices(*DQL_PRIORS)],
+        prior_reserve: Reserve,
+        prior_hold_level: HoldLevel,
+        prior_hold_scope: Annotated[str, Choices(*HOLD_SCOPES)],
+        prior_in_state: bool,
+        reward: Annotated[str, Choices(*DQL_REWARDS)],
+        min_visits: Annotated[int, Range(0)],
+        features: Annotated[str, Choices(*FEATURES)],
         **hyperparameters,
     ) -> None:
         super().__init__(**hyperparameters)  # types, ranges and choices: the annotations
-        self.prior, self.prior_in_state, self.features = prior, prior_in_state, features
-        self.team_reward, self.min_visits = reward == "team", min_visits
+        self.prior_in_state = prior_in_state  # read by the kernels' call every tick
+        self.team_reward = reward == "team"
         self.rule = None  # the hold rule (priors.HoldRule)
         if prior == "hold":
             self.rule = HoldRule(

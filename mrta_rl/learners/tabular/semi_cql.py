@@ -69,7 +69,7 @@ class SemiCQLLearner(RobotQLearner):
             Unfit: if the shared state's index passes int64.
         """
         env, partition, settings, decisions, copies = query
-        states = system_state_count(env, settings["state"], settings.get("features", "paper"))
+        states = system_state_count(env, settings["state"], settings["features"])
         if states >= INT64_CODES:
             reason = f"{states:.3g} whole-system states do not fit in int64"
             raise Unfit(reason, "use a smaller system")
@@ -93,13 +93,12 @@ class SemiCQLLearner(RobotQLearner):
     def __init__(
         self,
         *,
-        min_visits: Annotated[int, Range(0)] = 0,
-        features: Annotated[str, Choices(*FEATURES)] = "paper",
-        state: Annotated[str, Choices(*SYSTEM_STATES)] = "slots",
+        min_visits: Annotated[int, Range(0)],
+        features: Annotated[str, Choices(*FEATURES)],
+        state: Annotated[str, Choices(*SYSTEM_STATES)],
         **hyperparameters,
     ) -> None:
         super().__init__(**hyperparameters)
-        self.min_visits, self.features, self.state = min_visits, features, state
         self.encoder = SystemEncoder(self.env, state, features)
         self._row_size = self.n_robots * self.n_actions
         self._index = JointQStorage(1)  # state index -> row (hash), row -> state index
@@ -180,8 +179,7 @@ class SemiCQLLearner(RobotQLearner):
 
     def learning_space(self) -> dict[str, int]:
         """Analytic dimension (eq. 11 over the shared ``state``) and the entries updated."""
-        settings = {"features": self.features, "state": self.state}
-        analytic = self.learning_space_dimension(self.env, None, settings)
+        analytic = self.learning_space_dimension(self.env, None, self.hp)
         return {**super().learning_space(), "analytic": analytic}
 
     def _table_arrays(self) -> dict[str, np.ndarray]:
@@ -191,7 +189,8 @@ class SemiCQLLearner(RobotQLearner):
         # of one state never loads into a learner of another, in either direction (its indices
         # would read as other states; TabularLearner.load compares the arrays' names); `system`
         # adds nothing, so the files of before load as they are
-        marker = {} if self.state == "system" else {f"state.{self.state}": np.zeros(1, np.int64)}
+        state = self.hp["state"]
+        marker = {} if state == "system" else {f"state.{state}": np.zeros(1, np.int64)}
         return {
             **marker,
             "states": self.states.copy(),

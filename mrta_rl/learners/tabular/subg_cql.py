@@ -94,39 +94,29 @@ class GroupQLearner(TabularLearner, abstract=True):
             :class:`~mrta_rl.learners.tabular.base.TabularLearner`.
     """
 
-    default_prior: ClassVar[str] = "spread"
-    default_prior_order: ClassVar[str] = "index"
-
     def __init__(
         self,
         *,
-        prune_conflicts: bool = True,
-        prior: Annotated[str | None, Choices(*PRIORS)] = None,
-        prior_order: Annotated[str | None, Choices(*PRIOR_ORDERS)] = None,
-        min_visits: Annotated[int, Range(0)] = 0,
-        lcb: Annotated[float, Range(0)] = 0.0,
-        n_step: Annotated[int, Range(1)] = 1,
+        prune_conflicts: bool,
+        prior: Annotated[str, Choices(*PRIORS)],
+        prior_order: Annotated[str, Choices(*PRIOR_ORDERS)],
+        min_visits: Annotated[int, Range(0)],
+        lcb: Annotated[float, Range(0)],
+        n_step: Annotated[int, Range(1)],
         **hyperparameters,
     ) -> None:
+        # types, ranges and choices: the annotations; the values: self.hp
         super().__init__(**hyperparameters)
-        self.prune_conflicts, self.min_visits, self.lcb = prune_conflicts, min_visits, lcb
-        self.n_step = n_step
-        self.prior = self.default_prior if prior is None else prior
-        self.prior_order = self.default_prior_order if prior_order is None else prior_order
-        if self.prior not in PRIORS:
-            raise ValueError(f"prior must be one of {PRIORS}, got {self.prior!r}")
-        if min_visits < 0:
-            raise ValueError(f"min_visits must be >= 0, got {min_visits}")
 
     def _set_groups(
         self,
         names: list[str],
         groups: list[list[int]],
-        features: str = "paper",
+        features: str,
         state: str = "group",
     ) -> None:
         env = self.env
-        self.features, self.state = features, state
+        self.features, self.state = features, state  # the group state (CQL's: the paper's)
         self.group_names = names
         self.groups = [np.asarray(g, np.int64) for g in groups]
         self.joint = [JointActions(len(g), self.n_actions) for g in groups]  # checks int64 codes
@@ -135,10 +125,15 @@ class GroupQLearner(TabularLearner, abstract=True):
         self.robots, self.size = self.encoder.robots, self.encoder.size
         self.order = np.zeros_like(self.robots)
         for g, robots in enumerate(self.groups):
-            self.order[g, : len(robots)] = spread_order(env.active_tasks[robots], self.prior_order)
-        self._prior_code = PRIOR_CODES[self.prior]
+            self.order[g, : len(robots)] = spread_order(
+                env.active_tasks[robots], self.hp["prior_order"]
+            )
+        self._prior_code = PRIOR_CODES[self.hp["prior"]]
         self._row_entries = np.array(  # the most entries a row of each group holds
-            [max_valid_joint_actions(len(g), self.n_actions, self.prune_conflicts) for g in groups],
+            [
+                max_valid_joint_actions(len(g), self.n_actions, self.hp["prune_conflicts"])
+                for g in groups
+            ],
             np.int64,
         )
         self.storage = JointQStorage(len(groups))
@@ -157,7 +152,7 @@ class GroupQLearner(TabularLearner, abstract=True):
             mask: ``[B, m, K + 1]`` valid actions of the state the call meets.
         """
         copies = len(mask)
-        if self.prune_conflicts or self._row_entries.max() <= 4096:
+        if self.hp["prune_conflicts"] or self._row_entries.max() <= 4096:
             entries = copies * self._row_entries  # [G]: each group's largest row per copy
         else:  # without pruning, bound each copy by the product of its valid action counts
             counts = mask.sum(axis=2)  # [B, m]
@@ -188,16 +183,16 @@ class GroupQLearner(TabularLearner, abstract=True):
     def _kernel_settings(self) -> tuple:
         """The hyperparameters as a ``group_kernels.Settings`` tuple (all set by ``__init__``)."""
         settings = kernels.Settings(
-            decisions_only=self.decisions_only,
+            decisions_only=self.hp["decisions_only"],
             prior=self._prior_code,
-            prune=self.prune_conflicts,
-            min_visits=self.min_visits,
-            lcb=self.lcb,
+            prune=self.hp["prune_conflicts"],
+            min_visits=self.hp["min_visits"],
+            lcb=self.hp["lcb"],
             prior_target=self.prior_target,
-            gamma=self.gamma,
-            alpha=self.alpha,
-            alpha_power=self.alpha_power,
-            alpha_min=self.alpha_min,
+            gamma=self.hp["gamma"],
+            alpha=self.hp["alpha"],
+            alpha_power=self.hp["alpha_power"],
+            alpha_min=self.hp["alpha_min"],
         )
         return tuple(settings)
 
@@ -260,7 +255,7 @@ class GroupQLearner(TabularLearner, abstract=True):
         """
         n_groups = len(self.groups)
         if self._pending is None or self._pending[0].shape[1] != batch:
-            ring = (n_groups, batch, self.n_step)
+            ring = (n_groups, batch, self.hp["n_step"])
             self._pending = (
                 np.full(ring, -1, np.int64),  # the decisions' entries, oldest first
                 np.zeros(ring),  # R = sum_k gamma^k r_k over the interval after each
@@ -440,9 +435,6 @@ class SubGCQLLearner(GroupQLearner):
 
     requires_partition: ClassVar[bool] = True
     label: ClassVar[str] = "subG-CQL"
-    default_prior: ClassVar[str] = "spread_wait"
-    # a sub-group keeps its versatile robots free for the types only they can do (docs/learners.md)
-    default_prior_order: ClassVar[str] = "fewest_types"
 
     @classmethod
     def estimate_memory(cls, query: MemoryQuery) -> ResourceEstimate:
@@ -452,7 +444,7 @@ class SubGCQLLearner(GroupQLearner):
             Unfit: if a sub-group's joint actions or states pass the int64 codes.
         """
         env, partition, settings, decisions, copies = query
-        features, state = settings.get("features", "paper"), settings.get("state", "group")
+        features, state = settings["features"], settings["state"]
 
         def states(robots: list[int]) -> int:
             return subgroup_state_count(env, robots, state, features)
@@ -483,13 +475,12 @@ class SubGCQLLearner(GroupQLearner):
     def __init__(
         self,
         *,
-        reward: Annotated[str, Choices(*SUBG_REWARDS)] = "group",
-        features: Annotated[str, Choices(*FEATURES)] = "time_to_free",
-        state: Annotated[str, Choices(*GROUP_STATES)] = "idle",
+        reward: Annotated[str, Choices(*SUBG_REWARDS)],
+        features: Annotated[str, Choices(*FEATURES)],
+        state: Annotated[str, Choices(*GROUP_STATES)],
         **hyperparameters,
     ) -> None:
         super().__init__(**hyperparameters)
-        self.reward = reward
         env, partition = self.env, self.partition
         assert partition is not None  # checked by Learner.__init__
         expected = partition.active_tasks(env.system)
@@ -513,7 +504,7 @@ class SubGCQLLearner(GroupQLearner):
             )
 
     def _group_rewards(self, result: StepResult) -> tuple[np.ndarray, np.ndarray]:
-        if self.reward == "team":  # spec step 8's team reward, for every sub-group
+        if self.hp["reward"] == "team":  # spec step 8's team reward, for every sub-group
             return np.asarray(result.team_reward, np.float64)[:, None], self._reward_columns
         # spec step 8: a sub-group's reward is the sum of its robots' individual rewards
         return np.asarray(result.robot_reward, np.float64), self._reward_columns

@@ -255,7 +255,7 @@ def test_qmix_mixes_a_bool_state_as_its_float_values(system):
 
 
 def test_qmix_refuses_to_store_a_state_that_is_not_binary(system):
-    learner, env = make(QMIXLearner, system, batch=2)
+    learner, env = make(QMIXLearner, system, batch=2, features="paper")
     view = AuctionTorchRLEnv(env, group_map=learner.group_map, prior=learner.rule)
     data = view.rollout(3, learner.collection_policy)  # [B, T]
     data.set("state", data.get("state") * 0.5)
@@ -313,7 +313,7 @@ def test_checkpoint_of_other_features_is_refused(system, tmp_path):
     learner.save(tmp_path)
     make(QMIXLearner, system, seed=3, features=TTF)[0].load(tmp_path)
     with pytest.raises(ValueError, match="trained with features=time_to_free"):
-        make(QMIXLearner, system)[0].load(tmp_path)
+        make(QMIXLearner, system, features="paper")[0].load(tmp_path)
 
 
 @pytest.mark.parametrize("key", ["class", "group_map", "inputs", "hyperparameters"])
@@ -349,7 +349,7 @@ def test_time_to_free_run_evaluates_again_from_its_checkpoint(compose_cfg, tmp_p
 def test_hold_prior_settings_are_checked(system):
     with pytest.raises(ValueError, match="prior: must be one of"):
         make(QMIXLearner, system, prior="spread_wait")
-    with pytest.raises(ValueError, match="prior_in_state needs prior=hold"):
+    with pytest.raises(ValueError, match="prior_in_state: needs prior=hold"):
         make(VDNLearner, system, prior_in_state=True)
     with pytest.raises(ValueError, match="prior_reserve"):
         make(QMIXLearner, system, prior="hold", prior_reserve=-1)

@@ -157,8 +157,8 @@ def test_multiagent_gae_on_the_team_reward_against_a_hand_computed_case():
 @pytest.mark.parametrize(
     ("override", "key"),
     [
-        ("learner.minibatch_size=101", "learner.minibatch_size"),  # smoke: 100 frames per batch
-        ("learner.frames_per_batch=102", "learner.frames_per_batch"),  # smoke: 4 copies
+        ("learner.minibatch_size=101", "minibatch_size"),  # smoke: 100 frames per batch
+        ("learner.frames_per_batch=102", "frames_per_batch"),  # smoke: 4 copies
         ("learner.epochs=0", "epochs"),
         ("learner.network=sets", "network"),
         ("learner.max_task_types=2", "max_task_types"),  # System-I has 5 task types

@@ -44,10 +44,14 @@ def inputs(env: AuctionEnv) -> tuple[list[torch.Tensor], torch.Tensor]:
     return [tensors[k] for k in SET_INPUT_KEYS], torch.from_numpy(env.action_mask.copy())
 
 
+# the network the tests build, unless they say otherwise
+NET = {"embed_dim": 64, "heads": 4, "layers": 2, "max_task_types": 32, "robot_attention": "full"}
+
+
 def trained_like(**settings) -> SetNetwork:
     """A network whose zero-initialised output layers hold random weights (outputs not all 0)."""
     torch.manual_seed(0)
-    net = SetNetwork(**settings)
+    net = SetNetwork(**{**NET, **settings})
     with torch.no_grad():
         for p in net.parameters():
             if not p.any():
@@ -136,7 +140,7 @@ def test_only_wait_valid_gives_a_proper_distribution():
 def test_untrained_scores_are_zero_and_leading_dims_are_kept():
     env = played_env(paper_system("system2"), batch=4)
     x, mask = inputs(env)
-    net = SetNetwork(embed_dim=16, heads=2, layers=1)
+    net = SetNetwork(**{**NET, "embed_dim": 16, "heads": 2, "layers": 1})
     with torch.no_grad():
         out = net(*x, mask)
         assert (out[mask] == 0).all()
@@ -150,8 +154,8 @@ def test_a_team_with_more_task_types_than_the_embedding_is_refused():
     env = played_env(random_system(12, 9, seed=0), batch=1, ticks=1)
     x, mask = inputs(env)
     with pytest.raises(ValueError, match=r"max_task_types: 8 is smaller than the 9 task types"):
-        SetNetwork(max_task_types=8)(*x, mask)
-    assert np.isfinite(SetNetwork(max_task_types=9)(*x, mask).detach().numpy()).all()
+        SetNetwork(**{**NET, "max_task_types": 8})(*x, mask)
+    assert np.isfinite(SetNetwork(**{**NET, "max_task_types": 9})(*x, mask).detach().numpy()).all()
 
 
 # ---------------------------------------------------------------------------------- learners

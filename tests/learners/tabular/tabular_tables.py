@@ -40,8 +40,22 @@ PAPER_STATES = {
     "subg_cql": {"state": "group", "features": "paper"},
 }
 # (learner, hyperparameters): the defaults, and much exploration with 1/n learning rates
+# the settings the fixture's tables were computed with, where a learner's yaml has others: a
+# constant learning rate of 0.1, exploration decaying from 0.2 to 0, the max target and no
+# visits before an entry competes with the prior
+FIXTURE_SETTINGS = {
+    "alpha": 0.1,
+    "alpha_power": 0.0,
+    "alpha_min": 0.0,
+    "gamma": 0.9,
+    "epsilon_start": 0.2,
+    "epsilon_end": 0.0,
+    "epsilon_decay_episodes": 20,
+    "target": "max",
+    "min_visits": 0,
+}
 CASES = {
-    f"{name}/{hp}": (name, {**PAPER_STATES.get(name, {}), **kw})
+    f"{name}/{hp}": (name, {**FIXTURE_SETTINGS, **PAPER_STATES.get(name, {}), **kw})
     for name in CLASSES
     for hp, kw in (("default", {}), ("explore", EXPLORE))
 }

@@ -11,14 +11,22 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tests.learners.tabular.tabular_tables import build, play_fused, saved_tables
+from tests.learners.tabular.tabular_tables import (
+    FIXTURE_SETTINGS,
+    build,
+    play_fused,
+    saved_tables,
+)
 
 TICKS = 700  # 4 copies: 2,756 states met, past 1,024 rows (the first growth)
 # rows, visits and sum of Q after TICKS ticks of these seeds: a change of the update rule, a
 # tie-break or a draw changes them
 KNOWN = [
-    ({"state": "system"}, (2756, 4843, 1315.7005362696245)),
-    ({"state": "system", "alpha": 1.0, "alpha_power": 1.0}, (2756, 4843, 13116.884646089657)),
+    ({**FIXTURE_SETTINGS, "state": "system"}, (2756, 4843, 1315.7005362696245)),
+    (
+        {**FIXTURE_SETTINGS, "state": "system", "alpha": 1.0, "alpha_power": 1.0},
+        (2756, 4843, 13116.884646089657),
+    ),
 ]
 
 
