@@ -114,7 +114,7 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
             unit="tick",
             desc=f"train {run.name}",
             enabled=cfg.train.progress_bar,
-            log_every_s=cfg.train.get("log_every_s"),
+            log_every_s=cfg.train.log_every_s,
             episode_units=horizon,
         ) as bar,
         ckpt.catch_interrupt() if ckpt else nullcontext(),

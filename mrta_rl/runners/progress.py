@@ -27,7 +27,6 @@ logger = logging.getLogger(__name__)
 
 REDRAW_TERMINAL_S = 0.1  # tqdm's default on a terminal
 REDRAW_LOG_S = 15.0  # in a log file or a pipe every redraw is a new line: a few per minute
-LOG_EVERY_S = 30.0  # seconds between log lines when the caller gives no train.log_every_s
 CLOCK: Callable[[], float] = time.monotonic  # the lines' clock (tests put a fake one here)
 
 
@@ -147,7 +146,7 @@ def progress_bar(
     unit: str,
     desc: str,
     enabled: bool,
-    log_every_s: float | None = None,
+    log_every_s: float,
     episode_units: int = 1,
     **kwargs: Any,
 ) -> ProgressBar | ProgressLog:
@@ -160,8 +159,7 @@ def progress_bar(
         unit: Unit name shown by tqdm.
         desc: Label in front of the bar.
         enabled: ``cfg.train.progress_bar``.
-        log_every_s: ``cfg.train.log_every_s``: seconds between log lines when the bar is off
-            (None: :data:`LOG_EVERY_S`).
+        log_every_s: ``cfg.train.log_every_s``: seconds between log lines when the bar is off.
         episode_units: Units (ticks or frames) per training episode, for the lines' episode.
         **kwargs: More tqdm options (e.g. ``unit_scale``; ``initial`` for both).
 
@@ -173,7 +171,7 @@ def progress_bar(
             total=total,
             unit=unit,
             desc=desc,
-            every_s=LOG_EVERY_S if log_every_s is None else float(log_every_s),
+            every_s=float(log_every_s),
             episode_units=episode_units,
             initial=int(kwargs.get("initial", 0)),
         )

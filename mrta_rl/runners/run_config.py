@@ -7,6 +7,10 @@ it says. :func:`read_run_config` accepts a ``.hydra/config.yaml`` only if its le
 the ``mrta_rl.learners`` entry-point group) with plain scalar or list hyperparameters, its logger
 a curve logger of this package, and everything else plain data (no ``_target_``, no
 interpolation); anything else is refused with a message naming the key.
+
+The run settings' values have one home, the shipped ``conf/config.yaml``: a saved config that
+lacks one of its ``train``, ``eval`` or ``limits`` keys (a run written before the key existed)
+reads it as that file's value (:data:`SHIPPED_RUN_BLOCKS`).
 """
 
 from __future__ import annotations
@@ -22,6 +26,7 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from mrta_rl.checked_files import YamlSyntaxError, read_config, read_yaml_text
+from mrta_rl.conf_paths import conf_dir
 from mrta_rl.learners import Learner
 from mrta_rl.metrics.run_logger import RunLogger
 from mrta_rl.run_layout import CONFIG_FILE, HYDRA_FILE, RunDirError
@@ -31,6 +36,7 @@ logger = logging.getLogger(__name__)
 PACKAGE = "mrta_rl."
 LEARNER_ENTRY_POINTS = "mrta_rl.learners"  # group of the learner classes of other distributions
 SCALARS = (str, int, float, bool, type(None))
+SHIPPED_RUN_BLOCKS = ("train", "eval", "limits")  # run settings a saved config may lack
 
 
 # ---------------------------------------------------------------------------------- run dirs
@@ -207,6 +213,11 @@ def read_run_config(run_dir: Path | str) -> DictConfig:
         raise RunDirError(f"{run_dir} is not a run dir of scripts/train.py: no {path}")
     cfg = read_config(path)  # size, encoding, depth, aliases: before OmegaConf expands it
     check_run_config(OmegaConf.to_container(cfg, resolve=False), path)
+    shipped = read_config(conf_dir() / "config.yaml")
+    for block in SHIPPED_RUN_BLOCKS:
+        if OmegaConf.is_dict(cfg.get(block)):  # a block that is missing or not one is refused
+            for key, value in shipped[block].items():
+                cfg[block].setdefault(key, value)
     return cfg  # type: ignore[return-value]
 
 

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 from hydra.core.hydra_config import HydraConfig
-from omegaconf import DictConfig, OmegaConf, open_dict
+from omegaconf import DictConfig, open_dict
 
 from mrta_rl.config import ConfigError, UserError, short_list
 from mrta_rl.envs import AuctionEnv
@@ -233,7 +233,7 @@ def train(cfg: DictConfig, run_dir: Path | str | None = None) -> dict[str, Any]:
         system_name = hydra_choice("system", run.system.name)
         claim_run_dir(run_dir, resume=False)  # made and locked (runners/run_dir.py)
     # checked by validate_config; absent in runs written before checkpoints existed: none
-    every = OmegaConf.select(cfg, "train.checkpoint_every", default=0)
+    every = cfg.train.checkpoint_every
     run.checkpoint = TrainingCheckpoint(
         run.learner,
         run_dir,

@@ -53,7 +53,7 @@ from mrta_rl.partition import Partition, subg_partition
 from mrta_rl.run_layout import LEARNER_DIR, RunDirError
 from mrta_rl.runners.bases import check_base
 from mrta_rl.runners.run_config import read_run_config
-from mrta_rl.splits import DEFAULT_SPLIT, FAMILY_SEEDS, SEED_STRIDE, SPLIT_SEEDS, SPLIT_WIDTH
+from mrta_rl.splits import FAMILY_SEEDS, SEED_STRIDE, SPLIT_SEEDS, SPLIT_WIDTH
 from mrta_rl.systems import (
     MAX_PAIRS,
     RobotSystem,
@@ -96,15 +96,11 @@ class TrainSettings:
     episodes: Annotated[int, Range(0)]  # training episodes of all copies
     batch_size: Annotated[int, Range(1)]  # B: copies played in parallel
     progress_bar: bool  # tqdm bar on stderr
-    # seconds between progress lines in the log when there is no bar; absent from the configs of
-    # runs written before it existed, which then log every runners/progress.py LOG_EVERY_S
-    log_every_s: Annotated[float, Range(0, low_open=True)] = 30.0
-    # episodes between training checkpoints, 0 = only on Ctrl-C; absent from the configs of runs
-    # written before checkpoints existed, which then have none
-    checkpoint_every: Annotated[int, Range(0)] = 0
+    log_every_s: Annotated[float, Range(0, low_open=True)]  # seconds between log lines, no bar
+    checkpoint_every: Annotated[int, Range(0)]  # episodes between checkpoints, 0 = only on Ctrl-C
     # robot-copies per tick: caps B at robot_copies // m for a team of m robots (a tick costs in
-    # proportion to the team); None = no cap, also for runs written before it existed
-    robot_copies: Annotated[int | None, Range(1)] = None
+    # proportion to the team); None = no cap
+    robot_copies: Annotated[int | None, Range(1)]
 
 
 @dataclass(frozen=True)
@@ -113,12 +109,11 @@ class EvalSettings:
 
     episodes: Annotated[int, Range(1)]  # evaluation copy-episodes
     batch_size: Annotated[int, Range(1)]  # copies per round
-    # the streams played (mrta_rl/splits.py): test (reported) or validation (choices made on);
-    # absent from the configs of runs written before it existed, which played test
-    split: Annotated[str, Choices(*SPLIT_SEEDS)] = DEFAULT_SPLIT
-    # copy b plays seed + b; null: the split's seed. A value must be that seed (runs written
-    # before eval.split existed record it): the split names the streams
-    seed: Annotated[int | None, Range(0, SEED_STRIDE - 1)] = None
+    # the streams played (mrta_rl/splits.py): test (reported) or validation (choices made on)
+    split: Annotated[str, Choices(*SPLIT_SEEDS)]
+    # copy b plays seed + b; null: the split's seed. A value must be that seed (a saved config
+    # may record it): the split names the streams
+    seed: Annotated[int | None, Range(0, SEED_STRIDE - 1)]
 
 
 @dataclass(frozen=True)
@@ -127,7 +122,7 @@ class LimitSettings:
 
     # memory the learner may take (GB): up front, and its Q-tables as they grow (qtable.py);
     # null: MEMORY_FRACTION of the machine's memory
-    memory_gb: Annotated[float | None, Range(0, low_open=True)] = None
+    memory_gb: Annotated[float | None, Range(0, low_open=True)]
 
 
 @dataclass(frozen=True)
@@ -135,7 +130,7 @@ class PartitionSettings:
     """``partition:`` of ``conf/config.yaml`` (conf/partition/subg.yaml; docs/spec/partition.md)."""
 
     # g: at most g robots per sub-group (oversized ones are split); None = the paper's rule
-    max_group_size: Annotated[int | None, Range(1)] = None
+    max_group_size: Annotated[int | None, Range(1)]
 
 
 @dataclass(frozen=True)
@@ -216,7 +211,7 @@ def check_streams(train: dict[str, Any], evaluation: dict[str, Any]) -> None:
             ``eval.batch_size`` when the copies would run into another split's seeds, or
             ``train.batch_size`` when run seed 0's copies would run into the test split's.
     """
-    split, seed = evaluation.get("split", DEFAULT_SPLIT), evaluation.get("seed")
+    split, seed = evaluation["split"], evaluation["seed"]
     if seed is not None:
         _check(
             seed + evaluation["batch_size"] <= SEED_STRIDE,
@@ -459,7 +454,7 @@ def validate_config(cfg: DictConfig) -> CheckedConfig:
     train = _section(cfg, "train", TrainSettings)
     evaluation = _section(cfg, "eval", EvalSettings)
     check_streams(train, evaluation)
-    limits = check_fields(LimitSettings, _plain(cfg, "limits") or {}, "limits")
+    limits = _section(cfg, "limits", LimitSettings)
     bound = check_fields(PartitionSettings, _plain(cfg, "partition") or {}, "partition")
 
     cls = learner_class(cfg.get("learner"))

@@ -253,6 +253,8 @@ def in_process(main, argv: list[str], work: tuple) -> tuple[int | None, str, str
     """``(exit code, stdout, stderr)`` of ``main()`` run here with ``sys.argv = argv``; the code
     is None if the command got to its work (``work``: the module and name of its function)."""
     out, err = io.StringIO(), io.StringIO()
+    loggers = logging.root.manager.loggerDict
+    disabled = {name for name, lg in loggers.items() if getattr(lg, "disabled", False)}
     with (
         pytest.MonkeyPatch.context() as patch,
         contextlib.redirect_stdout(out),
@@ -261,8 +263,6 @@ def in_process(main, argv: list[str], work: tuple) -> tuple[int | None, str, str
         patch.setattr(sys, "argv", argv)
         patch.setenv("HYDRA_FULL_ERROR", "0")  # cli.run sets it to 1 for Hydra: undone after
         patch.setattr(logging.FileHandler, "handleError", logging.FileHandler.handleError)
-        # Hydra's job logging (disabled) would silence every logger of this test process
-        patch.setattr(logging.config, "dictConfig", lambda config: None)
         patch.setattr(*work, stop_work)
         try:
             main()
@@ -273,6 +273,9 @@ def in_process(main, argv: list[str], work: tuple) -> tuple[int | None, str, str
         finally:
             GlobalHydra.instance().clear()
             HydraConfig.instance().cfg = None
+            for name, lg in list(loggers.items()):  # Hydra's job logging (disabled) silences
+                if isinstance(lg, logging.Logger) and name not in disabled:  # every logger
+                    lg.disabled = False
     raise AssertionError(f"{argv}: ended without an error and without its work")
 
 

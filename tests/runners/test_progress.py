@@ -167,7 +167,9 @@ def test_the_time_left_of_any_run_is_hours_minutes_and_seconds(caplog):
 
 def test_the_bar_rate_leaves_out_the_first_tick():
     """The tqdm bar's rate and time left too (here: 10 ticks in 1 s after a first tick of 60 s)."""
-    bar = progress_bar(total=1000, unit="tick", desc="x", enabled=True, file=io.StringIO())
+    bar = progress_bar(
+        total=1000, unit="tick", desc="x", enabled=True, log_every_s=30.0, file=io.StringIO()
+    )
     clock = FakeClock()
     clock.now = bar.start_t = bar.last_print_t  # tqdm's own clock, from the bar's start
     bar._time = clock
