@@ -16,7 +16,7 @@ import operator
 import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Annotated, Any, Protocol
+from typing import TYPE_CHECKING, Annotated, Any
 
 import numpy as np
 import pandas as pd
@@ -27,15 +27,8 @@ from mrta_rl.reports.stats import MeanCI
 from mrta_rl.reports.tables import big_int
 from mrta_rl.types import PRIORITIES
 
-
-class Study(Protocol):
-    """What the claims read of a study (``reports/study.py``): its claims, groups and order."""
-
-    claims: Sequence[Claim]
-    groups: Mapping[str, Sequence[str]]
-
-    def rank(self, learner: str) -> Any:
-        """The learner's place in the study's row order."""
+if TYPE_CHECKING:
+    from mrta_rl.reports.study import Study
 
 
 HOLDS, FAILS, NOT_EVALUABLE = "holds", "does not hold", "not evaluable"

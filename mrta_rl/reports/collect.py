@@ -15,7 +15,6 @@ import dataclasses
 import itertools
 import json
 import logging
-import re
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -41,6 +40,7 @@ from mrta_rl.run_layout import (
     read_metrics,
 )
 from mrta_rl.splits import DEFAULT_SPLIT, SPLIT_SEEDS
+from mrta_rl.types import natural_key
 
 logger = logging.getLogger(__name__)
 
@@ -135,7 +135,7 @@ def read_curve(path: Path) -> tuple[tuple[int, float], ...]:
     """
     if not path.exists():
         return ()
-    rows = read_csv_numbers(path, ("env_ticks", "team_return_mean"), key="env_ticks")
+    rows = read_csv_numbers(path, CURVE_COLUMNS, key="env_ticks")
     return tuple((int(ticks), value) for ticks, value in rows)
 
 
@@ -242,15 +242,6 @@ def _format_value(value: Any) -> str:
     if isinstance(value, list):
         return "[" + ",".join(_format_value(v) for v in value) + "]"
     return str(value)
-
-
-def natural_key(text: str) -> tuple[Any, ...]:
-    """Sort key that orders the numbers in ``text`` by value (``reserve=2`` before ``=10``)."""
-    return tuple(
-        (0, int(part), "") if part.isdigit() else (1, 0, part)
-        for part in re.split(r"(\d+)", text)
-        if part
-    )
 
 
 def refusal_reason(run_dir: Path) -> str | None:

@@ -14,9 +14,9 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from mrta_rl.reports.collect import RunRecord, natural_key
+from mrta_rl.reports.collect import RunRecord
 from mrta_rl.reports.stats import MeanCI, mean_ci
-from mrta_rl.types import PRIORITIES
+from mrta_rl.types import PRIORITIES, natural_key
 
 SYSTEM_LABELS: dict[str, str] = {"system1": "System-I", "system2": "System-II"}
 PRIORITY_LABELS: dict[str, str] = {"L": "low-priority", "H": "high-priority"}
