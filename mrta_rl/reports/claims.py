@@ -16,7 +16,7 @@ import operator
 import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Annotated, Any
+from typing import Annotated, Any, Protocol
 
 import numpy as np
 import pandas as pd
@@ -27,8 +27,15 @@ from mrta_rl.reports.stats import MeanCI
 from mrta_rl.reports.tables import big_int
 from mrta_rl.types import PRIORITIES
 
-if TYPE_CHECKING:
-    from mrta_rl.reports.study import Study
+
+class Study(Protocol):
+    """What the claims read of a study (``reports/study.py``): its claims, groups and order."""
+
+    claims: Sequence[Claim]
+    groups: Mapping[str, Sequence[str]]
+
+    def rank(self, learner: str) -> Any:
+        """The learner's place in the study's row order."""
 
 
 HOLDS, FAILS, NOT_EVALUABLE = "holds", "does not hold", "not evaluable"
