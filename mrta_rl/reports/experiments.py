@@ -22,7 +22,7 @@ import pandas as pd
 
 from mrta_rl.config import UserError
 from mrta_rl.reports import figures
-from mrta_rl.reports.claims import claims_along
+from mrta_rl.reports.claims import FAILS, HOLDS, NOT_EVALUABLE, check_claims
 from mrta_rl.reports.collect import (
     METRICS_FILE,
     REFUSED_FILE,
@@ -229,16 +229,15 @@ def dimension_claims(runs: Sequence[RunRecord], dim: str, study: Study) -> str:
         if value is not None and config_value(run.config, BOUND_KEY) is None:
             plain = dataclasses.replace(run, learner=run.name, variant="")
             by_value.setdefault(value, []).append(plain)
-    summaries = {v: summarize(long_table(by_value[v]), study.learners) for v in by_value}
-    along = claims_along(summaries, study)
-    where = ("holds_at", "fails_at", "not_evaluable_at")
+    where: dict[tuple[str, str], dict[str, list[Any]]] = {}  # (claim, system) -> verdict -> values
+    for value in sorted(by_value):
+        summary = summarize(long_table(by_value[value]), study.learners)
+        for r in check_claims(summary, study):
+            where.setdefault((r.claim, r.system), {}).setdefault(r.verdict, []).append(value)
     rows = [
-        [
-            r.claim,
-            system_label(r.system),
-            *(", ".join(map(str, getattr(r, k))) or "none" for k in where),
-        ]
-        for r in along.itertuples()
+        [claim, system_label(system)]
+        + [", ".join(map(str, found.get(v, []))) or "none" for v in (HOLDS, FAILS, NOT_EVALUABLE)]
+        for (claim, system), found in where.items()
     ]
     header = ["claim", "system", f"holds at {study.along[dim].label}", "does not hold at"]
     return markdown_table([*header, "not evaluable at"], rows)
