@@ -323,7 +323,7 @@ def _load_runs(run_dirs: Iterable[Path], collection: Collection) -> list[RunReco
     return records
 
 
-def _found(paths: Sequence[Path], name: str) -> list[Path]:
+def found_files(paths: Sequence[Path], name: str) -> list[Path]:
     """The files ``name`` of the inputs: an input's own, else every one below it."""
     found = [[p / name] if (p / name).is_file() else p.rglob(name) for p in paths]
     return sorted({f.resolve() for files in found for f in files})
@@ -342,7 +342,7 @@ def collect_runs(inputs: Iterable[Path | str]) -> Collection:
     collection = Collection(inputs=paths)
     by_key: dict[tuple[str, str, int], RunRecord] = {}
     # a run dir holds a metrics.json: an input itself, else every folder below it
-    records = _load_runs((m.parent for m in _found(paths, METRICS_FILE)), collection)
+    records = _load_runs((m.parent for m in found_files(paths, METRICS_FILE)), collection)
     variants = configuration_variants(records)
     for record, variant in zip(records, variants, strict=True):
         if variant:
@@ -357,7 +357,7 @@ def collect_runs(inputs: Iterable[Path | str]) -> Collection:
 
     # only a sweep expects jobs: run dirs given or found outside one expect no other runs
     sweeps = []
-    for multirun_yaml in _found(paths, MULTIRUN_FILE):
+    for multirun_yaml in found_files(paths, MULTIRUN_FILE):
         jobs = expected_sweep_jobs(multirun_yaml)
         if jobs is None:
             logger.warning("%s: not a BasicSweeper sweep: no expected grid", multirun_yaml)

@@ -29,6 +29,7 @@ from mrta_rl.reports.collect import (
     RunRecord,
     config_value,
     configuration_variants,
+    found_files,
     named_init,
     read_yaml_config,
     refusal_reason,
@@ -113,9 +114,7 @@ def study_points(runs: Sequence[RunRecord], inputs: Sequence[Path], study: Study
     for r in runs:
         cell = (_series(r.label, r.variant), r.name, r.system, r.seed)
         points.append(_point(cell, r.config, r.metrics, "", study.along))
-    found = {p.parent.resolve() for path in inputs for p in Path(path).rglob(REFUSED_FILE)}
-    found |= {Path(p).resolve() for p in inputs if (Path(p) / REFUSED_FILE).is_file()}
-    for run_dir in sorted(found):
+    for run_dir in sorted(f.parent for f in found_files(inputs, REFUSED_FILE)):
         if (run_dir / METRICS_FILE).is_file():
             continue
         record = read_json(run_dir / REFUSED_FILE)
@@ -148,8 +147,7 @@ def _line(points: pd.DataFrame, dim: str, column: str) -> pd.DataFrame | None:
     for x, group in points.dropna(subset=[dim]).groupby(dim):
         stat = mean_ci(group[column])
         if stat.n:
-            half = 0.0 if math.isnan(stat.ci95) else stat.ci95
-            rows.append((float(x), stat.mean, stat.mean - half, stat.mean + half))
+            rows.append((float(x), stat.mean, stat.mean - stat.half, stat.mean + stat.half))
     return pd.DataFrame(rows, columns=["x", "mean", "low", "high"]) if rows else None
 
 
