@@ -332,20 +332,3 @@ def claims_table(results: Sequence[ClaimResult]) -> pd.DataFrame:
     """The results as a table (:data:`CLAIMS_HEADER`)."""
     rows = [[r.claim, r.system, r.verdict, r.separation, r.statement, r.evidence] for r in results]
     return pd.DataFrame(rows, columns=CLAIMS_HEADER)
-
-
-def claims_along(summaries: Mapping[Any, pd.DataFrame], study: Study) -> pd.DataFrame:
-    """Per claim and system, the values of a swept setting where it holds, fails, cannot tell."""
-    table = pd.concat(
-        [claims_table(check_claims(summaries[v], study)).assign(value=v) for v in sorted(summaries)]
-    )
-    columns = {"holds_at": HOLDS, "fails_at": FAILS, "not_evaluable_at": NOT_EVALUABLE}
-    return (
-        table.groupby(["claim", "system"], sort=False)
-        .apply(
-            lambda g: pd.Series(
-                {k: tuple(g[g["verdict"] == v]["value"]) for k, v in columns.items()}
-            )
-        )
-        .reset_index()
-    )

@@ -15,7 +15,6 @@ import dataclasses
 import itertools
 import json
 import logging
-import re
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -41,6 +40,7 @@ from mrta_rl.run_layout import (
     read_metrics,
 )
 from mrta_rl.splits import DEFAULT_SPLIT, SPLIT_SEEDS
+from mrta_rl.types import natural_key
 
 logger = logging.getLogger(__name__)
 
@@ -135,7 +135,7 @@ def read_curve(path: Path) -> tuple[tuple[int, float], ...]:
     """
     if not path.exists():
         return ()
-    rows = read_csv_numbers(path, ("env_ticks", "team_return_mean"), key="env_ticks")
+    rows = read_csv_numbers(path, CURVE_COLUMNS, key="env_ticks")
     return tuple((int(ticks), value) for ticks, value in rows)
 
 
@@ -244,15 +244,6 @@ def _format_value(value: Any) -> str:
     return str(value)
 
 
-def natural_key(text: str) -> tuple[Any, ...]:
-    """Sort key that orders the numbers in ``text`` by value (``reserve=2`` before ``=10``)."""
-    return tuple(
-        (0, int(part), "") if part.isdigit() else (1, 0, part)
-        for part in re.split(r"(\d+)", text)
-        if part
-    )
-
-
 def refusal_reason(run_dir: Path) -> str | None:
     """``"refused: <reason>"`` if the run was refused up front (its ``refused.json``), else None."""
     path = run_dir / REFUSED_FILE
@@ -332,7 +323,7 @@ def _load_runs(run_dirs: Iterable[Path], collection: Collection) -> list[RunReco
     return records
 
 
-def _found(paths: Sequence[Path], name: str) -> list[Path]:
+def found_files(paths: Sequence[Path], name: str) -> list[Path]:
     """The files ``name`` of the inputs: an input's own, else every one below it."""
     found = [[p / name] if (p / name).is_file() else p.rglob(name) for p in paths]
     return sorted({f.resolve() for files in found for f in files})
@@ -351,7 +342,7 @@ def collect_runs(inputs: Iterable[Path | str]) -> Collection:
     collection = Collection(inputs=paths)
     by_key: dict[tuple[str, str, int], RunRecord] = {}
     # a run dir holds a metrics.json: an input itself, else every folder below it
-    records = _load_runs((m.parent for m in _found(paths, METRICS_FILE)), collection)
+    records = _load_runs((m.parent for m in found_files(paths, METRICS_FILE)), collection)
     variants = configuration_variants(records)
     for record, variant in zip(records, variants, strict=True):
         if variant:
@@ -366,7 +357,7 @@ def collect_runs(inputs: Iterable[Path | str]) -> Collection:
 
     # only a sweep expects jobs: run dirs given or found outside one expect no other runs
     sweeps = []
-    for multirun_yaml in _found(paths, MULTIRUN_FILE):
+    for multirun_yaml in found_files(paths, MULTIRUN_FILE):
         jobs = expected_sweep_jobs(multirun_yaml)
         if jobs is None:
             logger.warning("%s: not a BasicSweeper sweep: no expected grid", multirun_yaml)

@@ -22,13 +22,14 @@ import pandas as pd
 
 from mrta_rl.config import UserError
 from mrta_rl.reports import figures
-from mrta_rl.reports.claims import claims_along
+from mrta_rl.reports.claims import FAILS, HOLDS, NOT_EVALUABLE, check_claims
 from mrta_rl.reports.collect import (
     METRICS_FILE,
     REFUSED_FILE,
     RunRecord,
     config_value,
     configuration_variants,
+    found_files,
     named_init,
     read_yaml_config,
     refusal_reason,
@@ -113,9 +114,7 @@ def study_points(runs: Sequence[RunRecord], inputs: Sequence[Path], study: Study
     for r in runs:
         cell = (_series(r.label, r.variant), r.name, r.system, r.seed)
         points.append(_point(cell, r.config, r.metrics, "", study.along))
-    found = {p.parent.resolve() for path in inputs for p in Path(path).rglob(REFUSED_FILE)}
-    found |= {Path(p).resolve() for p in inputs if (Path(p) / REFUSED_FILE).is_file()}
-    for run_dir in sorted(found):
+    for run_dir in sorted(f.parent for f in found_files(inputs, REFUSED_FILE)):
         if (run_dir / METRICS_FILE).is_file():
             continue
         record = read_json(run_dir / REFUSED_FILE)
@@ -148,8 +147,7 @@ def _line(points: pd.DataFrame, dim: str, column: str) -> pd.DataFrame | None:
     for x, group in points.dropna(subset=[dim]).groupby(dim):
         stat = mean_ci(group[column])
         if stat.n:
-            half = 0.0 if math.isnan(stat.ci95) else stat.ci95
-            rows.append((float(x), stat.mean, stat.mean - half, stat.mean + half))
+            rows.append((float(x), stat.mean, stat.mean - stat.half, stat.mean + stat.half))
     return pd.DataFrame(rows, columns=["x", "mean", "low", "high"]) if rows else None
 
 
@@ -229,16 +227,15 @@ def dimension_claims(runs: Sequence[RunRecord], dim: str, study: Study) -> str:
         if value is not None and config_value(run.config, BOUND_KEY) is None:
             plain = dataclasses.replace(run, learner=run.name, variant="")
             by_value.setdefault(value, []).append(plain)
-    summaries = {v: summarize(long_table(by_value[v]), study.learners) for v in by_value}
-    along = claims_along(summaries, study)
-    where = ("holds_at", "fails_at", "not_evaluable_at")
+    where: dict[tuple[str, str], dict[str, list[Any]]] = {}  # (claim, system) -> verdict -> values
+    for value in sorted(by_value):
+        summary = summarize(long_table(by_value[value]), study.learners)
+        for r in check_claims(summary, study):
+            where.setdefault((r.claim, r.system), {}).setdefault(r.verdict, []).append(value)
     rows = [
-        [
-            r.claim,
-            system_label(r.system),
-            *(", ".join(map(str, getattr(r, k))) or "none" for k in where),
-        ]
-        for r in along.itertuples()
+        [claim, system_label(system)]
+        + [", ".join(map(str, found.get(v, []))) or "none" for v in (HOLDS, FAILS, NOT_EVALUABLE)]
+        for (claim, system), found in where.items()
     ]
     header = ["claim", "system", f"holds at {study.along[dim].label}", "does not hold at"]
     return markdown_table([*header, "not evaluable at"], rows)

@@ -6,7 +6,6 @@ backend), so a report can be made in a headless process or a parallel job.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -43,10 +42,6 @@ def _save(fig: Figure, path: Path) -> Path:
     fig.tight_layout()
     fig.savefig(path, dpi=DPI)
     return path
-
-
-def _half(stats: Sequence[MeanCI]) -> np.ndarray:
-    return np.array([0.0 if math.isnan(s.ci95) else s.ci95 for s in stats], dtype=float)
 
 
 def _seed_note(summary: pd.DataFrame) -> str:
@@ -96,8 +91,8 @@ def team_return_figure(summary: pd.DataFrame, path: Path, colors: Colors) -> Pat
         rows = summary[summary["system"] == system]
         ret = rows[rows["metric"] == "team_return"]
         x = np.arange(len(ret))
-        colors_ = [colors[n] for n in ret["learner"]]
-        ax.bar(x, ret["mean"].fillna(0.0), 0.7, yerr=_half(ret["stat"]), capsize=3, color=colors_)
+        colors_, half = [colors[n] for n in ret["learner"]], [s.half for s in ret["stat"]]
+        ax.bar(x, ret["mean"].fillna(0.0), 0.7, yerr=half, capsize=3, color=colors_)
         greedy = [s for s in rows[rows["metric"] == "greedy_team_return"]["stat"] if s.n]
         if greedy:
             ax.axhline(greedy[0].mean, color="black", ls="--", lw=1, label="greedy baseline")
@@ -170,7 +165,8 @@ def difference_bars(
         color = [
             "tab:green" if d.low > 0 else "tab:red" if d.high < 0 else "tab:gray" for d in diffs
         ]
-        ax.barh(y, [d.mean for d in diffs], xerr=_half(diffs), color=color, alpha=0.8, capsize=3)
+        means, half = [d.mean for d in diffs], [d.half for d in diffs]
+        ax.barh(y, means, xerr=half, color=color, alpha=0.8, capsize=3)
         ax.axvline(0.0, color="black", linewidth=0.8)
         ax.set_yticks(y, [n for n, _ in items], fontsize=8)
         ax.set_xlabel(xlabel)

@@ -14,9 +14,9 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from mrta_rl.reports.collect import RunRecord, natural_key
+from mrta_rl.reports.collect import RunRecord
 from mrta_rl.reports.stats import MeanCI, mean_ci
-from mrta_rl.types import PRIORITIES
+from mrta_rl.types import PRIORITIES, natural_key
 
 SYSTEM_LABELS: dict[str, str] = {"system1": "System-I", "system2": "System-II"}
 PRIORITY_LABELS: dict[str, str] = {"L": "low-priority", "H": "high-priority"}
@@ -182,5 +182,5 @@ def summarize_curve(runs: Sequence[RunRecord]) -> CurveSummary | None:
     ticks = np.array([tick for tick, _ in curves[0][:length]], dtype=np.int64)
     stats = [mean_ci(c[i][1] for c in curves) for i in range(length)]
     mean = np.array([s.mean for s in stats])
-    half = np.array([0.0 if math.isnan(s.ci95) else s.ci95 for s in stats])
+    half = np.array([s.half for s in stats])
     return CurveSummary(ticks, mean, mean - half, mean + half, len(curves))

@@ -155,7 +155,7 @@ def build_report(inputs: Iterable[Path | str], out_dir: Path | str | None = None
     for stem, path in {**rules_files, **study_files}.items():
         (files.figures if path.suffix == ".png" else files.csvs)[stem] = path
     files.marl_eval = marl_eval.write_marl_eval(collection.runs, out)
-    markdown = _report_markdown(collection, frame, summary, claims, files, prose, rules_md)
+    markdown = _report_markdown(collection, frame, csvs, summary, claims, files, prose, rules_md)
     files.report.write_text(markdown + "\n" + study_md + "\n")
     counts = len(collection.runs), len(collection.missing), len(collection.unreadable)
     logger.info("wrote %s (%d runs, %d missing, %d left out)", files.report, *counts)
@@ -170,6 +170,7 @@ def _png(out: Path, stem: str) -> Path:
 def _report_markdown(
     collection: Collection,
     frame: pd.DataFrame,
+    csvs: dict[str, pd.DataFrame],
     summary: pd.DataFrame,
     claims: list,
     files: ReportFiles,
@@ -212,7 +213,7 @@ def _report_markdown(
         header = ["learner", "system", "seed", "reason", "job dir", "overrides"]
         md += prose.section("missing", table=markdown_table(header, rows))
     md += prose.section("setup", table=_setup_markdown(runs, summary))
-    table = team_return_markdown(summary, tables.csv_tables(frame, summary)["team_return"])
+    table = team_return_markdown(summary, csvs["team_return"])
     figure = prose.image(fig("team_return"), "Team return")
     md += prose.section("team_return", table=table, figure=figure)
     groups = {s: t for s, rows in systems.items() if (t := group_return_markdown(rows))}

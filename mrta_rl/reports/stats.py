@@ -44,6 +44,11 @@ class MeanCI:
         """Upper end of the interval (NaN if undefined)."""
         return self.mean + self.ci95
 
+    @property
+    def half(self) -> float:
+        """Half-width drawn as a band or an error bar: 0 where the interval is undefined."""
+        return 0.0 if math.isnan(self.ci95) else self.ci95
+
     def format(self, digits: int = 1) -> str:
         """``"74.3 ± 2.1"``; ``"74.3"`` for a single seed; ``"–"`` without any value."""
         spread = f" ± {self.ci95:.{digits}f}" if self.n >= 2 else ""

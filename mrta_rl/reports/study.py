@@ -60,9 +60,6 @@ class Study:
         return self.learners.index(name) if name in self.learners else len(self.learners)
 
 
-NO_STUDY = Study()  # learners alphabetically, no claims, no yardsticks, no axes
-
-
 def check_block(block: Any, source: str) -> Study:
     """A ``report:`` block as a :class:`Study`, every key and claim checked.
 

@@ -22,7 +22,6 @@ natural order of their names (digits compared as numbers: ``T2`` before ``T10``)
 
 from __future__ import annotations
 
-import re
 import reprlib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -32,7 +31,7 @@ from typing import Annotated, Any
 import numpy as np
 
 from mrta_rl.config import ConfigError, Range, check_keywords
-from mrta_rl.types import RobotId, TaskType
+from mrta_rl.types import RobotId, TaskType, natural_key
 
 _DURATION_KEYS = ("duration_low", "duration_high")
 # robot-task pairs of the largest team: a team is built, checked and partitioned robot by robot
@@ -42,15 +41,6 @@ MAX_PAIRS = 10**7
 
 class SystemConfigError(ConfigError):
     """A system description is malformed; the message names the robot or task type at fault."""
-
-
-def natural_key(name: str) -> tuple[tuple[int, int, str], ...]:
-    """Sort key of a name with its digit runs compared as numbers (``T2`` < ``T10``)."""
-    return tuple(
-        (0, int(part), "") if part.isdigit() else (1, 0, part)
-        for part in re.split(r"(\d+)", name)
-        if part
-    )
 
 
 def _label(value: Any, what: str) -> str:
