@@ -231,13 +231,17 @@ def deadline(seconds: int):
         signal.signal(signal.SIGALRM, previous)
 
 
-def test_a_fifo_as_the_learner_state_is_refused_at_once(es_runs, tmp_path):
+@pytest.mark.parametrize("reader", ["evaluate", "init"])
+def test_a_fifo_as_the_learner_state_is_refused_at_once(es_runs, tmp_path, reader):
     run_dir = copy_run(es_runs, "net_es", tmp_path)
     path = state_path(run_dir, "net_es")
     path.unlink()
     os.mkfifo(path)
     with deadline(60):
-        message = refused_by_evaluate(run_dir)
+        if reader == "evaluate":
+            message = refused_by_evaluate(run_dir)
+        else:
+            message = refused_by_init("net_es", run_dir, tmp_path)
     assert_one_line(message, str(path), "FIFO", "not a regular file")
 
 
