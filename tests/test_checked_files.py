@@ -340,6 +340,18 @@ def test_a_team_file_with_a_syntax_error_is_one_line_naming_file_and_line(tmp_pa
     assert_one_line(str(err.value), str(path), "line 4", "YAML syntax error")
 
 
+@pytest.mark.parametrize(
+    ("content", "said"), [("", "got empty"), ("root:x:0:0:root:/root:/bin/bash\n", "got a str")]
+)
+def test_a_team_file_that_is_no_mapping_is_one_line_naming_the_file(tmp_path, content, said):
+    """An empty file, or a text file (a link to /etc/passwd reads as one string)."""
+    path = tmp_path / "team.yaml"
+    path.write_text(content)
+    with pytest.raises(UserError) as err:
+        use_team_files([f"system={path}"])
+    assert_one_line(str(err.value), str(path), "a team must be a mapping", said)
+
+
 def test_a_curve_cell_that_is_not_a_number_names_the_file_and_line(tmp_path):
     path = tmp_path / "curve.csv"
     path.write_text("env_ticks,episode,team_return_mean\n1,1,abc\n")

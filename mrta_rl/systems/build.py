@@ -67,6 +67,12 @@ def build_system(cfg: Mapping[str, Any]) -> RobotSystem:
     Raises:
         SystemConfigError: on unknown keys or malformed content, naming the culprit.
     """
+    if not isinstance(cfg, Mapping):  # an empty file reads as None, a text file as a string
+        shown = "empty" if cfg is None else f"a {type(cfg).__name__}"
+        raise SystemConfigError(
+            f"a team must be a mapping with 'robots' (a table) or 'n_robots' (a random team), "
+            f"got {shown}"
+        )
     cfg = dict(cfg)
     name = str(cfg.get("name", "unnamed"))
     if "family" in cfg:  # a family of teams: the run plays its evaluation team
