@@ -57,7 +57,11 @@ def write_json(path: Path, payload: dict[str, Any], *, exclusive: bool = False) 
         RunDirError: if ``exclusive`` and ``path`` exists.
     """
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(payload, indent=2, allow_nan=False) + "\n")
+    try:
+        tmp.write_text(json.dumps(payload, indent=2, allow_nan=False) + "\n")
+    except BaseException:  # a disk full or a file size limit leaves no half-written file
+        tmp.unlink(missing_ok=True)
+        raise
     if not exclusive:
         os.replace(tmp, path)
         return

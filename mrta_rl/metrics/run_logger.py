@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import csv
 import hashlib
+import logging
 import math
 import numbers
 import os
@@ -37,6 +38,10 @@ from typing import Any, Literal
 CURVE_COLUMNS = ("env_ticks", "episode", "team_return_mean")  # the columns every runner writes
 Backend = Literal["csv", "tensorboard", "wandb", "mlflow"]
 EXPERIMENT = "train"  # TorchRL's exp_name: the tracker run's name
+# a tracker keeps a file or a series per scalar: a block with more keys than this (the ITR of
+# each robot of a 1,000-robot team) stays in metrics.json alone
+MAX_BLOCK_SCALARS = 256
+logger = logging.getLogger(__name__)
 _TRACKERS: dict[Path, Any] = {}  # run dir -> its open TorchRL logger (module docstring)
 
 
@@ -196,12 +201,20 @@ def final_scalars(metrics: Mapping[str, Any]) -> dict[str, float]:
 
     Returns:
         ``{"eval/team_return/mean": ..., "train/fps": ...}``: every finite number, plus the
-        training's copy-ticks per second (``train/fps``) when it trained.
+        training's copy-ticks per second (``train/fps``) when it trained. A block of more than
+        :data:`MAX_BLOCK_SCALARS` keys (the ITR of each robot of a large team) is left out.
     """
     out: dict[str, float] = {}
 
     def walk(value: Any, path: str) -> None:
         if isinstance(value, Mapping):
+            if len(value) > MAX_BLOCK_SCALARS:
+                logger.info(
+                    "tracker: %s holds %s values, left out (they are in metrics.json)",
+                    path,
+                    f"{len(value):,}",
+                )
+                return
             for key, item in value.items():
                 walk(item, f"{path}/{key}" if path else str(key))
         elif isinstance(value, numbers.Real) and not isinstance(value, bool):

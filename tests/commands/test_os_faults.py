@@ -227,3 +227,26 @@ def test_report_into_a_folder_that_cannot_be_written_is_refused_first(
         code, out, err = run("report.py", str(finished_run), "--out", str(folder / "r"))
     assert_one_line(code, err, f"error: --out: cannot write in {folder}: Operation not permitted")
     assert out == "" and list(folder.iterdir()) == []
+
+
+def test_a_json_write_that_hits_the_file_size_limit_leaves_no_temporary_file(tmp_path):
+    """``write_json`` is atomic: a write that fails (File too large) leaves neither file."""
+    code = (
+        "import resource, sys\n"
+        "from pathlib import Path\n"
+        "from mrta_rl.run_layout import write_json\n"
+        "resource.setrlimit(resource.RLIMIT_FSIZE, (100, 100))\n"
+        "try:\n"
+        f"    write_json(Path({str(tmp_path)!r}) / 'm.json', {{'x': list(range(1000))}})\n"
+        "except OSError as err:\n"
+        "    print(err.errno)\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code],
+        env=os.environ | {"PYTHONPATH": str(ROOT)},
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert done.stdout.strip() == "27", done.stderr  # EFBIG
+    assert list(tmp_path.iterdir()) == []

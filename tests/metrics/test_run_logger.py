@@ -13,6 +13,7 @@ from pathlib import Path
 import pytest
 from hydra.utils import instantiate
 
+from mrta_rl.metrics.run_logger import final_scalars
 from mrta_rl.runners import train
 
 WANDB_BLOCK = 32768  # wandb's run file is a LevelDB log: 32 KiB blocks of chunked records
@@ -138,3 +139,16 @@ def test_the_loggers_page_names_keys_the_tracker_receives(compose_cfg, tmp_path)
     scalars = tmp_path / "torchrl" / "train" / "scalars"
     logged = {str(p.relative_to(scalars).with_suffix("")) for p in scalars.rglob("*.csv")}
     assert sorted(named - logged) == []
+
+
+def test_a_tracker_is_not_given_a_scalar_per_robot_of_a_large_team():
+    """A tracker opens a file or a series per scalar: 100,000 robots' ITR ran out of files."""
+    small = {"eval": {"team_return": {"mean": 5.0}, "itr": {f"R{i}": 1.0 for i in range(3)}}}
+    large = {"eval": {"team_return": {"mean": 5.0}, "itr": {f"R{i}": 1.0 for i in range(257)}}}
+    assert final_scalars(small) == {
+        "eval/team_return/mean": 5.0,
+        "eval/itr/R0": 1.0,
+        "eval/itr/R1": 1.0,
+        "eval/itr/R2": 1.0,
+    }
+    assert final_scalars(large) == {"eval/team_return/mean": 5.0}
