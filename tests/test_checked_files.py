@@ -344,9 +344,11 @@ def test_a_team_file_with_a_syntax_error_is_one_line_naming_file_and_line(tmp_pa
     ("content", "said"), [("", "got empty"), ("root:x:0:0:root:/root:/bin/bash\n", "got a str")]
 )
 def test_a_team_file_that_is_no_mapping_is_one_line_naming_the_file(tmp_path, content, said):
-    """An empty file, or a text file (a link to /etc/passwd reads as one string)."""
-    path = tmp_path / "team.yaml"
-    path.write_text(content)
+    """An empty file, or a link to a text file (/etc/passwd reads as one string): the message
+    names the file as typed, not the link's target."""
+    path, target = tmp_path / "team.yaml", tmp_path / "passwd"
+    target.write_text(content)
+    path.symlink_to(target)
     with pytest.raises(UserError) as err:
         use_team_files([f"system={path}"])
     assert_one_line(str(err.value), str(path), "a team must be a mapping", said)

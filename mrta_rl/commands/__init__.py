@@ -86,7 +86,7 @@ def use_team_files(
             try:
                 check(team)
             except (UserError, TypeError) as err:
-                raise UserError(f"{path}: {err}") from None
+                raise UserError(f"{item}: {err}") from None  # the name typed, not a link's target
             if isinstance(team, dict) and "name" not in team:  # the name the run reports
                 team = {"name": name, **team}
             ConfigStore.instance().store(group="system", name=name, node=team)
