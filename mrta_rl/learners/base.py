@@ -24,6 +24,7 @@ import functools
 import inspect
 from abc import ABCMeta, abstractmethod
 from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar, Literal
 
@@ -84,6 +85,15 @@ class NonFiniteState(UserError):
 
 
 # what every concrete learner class answers for (besides its own ``label``, see Learner)
+@dataclass(frozen=True)
+class TrainingTeam:
+    """What a learner's settings must fit (:meth:`Learner.check_settings`)."""
+
+    env: AuctionEnv  # an env of the team (the runner's probe: its sizes, not its copies)
+    partition: Partition | None  # the subG partition, or None
+    copies: int  # training copies B
+
+
 FACTS = ("kind", "training_loop", "estimate_memory", "learning_space_dimension")
 
 
@@ -311,13 +321,7 @@ class Learner(metaclass=LearnerType):
         return out
 
     @classmethod  # noqa: B027 - optional hook, deliberately a no-op
-    def check_settings(
-        cls,
-        settings: Mapping[str, Any],
-        env: AuctionEnv,
-        partition: Partition | None,
-        copies: int,
-    ) -> None:
+    def check_settings(cls, settings: Mapping[str, Any], team: TrainingTeam) -> None:
         """Refuse settings that contradict each other or the team, before anything is built.
 
         Each setting's own type and range is its declaration's (checked by ``check_keywords``);
@@ -329,9 +333,7 @@ class Learner(metaclass=LearnerType):
 
         Args:
             settings: The learner's settings, defaults filled in (:meth:`complete_settings`).
-            env: An env of the team (the runner's probe: its sizes, not its copies).
-            partition: The subG partition, or None.
-            copies: Training copies ``B``.
+            team: What the settings must fit: the team's env, its partition, the copies.
 
         Raises:
             ConfigError: naming ``learner.<key>`` and what it contradicts.
@@ -354,7 +356,7 @@ class Learner(metaclass=LearnerType):
         """
         if self.requires_partition and partition is None:
             raise ValueError(f"{type(self).__name__} requires a subG partition (paper §4)")
-        type(self).check_settings(self.hp, env, partition, env.batch_size)
+        type(self).check_settings(self.hp, TrainingTeam(env, partition, env.batch_size))
         self.env = env
         self.rng = rng
         self.partition = partition

@@ -40,7 +40,7 @@ from mrta_rl.config import (
 from mrta_rl.envs import AuctionParams
 from mrta_rl.envs.auction import check_limits
 from mrta_rl.learners import Learner
-from mrta_rl.learners.base import learner_from_target
+from mrta_rl.learners.base import TrainingTeam, learner_from_target
 from mrta_rl.learners.memory import (
     estimate_resources,
     machine_memory,
@@ -487,12 +487,8 @@ def validate_config(cfg: DictConfig) -> CheckedConfig:
 
     try:  # relations between the settings, and to the team and the copies
         active = partition.active_tasks(system) if partition is not None else None
-        cls.check_settings(
-            cls.complete_settings(hyperparameters),
-            probe_env(system, params, active),
-            partition,
-            batch_size,
-        )
+        team = TrainingTeam(probe_env(system, params, active), partition, batch_size)
+        cls.check_settings(cls.complete_settings(hyperparameters), team)
         estimate = estimate_resources(
             cls,
             system,

@@ -49,7 +49,7 @@ from torchrl.objectives.multiagent import MAPPOLoss
 from mrta_rl.config import ConfigError, Range
 from mrta_rl.envs import AuctionEnv, encodings
 from mrta_rl.envs.torchrl_env import GROUP_SET_KEYS, PRIOR_KEY, ROOT_SET_KEYS
-from mrta_rl.learners.base import MemoryQuery
+from mrta_rl.learners.base import MemoryQuery, TrainingTeam
 from mrta_rl.learners.memory import BYTES_PER_WEIGHT, ResourceEstimate, feature_sizes, mlp_weights
 from mrta_rl.learners.neural.networks import PerRobotQ
 from mrta_rl.learners.neural.set_network import SetNetworkOption
@@ -177,20 +177,18 @@ class PPOLearner(SetNetworkOption, TorchLearner, abstract=True):
         return ResourceEstimate(cls.__name__, total, total, parts, advice=PPO_ADVICE)
 
     @classmethod
-    def check_settings(
-        cls,
-        settings: Mapping[str, Any],
-        env: AuctionEnv,
-        partition: Partition | None,
-        copies: int,
-    ) -> None:
+    def check_settings(cls, settings: Mapping[str, Any], team: TrainingTeam) -> None:
         """Refuse a batch that is not whole ticks of every copy, or a minibatch past it.
 
         Raises:
             ConfigError: naming ``learner.frames_per_batch`` or ``learner.minibatch_size``.
         """
-        super().check_settings(settings, env, partition, copies)
-        frames, minibatch = settings["frames_per_batch"], settings["minibatch_size"]
+        super().check_settings(settings, team)
+        frames, minibatch, copies = (
+            settings["frames_per_batch"],
+            settings["minibatch_size"],
+            team.copies,
+        )
         if frames % copies:
             raise ConfigError(
                 f"learner.frames_per_batch={frames} is not a multiple of the {copies} "

@@ -57,7 +57,7 @@ from torchrl.objectives import HardUpdate, LossModule, SoftUpdate
 from mrta_rl.config import Choices, ConfigError, Range
 from mrta_rl.envs import AuctionEnv
 from mrta_rl.envs.torchrl_env import GROUP_SET_KEYS, PRIOR_KEY, ROOT_SET_KEYS
-from mrta_rl.learners.base import MemoryQuery
+from mrta_rl.learners.base import MemoryQuery, TrainingTeam
 from mrta_rl.learners.memory import (
     NEURAL_ADVICE,
     ResourceEstimate,
@@ -184,19 +184,13 @@ class QLearner(TorchLearner, abstract=True):
         )
 
     @classmethod
-    def check_settings(
-        cls,
-        settings: Mapping[str, Any],
-        env: AuctionEnv,
-        partition: Partition | None,
-        copies: int,
-    ) -> None:
+    def check_settings(cls, settings: Mapping[str, Any], team: TrainingTeam) -> None:
         """Refuse ``eps_end`` above ``eps_start``, and ``prior_in_state`` without the hold prior.
 
         Raises:
             ConfigError: naming the settings.
         """
-        super().check_settings(settings, env, partition, copies)
+        super().check_settings(settings, team)
         if settings["eps_end"] > settings["eps_start"]:
             raise ConfigError(
                 f"learner.eps_end: {settings['eps_end']} is above learner.eps_start "

@@ -42,8 +42,7 @@ from mrta_rl.envs.encodings import ROBOT_TOKEN_SIZE, SLOT_TOKEN_SIZE, TYPE_TOKEN
 from mrta_rl.envs.torchrl_env import prior_one_hot
 
 if TYPE_CHECKING:
-    from mrta_rl.envs import AuctionEnv
-    from mrta_rl.partition import Partition
+    from mrta_rl.learners.base import TrainingTeam
 
 MASKED = -1e9  # the score of an invalid action: far below any Q-value or logit, and finite
 ROBOT_ATTENTION = ("full", "pooled")  # robots attend to each other, or to a pooled team token
@@ -344,17 +343,11 @@ class SetNetworkOption:
         return sum(p.numel() for p in net.parameters())
 
     @classmethod
-    def check_settings(
-        cls,
-        settings: Mapping[str, Any],
-        env: AuctionEnv,
-        partition: Partition | None,
-        copies: int,
-    ) -> None:
+    def check_settings(cls, settings: Mapping[str, Any], team: TrainingTeam) -> None:
         """Refuse set settings that cannot fit the team (:meth:`check_set_network`)."""
-        super().check_settings(settings, env, partition, copies)  # type: ignore[misc]
+        super().check_settings(settings, team)  # type: ignore[misc]
         if settings["network"] == "set":
-            cls.check_set_network(env.n_task_types, env.system.name, dict(settings))
+            cls.check_set_network(team.env.n_task_types, team.env.system.name, dict(settings))
 
     def __init__(
         self,

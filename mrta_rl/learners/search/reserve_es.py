@@ -48,7 +48,14 @@ from mrta_rl.checked_files import ArraySpec, check_arrays, read_arrays
 from mrta_rl.config import ConfigError, Range
 from mrta_rl.envs import AuctionEnv, StepResult
 from mrta_rl.envs.encodings import N_RECENCY_LEVELS, free_level, queue_level, recency_level
-from mrta_rl.learners.base import NUMPY_LOOP, Learner, LearnerKind, MemoryQuery, NonFiniteState
+from mrta_rl.learners.base import (
+    NUMPY_LOOP,
+    Learner,
+    LearnerKind,
+    MemoryQuery,
+    NonFiniteState,
+    TrainingTeam,
+)
 from mrta_rl.learners.memory import ResourceEstimate
 from mrta_rl.partition import Partition
 
@@ -163,20 +170,14 @@ class ReserveESLearner(Learner):
         return N_FEATURES
 
     @classmethod
-    def check_settings(
-        cls,
-        settings: Mapping[str, Any],
-        env: AuctionEnv,
-        partition: Partition | None,
-        copies: int,
-    ) -> None:
+    def check_settings(cls, settings: Mapping[str, Any], team: TrainingTeam) -> None:
         """Refuse training copies that are not a multiple of ``2 * pairs``.
 
         Raises:
             ConfigError: naming ``train.batch_size`` and ``learner.pairs``.
         """
-        super().check_settings(settings, env, partition, copies)
-        pairs = settings["pairs"]
+        super().check_settings(settings, team)
+        pairs, copies = settings["pairs"], team.copies
         if copies % (2 * pairs):
             raise ConfigError(
                 f"train.batch_size {copies} must be a multiple of 2 * pairs = {2 * pairs} "
@@ -211,7 +212,7 @@ class ReserveESLearner(Learner):
             ValueError: if its batch is not a multiple of ``2 * pairs``.
         """
         batch = env.batch_size
-        type(self).check_settings(self.hp, env, self.partition, batch)
+        type(self).check_settings(self.hp, TrainingTeam(env, self.partition, batch))
         self.env, self.n_robots, self.n_actions = env, env.n_robots, env.n_actions
         self.copies = batch // (2 * self.pairs)  # copies per perturbed policy
         # common random numbers: copy b starts as a clone of copy b mod copies (seed and episode
