@@ -31,11 +31,11 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 logger = logging.getLogger(__name__)
 
-NEURAL_RATES = ("fps_collection", "fps_training", "gradient_steps")  # runners/torch_loop.py info
+# runners/torch_loop.py's info; labels_per_s: a teaching learner's (expert_iteration's planner)
+NEURAL_RATES = ("fps_collection", "fps_training", "labels_per_s", "gradient_steps")
+RATES = NEURAL_RATES[:3]  # the rates of the table, min and median
 WARMUP_OVERRIDES = ("env.horizon=20", "train.episodes=1")  # loads compiled code, fills caches
 TEAM_KEYS = ("system.", "env.")  # overrides that also set the yardsticks' team and dynamics
 
@@ -295,7 +295,7 @@ def _rates(repeats: Any) -> dict[str, float]:
     """Min and median of the neural runs' collection and training rates (empty if tabular)."""
     runs = list(repeats)
     out: dict[str, float] = {}
-    for key in NEURAL_RATES[:2]:
+    for key in RATES:
         values = [run[key] for run in runs if key in run]
         if values:
             out[f"{key}_min"], out[f"{key}_median"] = min(values), statistics.median(values)
@@ -303,11 +303,13 @@ def _rates(repeats: Any) -> dict[str, float]:
 
 
 def format_neural_table(rows: list[dict[str, Any]]) -> str:
-    """Markdown table of the neural rows: collection frames/s and training transitions/s apart.
+    """Markdown table of the neural rows: collection, training and teaching rates apart.
 
     Collection counts copy-ticks per second spent in the Collector; training counts replayed
-    transitions per second spent in gradient steps (``runners/torch_loop.py``). Speed-ups are
-    medians over the first code label's.
+    transitions per second spent in gradient steps (``runners/torch_loop.py``); teacher labels
+    count the copy-ticks a teaching learner's planner labels per second it spends labelling
+    (``expert_iteration``; "-" for the others). Speed-ups are medians over the first code
+    label's.
     """
     rows = [r for r in rows if "fps_collection_median" in r]
     if not rows:
@@ -316,21 +318,21 @@ def format_neural_table(rows: list[dict[str, Any]]) -> str:
     base = {r["learner"]: r for r in rows if r["code"] == codes[0]}
     lines = [
         "| learner | code | B | collection frames/s min | median | speed-up | "
-        "training transitions/s min | median | speed-up |",
-        "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
+        "training transitions/s min | median | speed-up | teacher labels/s min | median |",
+        "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
     ]
     for r in sorted(rows, key=lambda r: (r["learner"], codes.index(r["code"]))):
         ref = base.get(r["learner"], {})
-        ups = [
-            r[f"{key}_median"] / ref[f"{key}_median"] if ref.get(f"{key}_median") else np.nan
-            for key in NEURAL_RATES[:2]
-        ]
-        lines.append(
-            f"| {r['learner']} | {r['code']} | {r['batch_size']} | "
-            f"{r['fps_collection_min']:,.0f} | {r['fps_collection_median']:,.0f} | "
-            f"{ups[0]:.1f}x | {r['fps_training_min']:,.0f} | {r['fps_training_median']:,.0f} | "
-            f"{ups[1]:.1f}x |"
-        )
+        cells = []
+        for key in RATES:
+            if f"{key}_median" not in r:
+                cells.append("- | -" if key == "labels_per_s" else "- | - | -")
+                continue
+            cells.append(f"{r[f'{key}_min']:,.0f} | {r[f'{key}_median']:,.0f}")
+            if key != "labels_per_s":  # a speed-up of the medians, "-" without a baseline
+                old = ref.get(f"{key}_median")
+                cells[-1] += f" | {r[f'{key}_median'] / old:.1f}x" if old else " | -"
+        lines.append(f"| {r['learner']} | {r['code']} | {r['batch_size']} | {' | '.join(cells)} |")
     return "\n".join(lines)
 
 

@@ -243,6 +243,7 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         "fps_collection": round(frames / max(clock.total("collect_s"), 1e-9), 1),
         "fps_training": round(replayed / max(clock.total("train_s"), 1e-9), 1),
         "fps_overall": round(frames / max(wall, 1e-9), 1),
+        **learner.train_info(),
     }
     logger.info(
         "trained %d episodes (%d frames, %d gradient steps) in %.1f s; fps collection %.0f, "

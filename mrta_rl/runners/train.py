@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
 from omegaconf import DictConfig, open_dict
 
 from mrta_rl.config import ConfigError, UserError, short_list
@@ -227,8 +228,11 @@ def train(cfg: DictConfig, run_dir: Path | str | None = None) -> dict[str, Any]:
         run_dir = Path(run_dir if run_dir is not None else HydraConfig.get().runtime.output_dir)
         try:
             run = build_run(cfg)
-        except ResourceRefusal as refusal:  # kept as data: a sweep's report shows the reason
-            _write_refusal(run_dir, cfg, str(refusal))
+        except ResourceRefusal as refusal:
+            # a sweep's job keeps it as data (its report shows the reason); a single run is
+            # refused like any bad input: one line, no run dir left
+            if HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN:
+                _write_refusal(run_dir, cfg, str(refusal))
             raise
         system_name = hydra_choice("system", run.system.name)
         claim_run_dir(run_dir, resume=False)  # made and locked (runners/run_dir.py)
@@ -369,8 +373,8 @@ def load_base(run_dir: Path, system: RobotSystem) -> Learner:
     for part in ("robots", "task_types", "willingness"):
         if theirs[part] != ours[part]:
             raise ConfigError(
-                f"{key}: {run_dir} is a run of another team: its {part} "
-                f"[{short_list(theirs[part], quote=True)}] are not the planner's system's "
+                f"{key}: {run_dir} is a run of another team ({learner.env.system.name}, not "
+                f"{system.name}): its {part} [{short_list(theirs[part], quote=True)}] are not "
                 f"[{short_list(ours[part], quote=True)}]"
             )
     return learner

@@ -4,14 +4,20 @@ from __future__ import annotations
 
 import pytest
 
-from mrta_rl.bench.learners import format_table, learners_in, search_path, trained_learners
+from mrta_rl.bench.learners import (
+    format_neural_table,
+    format_table,
+    learners_in,
+    search_path,
+    trained_learners,
+)
 from tests.conftest import ROOT
 
 
 def test_the_benchmarked_learners_are_the_shipped_ones_that_train():
     trained = trained_learners()
     tabular = ["cql", "dql", "semi_cql", "subg_cql"]
-    neural = ["ippo", "iql", "mappo", "qmix", "subg_dqn", "vdn"]
+    neural = ["expert_iteration", "ippo", "iql", "mappo", "qmix", "subg_dqn", "vdn"]
     assert trained == sorted([*tabular, *neural, "net_es", "reserve_es"])  # no fixed policy
     assert learners_in(ROOT, trained) == trained
 
@@ -60,6 +66,31 @@ def test_table_speed_up_by_hand_and_dash_without_baseline():
     assert "| 2.5x / 2.5x | 2.5x / 2.5x |" in this_dql
     es = next(line for line in lines if "| reserve_es | this |" in line)
     assert "| - / - | - / - |" in es
+
+
+def test_neural_table_shows_the_teachers_labels_beside_collection_and_training():
+    """Rates by hand: min and median, speed-ups of the medians; no teacher: dashes."""
+    rates = {"fps_collection": (900, 1000), "fps_training": (15000, 16000)}
+    teacher = {"labels_per_s": (180, 200)}
+    rows = [
+        row("baseline", "qmix", 1) | flat(rates),
+        row("this", "qmix", 1) | flat({k: (2 * a, 2 * b) for k, (a, b) in rates.items()}),
+        row("this", "expert_iteration", 1) | flat(rates | teacher),
+    ]
+    lines = format_neural_table(rows).splitlines()
+    assert "teacher labels/s min | median |" in lines[0]
+    qmix = next(line for line in lines if "| qmix | this |" in line)
+    assert qmix.endswith("| 1,800 | 2,000 | 2.0x | 30,000 | 32,000 | 2.0x | - | - |")
+    teaching = next(line for line in lines if "| expert_iteration | this |" in line)
+    assert teaching.endswith("| 900 | 1,000 | - | 15,000 | 16,000 | - | 180 | 200 |")
+
+
+def flat(rates: dict) -> dict:
+    return {
+        f"{k}_{stat}": v
+        for k, pair in rates.items()
+        for stat, v in zip(("min", "median"), pair, strict=True)
+    }
 
 
 def test_overrides_reach_every_learner_run():

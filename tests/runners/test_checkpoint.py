@@ -32,7 +32,9 @@ from mrta_rl.runners.checkpoint import TrainingCheckpoint, latest_checkpoint
 from mrta_rl.runners.validation import learner_class
 
 ROOT = Path(__file__).resolve().parents[2]
+# measured, not computed (labels_per_s: a teaching learner's planner, labels per second spent)
 TIMINGS = ("wall_s", "collect_s", "train_s", "fps_collection", "fps_training", "fps_overall")
+TIMINGS = (*TIMINGS, "labels_per_s")
 
 
 def script(*args: str, cwd: Path = ROOT, **kwargs) -> subprocess.Popen:
@@ -274,7 +276,9 @@ TRAINED = sorted(name for name, kind in KINDS.items() if kind != "fixed")
 
 
 def budget(name: str) -> list[str]:
-    """The kill-and-resume budget of a learner: its regime's, then its kind's."""
+    """The kill-and-resume budget of a learner: its own, its regime's, then its kind's."""
+    if name in BUDGETS:
+        return BUDGETS[name]
     if getattr(learner_cls(name), "on_policy", False):
         return BUDGETS["on_policy"]
     return BUDGETS[KINDS[name]]
@@ -297,6 +301,19 @@ BUDGETS = {
     ],
     # mappo, ippo: a PPO update every 25 ticks of the smoke horizon (debug_learner/smoke)
     "on_policy": ["train.episodes=6", "train.checkpoint_every=1"],
+    # a planner that labels (its generator) and soft labels; the base's own labels first,
+    # DAgger's mix decaying over the run (a resumed run that restarts either differs)
+    "expert_iteration": [
+        "train.episodes=6",
+        "train.checkpoint_every=1",
+        "learner.warmup_frames=200",
+        "learner.imitate_base_frames=400",
+        "learner.beta_decay_frames=1000",
+        "learner.batch_size=64",
+        "learner.samples=2",
+        "learner.horizon=4",
+        "learner.soft_targets=0.5",
+    ],
 }
 
 

@@ -22,6 +22,7 @@ ANY_TEAM = [
     ["learner=ippo"],
     ["learner=vdn", "learner.network=set"],
     ["learner=iql", "learner.network=set"],
+    ["learner=expert_iteration", "learner.samples=2", "learner.horizon=4"],
 ]
 
 

@@ -294,6 +294,10 @@ class TorchLearner(Learner, abstract=True):
     def loss(self, batch: TensorDictBase) -> tuple[torch.Tensor, dict[str, float]]:
         """The loss of a sampled minibatch (to minimise) and its diagnostics (``train/...``)."""
 
+    def train_info(self) -> dict[str, float]:
+        """Figures of the learner's own for the run's ``train`` info (rates); default: none."""
+        return {}
+
     def after_step(self) -> None:  # noqa: B027 - optional hook, deliberately a no-op
         """After each gradient step (target-network updates); default: nothing."""
 

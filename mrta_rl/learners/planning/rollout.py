@@ -194,6 +194,7 @@ class RolloutPlanner(FixedLearner):
         self.names = names
         self._base = self._rules[0]
         self._rollout_envs: dict[int, AuctionEnv] = {}  # batch size -> env
+        self.candidate_returns = np.empty((0, 0))  # [C, B] of the last decision (_plan)
         self.decisions = 0  # ticks at which some copy had candidates to compare
         self.planning_s = 0.0  # wall time spent in those decisions
         self.ticks = 0  # decisions made (calls of act)
@@ -248,6 +249,10 @@ class RolloutPlanner(FixedLearner):
         self.decision_s += CLOCK() - start
         return state, actions
 
+    def base_action(self, env: AuctionEnv) -> np.ndarray:
+        """The base policy's joint action ``[B, m]`` at ``env``'s decision point, unplanned."""
+        return self._base.act(self._base.encode(env), env.action_mask, explore=False)
+
     def act(self, view: tuple[Any, np.ndarray], mask: np.ndarray, *, explore: bool) -> np.ndarray:
         """The candidate with the best mean rollout return, per copy.
 
@@ -269,6 +274,9 @@ class RolloutPlanner(FixedLearner):
         """:meth:`act` itself (timed there)."""
         state, actions = view
         chosen = actions[0].copy()  # the base policy
+        # each candidate's mean rollout return per copy (-inf: not rolled out), for a student
+        # that learns from the candidates' scores (learners/neural/expert_iteration.py)
+        self.candidate_returns = np.full((len(actions), chosen.shape[0]), -np.inf)
         # copies where some candidate differs from the base rule: only they need planning
         plan = np.flatnonzero((actions != actions[0]).any(axis=(0, 2)))
         if self.horizon == 0 or len(actions) == 1 or len(plan) == 0:
@@ -286,8 +294,9 @@ class RolloutPlanner(FixedLearner):
         env = self._rollout_env(len(row_pair))
         restore(env, state, plan[copy])
         env.reseed(None, seeds[copy, np.tile(np.arange(S), len(pairs))])
-        returns = self._roll(env, actions[cand, plan[copy]])
-        best = self._choose(returns.reshape(len(pairs), S), pairs, n_plan, n_cand)
+        returns = self._roll(env, actions[cand, plan[copy]]).reshape(len(pairs), S)
+        self.candidate_returns[pairs[:, 1], plan[pairs[:, 0]]] = returns.mean(axis=1)
+        best = self._choose(returns, pairs, n_plan, n_cand)
         chosen[plan] = actions[best, plan]
         self.decisions += 1
         self.planning_s += CLOCK() - start

@@ -1,0 +1,501 @@
+"""``expert_iteration``: the rollout planner teaches the shared robot-set network (ExIt, DAgger).
+
+The student is a masked per-robot policy: the robot-set network (``network=set``, one set of
+weights for any team) or the per-robot MLP (``network=mlp``), scoring ``[*, m, K + 1]`` actions
+with the plain auction's bid as a logit bonus (``auction_prior``, as MAPPO's actor). It acts
+without search: each robot plays its highest-scoring valid action (``decode=argmax``), or the
+bids are matched to slots so that no two robots bid for one (``decode=match``).
+
+The teacher is the ``rollout`` planner (``learners/planning/rollout.py``) with this learner's
+planner settings (``samples``, ``horizon``, ``candidates``, ``neighbours``, ``margin``,
+``gamma``) on a base policy: a rule of the planner's candidates, or a trained run
+(``base=<run dir>``, handed over by the runner as ``base_policy``, as to ``rollout``).
+
+Training runs on the torch loop (``runners/torch_loop.py``) like every torch learner:
+
+* **collect** (:class:`TeacherMix`, the collection policy): at every tick of every copy the
+  teacher labels the state the copy is in; the copy plays the teacher's joint action with
+  probability ``beta`` (DAgger's mix, decaying linearly from ``beta_start`` to ``beta_end`` over
+  ``beta_decay_frames`` collected frames) and the student's otherwise, so the labels come from
+  the states the student itself visits (Ross et al., DAgger);
+* **label**: per robot a distribution over its actions: the teacher's chosen joint action
+  (one-hot), mixed with weight ``soft_targets`` with the candidates' distribution: the softmax of
+  the candidates' mean rollout returns (times ``reward_scale``) over the candidate joint actions,
+  marginalised per robot (soft targets, as ExIt's visit counts);
+* **imitate the base first**: for the first ``imitate_base_frames`` collected frames the label
+  is the teacher's base policy's action, unplanned (a rule or a trained run: microseconds a
+  tick), so the planner's expensive labels go to a student that already plays like its base;
+* **aggregate**: the labelled states go into the loop's replay buffer (``buffer_size``
+  transitions, sampled at random: the aggregated data set of DAgger);
+* **fit**: ``updates_per_collect`` steps of cross-entropy per robot, over the robots that have a
+  choice (a valid bid), on minibatches of ``batch_size`` transitions.
+
+The teacher's base stays the one configured; a run dir of an earlier ``expert_iteration`` run is a
+base too, so rounds of expert iteration are runs that each name the last as their base. The
+planner reads the full env state (its snapshot), which only the training env has: the labels are
+made while collecting, never from stored observations. Outside collection (evaluation, the replay
+layout probe) the collection policy plays the student and labels with the student's own action.
+
+With ``network=set`` the learner holds nothing of one team and trains on a family of teams
+(``system.family``): the teacher is rebuilt on each team, its trained base rebound to it.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Annotated, Any, ClassVar
+
+import numpy as np
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModule, TensorDictModuleBase
+from torch import nn
+from torch.nn import functional as F
+from torchrl.envs.utils import ExplorationType, exploration_type
+
+from mrta_rl.config import Choices, ConfigError, Range
+from mrta_rl.envs import AuctionEnv
+from mrta_rl.envs.torchrl_env import GROUP_SET_KEYS, PRIOR_KEY, ROOT_SET_KEYS
+from mrta_rl.learners.base import Learner, MemoryQuery, TrainingTeam
+from mrta_rl.learners.memory import ResourceEstimate, feature_sizes, mlp_weights, neural_estimate
+from mrta_rl.learners.neural.networks import PerRobotQ
+from mrta_rl.learners.neural.set_network import SetNetworkOption
+from mrta_rl.learners.neural.torch_learner import LoopSettings, TorchLearner
+from mrta_rl.learners.planning.rollout import CANDIDATES, NEIGHBOURS, RolloutPlanner
+from mrta_rl.partition import Partition
+from mrta_rl.priors import GreedyPrior
+from mrta_rl.run_layout import RunDirError
+
+GROUP = "agents"  # the one TorchRL group of all robots
+ACTION = (GROUP, "action")
+MASK = (GROUP, "action_mask")
+LOGITS = (GROUP, "logits")
+TARGET = (GROUP, "target")  # the teacher's label: per robot a distribution over its actions
+SET_KEYS = [*((GROUP, key) for key in GROUP_SET_KEYS), *ROOT_SET_KEYS]  # SetNetwork's order
+CLOCK: Callable[[], float] = time.perf_counter  # the teacher's labelling time (labels/s)
+ADVICE = "lower learner.buffer_size or learner.collect_ticks, or use a smaller system"
+
+
+def match_bids(logits: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """A joint action without two bids for one slot, from per-robot scores.
+
+    Bids are taken in decreasing order of their margin over the robot's wait score: the best
+    (robot, slot) pair of a copy is kept, its robot and slot are struck out, and so on while a
+    margin is positive. A robot whose bids were all struck out, or whose bids all score below
+    its wait, waits. Without competing bids this is each robot's argmax; with them, the robot
+    that loses a slot bids for its next best instead of bidding in vain (spec step 5: one
+    winner per slot, and a losing bid costs the robot its tick, step 7).
+
+    Args:
+        logits: ``[*, m, K + 1]`` scores (column 0: wait).
+        mask: ``[*, m, K + 1]`` bool valid actions.
+
+    Returns:
+        ``[*, m]`` int64 actions.
+    """
+    *lead, m, width = logits.shape
+    K = width - 1
+    margin = (logits[..., 1:] - logits[..., :1]).masked_fill(~mask[..., 1:], -torch.inf)
+    flat = margin.reshape(-1, m * K).clone()  # [N, m * K]
+    actions = torch.zeros(flat.shape[0], m, dtype=torch.int64, device=logits.device)
+    pairs = flat.view(-1, m, K)
+    for _ in range(min(m, K)):
+        best, index = flat.max(-1)
+        rows = (best > 0).nonzero().squeeze(-1)
+        if rows.numel() == 0:
+            break
+        robot, slot = index[rows] // K, index[rows] % K
+        actions[rows, robot] = slot + 1
+        pairs[rows, robot, :] = -torch.inf
+        pairs[rows, :, slot] = -torch.inf
+    return actions.reshape(*lead, m)
+
+
+DECODERS = ("argmax", "match")  # each robot's best action; or bids matched to slots
+
+
+class StudentPolicy(TensorDictModuleBase):
+    """The student acting without search: its scores decoded into a joint action."""
+
+    def __init__(self, scores: TensorDictModule, decode: str) -> None:
+        """Decode ``scores``' masked logits (``(agents, "logits")``) by ``decode``."""
+        super().__init__()
+        self.scores, self.decode = scores, decode
+        self.in_keys = list(dict.fromkeys([*scores.in_keys, MASK]))
+        self.out_keys = [LOGITS, ACTION]
+
+    def forward(self, td: TensorDictBase) -> TensorDictBase:
+        """Write the logits and the joint action (:data:`DECODERS`)."""
+        td = self.scores(td)
+        logits = td.get(LOGITS)
+        if self.decode == "match":
+            td.set(ACTION, match_bids(logits, td.get(MASK)))
+        else:
+            td.set(ACTION, logits.argmax(-1))
+        return td
+
+
+class TeacherMix(TensorDictModuleBase):
+    """The collection policy: the teacher labels each state; a copy plays it with prob. ``beta``.
+
+    Labelling reads the core env the collector is stepping (the learner's ``env``, at the state
+    of the TensorDict the collector passes): it happens under the collector's random exploration
+    only. Under deterministic exploration (evaluation, the replay layout probe) the student plays
+    and its own action is the label.
+    """
+
+    def __init__(self, learner: ExpertIterationLearner) -> None:
+        """The student and the teacher of ``learner``."""
+        super().__init__()
+        self.learner = learner
+        self.student = learner.student  # a submodule: the collector finds the policy's device
+        self.in_keys = list(learner.student.in_keys)
+        self.out_keys = [LOGITS, ACTION, TARGET]
+
+    def forward(self, td: TensorDictBase) -> TensorDictBase:
+        """Write the played action and the label ``(agents, "target")`` per robot."""
+        td = self.student(td)
+        student = td.get(ACTION)
+        n_actions = td.get(LOGITS).shape[-1]
+        if exploration_type() != ExplorationType.RANDOM:
+            td.set(TARGET, F.one_hot(student, n_actions).to(torch.float32))
+            return td
+        teacher, target = self.learner.teach()
+        teacher = torch.as_tensor(teacher, device=student.device)
+        target = torch.as_tensor(target, dtype=torch.float32, device=student.device)
+        mixed = torch.rand(student.shape[0], device=student.device) < self.learner.beta
+        td.set(ACTION, torch.where(mixed[:, None], teacher, student))
+        td.set(TARGET, target)
+        return td
+
+
+def planner_labels(
+    chosen: np.ndarray,
+    candidates: np.ndarray,
+    returns: np.ndarray,
+    scale: float,
+    weight: float,
+    n_actions: int,
+) -> np.ndarray:
+    """Per robot a distribution over its actions from the planner's decision (module docstring).
+
+    Args:
+        chosen: ``[B, m]`` the planner's joint action.
+        candidates: ``[C, B, m]`` the candidate joint actions it compared.
+        returns: ``[C, B]`` their mean rollout returns (``-inf``: not rolled out: a duplicate,
+            or a copy whose candidates all agree).
+        scale: Multiplies the returns in the softmax (an inverse temperature).
+        weight: Weight of the candidates' distribution; ``1 - weight`` goes to ``chosen``.
+        n_actions: ``A``, actions per robot.
+
+    Returns:
+        ``[B, m, A]`` float32 rows that sum to 1.
+    """
+    hard = np.eye(n_actions, dtype=np.float32)[chosen]  # [B, m, A]
+    if weight == 0 or not np.isfinite(returns).any():
+        return hard
+    rolled = np.isfinite(returns)  # [C, B]
+    planned = rolled.any(axis=0)  # [B]: copies whose candidates were compared
+    best = np.where(planned, np.where(rolled, returns, -np.inf).max(axis=0), 0.0)
+    w = np.where(rolled, np.exp(scale * (np.where(rolled, returns, 0.0) - best)), 0.0)
+    w = w / np.maximum(w.sum(axis=0), 1e-30)  # [C, B]
+    one_hot = np.eye(n_actions, dtype=np.float32)[candidates]  # [C, B, m, A]
+    soft = np.einsum("cb,cbma->bma", w.astype(np.float32), one_hot)
+    mixed = (1 - weight) * hard + weight * soft
+    return np.where(planned[:, None, None], mixed, hard).astype(np.float32)
+
+
+class ExpertIterationLearner(SetNetworkOption, TorchLearner):
+    """Expert iteration: a planner's labels on the student's own states (module docstring).
+
+    Attributes:
+        teacher: The ``rollout`` planner that labels.
+        student: The student's greedy policy (logits and action).
+        beta: The current probability that a copy plays the teacher's action.
+        labelled: Copy-ticks the planner has labelled (the base's own labels aside).
+        label_s: Seconds the planner spent labelling them.
+    """
+
+    label: ClassVar[str] = "ExIt"
+    on_policy: ClassVar[bool] = False
+    memory_advice: ClassVar[str] = ADVICE
+
+    @classmethod
+    def fits_any_team(cls, settings: Mapping[str, Any]) -> bool:
+        """With the set network: the student reads robot, slot and type tokens only."""
+        return settings.get("network") == "set"
+
+    @classmethod
+    def base_run(cls, settings: Mapping[str, Any]) -> Path | None:
+        """The run dir the teacher's base names, or None for a rule (the planner's reading)."""
+        return RolloutPlanner.base_run(settings)
+
+    @classmethod
+    def network_weights(
+        cls, env: AuctionEnv, partition: Partition | None, settings: dict[str, Any]
+    ) -> int:
+        """The student's weights (set network, or the per-robot MLP with its robot id)."""
+        if settings["network"] == "set":
+            return cls.check_set_network(env.n_task_types, env.system.name, settings)
+        n_in, _ = feature_sizes(env, settings)
+        return mlp_weights(n_in, env.n_actions, int(settings["depth"]), int(settings["hidden"]))
+
+    @classmethod
+    def estimate_memory(cls, query: MemoryQuery) -> ResourceEstimate:
+        """The student (gradients, Adam), the labelled buffer and the collector batch."""
+        env, partition, settings, _, copies = query
+        weights = cls.network_weights(env, partition, settings)
+        return neural_estimate(
+            cls.__name__,
+            env,
+            settings,
+            weights,
+            copies,
+            ADVICE,
+            loss_keys_only=True,
+            state_bytes=0,
+        )
+
+    @classmethod
+    def check_settings(cls, settings: Mapping[str, Any], team: TrainingTeam) -> None:
+        """Refuse a DAgger schedule that rises, or labels with no teacher choice.
+
+        Raises:
+            ConfigError: naming the settings.
+        """
+        super().check_settings(settings, team)
+        if settings["beta_end"] > settings["beta_start"]:
+            raise ConfigError(
+                f"learner.beta_end: {settings['beta_end']} is above learner.beta_start "
+                f"{settings['beta_start']} (the teacher's share decays from beta_start to beta_end)"
+            )
+        if settings["horizon"] == 0:
+            raise ConfigError(
+                "learner.horizon: 0 makes the teacher its base policy; give the planner at least "
+                "1 tick to roll out"
+            )
+
+    def __init__(
+        self,
+        *,
+        samples: Annotated[int, Range(1)],
+        horizon: Annotated[int, Range(0)],
+        candidates: Annotated[tuple[str, ...], Choices(*CANDIDATES)],
+        base: str,
+        margin: Annotated[float, Range(0)],
+        gamma: Annotated[float, Range(0, 1, low_open=True)],
+        neighbours: Annotated[tuple[str, ...], Choices(*NEIGHBOURS)],
+        beta_start: Annotated[float, Range(0, 1)],
+        beta_end: Annotated[float, Range(0, 1)],
+        beta_decay_frames: Annotated[int, Range(1)],
+        soft_targets: Annotated[float, Range(0, 1)],
+        decode: Annotated[str, Choices(*DECODERS)],
+        imitate_base_frames: Annotated[int, Range(0)],
+        buffer_size: Annotated[int, Range(1)],
+        batch_size: Annotated[int, Range(1)],
+        collect_ticks: Annotated[int, Range(1)],
+        updates_per_collect: Annotated[int, Range(1)],
+        warmup_frames: Annotated[int, Range(0)],
+        base_policy: Learner | None = None,
+        **settings: Any,
+    ) -> None:
+        """Build the student, its loss and optimiser, and the teacher.
+
+        Args:
+            samples: The teacher's sampled futures per candidate.
+            horizon: The teacher's rollout ticks (at least 1).
+            candidates: The teacher's candidate rules (``rollout.CANDIDATES``).
+            base: The teacher's base: a rule of ``candidates``' names or a run dir.
+            margin: The teacher's switching margin (``rollout``'s ``margin``).
+            gamma: The teacher's discount per rollout tick (1: the plain sum of rewards).
+            neighbours: The teacher's local candidates around its base's action.
+            beta_start: Probability that a copy plays the teacher's action, at the start.
+            beta_end: That probability after ``beta_decay_frames`` collected frames.
+            beta_decay_frames: Frames of the linear decay of ``beta``.
+            soft_targets: Weight of the candidates' distribution in the labels (0: the chosen
+                joint action only).
+            decode: How the student's scores become a joint action: ``argmax`` (each robot's
+                best) or ``match`` (no two bids for one slot, :func:`match_bids`).
+            imitate_base_frames: Collected frames labelled by the teacher's base alone, before
+                the planner labels (cheap labels: the student first learns the base).
+            buffer_size: Labelled transitions kept (the aggregated data set).
+            batch_size: Transitions per gradient step.
+            collect_ticks: Ticks per collected batch (frames = ticks x copies).
+            updates_per_collect: Gradient steps after each collected batch.
+            warmup_frames: Frames labelled before the first gradient step.
+            base_policy: The trained learner of the run dir ``base`` names (the runner's).
+            **settings: Env, generator, partition, the set network's and
+                :class:`~mrta_rl.learners.neural.torch_learner.TorchLearner`'s settings
+                (``reward_scale`` is the inverse temperature of the soft labels' softmax over
+                mean rollout returns).
+        """
+        self.rule = GreedyPrior()  # the view writes its action as ("agents", "prior_action")
+        self.base_policy = base_policy
+        self.labelled, self.label_s, self.frames_collected = 0, 0.0, 0
+        super().__init__(gamma=gamma, **settings)
+        self.beta = float(self.hp["beta_start"])
+        self.teacher = self._teacher()
+        self.mix = TeacherMix(self)
+
+    def _teacher(self) -> RolloutPlanner:
+        """The planner on the current team, drawing from the learner's generator."""
+        hp = self.hp
+        return RolloutPlanner(
+            env=self.env,
+            rng=self.rng,
+            partition=self.partition,
+            samples=hp["samples"],
+            horizon=hp["horizon"],
+            candidates=hp["candidates"],
+            base=hp["base"],
+            gamma=hp["gamma"],
+            margin=hp["margin"],
+            neighbours=hp["neighbours"],
+            base_policy=self.base_policy,
+        )
+
+    def _build(self) -> None:
+        hp = self.hp
+        if hp["network"] == "set":
+            logits: nn.Module = self._set_network()
+            keys = [*SET_KEYS, MASK, (GROUP, PRIOR_KEY)]
+        else:
+            logits = PerRobotQ(
+                self.n_features,
+                self.n_robots,
+                self.n_actions,
+                share_params=True,
+                hidden=hp["hidden"],
+                depth=hp["depth"],
+                auction_prior=hp["auction_prior"],
+                device=self.device,
+            )
+            keys = [(GROUP, "observation"), (GROUP, PRIOR_KEY)]
+        self.networks["student"] = logits
+        self.scores = TensorDictModule(logits, in_keys=keys, out_keys=[LOGITS])
+        self.student = StudentPolicy(self.scores, hp["decode"])
+
+    def _rebind(self) -> None:
+        """A new team: the teacher plans on it (its trained base rebound)."""
+        if self.base_policy is not None:
+            self.base_policy.bind_env(self.env)
+        self.teacher = self._teacher()
+
+    # -------------------------------------------------------------- the loop's protocol
+    @property
+    def prior(self) -> GreedyPrior:
+        """The plain auction, whose bid gets the logit bonus."""
+        return self.rule
+
+    @property
+    def policy(self) -> TensorDictModuleBase:
+        """The student, without search."""
+        return self.student
+
+    @property
+    def collection_policy(self) -> TensorDictModuleBase:
+        """The teacher's labels and DAgger's mix (:class:`TeacherMix`)."""
+        return self.mix
+
+    @classmethod
+    def batch_frames(cls, settings: Mapping[str, Any], copies: int, horizon: int) -> int:
+        """``collect_ticks`` ticks (at most an episode's) of every copy."""
+        return min(int(settings["collect_ticks"]), horizon) * copies
+
+    def loop_settings(self, copies: int, total_frames: int) -> LoopSettings:
+        """Replay of ``buffer_size`` labelled transitions; ``updates_per_collect`` per batch."""
+        hp = self.hp
+        return LoopSettings(
+            frames_per_batch=self.batch_frames(hp, copies, self.env.params.horizon),
+            buffer_size=int(hp["buffer_size"]),
+            minibatch_size=int(hp["batch_size"]),
+            updates_per_batch=int(hp["updates_per_collect"]),
+            warmup_frames=min(int(hp["warmup_frames"]), total_frames // 2),
+        )
+
+    def teach(self) -> tuple[np.ndarray, np.ndarray]:
+        """The teacher's joint action and the labels at the training env's current state.
+
+        Returns:
+            ``([B, m]`` int64 joint action, ``[B, m, A]`` float32 labels).
+        """
+        env = self.env
+        start = CLOCK()
+        if self.frames_collected < self.hp["imitate_base_frames"]:  # the base alone: no plan
+            chosen = self.teacher.base_action(env)
+            return chosen, np.eye(self.n_actions, dtype=np.float32)[chosen]
+        view = self.teacher.encode(env)
+        chosen = self.teacher.act(view, env.action_mask, explore=False)
+        labels = planner_labels(
+            chosen,
+            view[1],
+            self.teacher.candidate_returns,
+            self.hp["reward_scale"],
+            self.hp["soft_targets"],
+            self.n_actions,
+        )
+        self.label_s += CLOCK() - start
+        self.labelled += env.batch_size
+        return chosen, labels
+
+    def after_collect(self, frames: int) -> None:
+        """Decay ``beta`` linearly over ``beta_decay_frames`` collected frames."""
+        self.frames_collected += frames
+        start, end = self.hp["beta_start"], self.hp["beta_end"]
+        progress = min(self.frames_collected / self.hp["beta_decay_frames"], 1.0)
+        self.beta = start - (start - end) * progress
+
+    def process_batch(self, data: TensorDictBase) -> TensorDictBase:
+        """Collector batch -> labelled states (the student's inputs, mask and label), flattened."""
+        keys = [*self.scores.in_keys, MASK, TARGET]
+        return data.select(*dict.fromkeys(keys)).to(self.device).reshape(-1)
+
+    def loss(self, batch: TensorDictBase) -> tuple[torch.Tensor, dict[str, float]]:
+        """Cross-entropy per robot against the labels, over the robots with a choice."""
+        logits = self.scores(batch).get(LOGITS)  # [N, m, A]
+        target = batch.get(TARGET)
+        deciding = batch.get(MASK)[..., 1:].any(-1)  # a valid bid: the robot has a choice
+        nll = -(target * F.log_softmax(logits, -1)).sum(-1)  # [N, m]
+        n = deciding.sum().clamp(min=1)
+        loss = (nll * deciding).sum() / n
+        agree = (logits.argmax(-1) == target.argmax(-1)) & deciding
+        info = {
+            "train/loss_imitation": float(loss.detach()),
+            "train/agreement": float(agree.sum() / n),
+            "train/beta": self.beta,
+        }
+        if self.label_s > 0:
+            info["train/labels_per_s"] = self.labelled / self.label_s
+        return loss, info
+
+    def train_info(self) -> dict[str, float]:
+        """The planner's labels and its labelling rate (copy-ticks labelled per second)."""
+        rate = self.labelled / self.label_s if self.label_s > 0 else 0.0
+        return {"labels": self.labelled, "labels_per_s": round(rate, 1)}
+
+    def training_state(self) -> dict[str, Any]:
+        """The optimiser's state, the frames collected (``beta``'s schedule), the labels made."""
+        return {
+            **super().training_state(),
+            "frames": torch.tensor(self.frames_collected),
+            "labels": torch.tensor([self.labelled, self.label_s], dtype=torch.float64),
+        }
+
+    def restore_training_state(self, saved: dict[str, Any], path: Path) -> None:
+        """Restore the optimiser, ``beta``'s schedule and the labels' count."""
+        super().restore_training_state(saved, path)
+        frames = saved["frames"]
+        if not isinstance(frames, torch.Tensor) or frames.numel() != 1 or int(frames) < 0:
+            raise RunDirError(f"{path}: frames must be one count of collected frames")
+        labels = saved["labels"]
+        if (
+            not isinstance(labels, torch.Tensor)
+            or labels.shape != (2,)
+            or not bool(torch.isfinite(labels).all() and (labels >= 0).all())
+        ):
+            raise RunDirError(f"{path}: labels must be a count of labels and their seconds")
+        self.frames_collected = 0
+        self.after_collect(int(frames))
+        self.labelled, self.label_s = int(labels[0]), float(labels[1])
