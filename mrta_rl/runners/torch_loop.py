@@ -41,14 +41,16 @@ from omegaconf import DictConfig
 from tensordict import TensorDictBase
 from torchrl.collectors import Collector
 
+from mrta_rl.envs import AuctionEnv
 from mrta_rl.runners.checkpoint import LoopTime
 from mrta_rl.runners.episodes import EpisodeReturns
+from mrta_rl.runners.evaluate import evaluate_policy
 from mrta_rl.runners.progress import progress_bar
 from mrta_rl.runners.replay import ONE_TEAM, REPLAY_FILE, LoopBuffer, read_replay, replay_layout
 from mrta_rl.runners.train import family_env
+from mrta_rl.splits import split_seed
 
 if TYPE_CHECKING:
-    from mrta_rl.envs import AuctionEnv
     from mrta_rl.envs.torchrl_env import AuctionTorchRLEnv
     from mrta_rl.learners.neural.torch_learner import TorchLearner
     from mrta_rl.runners.train import RunSetup
@@ -103,6 +105,7 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     total_frames = episodes_total * horizon * batch
     settings = learner.loop_settings(batch, total_frames)
     family = run.family is not None
+    validate_every = int(cfg.train.validate_every)
     buffer = LoopBuffer(settings, learner.on_policy, learner.device, horizon * batch)
     # resuming (checkpoints are taken where every copy is between episodes): counters, curve,
     # buffer and torch's generator from the checkpoint, checked before anything is built or
@@ -197,6 +200,10 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
             for row in finished:
                 curve.log(row)
                 rows.append(row)
+                if validate_every and row["episode"] % validate_every == 0:
+                    value = validation_return(run, cfg)
+                    scalars.log_scalar("val/team_return", value, step=row["env_ticks"])
+                    logger.info("episode %d: validation return %.1f", row["episode"], value)
             buffer.extend(learner.process_batch(data), team)
             learner.after_collect(n_frames)
             tick = time.perf_counter()
@@ -257,6 +264,25 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         out["fps_overall"],
     )
     return out
+
+
+def validation_return(run: RunSetup, cfg: DictConfig) -> float:
+    """The greedy policy's mean team return on ``train.validate_episodes`` validation streams.
+
+    Played on the run's evaluation team (a family's: its evaluation team), on an env of its
+    own: the training env, torch's generator and the learner's are left as they were, so a run
+    that validates trains as one that does not.
+    """
+    learner: TorchLearner = run.learner  # type: ignore[assignment]
+    episodes = int(cfg.train.validate_episodes)
+    training_env = learner.env
+    if training_env is not run.env:  # a family's team: the evaluation team's sizes
+        learner.bind_env(run.env)
+    env = AuctionEnv(run.system, run.params, batch_size=episodes, active_tasks=run.env.active_tasks)
+    summary = evaluate_policy(learner, env, episodes, split_seed("validation"))
+    if training_env is not run.env:
+        learner.bind_env(training_env)
+    return float(summary.team_return_mean)
 
 
 def _train(learner: TorchLearner, buffer: LoopBuffer, updates: int) -> dict[str, float]:

@@ -49,6 +49,7 @@ from mrta_rl.learners.memory import (
 )
 from mrta_rl.learners.registry import any_team_learners
 from mrta_rl.learners.resources import ResourceEstimate, format_bytes
+from mrta_rl.loops import TORCH_LOOP
 from mrta_rl.partition import Partition, subg_partition
 from mrta_rl.run_layout import LEARNER_DIR, RunDirError
 from mrta_rl.runners.bases import check_base
@@ -101,6 +102,10 @@ class TrainSettings:
     # robot-copies per tick: caps B at robot_copies // m for a team of m robots (a tick costs in
     # proportion to the team); None = no cap
     robot_copies: Annotated[int | None, Range(1)]
+    # torch learners: episodes between evaluations of the greedy policy on the validation
+    # streams during training (val/team_return); 0 = none
+    validate_every: Annotated[int, Range(0)]
+    validate_episodes: Annotated[int, Range(1)]  # validation copy-episodes of each evaluation
 
 
 @dataclass(frozen=True)
@@ -459,6 +464,11 @@ def validate_config(cfg: DictConfig) -> CheckedConfig:
 
     cls = learner_class(cfg.get("learner"))
     training_loop(cls)  # fail now, not after building everything, if the loop is missing
+    _check(
+        not train["validate_every"] or cls.training_loop == TORCH_LOOP,
+        f"train.validate_every: the torch loop's; {cls.__name__} trains on "
+        f"{cls.training_loop}: set train.validate_every=0",
+    )
     hyperparameters = check_keywords(cls, _plain(cfg, "learner"), "learner")
     _check_logger(_plain(cfg, "logger"))
 

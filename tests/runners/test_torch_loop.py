@@ -135,3 +135,32 @@ def test_an_on_policy_buffer_takes_each_epoch_in_one_permutation():
     torch.manual_seed(1)
     [torch.randperm(6) for _ in range(2)]
     assert torch.equal(after, torch.rand(1))  # no third order drawn
+
+
+@pytest.mark.parametrize("system", ["system1", "family"])
+def test_validation_during_training_is_logged_and_changes_nothing(compose_cfg, tmp_path, system):
+    """Validating every episode logs the validation return and trains as a run without it.
+
+    The evaluations play an env of their own on the validation streams (a family's: its
+    evaluation team), so the weights and the curve end bit for bit as without them; the
+    logged value is the greedy policy's return on those streams, as re-evaluation gives it.
+    """
+    args = ["learner=vdn", "learner.network=set", f"system={system}", "debug=smoke"]
+    args += ["train.episodes=3", "train.validate_episodes=4"]
+    plain = train(compose_cfg(args), run_dir=tmp_path / "plain")
+    validated = train(compose_cfg([*args, "train.validate_every=1"]), run_dir=tmp_path / "val")
+    assert validated["eval"] == plain["eval"]
+    for name in ("curve.csv", "learner/weights.pt"):
+        assert (tmp_path / "val" / name).read_bytes() == (tmp_path / "plain" / name).read_bytes()
+    logged = tmp_path / "val" / "torchrl" / "train" / "scalars" / "val" / "team_return.csv"
+    values = [float(line.split(",")[1]) for line in logged.read_text().splitlines()]
+    assert len(values) == 3
+    evaluate = ["eval.split=validation", "eval.episodes=4", "eval.batch_size=4"]
+    again = train(compose_cfg([*args, "train.validate_every=3", *evaluate]), tmp_path / "again")
+    assert values[-1] == pytest.approx(again["eval"]["team_return"]["mean"], abs=1e-9)
+    assert not (tmp_path / "plain" / "torchrl" / "train" / "scalars" / "val").exists()
+
+
+def test_validation_during_training_is_the_torch_loops(compose_cfg, tmp_path):
+    with pytest.raises(ConfigError, match=r"train.validate_every: the torch loop's; DQL"):
+        train(compose_cfg(["learner=dql", "debug=smoke", "train.validate_every=1"]), tmp_path)
