@@ -2,7 +2,10 @@
 
 The student is a masked per-robot policy: the robot-set network (``network=set``, one set of
 weights for any team) or the per-robot MLP (``network=mlp``), scoring ``[*, m, K + 1]`` actions
-with the plain auction's bid as a logit bonus (``auction_prior``, as MAPPO's actor). It acts
+with a logit bonus (``auction_prior``) on the action of a prior: the plain auction's bid (as
+MAPPO's actor) or, with ``prior=base``, the teacher's base policy's action, so that the untrained
+student plays its base and learns where the planner departs from it (a residual policy on the
+base, as the Q-learners' ``hold`` prior is on the rule). It acts
 without search: each robot plays its highest-scoring valid action (``decode=argmax``), or the
 bids are matched to slots so that no two robots bid for one (``decode=match``).
 
@@ -113,6 +116,7 @@ def match_bids(logits: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     return actions.reshape(*lead, m)
 
 
+PRIORS = ("greedy", "base")  # the action of the logit bonus: the plain auction's, or the base's
 DECODERS = ("argmax", "match")  # each robot's best action; or bids matched to slots
 
 
@@ -292,6 +296,7 @@ class ExpertIterationLearner(SetNetworkOption, TorchLearner):
         beta_decay_frames: Annotated[int, Range(1)],
         soft_targets: Annotated[float, Range(0, 1)],
         decode: Annotated[str, Choices(*DECODERS)],
+        prior: Annotated[str, Choices(*PRIORS)],
         imitate_base_frames: Annotated[int, Range(0)],
         buffer_size: Annotated[int, Range(1)],
         batch_size: Annotated[int, Range(1)],
@@ -318,6 +323,9 @@ class ExpertIterationLearner(SetNetworkOption, TorchLearner):
                 joint action only).
             decode: How the student's scores become a joint action: ``argmax`` (each robot's
                 best) or ``match`` (no two bids for one slot, :func:`match_bids`).
+            prior: The action whose logit gets the ``auction_prior`` bonus: ``greedy`` (the plain
+                auction's bid) or ``base`` (the teacher's base policy's action: the untrained
+                student plays its base, and learns where the planner departs from it).
             imitate_base_frames: Collected frames labelled by the teacher's base alone, before
                 the planner labels (cheap labels: the student first learns the base).
             buffer_size: Labelled transitions kept (the aggregated data set).
@@ -385,9 +393,18 @@ class ExpertIterationLearner(SetNetworkOption, TorchLearner):
 
     # -------------------------------------------------------------- the loop's protocol
     @property
-    def prior(self) -> GreedyPrior:
-        """The plain auction, whose bid gets the logit bonus."""
-        return self.rule
+    def prior(self) -> Callable[..., np.ndarray]:
+        """The policy whose action gets the logit bonus: the plain auction, or the base."""
+        return self.rule if self.hp["prior"] == "greedy" else self._base_prior
+
+    @property
+    def inputs(self) -> dict[str, Any]:
+        """The encoding, the network and the prior (its action is part of the scores)."""
+        return {**super().inputs, "prior": self.hp["prior"]}
+
+    def _base_prior(self, env: AuctionEnv, mask: np.ndarray | None = None) -> np.ndarray:
+        """The teacher's base policy's action on ``env`` (a prior for the TorchRL view)."""
+        return self.teacher.base_action(env)
 
     @property
     def policy(self) -> TensorDictModuleBase:

@@ -122,6 +122,28 @@ def test_the_labels_are_the_teachers_actions_on_the_states_given():
     assert learner.labelled == 12 * 6
 
 
+@pytest.mark.parametrize("decode", ["argmax", "match"])
+def test_an_untrained_student_on_the_base_prior_plays_its_base(decode):
+    """prior=base: the bonus goes to the base's action, so the untrained student is the base."""
+    learner, env = make(batch=5, prior="base", base="hold", decode=decode)
+    env.reset()
+    base = TeamReserveLearner(
+        env=env,
+        rng=np.random.default_rng(0),
+        grouping="team",
+        order="fewest_types",
+        **CANDIDATES["hold"],
+    )
+    bids = 0
+    while not env.done.any():
+        expected = base.act(base.encode(env), env.action_mask, explore=False)
+        played = learner.act(learner.encode(env), env.action_mask, explore=False)
+        np.testing.assert_array_equal(played, expected)
+        bids += int((expected > 0).sum())
+        env.step(played)
+    assert bids > 0
+
+
 def test_outside_collection_the_student_plays_and_labels_itself():
     """Evaluation and the replay probe play the student; the teacher is never asked."""
     learner, env = make(batch=3)
