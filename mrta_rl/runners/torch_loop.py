@@ -42,6 +42,8 @@ from tensordict import TensorDictBase
 from torchrl.collectors import Collector
 
 from mrta_rl.envs import AuctionEnv
+from mrta_rl.learners.neural.tensor_files import read_weights, write_tensors
+from mrta_rl.run_layout import STATE_FILE, RunDirError
 from mrta_rl.runners.checkpoint import LoopTime
 from mrta_rl.runners.episodes import EpisodeReturns
 from mrta_rl.runners.evaluate import evaluate_policy
@@ -61,6 +63,8 @@ logger = logging.getLogger(__name__)
 # threads spin against each other (measured: 3.4 ms vs 1.2 ms per env step of 16 copies).
 TORCH_THREADS = 1
 COUNTERS = ("frames", "replayed")  # this loop's counters in a checkpoint, besides the episode
+# train.keep_best: a checkpoint's loop holds best_episode and best_return, its folder the weights
+BEST_FILE = "best_weights.pt"
 
 
 def _view(learner: TorchLearner, env: AuctionEnv) -> AuctionTorchRLEnv:
@@ -120,6 +124,9 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         "curve": [],
     }
     frames, episodes, replayed = state["frames"], state["episode"], state["replayed"]
+    best = BestSnapshot(learner, bool(cfg.train.keep_best))
+    if state.get("best_episode", 0) != 0:  # a checkpoint's best snapshot so far (checked)
+        best.restore(state, ckpt.path)
     rows: list[dict[str, Any]] = state["curve"]
     torch_rng = None  # the checkpoint's, set once the first collector is built
     if frames:
@@ -200,10 +207,6 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
             for row in finished:
                 curve.log(row)
                 rows.append(row)
-                if validate_every and row["episode"] % validate_every == 0:
-                    value = validation_return(run, cfg)
-                    scalars.log_scalar("val/team_return", value, step=row["env_ticks"])
-                    logger.info("episode %d: validation return %.1f", row["episode"], value)
             buffer.extend(learner.process_batch(data), team)
             learner.after_collect(n_frames)
             tick = time.perf_counter()
@@ -213,6 +216,13 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
             if learner.on_policy:
                 buffer.clear()
             clock.add("train_s", time.perf_counter() - tick)
+            # the episodes this batch finished, validated with the weights it trained
+            for row in finished if validate_every else ():
+                if row["episode"] % validate_every == 0:
+                    value = validation_return(run, cfg)
+                    scalars.log_scalar("val/team_return", value, step=row["env_ticks"])
+                    logger.info("episode %d: validation return %.1f", row["episode"], value)
+                    best.offer(row["episode"], value)
             fps_collection = frames / max(clock.total("collect_s"), 1e-9)
             fps_training = replayed / max(clock.total("train_s"), 1e-9)
             epsilon = getattr(learner, "epsilon", None)
@@ -232,13 +242,17 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
             bar.set_postfix(postfix, refresh=False)
             if ckpt and boundary:  # the batch ends between episodes: resumable here
                 loop = {"episode": episodes, "frames": frames, "replayed": replayed, "curve": rows}
-                loop["spent"] = clock.spent()
-                ckpt.episode_end(
-                    loop, last=frames >= total_frames, files=lambda f: buffer.save(f / REPLAY_FILE)
-                )
+                loop |= {"spent": clock.spent(), **best.counters()}
+
+                def files(folder: Path) -> None:
+                    buffer.save(folder / REPLAY_FILE)
+                    best.save(folder)
+
+                ckpt.episode_end(loop, last=frames >= total_frames, files=files)
             tick = time.perf_counter()
     if family:  # evaluated on the family's evaluation team
         learner.bind_env(run.env)
+    best.keep()
     wall = clock.wall()
     out = {
         "env_ticks": frames,
@@ -251,6 +265,7 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         "fps_training": round(replayed / max(clock.total("train_s"), 1e-9), 1),
         "fps_overall": round(frames / max(wall, 1e-9), 1),
         **learner.train_info(),
+        **best.info(),
     }
     logger.info(
         "trained %d episodes (%d frames, %d gradient steps) in %.1f s; fps collection %.0f, "
@@ -264,6 +279,77 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         out["fps_overall"],
     )
     return out
+
+
+class BestSnapshot:
+    """The weights of the best validation return so far, kept for the end (``train.keep_best``).
+
+    Args:
+        learner: The run's torch learner.
+        enabled: ``train.keep_best``; when False, nothing is kept.
+    """
+
+    def __init__(self, learner: TorchLearner, enabled: bool) -> None:
+        self.learner, self.enabled = learner, enabled
+        self.episode, self.value = 0, -math.inf
+        self.weights: dict[str, torch.Tensor] | None = None
+
+    def offer(self, episode: int, value: float) -> None:
+        """Keep the learner's weights if ``value`` beats the best so far (ties: the earlier)."""
+        if self.enabled and value > self.value:
+            self.episode, self.value = episode, value
+            state = self.learner.networks.state_dict()
+            self.weights = {name: tensor.detach().clone() for name, tensor in state.items()}
+
+    def counters(self) -> dict[str, Any]:
+        """What a checkpoint's loop holds of it: the episode, and its value when there is one."""
+        return {"best_episode": self.episode} | (
+            {"best_return": self.value} if self.episode else {}
+        )
+
+    def save(self, folder: Path) -> None:
+        """Write the kept weights into a checkpoint folder (nothing when none is kept)."""
+        if self.weights is not None:
+            write_tensors(self.weights, folder / BEST_FILE)
+
+    def restore(self, loop: dict[str, Any], folder: Path) -> None:
+        """The best snapshot of a checkpoint, its weights checked against the learner's networks.
+
+        Raises:
+            RunDirError: naming the file or the key, if the value or the weights are refused.
+        """
+        episode, value = loop["best_episode"], loop.get("best_return")
+        if not isinstance(episode, int) or not 0 < episode <= loop["episode"]:
+            raise RunDirError(
+                f"{folder / STATE_FILE}: loop.best_episode: must be an episode played, "
+                f"got {episode!r}"
+            )
+        if (
+            not isinstance(value, (int, float))
+            or isinstance(value, bool)
+            or not math.isfinite(value)
+        ):
+            raise RunDirError(
+                f"{folder / STATE_FILE}: loop.best_return: must be a finite number, got {value!r}"
+            )
+        self.episode, self.value = episode, float(value)
+        self.weights = read_weights(folder / BEST_FILE, self.learner.networks)
+
+    def keep(self) -> None:
+        """At the end of training: the learner takes the kept weights (if any)."""
+        if self.weights is not None:
+            self.learner.networks.load_state_dict(self.weights)
+            logger.info(
+                "kept the weights of episode %d, the best validation return (%.1f)",
+                self.episode,
+                self.value,
+            )
+
+    def info(self) -> dict[str, float]:
+        """The run's ``train`` info: the episode kept and its validation return."""
+        if self.weights is None:
+            return {}
+        return {"best_episode": self.episode, "best_validation_return": round(self.value, 4)}
 
 
 def validation_return(run: RunSetup, cfg: DictConfig) -> float:

@@ -106,6 +106,8 @@ class TrainSettings:
     # streams during training (val/team_return); 0 = none
     validate_every: Annotated[int, Range(0)]
     validate_episodes: Annotated[int, Range(1)]  # validation copy-episodes of each evaluation
+    # the run ends with the weights of its best validation return (needs validate_every)
+    keep_best: bool
 
 
 @dataclass(frozen=True)
@@ -468,6 +470,11 @@ def validate_config(cfg: DictConfig) -> CheckedConfig:
         not train["validate_every"] or cls.training_loop == TORCH_LOOP,
         f"train.validate_every: the torch loop's; {cls.__name__} trains on "
         f"{cls.training_loop}: set train.validate_every=0",
+    )
+    _check(
+        not train["keep_best"] or train["validate_every"] > 0,
+        "train.keep_best: keeps the weights of the best validation return, so it needs "
+        "train.validate_every > 0",
     )
     hyperparameters = check_keywords(cls, _plain(cfg, "learner"), "learner")
     _check_logger(_plain(cfg, "logger"))

@@ -164,3 +164,57 @@ def test_validation_during_training_is_logged_and_changes_nothing(compose_cfg, t
 def test_validation_during_training_is_the_torch_loops(compose_cfg, tmp_path):
     with pytest.raises(ConfigError, match=r"train.validate_every: the torch loop's; DQL"):
         train(compose_cfg(["learner=dql", "debug=smoke", "train.validate_every=1"]), tmp_path)
+
+
+def test_keep_best_ends_with_the_snapshot_of_the_best_validation_return(compose_cfg, tmp_path):
+    """Validated every episode, the run keeps the weights of its best validation return.
+
+    Its evaluation on the same validation streams gives that return again, its metrics name the
+    episode kept, and the value is the largest one logged.
+    """
+    validate = ["train.validate_every=1", "train.validate_episodes=4", "train.keep_best=true"]
+    streams = ["eval.split=validation", "eval.episodes=4", "eval.batch_size=4"]
+    args = ["learner=vdn", "system=system1", "debug=smoke", "train.episodes=4"]
+    metrics = train(compose_cfg([*args, *validate, *streams]), run_dir=tmp_path)
+    logged = tmp_path / "torchrl" / "train" / "scalars" / "val" / "team_return.csv"
+    values = [float(line.split(",")[1]) for line in logged.read_text().splitlines()]
+    best = max(values)
+    assert metrics["train"]["best_episode"] == values.index(best) + 1
+    assert metrics["train"]["best_validation_return"] == pytest.approx(best, abs=1e-3)
+    assert metrics["eval"]["team_return"]["mean"] == pytest.approx(best, abs=1e-9)
+
+
+def test_keep_best_resumes_with_its_snapshot(compose_cfg, tmp_path, monkeypatch):
+    """Stopped after episode 2 of 4 and resumed: the same snapshot kept as without the stop."""
+    args = ["learner=vdn", "system=system1", "debug=smoke", "train.episodes=4"]
+    args += ["train.checkpoint_every=1", "train.validate_every=1", "train.validate_episodes=3"]
+    args += ["train.keep_best=true"]
+    full = train(compose_cfg(args), run_dir=tmp_path / "full")
+    episode_end = TrainingCheckpoint.episode_end
+
+    def stop_after_two(self, loop, last, files=None):
+        self.stop_requested = self.stop_requested or loop["episode"] >= 2
+        return episode_end(self, loop, last, files)
+
+    monkeypatch.setattr(TrainingCheckpoint, "episode_end", stop_after_two)
+    cut = tmp_path / "cut"
+    cfg = compose_cfg(args)
+    save_hydra_files(cfg, cut, "vdn", "system1")
+    with pytest.raises(SystemExit):
+        train(cfg, run_dir=cut)
+    monkeypatch.setattr(TrainingCheckpoint, "episode_end", episode_end)
+    cfg = compose_cfg([f"resume={cut}"])
+    HydraConfig.instance().cfg = None  # as from the command line: no overrides but resume=
+    resumed = train(cfg)
+    assert resumed["eval"] == full["eval"]
+    assert resumed["train"]["best_episode"] == full["train"]["best_episode"]
+    weights = [
+        torch.load(run / "learner" / "weights.pt", weights_only=True)
+        for run in (tmp_path / "full", cut)
+    ]
+    assert all(torch.equal(weights[0][k], weights[1][k]) for k in weights[0])
+
+
+def test_keep_best_needs_validation(compose_cfg, tmp_path):
+    with pytest.raises(ConfigError, match=r"train.keep_best: .*train.validate_every > 0"):
+        train(compose_cfg(["learner=vdn", "debug=smoke", "train.keep_best=true"]), tmp_path)

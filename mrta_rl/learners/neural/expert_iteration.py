@@ -342,6 +342,8 @@ class ExpertIterationLearner(SetNetworkOption, TorchLearner):
         self.rule = GreedyPrior()  # the view writes its action as ("agents", "prior_action")
         self.base_policy = base_policy
         self.labelled, self.label_s, self.frames_collected = 0, 0.0, 0
+        self._decisions: dict[int, list] = {}  # copies -> [ticks, seconds] of the student's
+        self._last_copies = 0
         super().__init__(gamma=gamma, **settings)
         self.beta = float(self.hp["beta_start"])
         self.teacher = self._teacher()
@@ -431,6 +433,42 @@ class ExpertIterationLearner(SetNetworkOption, TorchLearner):
             updates_per_batch=int(hp["updates_per_collect"]),
             warmup_frames=min(int(hp["warmup_frames"]), total_frames // 2),
         )
+
+    def encode(self, env: AuctionEnv) -> TensorDictBase:
+        """The student's inputs (its prior's action among them), timed as its decision."""
+        start = CLOCK()
+        view = super().encode(env)
+        self._decided(env.batch_size, CLOCK() - start, ticks=0)
+        return view
+
+    def act(self, view: TensorDictBase, mask: np.ndarray, *, explore: bool) -> np.ndarray:
+        """The student's joint action, without search; timed as its decision (module docstring)."""
+        start = CLOCK()
+        actions = super().act(view, mask, explore=explore)
+        self._decided(mask.shape[0], CLOCK() - start, ticks=1)
+        return actions
+
+    def _decided(self, copies: int, seconds: float, ticks: int) -> None:
+        spent = self._decisions.setdefault(copies, [0, 0.0])
+        spent[0] += ticks
+        spent[1] += seconds
+        self._last_copies = copies
+
+    def decision_time(self) -> dict[str, float]:
+        """The student's time per tick (inputs and action) at the batch size it played last.
+
+        Evaluation plays last, so ``metrics.json`` gets the time per tick of ``eval.batch_size``
+        copies; the planner's (``rollout``'s ``decision_time``) is measured the same way.
+        """
+        ticks, seconds = self._decisions.get(self._last_copies, (0, 0.0))
+        if not ticks:
+            return {}
+        return {
+            "ms_per_tick": round(1000 * seconds / ticks, 4),
+            "total_s": round(seconds, 4),
+            "ticks": ticks,
+            "copies": self._last_copies,
+        }
 
     def teach(self) -> tuple[np.ndarray, np.ndarray]:
         """The teacher's joint action and the labels at the training env's current state.
