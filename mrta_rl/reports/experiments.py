@@ -24,7 +24,7 @@ from mrta_rl.config import UserError
 from mrta_rl.reports import collect, figures, stats
 from mrta_rl.reports.claims import FAILS, HOLDS, NOT_EVALUABLE, check_claims
 from mrta_rl.reports.collect import RunRecord, config_value
-from mrta_rl.reports.frame import long_table, order_learners, summarize, system_label
+from mrta_rl.reports.frame import band, long_table, order_learners, summarize, system_label
 from mrta_rl.reports.stats import BOOTSTRAP_REPS, MeanCI, mean_ci
 from mrta_rl.reports.study import Axis, Prose, Study, paragraphs
 from mrta_rl.reports.tables import markdown_table, signed, write_csv
@@ -126,12 +126,9 @@ def order_series(points: pd.DataFrame) -> list[str]:
 
 def _line(points: pd.DataFrame, dim: str, column: str) -> pd.DataFrame | None:
     """Mean and 95 % interval of ``column`` per value of ``dim`` (None without any value)."""
-    rows = []
-    for x, group in points.dropna(subset=[dim]).groupby(dim):
-        stat = mean_ci(group[column])
-        if stat.n:
-            rows.append((float(x), stat.mean, stat.mean - stat.half, stat.mean + stat.half))
-    return pd.DataFrame(rows, columns=["x", "mean", "low", "high"]) if rows else None
+    cells = [(float(x), mean_ci(g[column])) for x, g in points.dropna(subset=[dim]).groupby(dim)]
+    kept = [(x, s) for x, s in cells if s.n]
+    return band([x for x, _ in kept], [s for _, s in kept]) if kept else None
 
 
 def dimension_table(points: pd.DataFrame, dim: str, axis: Axis, system: str) -> str:

@@ -111,13 +111,12 @@ def build_report(inputs: Iterable[Path | str], out_dir: Path | str | None = None
         lines, line_colors = {}, {}
         for learner, label in dict(zip(rows["learner"], rows["label"], strict=True)).items():
             mine = [r for r in collection.runs if r.system == system and r.learner == learner]
-            if (c := frame.summarize_curve(mine)) is not None:
-                name = f"{label} ({c.seeds} seed{'s' if c.seeds != 1 else ''})"
-                if c.seeds != len(mine):  # the tables count every run; say why this is fewer
-                    name = f"{label} ({c.seeds} of {len(mine)} seeds have a curve)"
-                line_colors[name] = colors[learner]
-                lines[name] = pd.DataFrame({"x": c.env_ticks, "mean": c.mean, "low": c.low})
-                lines[name]["high"] = c.high
+            if (curve := frame.summarize_curve(mine)) is not None:
+                line, seeds = curve
+                name = f"{label} ({seeds} seed{'s' if seeds != 1 else ''})"
+                if seeds != len(mine):  # the tables count every run; say why this is fewer
+                    name = f"{label} ({seeds} of {len(mine)} seeds have a curve)"
+                line_colors[name], lines[name] = colors[learner], line
         if lines:
             greedy = [s for s in rows[rows["metric"] == "greedy_team_return"]["stat"] if s.n]
             title = f"{system_label(system)}: learning curves (mean and 95% CI band over seeds)"
