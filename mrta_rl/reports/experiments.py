@@ -567,24 +567,17 @@ def section_rows(by_system: dict[str, list[Policy]]) -> list[list[Any]]:
 
 @dataclass(frozen=True)
 class StartComparison:
-    """A trained policy against its untrained start: paired over episodes, and over seeds."""
+    """A trained policy against its untrained start: paired over episodes, and over seeds.
+
+    ``verdict``: ``yes`` (the paired interval is above zero), ``no (below)``, ``over seeds only``
+    (the interval over seeds is above zero) or ``no``.
+    """
 
     trained: Policy
     start: Policy
-    paired: MeanCI
+    paired: MeanCI  # n: the evaluation episodes paired (0 if unpaired)
     over_seeds: MeanCI
-
-    @property
-    def episodes(self) -> int:
-        """Evaluation episodes of the paired difference (0 if unpaired)."""
-        return self.paired.n
-
-    @property
-    def verdict(self) -> str:
-        """``yes`` (paired interval above zero), ``over seeds only``, ``no (below)`` or ``no``."""
-        if self.paired.low > 0 or self.paired.high < 0:
-            return "yes" if self.paired.low > 0 else "no (below)"
-        return "over seeds only" if self.over_seeds.low > 0 else "no"
+    verdict: str
 
 
 def start_comparisons(by_system: dict[str, list[Policy]]) -> list[tuple[str, StartComparison]]:
@@ -596,14 +589,16 @@ def start_comparisons(by_system: dict[str, list[Policy]]) -> list[tuple[str, Sta
                 untrained = float(np.mean(start.means))
                 paired = paired_difference(p.per_episode, start.per_episode)
                 seeds = mean_ci([m - untrained for m in p.means])
-                out.append((system, StartComparison(p, start, paired, seeds)))
+                verdict = "yes" if paired.low > 0 else "no (below)" if paired.high < 0 else "no"
+                verdict = "over seeds only" if verdict == "no" and seeds.low > 0 else verdict
+                out.append((system, StartComparison(p, start, paired, seeds, verdict)))
     return out
 
 
 def start_rows(by_system: dict[str, list[Policy]]) -> list[list[Any]]:
     """CSV rows of :func:`start_comparisons` (:data:`START_HEADER`)."""
     return [
-        [system, c.trained.name, c.episodes, _round(float(np.mean(c.start.means)))]
+        [system, c.trained.name, c.paired.n, _round(float(np.mean(c.start.means)))]
         + [c.trained.over_seeds.n, _round(c.trained.over_seeds.mean)]
         + [_round(v) for v in (c.trained.over_seeds.ci95, c.paired.mean, c.paired.ci95)]
         + [_round(c.over_seeds.mean), _round(c.over_seeds.ci95), c.verdict]
@@ -658,7 +653,7 @@ def section_markdown(
         rows = [
             [c.trained.name, system_label(system), f"{np.mean(c.start.means):.1f}"]
             + [f"{c.trained.over_seeds.format(1)} ({len(c.trained.means)})"]
-            + [f"{_fmt(c.paired)} ({c.episodes})" if c.episodes else "–"]
+            + [f"{_fmt(c.paired)} ({c.paired.n})" if c.paired.n else "–"]
             + [signed(c.over_seeds), c.verdict]
             for system, c in comparisons
         ]
@@ -697,7 +692,7 @@ def write_section(
     starts = [
         (f"{c.trained.name}, {system_label(s)}", c.paired)
         for s, c in start_comparisons(by_system)
-        if c.episodes
+        if c.paired.n
     ]
     start = out_dir / "yardsticks_start.png" if starts else None
     if start is not None:
