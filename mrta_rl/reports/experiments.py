@@ -221,14 +221,17 @@ def dimension_claims(runs: Sequence[RunRecord], dim: str, study: Study) -> str:
     return markdown_table([*header, "not evaluable at"], rows)
 
 
+def _scores(points: pd.DataFrame, series: str) -> pd.Series:
+    """The scores of the finished runs of a series by task (the bootstrap's strata)."""
+    mine = points[(points["series"] == series) & (points["refused"] == "")]
+    mine = mine[mine["return_vs_greedy"].notna()]
+    return mine.groupby("task", sort=False)["return_vs_greedy"].agg(list)
+
+
 def field_statistics(points: pd.DataFrame) -> pd.DataFrame:
     """IQM per series, then P(X > Y) per ordered pair of series over the tasks both ran."""
-    scored = points[(points["refused"] == "") & points["return_vs_greedy"].notna()]
     names = order_series(points[points["refused"] == ""])
-    by_series = {
-        s: scored[scored["series"] == s].groupby("task", sort=False)["return_vs_greedy"].agg(list)
-        for s in names
-    }
+    by_series = {s: _scores(points, s) for s in names}
     rows = [("iqm", s, "", stats.iqm_ci(by_series[s].tolist())) for s in names]
     for x, y in itertools.permutations(names, 2):
         common = [t for t in by_series[x].index if t in by_series[y].index]
@@ -268,8 +271,7 @@ def profile_figure(points: pd.DataFrame, path: Path, colors: dict) -> Path | Non
     tau = np.linspace(low - 0.01, high + 0.01, PROFILE_POINTS)
     lines = {}
     for s in order_series(scored):
-        tasks = scored[scored["series"] == s].groupby("task", sort=False)["return_vs_greedy"]
-        p = stats.performance_profile(tasks.agg(list), tau)
+        p = stats.performance_profile(_scores(points, s), tau)
         lines[s] = pd.DataFrame({"x": p.tau, "mean": p.fraction, "low": p.low, "high": p.high})
     panel = figures.Panel(
         "Performance profiles (95% stratified bootstrap bands)",
@@ -311,13 +313,11 @@ def study_sections(
         alt = f"Team return against the {axis.label}"
         md += paragraphs(prose.image(written.get(f"{axis.stem}_return"), alt))
         if axis.costs:
-            space = prose.image(
-                written[f"{axis.stem}_space"], f"Learning space against the {axis.label}"
-            )
-            cost = prose.image(
-                written[f"{axis.stem}_cost"], f"Wall time and memory against the {axis.label}"
-            )
-            md += prose.section("along_costs", space=space, cost=cost)
+            images = {
+                key: prose.image(written[f"{axis.stem}_{key}"], f"{what} against the {axis.label}")
+                for key, what in (("space", "Learning space"), ("cost", "Wall time and memory"))
+            }
+            md += prose.section("along_costs", **images)
         md += prose.section("along_claims", key=dim, table=dimension_claims(runs, dim, study))
     return "\n".join(md), files
 
