@@ -524,8 +524,11 @@ def _mean(run: RunRecord) -> float:
 def _policy(name: str, kind: str, runs: list[RunRecord], **extra: Any) -> Policy:
     """The policy of the runs (``extra``: more fields of :class:`Policy`)."""
     returns = [_per_episode(r.metrics["eval"]) for r in runs]
-    times = [(r.metrics["eval"].get("decision_time") or {}).get("ms_per_tick") for r in runs]
-    times = [float(t) for t in times if t is not None]
+    times = [
+        float(r.metrics["eval"]["decision_time"]["ms_per_tick"])
+        for r in runs
+        if "ms_per_tick" in (r.metrics["eval"].get("decision_time") or {})
+    ]
     decision = float(np.mean(times)) if times else None
     means = [_mean(r) for r in runs]
     return Policy(name, runs[0].name, kind, returns, means, decision_ms=decision, **extra)
