@@ -216,12 +216,8 @@ def _capable_robots(claim: Claim, cells: Cells, group: Sequence[str]) -> Verdict
     for name in present:
         types = cells.items(name, "ctr")
         counts = np.array([cells.value(name, f"capable_robots/{t}").mean for t in types])
-        ctr = np.array(
-            [
-                np.nanmean([cells.value(name, f"ctr/{t}/{p}").mean for p in PRIORITIES])
-                for t in types
-            ]
-        )
+        per_type = ([cells.value(name, f"ctr/{t}/{p}").mean for p in PRIORITIES] for t in types)
+        ctr = np.array([np.nanmean(values) for values in per_type])
         keep = ~np.isnan(ctr)
         if keep.sum() < 3 or np.std(counts[keep]) == 0:
             parts.append(f"{cells.label(name)}: too few distinct types")

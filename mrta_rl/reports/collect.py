@@ -22,23 +22,10 @@ from typing import Any
 
 from omegaconf import OmegaConf
 
-from mrta_rl.checked_files import (
-    MAX_TEXT_BYTES,
-    RunDirError,
-    parse_json,
-    read_bytes,
-    read_config,
-    read_csv_numbers,
-    read_json,
-)
+from mrta_rl import checked_files, run_layout
+from mrta_rl.checked_files import MAX_TEXT_BYTES, RunDirError, read_config, read_json
 from mrta_rl.config import UserError
-from mrta_rl.run_layout import (
-    CONFIG_FILE,
-    METRICS_FILE,
-    REFUSED_FILE,
-    REFUSED_JOBS_FILE,
-    read_metrics,
-)
+from mrta_rl.run_layout import CONFIG_FILE, METRICS_FILE, REFUSED_FILE
 from mrta_rl.splits import DEFAULT_SPLIT, SPLIT_SEEDS
 from mrta_rl.types import natural_key
 
@@ -135,7 +122,7 @@ def read_curve(path: Path) -> tuple[tuple[int, float], ...]:
     """
     if not path.exists():
         return ()
-    rows = read_csv_numbers(path, CURVE_COLUMNS, key="env_ticks")
+    rows = checked_files.read_csv_numbers(path, CURVE_COLUMNS, key="env_ticks")
     return tuple((int(ticks), value) for ticks, value in rows)
 
 
@@ -157,7 +144,7 @@ def config_value(config: dict[str, Any], dotted: str) -> Any:
 
 def load_run(run_dir: Path) -> RunRecord:
     """Read one run dir."""
-    metrics = read_metrics(run_dir / METRICS_FILE)
+    metrics = run_layout.read_metrics(run_dir / METRICS_FILE)
     config = read_yaml_config(run_dir / CONFIG_FILE) or {}
     overrides = read_yaml_config(run_dir / CONFIG_FILE.with_name("overrides.yaml")) or []
     learner = metrics["learner"]
@@ -228,7 +215,7 @@ def named_init(config: dict[str, Any]) -> dict[str, Any]:
     if not init:
         return config
     try:
-        trained_on = str(read_metrics(Path(init) / METRICS_FILE)["system"])
+        trained_on = str(run_layout.read_metrics(Path(init) / METRICS_FILE)["system"])
     except (OSError, ValueError, KeyError, TypeError):
         trained_on = Path(init).name
     return {**config, "init": trained_on}
@@ -261,13 +248,13 @@ def refused_jobs(sweep_dir: Path) -> dict[frozenset[str], str]:
 
     Such a job leaves no run dir, so its reason is kept in the sweep dir.
     """
-    path, out = sweep_dir / REFUSED_JOBS_FILE, {}
+    path, out = sweep_dir / run_layout.REFUSED_JOBS_FILE, {}
     if not path.exists():
         return out
-    text = read_bytes(path, MAX_TEXT_BYTES, "a list of refused jobs").decode(errors="replace")
-    for line in text.splitlines():
+    data = checked_files.read_bytes(path, MAX_TEXT_BYTES, "a list of refused jobs")
+    for line in data.decode(errors="replace").splitlines():
         try:
-            record = parse_json(line, path)
+            record = checked_files.parse_json(line, path)
             out[frozenset(str(o) for o in record["overrides"])] = f"refused: {record['reason']}"
         except (RunDirError, KeyError, TypeError):
             continue

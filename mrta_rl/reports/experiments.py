@@ -21,28 +21,11 @@ import numpy as np
 import pandas as pd
 
 from mrta_rl.config import UserError
-from mrta_rl.reports import figures
+from mrta_rl.reports import collect, figures, stats
 from mrta_rl.reports.claims import FAILS, HOLDS, NOT_EVALUABLE, check_claims
-from mrta_rl.reports.collect import (
-    METRICS_FILE,
-    REFUSED_FILE,
-    RunRecord,
-    config_value,
-    configuration_variants,
-    found_files,
-    named_init,
-    read_yaml_config,
-    refusal_reason,
-)
-from mrta_rl.reports.frame import long_table, order_learners, summarize, system_label
-from mrta_rl.reports.stats import (
-    BOOTSTRAP_REPS,
-    MeanCI,
-    iqm_ci,
-    mean_ci,
-    performance_profile,
-    probability_of_improvement,
-)
+from mrta_rl.reports.collect import RunRecord, config_value
+from mrta_rl.reports.frame import band, long_table, order_learners, summarize, system_label
+from mrta_rl.reports.stats import BOOTSTRAP_REPS, MeanCI, mean_ci
 from mrta_rl.reports.study import Axis, Prose, Study, paragraphs
 from mrta_rl.reports.tables import markdown_table, signed, write_csv
 from mrta_rl.run_layout import CONFIG_FILE, EVAL_METRICS_FILE, read_json
@@ -114,15 +97,15 @@ def study_points(runs: Sequence[RunRecord], inputs: Sequence[Path], study: Study
     for r in runs:
         cell = (_series(r.label, r.variant), r.name, r.system, r.seed)
         points.append(_point(cell, r.config, r.metrics, "", study.along))
-    for run_dir in sorted(f.parent for f in found_files(inputs, REFUSED_FILE)):
-        if (run_dir / METRICS_FILE).is_file():
+    for run_dir in sorted(f.parent for f in collect.found_files(inputs, collect.REFUSED_FILE)):
+        if (run_dir / collect.METRICS_FILE).is_file():
             continue
-        record = read_json(run_dir / REFUSED_FILE)
+        record = read_json(run_dir / collect.REFUSED_FILE)
         path = run_dir / CONFIG_FILE
-        config = read_yaml_config(path) or {}
+        config = collect.read_yaml_config(path) or {}
         learner, system = str(record.get("learner", "?")), str(record.get("system", "?"))
         cell = (learner, learner, system, int(record.get("seed", config.get("seed", 0))))
-        points.append(_point(cell, config, {}, refusal_reason(run_dir) or "", study.along))
+        points.append(_point(cell, config, {}, collect.refusal_reason(run_dir) or "", study.along))
     # objects, not floats: the CSV keeps ints as ints and an absent setting empty
     columns = [*STUDY_KEYS, *study.along, *STUDY_VALUES, "task"]
     points = pd.DataFrame(points, columns=columns, dtype=object)
@@ -143,12 +126,9 @@ def order_series(points: pd.DataFrame) -> list[str]:
 
 def _line(points: pd.DataFrame, dim: str, column: str) -> pd.DataFrame | None:
     """Mean and 95 % interval of ``column`` per value of ``dim`` (None without any value)."""
-    rows = []
-    for x, group in points.dropna(subset=[dim]).groupby(dim):
-        stat = mean_ci(group[column])
-        if stat.n:
-            rows.append((float(x), stat.mean, stat.mean - stat.half, stat.mean + stat.half))
-    return pd.DataFrame(rows, columns=["x", "mean", "low", "high"]) if rows else None
+    cells = [(float(x), mean_ci(g[column])) for x, g in points.dropna(subset=[dim]).groupby(dim)]
+    kept = [(x, s) for x, s in cells if s.n]
+    return band([x for x, _ in kept], [s for _, s in kept]) if kept else None
 
 
 def dimension_table(points: pd.DataFrame, dim: str, axis: Axis, system: str) -> str:
@@ -241,28 +221,31 @@ def dimension_claims(runs: Sequence[RunRecord], dim: str, study: Study) -> str:
     return markdown_table([*header, "not evaluable at"], rows)
 
 
+def _scores(points: pd.DataFrame, series: str) -> pd.Series:
+    """The scores of the finished runs of a series by task (the bootstrap's strata)."""
+    mine = points[(points["series"] == series) & (points["refused"] == "")]
+    mine = mine[mine["return_vs_greedy"].notna()]
+    return mine.groupby("task", sort=False)["return_vs_greedy"].agg(list)
+
+
 def field_statistics(points: pd.DataFrame) -> pd.DataFrame:
     """IQM per series, then P(X > Y) per ordered pair of series over the tasks both ran."""
-    scored = points[(points["refused"] == "") & points["return_vs_greedy"].notna()]
     names = order_series(points[points["refused"] == ""])
-    by_series = {
-        s: scored[scored["series"] == s].groupby("task", sort=False)["return_vs_greedy"].agg(list)
-        for s in names
-    }
-    rows = [("iqm", s, "", iqm_ci(by_series[s].tolist())) for s in names]
+    by_series = {s: _scores(points, s) for s in names}
+    rows = [("iqm", s, "", stats.iqm_ci(by_series[s].tolist())) for s in names]
     for x, y in itertools.permutations(names, 2):
         common = [t for t in by_series[x].index if t in by_series[y].index]
         xs, ys = ([by_series[s][t] for t in common] for s in (x, y))
-        rows.append(("probability_of_improvement", x, y, probability_of_improvement(xs, ys)))
+        rows.append(("probability_of_improvement", x, y, stats.probability_of_improvement(xs, ys)))
     return pd.DataFrame(
         [(k, x, y, e.value, e.low, e.high, e.n, e) for k, x, y, e in rows],
         columns=[*FIELD_STATS_HEADER, "estimate"],
     )
 
 
-def field_statistics_markdown(stats: pd.DataFrame, points: pd.DataFrame, prose: Prose) -> str:
+def field_statistics_markdown(field: pd.DataFrame, points: pd.DataFrame, prose: Prose) -> str:
     """The IQM table and the probability-of-improvement matrix."""
-    iqm = stats[stats["statistic"] == "iqm"]
+    iqm = field[field["statistic"] == "iqm"]
     finished = points[points["refused"] == ""]
     rows = [
         [s, finished[finished["series"] == s]["task"].nunique(), e.n, e.format(3)]
@@ -272,7 +255,7 @@ def field_statistics_markdown(stats: pd.DataFrame, points: pd.DataFrame, prose: 
     md = paragraphs(markdown_table(header, rows))
     names = list(iqm["x"])
     if len(names) >= 2:
-        pairs = stats[stats["statistic"] != "iqm"].set_index(["x", "y"])["estimate"]
+        pairs = field[field["statistic"] != "iqm"].set_index(["x", "y"])["estimate"]
         matrix = [[x, *("–" if x == y else pairs[x, y].format(2) for y in names)] for x in names]
         table = markdown_table(["P(row > column)", *names], matrix)
         md += prose.section("improvement", table=table)
@@ -288,8 +271,7 @@ def profile_figure(points: pd.DataFrame, path: Path, colors: dict) -> Path | Non
     tau = np.linspace(low - 0.01, high + 0.01, PROFILE_POINTS)
     lines = {}
     for s in order_series(scored):
-        tasks = scored[scored["series"] == s].groupby("task", sort=False)["return_vs_greedy"]
-        p = performance_profile(tasks.agg(list), tau)
+        p = stats.performance_profile(_scores(points, s), tau)
         lines[s] = pd.DataFrame({"x": p.tau, "mean": p.fraction, "low": p.low, "high": p.high})
     panel = figures.Panel(
         "Performance profiles (95% stratified bootstrap bands)",
@@ -309,13 +291,13 @@ def study_sections(
     points = study_points(runs, inputs, study)
     colors = figures.learner_colors(order_series(points))
     colors |= {f"{n} ({k})": c for n, c in list(colors.items()) for k in ("visited", "parameters")}
-    stats = field_statistics(points)
-    files = {"field_stats": write_csv(out / "field_stats.csv", stats[FIELD_STATS_HEADER])}
+    field = field_statistics(points)
+    files = {"field_stats": write_csv(out / "field_stats.csv", field[FIELD_STATS_HEADER])}
     profile = profile_figure(points, out / "performance_profile.png", colors)
     if profile is not None:
         files["performance_profile"] = profile
     md = prose.section("field", reps=BOOTSTRAP_REPS)
-    md += [field_statistics_markdown(stats, points, prose)]
+    md += [field_statistics_markdown(field, points, prose)]
     md += [prose.image(profile, "Performance profiles"), ""]
     dims = swept_dimensions(points, study)
     if dims:
@@ -331,13 +313,11 @@ def study_sections(
         alt = f"Team return against the {axis.label}"
         md += paragraphs(prose.image(written.get(f"{axis.stem}_return"), alt))
         if axis.costs:
-            space = prose.image(
-                written[f"{axis.stem}_space"], f"Learning space against the {axis.label}"
-            )
-            cost = prose.image(
-                written[f"{axis.stem}_cost"], f"Wall time and memory against the {axis.label}"
-            )
-            md += prose.section("along_costs", space=space, cost=cost)
+            images = {
+                key: prose.image(written[f"{axis.stem}_{key}"], f"{what} against the {axis.label}")
+                for key, what in (("space", "Learning space"), ("cost", "Wall time and memory"))
+            }
+            md += prose.section("along_costs", **images)
         md += prose.section("along_claims", key=dim, table=dimension_claims(runs, dim, study))
     return "\n".join(md), files
 
@@ -435,7 +415,7 @@ def _check_same_streams(runs: Sequence[RunRecord], greedy: dict[str, RunRecord])
 
 def _base_label(base: str) -> str:
     """The learner label of a planner's base run (its ``metrics.json``), else its dir's name."""
-    path = Path(base) / METRICS_FILE
+    path = Path(base) / collect.METRICS_FILE
     try:
         return str(read_json(path)["learner"]["label"])
     except (OSError, ValueError, KeyError, TypeError):
@@ -462,7 +442,7 @@ def _variant(run: RunRecord, kind: str, trained_variant: str, study: Study) -> s
         return _features(run)
     # eval.* settings do not make a policy: each run is scored on its (re-)evaluation
     rest = [t for t in trained_variant.split() if not t.startswith(("features=", "eval."))]
-    init = named_init(run.config).get("init")
+    init = collect.named_init(run.config).get("init")
     if init and f"init={init}" not in rest:  # the policy was trained on other teams
         rest.append(f"init={init}")
     features = _features(run)
@@ -494,7 +474,7 @@ def collect_policies(runs: Sequence[RunRecord], study: Study) -> dict[str, list[
     # an untrained run differs (train.episodes, learning rates...) do not change its policy
     trained = [r for r in runs if _kind(r) == "trained"]
     plain = [dataclasses.replace(r, learner=r.name) for r in trained]
-    variants = dict(zip(map(id, trained), configuration_variants(plain), strict=True))
+    variants = dict(zip(map(id, trained), collect.configuration_variants(plain), strict=True))
     groups: dict[tuple[str, str, str, str], list[RunRecord]] = defaultdict(list)
     greedy: dict[str, RunRecord] = {}
     episodes = {id(r): len(_per_episode(r.metrics["baseline_greedy"])) for r in runs}
@@ -508,6 +488,12 @@ def collect_policies(runs: Sequence[RunRecord], study: Study) -> dict[str, list[
             if run.seed not in {m.seed for m in members}:  # a seed counts once, as in the tables
                 members.append(run)
     _check_same_streams(runs, greedy)
+
+    def order(key: tuple[str, str, str, str]) -> tuple:
+        system, learner, kind, variant = key  # the yardstick rules among the learners
+        rank = {"rule": 0, "untrained": 1, "trained": 2}[kind]
+        return (system, rank == 0 and learner not in study.rules, learner, variant, rank)
+
     out: dict[str, list[Policy]] = {}
     for system, base in greedy.items():
         block = base.metrics["baseline_greedy"]
@@ -517,26 +503,16 @@ def collect_policies(runs: Sequence[RunRecord], study: Study) -> dict[str, list[
             settings = [(v, m) for (s, n, _, v), m in groups.items() if (s, n) == (system, rule)]
             if settings:
                 variant, members = max(settings, key=lambda vm: np.mean([_mean(r) for r in vm[1]]))
-                policies.append(_policy(f"{rule} (best)", "rule", members, variant))
-
-        def order(item: tuple[tuple[str, str, str, str], list[RunRecord]]) -> tuple:
-            (system, learner, kind, variant), _ = item  # the yardstick rules among the learners
-            rank = {"rule": 0, "untrained": 1, "trained": 2}[kind]
-            return (system, rank == 0 and learner not in study.rules, learner, variant, rank)
-
-        for (s, learner, kind, variant), members in sorted(groups.items(), key=order):
+                policies.append(_policy(f"{rule} (best)", "rule", members, note=variant))
+        for s, learner, kind, variant in sorted(groups, key=order):
             if s != system or learner in study.best_setting:
                 continue
-            name = members[0].label
-            if kind == "rule" and variant.startswith("base="):
-                name += f" [{variant}]"
-            if kind != "rule":
-                name += " untrained" if kind == "untrained" else ""
-                name += f" [{variant}]" if variant != "paper" else ""
+            members = groups[s, learner, kind, variant]
+            shown = variant.startswith("base=") if kind == "rule" else variant != "paper"
+            name = members[0].label + " untrained" * (kind == "untrained") + f" [{variant}]" * shown
             features = _features(members[0]) if kind != "rule" else "paper"
-            policy = _policy(name, kind, members, features=features)
-            policy.best = kind == "trained" and learner == study.best_learner
-            policies.append(policy)
+            best = kind == "trained" and learner == study.best_learner
+            policies.append(_policy(name, kind, members, features=features, best=best))
         out[system] = policies
     return out
 
@@ -545,7 +521,8 @@ def _mean(run: RunRecord) -> float:
     return float(run.metrics["eval"]["team_return"]["mean"])
 
 
-def _policy(name: str, kind: str, runs: list, note: str = "", features="paper") -> Policy:
+def _policy(name: str, kind: str, runs: list[RunRecord], **extra: Any) -> Policy:
+    """The policy of the runs (``extra``: more fields of :class:`Policy`)."""
     returns = [_per_episode(r.metrics["eval"]) for r in runs]
     times = [
         float(r.metrics["eval"]["decision_time"]["ms_per_tick"])
@@ -554,7 +531,7 @@ def _policy(name: str, kind: str, runs: list, note: str = "", features="paper") 
     ]
     decision = float(np.mean(times)) if times else None
     means = [_mean(r) for r in runs]
-    return Policy(name, runs[0].name, kind, returns, means, note, features, decision)
+    return Policy(name, runs[0].name, kind, returns, means, decision_ms=decision, **extra)
 
 
 def _yardsticks(policies: list[Policy]) -> list[Policy]:
@@ -569,25 +546,6 @@ def _starting(policy: Policy, policies: list[Policy]) -> Policy | None:
     return (same or starts or [None])[0] if policy.kind == "trained" else None
 
 
-def _round(value: float) -> float | str:
-    return "" if math.isnan(value) else round(value, 3)
-
-
-def section_rows(by_system: dict[str, list[Policy]]) -> list[list[Any]]:
-    """CSV rows (:data:`CSV_HEADER`): each policy against its start and every yardstick."""
-    rows = []
-    for system, policies in by_system.items():
-        for p in policies:
-            stat = p.over_seeds
-            for other, diff in _versus(p, policies):
-                rows.append(
-                    [system, p.name, stat.n, round(stat.mean, 3), _round(stat.ci95)]
-                    + [other.name, _round(diff.mean), _round(diff.ci95)]
-                    + ["" if p.decision_ms is None else round(p.decision_ms, 3)]
-                )
-    return rows
-
-
 def _versus(p: Policy, policies: list[Policy]) -> list[tuple[Policy, MeanCI]]:
     """Paired differences of a policy to its untrained start, then to every other yardstick."""
     start = _starting(p, policies)
@@ -595,26 +553,34 @@ def _versus(p: Policy, policies: list[Policy]) -> list[tuple[Policy, MeanCI]]:
     return [(o, paired_difference(p.per_episode, o.per_episode)) for o in others]
 
 
+def _round(value: float | None) -> float | str:
+    return "" if value is None or math.isnan(value) else round(value, 3)
+
+
+def section_rows(by_system: dict[str, list[Policy]]) -> list[list[Any]]:
+    """CSV rows (:data:`CSV_HEADER`): each policy against its start and every yardstick."""
+    return [
+        [system, p.name, p.over_seeds.n, *map(_round, (p.over_seeds.mean, p.over_seeds.ci95))]
+        + [other.name, _round(diff.mean), _round(diff.ci95), _round(p.decision_ms)]
+        for system, policies in by_system.items()
+        for p in policies
+        for other, diff in _versus(p, policies)
+    ]
+
+
 @dataclass(frozen=True)
 class StartComparison:
-    """A trained policy against its untrained start: paired over episodes, and over seeds."""
+    """A trained policy against its untrained start: paired over episodes, and over seeds.
+
+    ``verdict``: ``yes`` (the paired interval is above zero), ``no (below)``, ``over seeds only``
+    (the interval over seeds is above zero) or ``no``.
+    """
 
     trained: Policy
     start: Policy
-    paired: MeanCI
+    paired: MeanCI  # n: the evaluation episodes paired (0 if unpaired)
     over_seeds: MeanCI
-
-    @property
-    def episodes(self) -> int:
-        """Evaluation episodes of the paired difference (0 if unpaired)."""
-        return self.paired.n
-
-    @property
-    def verdict(self) -> str:
-        """``yes`` (paired interval above zero), ``over seeds only``, ``no (below)`` or ``no``."""
-        if self.paired.low > 0 or self.paired.high < 0:
-            return "yes" if self.paired.low > 0 else "no (below)"
-        return "over seeds only" if self.over_seeds.low > 0 else "no"
+    verdict: str
 
 
 def start_comparisons(by_system: dict[str, list[Policy]]) -> list[tuple[str, StartComparison]]:
@@ -626,23 +592,21 @@ def start_comparisons(by_system: dict[str, list[Policy]]) -> list[tuple[str, Sta
                 untrained = float(np.mean(start.means))
                 paired = paired_difference(p.per_episode, start.per_episode)
                 seeds = mean_ci([m - untrained for m in p.means])
-                out.append((system, StartComparison(p, start, paired, seeds)))
+                verdict = "yes" if paired.low > 0 else "no (below)" if paired.high < 0 else "no"
+                verdict = "over seeds only" if verdict == "no" and seeds.low > 0 else verdict
+                out.append((system, StartComparison(p, start, paired, seeds, verdict)))
     return out
 
 
 def start_rows(by_system: dict[str, list[Policy]]) -> list[list[Any]]:
     """CSV rows of :func:`start_comparisons` (:data:`START_HEADER`)."""
-    rows = []
-    for system, c in start_comparisons(by_system):
-        trained = c.trained.over_seeds
-        rows.append(
-            [system, c.trained.name, c.episodes, round(float(np.mean(c.start.means)), 3)]
-            + [trained.n, round(trained.mean, 3), _round(trained.ci95)]
-            + [_round(v) for v in (c.paired.mean, c.paired.ci95)]
-            + [_round(v) for v in (c.over_seeds.mean, c.over_seeds.ci95)]
-            + [c.verdict]
-        )
-    return rows
+    return [
+        [system, c.trained.name, c.paired.n, _round(float(np.mean(c.start.means)))]
+        + [c.trained.over_seeds.n, _round(c.trained.over_seeds.mean)]
+        + [_round(v) for v in (c.trained.over_seeds.ci95, c.paired.mean, c.paired.ci95)]
+        + [_round(c.over_seeds.mean), _round(c.over_seeds.ci95), c.verdict]
+        for system, c in start_comparisons(by_system)
+    ]
 
 
 def _fmt(diff: MeanCI) -> str:
@@ -692,7 +656,7 @@ def section_markdown(
         rows = [
             [c.trained.name, system_label(system), f"{np.mean(c.start.means):.1f}"]
             + [f"{c.trained.over_seeds.format(1)} ({len(c.trained.means)})"]
-            + [f"{_fmt(c.paired)} ({c.episodes})" if c.episodes else "–"]
+            + [f"{_fmt(c.paired)} ({c.paired.n})" if c.paired.n else "–"]
             + [signed(c.over_seeds), c.verdict]
             for system, c in comparisons
         ]
@@ -731,7 +695,7 @@ def write_section(
     starts = [
         (f"{c.trained.name}, {system_label(s)}", c.paired)
         for s, c in start_comparisons(by_system)
-        if c.episodes
+        if c.paired.n
     ]
     start = out_dir / "yardsticks_start.png" if starts else None
     if start is not None:

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -159,19 +158,14 @@ def stat(summary: pd.DataFrame, metric: str, item: str = "", priority: str = "")
     return rows["stat"].iloc[0] if len(rows) else MeanCI(0, math.nan, math.nan, math.nan)
 
 
-@dataclass(frozen=True)
-class CurveSummary:
-    """Learning curve of one learner on one system over seeds."""
-
-    env_ticks: np.ndarray
-    mean: np.ndarray
-    low: np.ndarray
-    high: np.ndarray
-    seeds: int
+def band(xs: Any, stats: Sequence[MeanCI]) -> pd.DataFrame:
+    """A line and its 95 % band, columns ``x, mean, low, high`` (no band where undefined)."""
+    mean, half = (np.array([getattr(s, k) for s in stats], dtype=float) for k in ("mean", "half"))
+    return pd.DataFrame({"x": xs, "mean": mean, "low": mean - half, "high": mean + half})
 
 
-def summarize_curve(runs: Sequence[RunRecord]) -> CurveSummary | None:
-    """Mean and 95 % band of the training curves of some seeds, over their common prefix.
+def summarize_curve(runs: Sequence[RunRecord]) -> tuple[pd.DataFrame, int] | None:
+    """The :func:`band` of the training curves of some seeds over their common prefix, and seeds.
 
     An interrupted run logs fewer points: the prefix makes every point average the same seeds.
     """
@@ -180,7 +174,4 @@ def summarize_curve(runs: Sequence[RunRecord]) -> CurveSummary | None:
         return None
     length = min(len(c) for c in curves)
     ticks = np.array([tick for tick, _ in curves[0][:length]], dtype=np.int64)
-    stats = [mean_ci(c[i][1] for c in curves) for i in range(length)]
-    mean = np.array([s.mean for s in stats])
-    half = np.array([s.half for s in stats])
-    return CurveSummary(ticks, mean, mean - half, mean + half, len(curves))
+    return band(ticks, [mean_ci(c[i][1] for c in curves) for i in range(length)]), len(curves)

@@ -10,33 +10,12 @@ from pathlib import Path
 
 import pandas as pd
 
-from mrta_rl.reports import experiments, figures, marl_eval, tables
+from mrta_rl.reports import collect, experiments, figures, frame, marl_eval, tables
 from mrta_rl.reports.claims import FAILS, HOLDS, NOT_EVALUABLE, check_claims, claims_table
-from mrta_rl.reports.collect import (
-    Collection,
-    ReportInputError,
-    RunRecord,
-    collect_runs,
-    config_value,
-    named_streams,
-)
-from mrta_rl.reports.frame import (
-    PRIORITY_LABELS,
-    long_table,
-    summarize,
-    summarize_curve,
-    system_label,
-)
+from mrta_rl.reports.collect import Collection, RunRecord
+from mrta_rl.reports.frame import long_table, summarize, system_label
 from mrta_rl.reports.study import Prose, study_of
-from mrta_rl.reports.tables import (
-    ctr_markdown,
-    group_return_markdown,
-    itr_markdown,
-    learning_space_markdown,
-    markdown_table,
-    team_return_markdown,
-    training_time_markdown,
-)
+from mrta_rl.reports.tables import markdown_table
 
 logger = logging.getLogger(__name__)
 
@@ -68,7 +47,9 @@ def _setup_markdown(runs: Sequence[RunRecord], summary: pd.DataFrame) -> str:
     """Run settings (distinct values over runs) and each learner's hyperparameters."""
     rows = []
     for key in SETUP_KEYS:
-        values = sorted({str(config_value(named_streams(r.config), key)) for r in runs})
+        values = sorted(
+            {str(collect.config_value(collect.named_streams(r.config), key)) for r in runs}
+        )
         note = "" if len(values) == 1 else " (differs between runs!)"
         values = ", ".join(v.replace("None", "spec default") for v in values)
         rows.append([f"`{key}`", values + note])
@@ -90,14 +71,14 @@ def build_report(inputs: Iterable[Path | str], out_dir: Path | str | None = None
     study (:func:`~mrta_rl.reports.study.study_of`), its prose ``conf/report/report.md``.
     """
     inputs = [Path(p) for p in inputs]
-    collection = collect_runs(inputs)
+    collection = collect.collect_runs(inputs)
     if not collection.runs:
         missing = f"; {len(collection.missing)} expected jobs missing" if collection.missing else ""
         if collection.unreadable:
             first = collection.unreadable[0].reason
             more = len(collection.unreadable) - 1
             missing += f"; left out: {first}" + (f" and {more} more" if more else "")
-        raise ReportInputError(
+        raise collect.ReportInputError(
             f"no finished run (metrics.json) under {[str(p) for p in inputs]}{missing}"
         )
     study, prose = study_of(collection.runs), Prose.shipped()
@@ -107,10 +88,10 @@ def build_report(inputs: Iterable[Path | str], out_dir: Path | str | None = None
     out.mkdir(parents=True, exist_ok=True)
     files = ReportFiles(out_dir=out, report=out / REPORT_FILE, collection=collection)
 
-    frame = long_table(collection.runs)
-    summary = summarize(frame, study.learners)
+    long = long_table(collection.runs)
+    summary = summarize(long, study.learners)
     claims = check_claims(summary, study)
-    csvs = tables.csv_tables(frame, summary)
+    csvs = tables.csv_tables(long, summary)
     csvs["claims"] = claims_table(claims)
     csvs["missing"] = pd.DataFrame(
         [
@@ -130,13 +111,12 @@ def build_report(inputs: Iterable[Path | str], out_dir: Path | str | None = None
         lines, line_colors = {}, {}
         for learner, label in dict(zip(rows["learner"], rows["label"], strict=True)).items():
             mine = [r for r in collection.runs if r.system == system and r.learner == learner]
-            if (c := summarize_curve(mine)) is not None:
-                name = f"{label} ({c.seeds} seed{'s' if c.seeds != 1 else ''})"
-                if c.seeds != len(mine):  # the tables count every run; say why this is fewer
-                    name = f"{label} ({c.seeds} of {len(mine)} seeds have a curve)"
-                line_colors[name] = colors[learner]
-                lines[name] = pd.DataFrame({"x": c.env_ticks, "mean": c.mean, "low": c.low})
-                lines[name]["high"] = c.high
+            if (curve := frame.summarize_curve(mine)) is not None:
+                line, seeds = curve
+                name = f"{label} ({seeds} seed{'s' if seeds != 1 else ''})"
+                if seeds != len(mine):  # the tables count every run; say why this is fewer
+                    name = f"{label} ({seeds} of {len(mine)} seeds have a curve)"
+                line_colors[name], lines[name] = colors[learner], line
         if lines:
             greedy = [s for s in rows[rows["metric"] == "greedy_team_return"]["stat"] if s.n]
             title = f"{system_label(system)}: learning curves (mean and 95% CI band over seeds)"
@@ -155,7 +135,7 @@ def build_report(inputs: Iterable[Path | str], out_dir: Path | str | None = None
     for stem, path in {**rules_files, **study_files}.items():
         (files.figures if path.suffix == ".png" else files.csvs)[stem] = path
     files.marl_eval = marl_eval.write_marl_eval(collection.runs, out)
-    markdown = _report_markdown(collection, frame, csvs, summary, claims, files, prose, rules_md)
+    markdown = _report_markdown(collection, long, csvs, summary, claims, files, prose, rules_md)
     files.report.write_text(markdown + "\n" + study_md + "\n")
     counts = len(collection.runs), len(collection.missing), len(collection.unreadable)
     logger.info("wrote %s (%d runs, %d missing, %d left out)", files.report, *counts)
@@ -169,7 +149,7 @@ def _png(out: Path, stem: str) -> Path:
 
 def _report_markdown(
     collection: Collection,
-    frame: pd.DataFrame,
+    long: pd.DataFrame,
     csvs: dict[str, pd.DataFrame],
     summary: pd.DataFrame,
     claims: list,
@@ -213,10 +193,10 @@ def _report_markdown(
         header = ["learner", "system", "seed", "reason", "job dir", "overrides"]
         md += prose.section("missing", table=markdown_table(header, rows))
     md += prose.section("setup", table=_setup_markdown(runs, summary))
-    table = team_return_markdown(summary, csvs["team_return"])
+    table = tables.team_return_markdown(summary, csvs["team_return"])
     figure = prose.image(fig("team_return"), "Team return")
     md += prose.section("team_return", table=table, figure=figure)
-    groups = {s: t for s, rows in systems.items() if (t := group_return_markdown(rows))}
+    groups = {s: t for s, rows in systems.items() if (t := tables.group_return_markdown(rows))}
     if groups:
         blocks = "\n\n".join(f"{system_label(s)}:\n\n{t}" for s, t in groups.items())
         md += prose.section("group_return", tables=blocks)
@@ -225,9 +205,9 @@ def _report_markdown(
     md += prose.section("ctr")
     for system, rows in systems.items():
         label = system_label(system)
-        for p, word in PRIORITY_LABELS.items():
+        for p, word in frame.PRIORITY_LABELS.items():
             figure = prose.image(fig(f"ctr_{system}_{p}"), f"{label} CTR {word}")
-            table = ctr_markdown(rows, p)
+            table = tables.ctr_markdown(rows, p)
             md += prose.section(
                 "ctr_system", system=label, priority=word, table=table, figure=figure
             )
@@ -235,8 +215,10 @@ def _report_markdown(
     for system, rows in systems.items():
         label = system_label(system)
         figure = prose.image(fig(f"itr_{system}"), f"{label} ITR")
-        md += prose.section("itr_system", system=label, table=itr_markdown(rows), figure=figure)
-    md += prose.section("learning_space", table=learning_space_markdown(frame, summary))
+        md += prose.section(
+            "itr_system", system=label, table=tables.itr_markdown(rows), figure=figure
+        )
+    md += prose.section("learning_space", table=tables.learning_space_markdown(long, summary))
     curves = (prose.image(fig(f"curve_{s}"), f"{system_label(s)} learning curves") for s in systems)
     md += prose.section("curves", figures="\n\n".join(curves))
     verdicts = [c.verdict for c in claims]
@@ -255,6 +237,6 @@ def _report_markdown(
     )
     total_wall = sum((r.metrics.get("train") or {}).get("wall_s", 0.0) for r in runs)
     md += prose.section(
-        "training_time", table=training_time_markdown(summary), seconds=f"{total_wall:.1f}"
+        "training_time", table=tables.training_time_markdown(summary), seconds=f"{total_wall:.1f}"
     )
     return "\n".join(md)

@@ -125,18 +125,22 @@ def _bootstrap(
     return result.confidence_interval.low, result.confidence_interval.high
 
 
+def _estimate(samples: list[Any], statistic: Callable[..., Any], reps: int, seed: int) -> Estimate:
+    """``statistic`` of the samples and its bootstrap interval, over all their runs."""
+    if not samples:
+        return Estimate(math.nan, math.nan, math.nan, 0)
+    value = float(statistic(*samples))
+    low, high = _bootstrap(samples, statistic, value, reps, seed)
+    return Estimate(value, float(low), float(high), sum(s.size for s in samples))
+
+
 def iqm_ci(
     scores_by_task: Iterable[Iterable[float]],
     reps: int = BOOTSTRAP_REPS,
     seed: int = BOOTSTRAP_SEED,
 ) -> Estimate:
     """Interquartile mean of the runs with its 95 % stratified bootstrap interval."""
-    tasks = _tasks(scores_by_task)
-    if not tasks:
-        return Estimate(math.nan, math.nan, math.nan, 0)
-    value = float(_interquartile_mean(*tasks))
-    low, high = _bootstrap(tasks, _interquartile_mean, value, reps, seed)
-    return Estimate(value, float(low), float(high), sum(t.size for t in tasks))
+    return _estimate(_tasks(scores_by_task), _interquartile_mean, reps, seed)
 
 
 def _improvement(*samples: Any, axis: int = -1) -> Any:
@@ -165,12 +169,8 @@ def probability_of_improvement(
         raise ValueError(f"X has {len(x_by_task)} tasks but Y has {len(y_by_task)}")
     pairs = [(_tasks([x]), _tasks([y])) for x, y in zip(x_by_task, y_by_task, strict=True)]
     pairs = [(x[0], y[0]) for x, y in pairs if x and y]
-    if not pairs:
-        return Estimate(math.nan, math.nan, math.nan, 0)
-    xs, ys = [x for x, _ in pairs], [y for _, y in pairs]
-    value = float(_improvement(*xs, *ys))
-    low, high = _bootstrap([*xs, *ys], _improvement, value, reps, seed)
-    return Estimate(value, float(low), float(high), sum(x.size + y.size for x, y in pairs))
+    samples = [x for x, _ in pairs] + [y for _, y in pairs]  # the X tasks, then the Y tasks
+    return _estimate(samples, _improvement, reps, seed)
 
 
 @dataclass(frozen=True)

@@ -61,11 +61,7 @@ class Study:
 
 
 def check_block(block: Any, source: str) -> Study:
-    """A ``report:`` block as a :class:`Study`, every key and claim checked.
-
-    Args:
-        block: The block as plain data.
-        source: Its file, for messages.
+    """A ``report:`` block (plain data, from the file ``source``) as a checked :class:`Study`.
 
     Raises:
         ConfigError: naming the file and the key.

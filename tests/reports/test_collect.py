@@ -249,9 +249,9 @@ def test_curves_keep_the_common_prefix(tmp_path):
             write_run(tmp_path / "b", "cql", 1, curve=[(10, 3.0), (20, 5.0)]),
         ]
     ).runs
-    curve = summarize_curve(runs)
-    assert curve.env_ticks.tolist() == [10, 20] and curve.mean.tolist() == [2.0, 4.0]
-    assert curve.seeds == 2 and curve.high[0] > curve.mean[0] > curve.low[0]
+    curve, seeds = summarize_curve(runs)
+    assert curve["x"].tolist() == [10, 20] and curve["mean"].tolist() == [2.0, 4.0]
+    assert seeds == 2 and curve["high"][0] > curve["mean"][0] > curve["low"][0]
     assert summarize_curve(collect_runs([write_run(tmp_path / "c", "greedy", 0)]).runs) is None
 
 

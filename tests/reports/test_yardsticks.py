@@ -147,7 +147,7 @@ def test_start_table_by_hand(tmp_path):
     # per episode: mean of the seeds (12, 22, 33) - untrained (10, 20, 30) = (2, 2, 3)
     assert c.paired.mean == pytest.approx(7 / 3)
     assert c.paired.ci95 == pytest.approx(t_quantile(2) * np.sqrt(1 / 3) / np.sqrt(3))
-    assert c.episodes == 3
+    assert c.paired.n == 3
     # per seed: 22 - 20 = 2 and 68/3 - 20 = 8/3
     assert c.over_seeds.mean == pytest.approx(7 / 3)
     assert c.over_seeds.ci95 == pytest.approx(
@@ -214,7 +214,7 @@ def test_reevaluated_runs_are_scored_on_their_reevaluation(tmp_path):
     qmix = next(p for p in policies if p.name == "QMIX")
     assert qmix.means == [pytest.approx(32.0)]
     [(_, c)] = start_comparisons({"system2": policies})
-    assert c.episodes == 5 and c.paired.mean == pytest.approx(2.0)  # (2, 1, 3, 1, 3)
+    assert c.paired.n == 5 and c.paired.mean == pytest.approx(2.0)  # (2, 1, 3, 1, 3)
     md, _ = write_section(runs, tmp_path, STUDY, PROSE)
     row = next(line for line in md.splitlines() if line.startswith("| QMIX |"))
     assert row.split("|")[6].strip() == "–"  # vs team_reserve: 5 episodes against 3, unpaired
