@@ -175,7 +175,11 @@ def test_a_student_fitted_to_a_fixed_teacher_reproduces_it(compose_cfg, tmp_path
         "learner.candidates=[hold]",
         "learner.neighbours=[]",
         "learner.base=hold",
+        "learner.prior=greedy",  # the untrained student plays greedy, not the rule
+        "learner.beta_start=1.0",
         "learner.beta_end=1.0",
+        "train.validate_every=0",
+        "train.keep_best=false",
         "learner.warmup_frames=100",
         "learner.updates_per_collect=10",
         "learner.lr=0.003",
@@ -193,7 +197,7 @@ def test_a_student_fitted_to_a_fixed_teacher_reproduces_it(compose_cfg, tmp_path
         order="fewest_types",
         **CANDIDATES["hold"],
     )
-    untrained, _ = make(batch=8)
+    untrained, _ = make(batch=8, prior="greedy")
     agree = untrained_agree = deciding = 0
     while not env.done.any():
         ours = rule.act(rule.encode(env), env.action_mask, explore=False)
