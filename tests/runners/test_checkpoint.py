@@ -65,6 +65,7 @@ def without_timings(metrics: dict) -> dict:
     for key in TIMINGS:
         metrics["train"].pop(key, None)
     metrics.pop("resources", None)  # wall time and peak memory of the run, measured
+    metrics["eval"].pop("decision_time", None)  # a learner's measured time per decision
     return metrics
 
 

@@ -21,7 +21,9 @@ ROOT = Path(__file__).resolve().parents[2]
 LEARNERS = sorted(path.stem for path in (ROOT / "conf" / "learner").glob("*.yaml"))
 SYSTEMS = {"system1": (6, 5), "system2": (10, 8)}  # robots, task types (paper Tables 1-2)
 EVAL_KEYS = {"episodes", "team_return", "ctr", "ctr_overall", "itr", "return_by_type", "split"}
-PLANNERS = {"rollout", "subg_rollout"}  # learners that time their decisions (Learner.decision_time)
+# learners that time their decisions (Learner.decision_time): the planners, and the student
+# that learns from one (its time per tick is reported beside the planner's)
+PLANNERS = {"rollout", "subg_rollout", "expert_iteration"}
 
 
 class PartitionedGreedy(GreedyLearner):
