@@ -33,8 +33,10 @@ Training runs on the torch loop (``runners/torch_loop.py``) like every torch lea
 * **fit**: ``updates_per_collect`` steps of cross-entropy per robot, over the robots that have a
   choice (a valid bid), on minibatches of ``batch_size`` transitions.
 
-The teacher's base stays the one configured; a run dir of an earlier ``expert_iteration`` run is a
-base too, so rounds of expert iteration are runs that each name the last as their base. The
+The teacher's base stays the one configured. A run dir of an earlier ``expert_iteration`` run is a
+base too, so rounds of expert iteration are runs that each name the last as their base, at a
+cost: the planner then runs the student's network in every rollout tick of every rollout copy,
+tens of times a compiled base's time (docs/results.md). The
 planner reads the full env state (its snapshot), which only the training env has: the labels are
 made while collecting, never from stored observations. Outside collection (evaluation, the replay
 layout probe) the collection policy plays the student and labels with the student's own action.
