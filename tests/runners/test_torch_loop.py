@@ -78,6 +78,13 @@ def test_a_family_run_stopped_and_resumed_ends_as_the_uninterrupted_one(
     args = [*learner, "system=family", "debug=smoke", "train.episodes=4"]
     args += ["train.checkpoint_every=1"]
     full = train(compose_cfg(args), run_dir=tmp_path / "full")
+    resumed = stopped_after_two_and_resumed(compose_cfg, monkeypatch, args, tmp_path / "cut")
+    assert resumed["eval"] == full["eval"]
+    assert_same_weights(tmp_path / "full", tmp_path / "cut")
+
+
+def stopped_after_two_and_resumed(compose_cfg, monkeypatch, args: list[str], cut: Path) -> dict:
+    """Train ``args`` in ``cut``, stopped after episode 2 (as by Ctrl-C), then resume it."""
     episode_end = TrainingCheckpoint.episode_end
 
     def stop_after_two(self, loop, last, files=None):
@@ -85,20 +92,19 @@ def test_a_family_run_stopped_and_resumed_ends_as_the_uninterrupted_one(
         return episode_end(self, loop, last, files)
 
     monkeypatch.setattr(TrainingCheckpoint, "episode_end", stop_after_two)
-    cut = tmp_path / "cut"
     cfg = compose_cfg(args)
-    save_hydra_files(cfg, cut, args[0].split("=")[1], "family")
+    system = next(a.split("=")[1] for a in args if a.startswith("system="))
+    save_hydra_files(cfg, cut, args[0].split("=")[1], system)
     with pytest.raises(SystemExit):
         train(cfg, run_dir=cut)
     monkeypatch.setattr(TrainingCheckpoint, "episode_end", episode_end)
     cfg = compose_cfg([f"resume={cut}"])
     HydraConfig.instance().cfg = None  # as from the command line: no overrides but resume=
-    resumed = train(cfg)
-    assert resumed["eval"] == full["eval"]
-    weights = [
-        torch.load(run / "learner" / "weights.pt", weights_only=True)
-        for run in (tmp_path / "full", cut)
-    ]
+    return train(cfg)
+
+
+def assert_same_weights(a: Path, b: Path) -> None:
+    weights = [torch.load(run / "learner" / "weights.pt", weights_only=True) for run in (a, b)]
     assert all(torch.equal(weights[0][k], weights[1][k]) for k in weights[0])
 
 
@@ -190,29 +196,10 @@ def test_keep_best_resumes_with_its_snapshot(compose_cfg, tmp_path, monkeypatch)
     args += ["train.checkpoint_every=1", "train.validate_every=1", "train.validate_episodes=3"]
     args += ["train.keep_best=true"]
     full = train(compose_cfg(args), run_dir=tmp_path / "full")
-    episode_end = TrainingCheckpoint.episode_end
-
-    def stop_after_two(self, loop, last, files=None):
-        self.stop_requested = self.stop_requested or loop["episode"] >= 2
-        return episode_end(self, loop, last, files)
-
-    monkeypatch.setattr(TrainingCheckpoint, "episode_end", stop_after_two)
-    cut = tmp_path / "cut"
-    cfg = compose_cfg(args)
-    save_hydra_files(cfg, cut, "vdn", "system1")
-    with pytest.raises(SystemExit):
-        train(cfg, run_dir=cut)
-    monkeypatch.setattr(TrainingCheckpoint, "episode_end", episode_end)
-    cfg = compose_cfg([f"resume={cut}"])
-    HydraConfig.instance().cfg = None  # as from the command line: no overrides but resume=
-    resumed = train(cfg)
+    resumed = stopped_after_two_and_resumed(compose_cfg, monkeypatch, args, tmp_path / "cut")
     assert resumed["eval"] == full["eval"]
     assert resumed["train"]["best_episode"] == full["train"]["best_episode"]
-    weights = [
-        torch.load(run / "learner" / "weights.pt", weights_only=True)
-        for run in (tmp_path / "full", cut)
-    ]
-    assert all(torch.equal(weights[0][k], weights[1][k]) for k in weights[0])
+    assert_same_weights(tmp_path / "full", tmp_path / "cut")
 
 
 def test_keep_best_needs_validation(compose_cfg, tmp_path):

@@ -47,6 +47,7 @@ With ``network=set`` the learner holds nothing of one team and trains on a famil
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -63,15 +64,14 @@ from torchrl.envs.utils import ExplorationType, exploration_type
 from mrta_rl.config import Choices, ConfigError, Range
 from mrta_rl.envs import AuctionEnv
 from mrta_rl.envs.torchrl_env import GROUP_SET_KEYS, PRIOR_KEY, ROOT_SET_KEYS
-from mrta_rl.learners.base import Learner, MemoryQuery, TrainingTeam
-from mrta_rl.learners.memory import ResourceEstimate, feature_sizes, mlp_weights, neural_estimate
+from mrta_rl.learners.base import Learner, TrainingTeam
+from mrta_rl.learners.memory import feature_sizes, mlp_weights
 from mrta_rl.learners.neural.networks import PerRobotQ
 from mrta_rl.learners.neural.set_network import SetNetworkOption
-from mrta_rl.learners.neural.torch_learner import LoopSettings, TorchLearner
+from mrta_rl.learners.neural.torch_learner import ReplayLearner, check_decay, linear_decay
 from mrta_rl.learners.planning.rollout import CANDIDATES, NEIGHBOURS, RolloutPlanner
 from mrta_rl.partition import Partition
 from mrta_rl.priors import GreedyPrior
-from mrta_rl.run_layout import RunDirError
 
 GROUP = "agents"  # the one TorchRL group of all robots
 ACTION = (GROUP, "action")
@@ -213,7 +213,7 @@ def planner_labels(
     return np.where(planned[:, None, None], mixed, hard).astype(np.float32)
 
 
-class ExpertIterationLearner(SetNetworkOption, TorchLearner):
+class ExpertIterationLearner(SetNetworkOption, ReplayLearner):
     """Expert iteration: a planner's labels on the student's own states (module docstring).
 
     Attributes:
@@ -225,8 +225,9 @@ class ExpertIterationLearner(SetNetworkOption, TorchLearner):
     """
 
     label: ClassVar[str] = "ExIt"
-    on_policy: ClassVar[bool] = False
     memory_advice: ClassVar[str] = ADVICE
+    replay_loss_keys_only: ClassVar[bool] = True  # process_batch keeps the inputs and the label
+    replay_state_bytes: ClassVar[int] = 0  # no global state stored
 
     @classmethod
     def fits_any_team(cls, settings: Mapping[str, Any]) -> bool:
@@ -249,22 +250,6 @@ class ExpertIterationLearner(SetNetworkOption, TorchLearner):
         return mlp_weights(n_in, env.n_actions, int(settings["depth"]), int(settings["hidden"]))
 
     @classmethod
-    def estimate_memory(cls, query: MemoryQuery) -> ResourceEstimate:
-        """The student (gradients, Adam), the labelled buffer and the collector batch."""
-        env, partition, settings, _, copies = query
-        weights = cls.network_weights(env, partition, settings)
-        return neural_estimate(
-            cls.__name__,
-            env,
-            settings,
-            weights,
-            copies,
-            ADVICE,
-            loss_keys_only=True,
-            state_bytes=0,
-        )
-
-    @classmethod
     def check_settings(cls, settings: Mapping[str, Any], team: TrainingTeam) -> None:
         """Refuse a DAgger schedule that rises, or labels with no teacher choice.
 
@@ -272,11 +257,7 @@ class ExpertIterationLearner(SetNetworkOption, TorchLearner):
             ConfigError: naming the settings.
         """
         super().check_settings(settings, team)
-        if settings["beta_end"] > settings["beta_start"]:
-            raise ConfigError(
-                f"learner.beta_end: {settings['beta_end']} is above learner.beta_start "
-                f"{settings['beta_start']} (the teacher's share decays from beta_start to beta_end)"
-            )
+        check_decay(settings, "beta_start", "beta_end", "the teacher's share")
         if settings["horizon"] == 0:
             raise ConfigError(
                 "learner.horizon: 0 makes the teacher its base policy; give the planner at least "
@@ -343,11 +324,10 @@ class ExpertIterationLearner(SetNetworkOption, TorchLearner):
         """
         self.rule = GreedyPrior()  # the view writes its action as ("agents", "prior_action")
         self.base_policy = base_policy
-        self.labelled, self.label_s, self.frames_collected = 0, 0.0, 0
+        self.labelled, self.label_s = 0, 0.0
         self._decisions: dict[int, list] = {}  # copies -> [ticks, seconds] of the student's
         self._last_copies = 0
         super().__init__(gamma=gamma, **settings)
-        self.beta = float(self.hp["beta_start"])
         self.teacher = self._teacher()
         self.mix = TeacherMix(self)
 
@@ -420,22 +400,6 @@ class ExpertIterationLearner(SetNetworkOption, TorchLearner):
         """The teacher's labels and DAgger's mix (:class:`TeacherMix`)."""
         return self.mix
 
-    @classmethod
-    def batch_frames(cls, settings: Mapping[str, Any], copies: int, horizon: int) -> int:
-        """``collect_ticks`` ticks (at most an episode's) of every copy."""
-        return min(int(settings["collect_ticks"]), horizon) * copies
-
-    def loop_settings(self, copies: int, total_frames: int) -> LoopSettings:
-        """Replay of ``buffer_size`` labelled transitions; ``updates_per_collect`` per batch."""
-        hp = self.hp
-        return LoopSettings(
-            frames_per_batch=self.batch_frames(hp, copies, self.env.params.horizon),
-            buffer_size=int(hp["buffer_size"]),
-            minibatch_size=int(hp["batch_size"]),
-            updates_per_batch=int(hp["updates_per_collect"]),
-            warmup_frames=min(int(hp["warmup_frames"]), total_frames // 2),
-        )
-
     def encode(self, env: AuctionEnv) -> TensorDictBase:
         """The student's inputs (its prior's action among them), timed as its decision."""
         start = CLOCK()
@@ -497,12 +461,13 @@ class ExpertIterationLearner(SetNetworkOption, TorchLearner):
         self.labelled += env.batch_size
         return chosen, labels
 
-    def after_collect(self, frames: int) -> None:
-        """Decay ``beta`` linearly over ``beta_decay_frames`` collected frames."""
-        self.frames_collected += frames
-        start, end = self.hp["beta_start"], self.hp["beta_end"]
-        progress = min(self.frames_collected / self.hp["beta_decay_frames"], 1.0)
-        self.beta = start - (start - end) * progress
+    @property
+    def beta(self) -> float:
+        """The probability that a copy plays the teacher's action now (DAgger's schedule)."""
+        hp = self.hp
+        return linear_decay(
+            hp["beta_start"], hp["beta_end"], self.frames_collected, hp["beta_decay_frames"]
+        )
 
     def process_batch(self, data: TensorDictBase) -> TensorDictBase:
         """Collector batch -> labelled states (the student's inputs, mask and label), flattened."""
@@ -532,27 +497,18 @@ class ExpertIterationLearner(SetNetworkOption, TorchLearner):
         rate = self.labelled / self.label_s if self.label_s > 0 else 0.0
         return {"labels": self.labelled, "labels_per_s": round(rate, 1)}
 
-    def training_state(self) -> dict[str, Any]:
-        """The optimiser's state, the frames collected (``beta``'s schedule), the labels made."""
-        return {
-            **super().training_state(),
-            "frames": torch.tensor(self.frames_collected),
-            "labels": torch.tensor([self.labelled, self.label_s], dtype=torch.float64),
-        }
+    def checkpoint_state(self, directory: Path) -> dict[str, Any]:
+        """Counters of the base and the planner's labels (its rate over the whole run)."""
+        return {**super().checkpoint_state(directory), "labels": [self.labelled, self.label_s]}
 
-    def restore_training_state(self, saved: dict[str, Any], path: Path) -> None:
-        """Restore the optimiser, ``beta``'s schedule and the labels' count."""
-        super().restore_training_state(saved, path)
-        frames = saved["frames"]
-        if not isinstance(frames, torch.Tensor) or frames.numel() != 1 or int(frames) < 0:
-            raise RunDirError(f"{path}: frames must be one count of collected frames")
-        labels = saved["labels"]
-        if (
-            not isinstance(labels, torch.Tensor)
-            or labels.shape != (2,)
-            or not bool(torch.isfinite(labels).all() and (labels >= 0).all())
-        ):
-            raise RunDirError(f"{path}: labels must be a count of labels and their seconds")
-        self.frames_collected = 0
-        self.after_collect(int(frames))
-        self.labelled, self.label_s = int(labels[0]), float(labels[1])
+    def restore_state(self, state: dict[str, Any], directory: Path) -> None:
+        """Restore :meth:`checkpoint_state`.
+
+        Raises:
+            ValueError: if the labels are not a count and its seconds.
+        """
+        super().restore_state(state, directory)
+        labelled, seconds = state["labels"]
+        if not isinstance(labelled, int) or labelled < 0 or not 0 <= seconds < math.inf:
+            raise ValueError(f"labels: a count and its seconds, got {state['labels']!r}")
+        self.labelled, self.label_s = labelled, float(seconds)

@@ -57,20 +57,15 @@ from torchrl.objectives import HardUpdate, LossModule, SoftUpdate
 from mrta_rl.config import Choices, ConfigError, Range
 from mrta_rl.envs import AuctionEnv
 from mrta_rl.envs.torchrl_env import GROUP_SET_KEYS, PRIOR_KEY, ROOT_SET_KEYS
-from mrta_rl.learners.base import MemoryQuery, TrainingTeam
-from mrta_rl.learners.memory import (
-    NEURAL_ADVICE,
-    ResourceEstimate,
-    feature_sizes,
-    mlp_weights,
-    neural_estimate,
-)
+from mrta_rl.learners.base import TrainingTeam
+from mrta_rl.learners.memory import feature_sizes, mlp_weights
 from mrta_rl.learners.neural.networks import PerRobotQ, joint_decode, joint_encode
 from mrta_rl.learners.neural.set_network import SetNetworkOption
 from mrta_rl.learners.neural.torch_learner import (
-    LoopSettings,
-    TorchLearner,
+    ReplayLearner,
+    check_decay,
     check_module_states,
+    linear_decay,
 )
 from mrta_rl.partition import Partition
 from mrta_rl.priors import (
@@ -147,7 +142,7 @@ class EpsilonGreedy(nn.Module):
         return joint_encode(action, self.joint[1]), action
 
 
-class QLearner(TorchLearner, abstract=True):
+class QLearner(ReplayLearner, abstract=True):
     """Base of the Q-learners (module docstring): off-policy replay, TD losses, target networks.
 
     Subclasses build, in ``_build``, ``self.networks``, the greedy policy (``self._policy``), the
@@ -155,33 +150,6 @@ class QLearner(TorchLearner, abstract=True):
     ``DQNLoss`` / ``QMixerLoss`` by group). They may override :meth:`process_batch` to add the
     keys their loss reads.
     """
-
-    on_policy: ClassVar[bool] = False
-    memory_advice: ClassVar[str] = NEURAL_ADVICE  # what to change when it does not fit
-    # what a replayed transition keeps (memory.neural_estimate): only the loss's keys, and
-    # the bytes per global feature of its states
-    replay_loss_keys_only: ClassVar[bool] = False
-    replay_state_bytes: ClassVar[int] = 4
-
-    @classmethod
-    def estimate_memory(cls, query: MemoryQuery) -> ResourceEstimate:
-        """Networks (with target copies, gradients, Adam), replay buffer and collector batch.
-
-        Raises:
-            Unfit: if the networks cannot be built on the system (``network_weights``).
-        """
-        env, partition, settings, decisions, copies = query
-        weights = cls.network_weights(env, partition, settings)
-        return neural_estimate(
-            cls.__name__,
-            env,
-            settings,
-            weights,
-            copies,
-            cls.memory_advice,
-            loss_keys_only=cls.replay_loss_keys_only,
-            state_bytes=cls.replay_state_bytes,
-        )
 
     @classmethod
     def check_settings(cls, settings: Mapping[str, Any], team: TrainingTeam) -> None:
@@ -191,11 +159,7 @@ class QLearner(TorchLearner, abstract=True):
             ConfigError: naming the settings.
         """
         super().check_settings(settings, team)
-        if settings["eps_end"] > settings["eps_start"]:
-            raise ConfigError(
-                f"learner.eps_end: {settings['eps_end']} is above learner.eps_start "
-                f"{settings['eps_start']} (epsilon decays from eps_start to eps_end)"
-            )
+        check_decay(settings, "eps_start", "eps_end", "epsilon")
         if settings["prior_in_state"] and settings["prior"] != "hold":
             raise ConfigError(
                 "learner.prior_in_state: needs prior=hold (the plain auction is no input)"
@@ -264,7 +228,6 @@ class QLearner(TorchLearner, abstract=True):
             else HardUpdate(loss, value_network_update_interval=hard_update_interval)
             for loss in self.losses.values()
         ]
-        self.frames_collected = 0  # copy-ticks seen by after_collect: the epsilon schedule's clock
 
     # -------------------------------------------------------------- what subclasses build
     def _prior(self, env: AuctionEnv) -> Prior:
@@ -382,26 +345,6 @@ class QLearner(TorchLearner, abstract=True):
         return policy, explore
 
     # -------------------------------------------------------------- the loop's protocol
-    @classmethod
-    def batch_frames(cls, settings: Mapping[str, Any], copies: int, horizon: int) -> int:
-        """``collect_ticks`` ticks (at most an episode's) of every copy."""
-        return min(int(settings["collect_ticks"]), horizon) * copies
-
-    def loop_settings(self, copies: int, total_frames: int) -> LoopSettings:
-        """Replay of ``buffer_size`` transitions; ``updates_per_collect`` steps per batch.
-
-        A short run (``debug=smoke``) still reaches the gradient steps: it warms up at most half
-        of its frames.
-        """
-        hp = self.hp
-        return LoopSettings(
-            frames_per_batch=self.batch_frames(hp, copies, self.env.params.horizon),
-            buffer_size=int(hp["buffer_size"]),
-            minibatch_size=int(hp["batch_size"]),
-            updates_per_batch=int(hp["updates_per_collect"]),
-            warmup_frames=min(int(hp["warmup_frames"]), total_frames // 2),
-        )
-
     @property
     def epsilon(self) -> float:
         """Current exploration rate (shown by the progress bar)."""
@@ -415,10 +358,11 @@ class QLearner(TorchLearner, abstract=True):
         collecting them; ``eps = max(eps_end, eps_start - (eps_start - eps_end) f / F)``
         after ``f`` frames (``F = eps_decay_frames``) is the same schedule.
         """
-        self.frames_collected += frames
-        start, end = self.hp["eps_start"], self.hp["eps_end"]
-        progress = min(self.frames_collected / self.hp["eps_decay_frames"], 1.0)
-        eps = start - (start - end) * progress
+        super().after_collect(frames)
+        hp = self.hp
+        eps = linear_decay(
+            hp["eps_start"], hp["eps_end"], self.frames_collected, hp["eps_decay_frames"]
+        )
         for module in self.egreedy:
             module.eps.fill_(eps)
 
@@ -480,17 +424,15 @@ class QLearner(TorchLearner, abstract=True):
             module.eps.copy_(saved_module["eps"])
 
     def checkpoint_state(self, directory) -> dict[str, Any]:
-        """Counters of the base, the epsilon clock and the target updaters' counters."""
+        """Counters of the base (the epsilon clock among them) and the target updaters'."""
         return {
             **super().checkpoint_state(directory),
-            "frames_collected": self.frames_collected,
             "target_updaters": [u.state_dict() for u in self.target_updaters],
         }
 
     def restore_state(self, state: dict[str, Any], directory) -> None:
         """Restore :meth:`checkpoint_state`."""
         super().restore_state(state, directory)
-        self.frames_collected = int(state["frames_collected"])
         for updater, saved in zip(self.target_updaters, state["target_updaters"], strict=True):
             updater.load_state_dict(saved)
 

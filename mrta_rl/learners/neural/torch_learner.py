@@ -49,7 +49,8 @@ from mrta_rl.checked_files import read_tensors, tensor_file_limit
 from mrta_rl.config import Choices, ConfigError, Range, short_list
 from mrta_rl.envs import AuctionEnv, encodings
 from mrta_rl.envs.torchrl_env import AuctionTorchRLEnv
-from mrta_rl.learners.base import FACTS, TORCH_LOOP, Learner, LearnerKind
+from mrta_rl.learners.base import FACTS, TORCH_LOOP, Learner, LearnerKind, MemoryQuery
+from mrta_rl.learners.memory import NEURAL_ADVICE, ResourceEstimate, neural_estimate
 from mrta_rl.learners.neural.tensor_files import (
     META_FILE,
     TRAINING_FILE,
@@ -510,3 +511,98 @@ def check_module_states(saved: Any, expected: dict[str, Any], where: str) -> Non
         raise RunDirError(f"{where}: expected {short_list(sorted(expected))}")
     for name, state in expected.items():
         check_state_dict(saved[name], state, f"{where}.{name}")
+
+
+def linear_decay(start: float, end: float, frames: int, decay_frames: int) -> float:
+    """A schedule's value after ``frames`` collected frames: ``start`` to ``end`` linearly.
+
+    ``start - (start - end) * min(frames / decay_frames, 1)``: epsilon's (the Q-learners') and the
+    teacher's share (``expert_iteration``'s ``beta``).
+    """
+    return start - (start - end) * min(frames / decay_frames, 1.0)
+
+
+def check_decay(settings: Mapping[str, Any], start: str, end: str, what: str) -> None:
+    """Refuse a schedule whose ``end`` setting is above its ``start`` (:func:`linear_decay`).
+
+    Raises:
+        ConfigError: naming both settings.
+    """
+    if settings[end] > settings[start]:
+        raise ConfigError(
+            f"learner.{end}: {settings[end]} is above learner.{start} {settings[start]} "
+            f"({what} decays from {start} to {end})"
+        )
+
+
+class ReplayLearner(TorchLearner, abstract=True):
+    """Base of the off-policy torch learners: a replay of the collected transitions.
+
+    Its subclasses (the Q-learners, ``expert_iteration``) declare the replay's settings:
+    ``buffer_size`` transitions kept, ``batch_size`` per gradient step, ``collect_ticks`` per
+    collected batch, ``updates_per_collect`` gradient steps after each, ``warmup_frames`` before
+    the first. The base turns them into the loop's :class:`LoopSettings`, estimates the replay's
+    memory, and counts the collected frames (:attr:`frames_collected`), the clock of their
+    schedules (:func:`linear_decay`), kept in checkpoints.
+    """
+
+    on_policy: ClassVar[bool] = False
+    memory_advice: ClassVar[str] = NEURAL_ADVICE  # what to change when it does not fit
+    # what a replayed transition keeps (memory.neural_estimate): only the loss's keys, and
+    # the bytes per global feature of its states
+    replay_loss_keys_only: ClassVar[bool] = False
+    replay_state_bytes: ClassVar[int] = 4
+    frames_collected: int = 0  # copy-ticks seen by after_collect: the schedules' clock
+
+    @classmethod
+    def estimate_memory(cls, query: MemoryQuery) -> ResourceEstimate:
+        """Networks (gradients, Adam, target copies), replay buffer and collector batch.
+
+        Raises:
+            Unfit: if the networks cannot be built on the system (``network_weights``).
+        """
+        env, partition, settings, _, copies = query
+        weights = cls.network_weights(env, partition, settings)
+        return neural_estimate(
+            cls.__name__,
+            env,
+            settings,
+            weights,
+            copies,
+            cls.memory_advice,
+            loss_keys_only=cls.replay_loss_keys_only,
+            state_bytes=cls.replay_state_bytes,
+        )
+
+    @classmethod
+    def batch_frames(cls, settings: Mapping[str, Any], copies: int, horizon: int) -> int:
+        """``collect_ticks`` ticks (at most an episode's) of every copy."""
+        return min(int(settings["collect_ticks"]), horizon) * copies
+
+    def loop_settings(self, copies: int, total_frames: int) -> LoopSettings:
+        """Replay of ``buffer_size`` transitions; ``updates_per_collect`` steps per batch.
+
+        A short run (``debug=smoke``) still reaches the gradient steps: it warms up at most half
+        of its frames.
+        """
+        hp = self.hp
+        return LoopSettings(
+            frames_per_batch=self.batch_frames(hp, copies, self.env.params.horizon),
+            buffer_size=int(hp["buffer_size"]),
+            minibatch_size=int(hp["batch_size"]),
+            updates_per_batch=int(hp["updates_per_collect"]),
+            warmup_frames=min(int(hp["warmup_frames"]), total_frames // 2),
+        )
+
+    def after_collect(self, frames: int) -> None:
+        """Count ``frames`` collected copy-ticks (subclasses then advance their schedules)."""
+        self.frames_collected += frames
+
+    def checkpoint_state(self, directory: Path) -> dict[str, Any]:
+        """Counters of the base and the schedules' clock."""
+        return {**super().checkpoint_state(directory), "frames_collected": self.frames_collected}
+
+    def restore_state(self, state: dict[str, Any], directory: Path) -> None:
+        """Restore :meth:`checkpoint_state`; the subclasses' schedules follow the clock."""
+        super().restore_state(state, directory)
+        self.after_collect(int(state["frames_collected"]))

@@ -26,15 +26,6 @@ SMALL = {"embed_dim": 8, "heads": 2, "samples": 2, "horizon": 4}
 PLANNER = ("samples", "horizon", "candidates", "base", "gamma", "margin", "neighbours")
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """One intra-op thread, as the runner uses."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 def make(batch=4, seed=0, **hp):
     env = AuctionEnv(
         paper_system("system1"), AuctionParams(horizon=30), batch_size=batch, seed=seed

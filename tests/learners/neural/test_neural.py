@@ -37,15 +37,6 @@ from tests.runners.test_checkpoint import save_hydra_files
 SMALL = {"hidden": 16, "depth": 1, "batch_size": 32, "buffer_size": 1000}
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """One intra-op thread, as the runner uses (tiny nets; no spinning threads on a busy CPU)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 @pytest.fixture
 def system():
     """Four robots in two sub-groups (subG partition), three task types."""

@@ -25,15 +25,6 @@ CASES = [
 ]
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """One intra-op thread, as the runner uses."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 def make(cls, batch=4, seed=0, **hp):
     env = AuctionEnv(
         paper_system("system1"), AuctionParams(horizon=20), batch_size=batch, seed=seed
