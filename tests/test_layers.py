@@ -40,6 +40,7 @@ FLOORS: tuple[tuple[str, ...], ...] = (
     ("envs",),  # the auction dynamics and its views
     ("metrics", "priors"),  # what is measured of an env's episodes; the priors' rules on an env
     ("learners",),  # act on an env; never build one, never load a run
+    ("cluster",),  # a learner's work on Ray workers; never build a run
     ("runners",),  # build env and learner from a config, train, evaluate, write the run dir
     ("reports", "bench"),  # read run dirs; time runs
     ("commands",),  # the console scripts

@@ -199,6 +199,10 @@ class Learner(metaclass=LearnerType):
     # learner then trains on a family of teams (:meth:`bind_env`) and a run's state plays any
     # team (``init=<run dir>``)
     any_team: ClassVar[bool] = False
+    # True if a training episode is a population of members that play apart (evolution
+    # strategies): the numpy loop then spreads them over Ray workers (train.workers). Such a
+    # learner has population(), play_members() and record_returns() (learners/search/reserve_es.py)
+    population_on_workers: ClassVar[bool] = False
     facts: ClassVar[tuple[str, ...]] = FACTS  # a base class may require more of its subclasses
     hp: dict[str, Any]  # the checked settings (__new__)
 

@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING, Any
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 
+from mrta_rl.cluster.population import PopulationWorkers
 from mrta_rl.runners.checkpoint import LoopTime
 from mrta_rl.runners.progress import progress_bar
 from mrta_rl.runners.train import family_env
@@ -106,7 +107,14 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     if run.family is None:
         for _ in range(state["episode"] + 1):
             env.reset()
+    # an ES step's members on Ray workers: the same episodes, played elsewhere (cluster/)
+    workers = (
+        PopulationWorkers(learner, cfg.train.workers, cfg.train.ray_address, cfg.train.log_every_s)
+        if cfg.train.workers
+        else None
+    )
     with (
+        workers or nullcontext(),
         instantiate(cfg.logger)(run_dir=run_dir) as curve,
         progress_bar(
             total=cfg.train.episodes * horizon,
@@ -127,13 +135,19 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
                 env = family_env(run, episode, cfg.seed)
                 learner.bind_env(env)
                 env.reset()
-            # encode, eq. (3) and act: one compiled call per tick (TabularLearner.train_tick)
-            actions = train_tick(env, None)
-            while actions is not None:  # copies share the horizon: all finish at the same tick
-                actions = train_tick(env, env.step(actions))
-                bar.update(1)
+            if workers is not None:
+                returns, team_returns = workers.play(env)
+                learner.record_returns(returns)
+                bar.update(horizon)
+            else:
+                # encode, eq. (3) and act: one compiled call per tick (TabularLearner.train_tick)
+                actions = train_tick(env, None)
+                while actions is not None:  # copies share the horizon: all finish together
+                    actions = train_tick(env, env.step(actions))
+                    bar.update(1)
+                team_returns = env.stats.team_return
             env_ticks += horizon * batch  # ticks x copies: transitions per robot
-            team_return = float(env.stats.team_return.mean())
+            team_return = float(team_returns.mean())
             env.reset()
             learner.end_episode()
             recent.append(team_return)
@@ -153,4 +167,5 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
                 ckpt.episode_end(loop, last=episode == cfg.train.episodes)
     wall = clock.wall()
     logger.info("trained %d episodes (%d env ticks) in %.1f s", cfg.train.episodes, env_ticks, wall)
-    return {"env_ticks": env_ticks, "wall_s": round(wall, 3), "episodes": int(cfg.train.episodes)}
+    info = {"env_ticks": env_ticks, "wall_s": round(wall, 3), "episodes": int(cfg.train.episodes)}
+    return info | ({"workers": workers.summary()} if workers is not None else {})

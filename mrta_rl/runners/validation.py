@@ -29,6 +29,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
+from mrta_rl.cluster import EXTRA, ray_installed
 from mrta_rl.config import (
     Choices,
     ConfigError,
@@ -108,6 +109,11 @@ class TrainSettings:
     validate_episodes: Annotated[int, Range(1)]  # validation copy-episodes of each evaluation
     # the run ends with the weights of its best validation return (needs validate_every)
     keep_best: bool
+    # Ray worker processes that play an ES step's members (learners with population_on_workers);
+    # 0 = none, everything in this process
+    workers: Annotated[int, Range(0)]
+    # with workers: the Ray cluster to join; None = a local Ray instance of ``workers`` CPUs
+    ray_address: str | None
 
 
 @dataclass(frozen=True)
@@ -475,6 +481,16 @@ def validate_config(cfg: DictConfig) -> CheckedConfig:
         not train["keep_best"] or train["validate_every"] > 0,
         "train.keep_best: keeps the weights of the best validation return, so it needs "
         "train.validate_every > 0",
+    )
+    _check(
+        not train["workers"] or cls.population_on_workers,
+        f"train.workers: Ray workers play the members of an evolution strategies step; "
+        f"{cls.__name__} has none: set train.workers=0",
+    )
+    _check(
+        not train["workers"] or ray_installed(),
+        f"train.workers={train['workers']} needs Ray, which is not installed: "
+        f"pip install 'mrta_rl[{EXTRA}]'",
     )
     hyperparameters = check_keywords(cls, _plain(cfg, "learner"), "learner")
     _check_logger(_plain(cfg, "logger"))

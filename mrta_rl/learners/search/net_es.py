@@ -413,9 +413,13 @@ class NetESLearner(ReserveESLearner):
         if explore:
             if batch != len(self.copy_theta):
                 raise ValueError(f"explore=True needs the training batch {len(self.copy_theta)}")
-            theta, group = self.copy_theta[:: self.copies], self.copies
-        else:
-            theta, group = self.theta[None], batch
+            return self._bids(view, mask, self.copy_theta[:: self.copies], self.copies)
+        return self._bids(view, mask, self.theta[None], batch)
+
+    def _bids(
+        self, view: dict[str, np.ndarray], mask: np.ndarray, theta: np.ndarray, group: int
+    ) -> np.ndarray:
+        """The policy's bids when copy ``b`` plays the weights ``theta[b // group]``."""
         actions = np.zeros(mask.shape[:2], np.int64)
         tick = TickView(
             view["queue"],

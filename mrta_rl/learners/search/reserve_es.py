@@ -38,6 +38,7 @@ queue's order, nor durations, nor batteries.
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, ClassVar
 
@@ -126,6 +127,42 @@ def start_theta(reserve: int, hold_level: int) -> np.ndarray:
     return theta
 
 
+def draw_perturbations(rng: np.random.Generator, pairs: int, size: int) -> np.ndarray:
+    """``[pairs, size]`` the ``eps_j`` of one ES step, drawn from ``rng``."""
+    return rng.standard_normal((pairs, size))
+
+
+def member_weights(theta: np.ndarray, sigma: float, eps: np.ndarray) -> np.ndarray:
+    """``[2 pairs, P]`` the members ``theta + sigma eps_j``, then ``theta - sigma eps_j``."""
+    return np.concatenate([theta + sigma * eps, theta - sigma * eps])
+
+
+@dataclass(frozen=True)
+class Population:
+    """One ES step's members, as a worker rebuilds them: the weights and the draw's seed.
+
+    Attributes:
+        theta: The weights the members perturb.
+        sigma: The perturbations' standard deviation.
+        pairs: Antithetic pairs.
+        rng_state: The generator's state before the step's perturbations were drawn.
+        copies: Copies each member plays.
+    """
+
+    theta: np.ndarray
+    sigma: float
+    pairs: int
+    rng_state: dict[str, Any]
+    copies: int
+
+    def members(self) -> np.ndarray:
+        """``[2 pairs, P]`` the members, exactly as the learner drew them."""
+        rng = np.random.Generator(getattr(np.random, self.rng_state["bit_generator"])())
+        rng.bit_generator.state = self.rng_state
+        eps = draw_perturbations(rng, self.pairs, self.theta.size)
+        return member_weights(self.theta, self.sigma, eps)
+
+
 class ReserveESLearner(Learner):
     """Evolution strategies over the weights of a whole-team reserve rule (module docstring).
 
@@ -155,6 +192,8 @@ class ReserveESLearner(Learner):
     training_loop: ClassVar[str] = NUMPY_LOOP  # policy search on the numpy loop
     # every weight multiplies a feature that reads the team through counts and fractions only
     any_team: ClassVar[bool] = True
+    # an ES step's members play their episodes anywhere (play_members): on Ray workers too
+    population_on_workers: ClassVar[bool] = True
 
     @classmethod
     def estimate_memory(cls, query: MemoryQuery) -> ResourceEstimate:
@@ -239,10 +278,43 @@ class ReserveESLearner(Learner):
     def _draw(self) -> None:
         """New perturbations and the per-copy weights of the next training episode."""
         self._rng_before_draw = self.rng.bit_generator.state  # a fresh dict: resuming redraws
-        self.perturbations = eps = self.rng.standard_normal((self.pairs, self.theta.size))
-        members = np.concatenate([self.theta + self.sigma * eps, self.theta - self.sigma * eps])
+        self.perturbations = eps = draw_perturbations(self.rng, self.pairs, self.theta.size)
+        members = member_weights(self.theta, self.sigma, eps)
         self.copy_theta = np.repeat(members, self.copies, axis=0)  # [B, P], member-major
         self._returns = np.zeros(len(self.copy_theta))
+
+    def population(self) -> Population:
+        """What rebuilds this ES step's members elsewhere: the weights and the draw's seed."""
+        return Population(
+            self.theta.copy(), self.sigma, self.pairs, self._rng_before_draw, self.copies
+        )
+
+    def record_returns(self, returns: np.ndarray) -> None:
+        """Add the members' copies' team returns, played elsewhere (:meth:`play_members`)."""
+        self._returns += returns
+
+    def play_members(
+        self, env: AuctionEnv, members: np.ndarray, copies: int
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """One training episode of some members on ``env``, from its current state.
+
+        The ticks are those of the training loop (encode, act exploring, step), so each copy
+        plays exactly what the same copy of the whole population plays there.
+
+        Args:
+            env: ``len(members) * copies`` copies at the start of an episode.
+            members: ``[M, P]`` weights; copy ``b`` plays ``members[b // copies]``.
+            copies: Copies per member.
+
+        Returns:
+            ``(returns, team_returns)``, both ``[len(members) * copies]``: the team rewards summed
+            tick by tick (the members' fitness) and the env's team return per copy.
+        """
+        returns = np.zeros(env.batch_size)
+        while not env.done.any():  # copies share the horizon: all finish at the same tick
+            actions = self._bids(self.encode(env), env.action_mask, members, copies)
+            returns += env.step(actions).team_reward
+        return returns, env.stats.team_return.copy()
 
     def encode(self, env: AuctionEnv) -> dict[str, np.ndarray]:
         """The features that do not change while a tick's bids are placed, and the slots.
@@ -288,13 +360,22 @@ class ReserveESLearner(Learner):
 
     def act(self, view: dict[str, np.ndarray], mask: np.ndarray, *, explore: bool) -> np.ndarray:
         """Bid per the rule of the module docstring, with the member's weights when exploring."""
-        batch, _, n_actions = mask.shape
+        batch = mask.shape[0]
         if explore:
             if batch != len(self.copy_theta):
                 raise ValueError(f"explore=True needs the training batch {len(self.copy_theta)}")
-            theta = self.copy_theta
-        else:
-            theta = np.broadcast_to(self.theta, (batch, N_FEATURES))
+            return self._bids(view, mask, self.copy_theta, 1)
+        return self._bids(view, mask, self.theta[None], batch)
+
+    def _bids(
+        self, view: dict[str, np.ndarray], mask: np.ndarray, theta: np.ndarray, group: int
+    ) -> np.ndarray:
+        """The rule's bids when copy ``b`` plays the weights ``theta[b // group]``."""
+        batch, _, n_actions = mask.shape
+        if len(theta) == 1:
+            theta = np.broadcast_to(theta[0], (batch, theta.shape[1]))
+        elif group > 1:
+            theta = np.repeat(theta, group, axis=0)
         robots = view["order"]
         features = view["static"][:, robots]  # [B, m, P] in the rule's order
         low = np.einsum("bmp,bp->bm", features, theta[:, :N_LOW])

@@ -1,0 +1,156 @@
+"""An ES population on Ray workers (train.workers): a local multi-node Ray cluster of two worker
+processes plays the members; the run ends bit-identical to the run in one process, a worker
+killed during a step included; without Ray, train.workers is refused in one line."""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from mrta_rl.cluster import population
+from mrta_rl.runners.train import train
+from tests.conftest import compose_config
+
+ROOT = Path(__file__).resolve().parents[2]
+TRAIN = ROOT / "scripts" / "train.py"
+# 4 members (2 antithetic pairs) x 2 copies, 4 ES steps of 50 ticks on System-I
+SMALL = ["system=system1", "debug=smoke", "train.episodes=4", "learner.pairs=2",
+         "train.batch_size=8", "train.checkpoint_every=0"]  # fmt: skip
+
+# a sitecustomize that makes ``ray`` unfindable, as where it is not installed
+HIDE_RAY = """
+import importlib.machinery, sys
+
+class NoRay(importlib.machinery.PathFinder):
+    @classmethod
+    def find_spec(cls, name, path=None, target=None):
+        if name == "ray" or name.startswith("ray."):
+            return None
+        return super().find_spec(name, path, target)
+
+sys.meta_path = [NoRay if f is importlib.machinery.PathFinder else f for f in sys.meta_path]
+"""
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    """A Ray cluster of a head without CPUs and two nodes of one CPU: two worker processes."""
+    cluster_utils = pytest.importorskip("ray.cluster_utils")
+    cluster = cluster_utils.Cluster(
+        initialize_head=True, head_node_args={"num_cpus": 0, "include_dashboard": False}
+    )
+    for _ in range(2):
+        cluster.add_node(num_cpus=1)
+    cluster.wait_for_nodes()
+    yield cluster
+    cluster.shutdown()
+
+
+def run(tmp_path: Path, name: str, learner: str, *overrides: str) -> dict:
+    """Train in this process; metrics.json, the weights and curve.csv of the run."""
+    cfg = compose_config([f"learner={learner}", *SMALL, *overrides])
+    run_dir = tmp_path / name
+    metrics = train(cfg, run_dir=run_dir)
+    return {
+        "metrics": metrics,
+        "weights": next((run_dir / "learner").glob("*.npz")).read_bytes(),
+        "curve": (run_dir / "curve.csv").read_text(),
+    }
+
+
+def same_run(a: dict, b: dict) -> None:
+    assert a["weights"] == b["weights"]
+    assert a["curve"] == b["curve"]
+    assert a["metrics"]["eval"] == b["metrics"]["eval"]
+
+
+@pytest.mark.slow  # a Ray cluster starts in about 20 s on 2 cores
+@pytest.mark.parametrize("learner", ["net_es", "reserve_es"])
+def test_workers_end_bit_identical(cluster, tmp_path, learner):
+    alone = run(tmp_path, "alone", learner)
+    one = run(tmp_path, "one", learner, "train.workers=1", f"train.ray_address={cluster.address}")
+    two = run(tmp_path, "two", learner, "train.workers=2", f"train.ray_address={cluster.address}")
+    same_run(alone, one)
+    same_run(alone, two)
+    assert "workers" not in alone["metrics"]["train"]
+    record = two["metrics"]["train"]["workers"]
+    assert record["count"] == 2 and record["nodes"] == 2  # one worker on each node
+    assert record["retries"] == []
+    # every step sends the population and the streams' start state, and gets returns back
+    assert record["bytes"]["sent_per_step"] > record["bytes"]["received_per_step"] > 0
+
+
+@pytest.mark.slow
+def test_a_killed_worker_is_replaced_and_the_run_ends_the_same(
+    cluster, tmp_path, monkeypatch, caplog
+):
+    alone = run(tmp_path, "alone", "net_es")
+    pools: list[population.PopulationWorkers] = []
+    enter, wait_for = population.PopulationWorkers.__enter__, population.wait_for
+
+    def keep(self):
+        pools.append(self)
+        return enter(self)
+
+    def kill_in_step_2(refs):
+        pool = pools[-1]
+        if pool.steps == 2 and not pool.retries and not getattr(pool, "killed", False):
+            pool.killed = True
+            os.kill(pool.workers[1].pid, signal.SIGKILL)  # its chunk was just submitted
+        return wait_for(refs)
+
+    monkeypatch.setattr(population.PopulationWorkers, "__enter__", keep)
+    monkeypatch.setattr(population, "wait_for", kill_in_step_2)
+    with caplog.at_level(logging.WARNING, logger=population.__name__):
+        killed = run(
+            tmp_path, "killed", "net_es", "train.workers=2", f"train.ray_address={cluster.address}"
+        )
+    same_run(alone, killed)
+    retries = killed["metrics"]["train"]["workers"]["retries"]
+    assert len(retries) == 1
+    assert retries[0].startswith("worker 1 (pid ") and "lost in ES step 2" in retries[0]
+    assert "members 2-3 re-run on worker 0" in retries[0]
+    assert any("retry: worker 1" in record.getMessage() for record in caplog.records)
+
+
+def test_without_ray_workers_are_refused_in_one_line(tmp_path):
+    """Python started with Ray hidden from its import system stands for the base install without
+    the extra: the refusal names the extra, and a run without workers trains."""
+    site = tmp_path / "no_ray"
+    site.mkdir()
+    (site / "sitecustomize.py").write_text(HIDE_RAY)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(site), str(ROOT)])}
+    command = [sys.executable, str(TRAIN), "learner=net_es", *SMALL]
+
+    def train_script(*overrides: str, run_dir: Path) -> subprocess.CompletedProcess:
+        return subprocess.run(
+            [*command, *overrides, f"hydra.run.dir={run_dir}"],
+            capture_output=True, text=True, timeout=300, env=env, cwd=tmp_path,
+        )  # fmt: skip
+
+    refused = train_script("train.workers=2", run_dir=tmp_path / "refused")
+    assert refused.returncode != 0
+    lines = refused.stderr.strip().splitlines()
+    assert lines == [
+        "error: train.workers=2 needs Ray, which is not installed: pip install 'mrta_rl[cluster]'"
+    ]
+    assert not (tmp_path / "refused").exists()
+    alone = train_script(run_dir=tmp_path / "alone")
+    assert alone.returncode == 0, alone.stderr[-2000:]
+    assert json.loads((tmp_path / "alone" / "metrics.json").read_text())["train"]["episodes"] == 4
+
+
+def test_workers_are_refused_for_a_learner_without_a_population(compose_cfg, tmp_path):
+    from mrta_rl.config import ConfigError
+
+    cfg = compose_cfg(["learner=greedy", "system=system1", "debug=smoke", "train.workers=2"])
+    with pytest.raises(ConfigError, match="train.workers: Ray workers play the members"):
+        train(cfg, run_dir=tmp_path / "run")
+    assert not (tmp_path / "run").exists()
