@@ -86,7 +86,7 @@ def _compose(overrides: list[str]) -> Any:
         return compose(config_name="config", overrides=overrides)
 
 
-def _train_once(
+def train_once(
     name: str, system: str, overrides: list[str]
 ) -> tuple[int, float, float, int, dict[str, Any]]:
     """Build the run of ``learner=name`` and time its training loop.
@@ -154,11 +154,11 @@ def measure(
         warm_start = time.perf_counter()
         pinned = [f"experiment={experiment}"] if experiment else []
         pinned += [*search_path(config_dirs), *overrides]
-        _train_once(name, system, [*pinned, *WARMUP_OVERRIDES])
+        train_once(name, system, [*pinned, *WARMUP_OVERRIDES])
         warmup = time.perf_counter() - warm_start
         budget = [*pinned, f"train.episodes={episodes}"]
         budget += [f"env.horizon={horizon}"] if horizon else []
-        ticks, wall, cpu, batch, info = _train_once(name, system, budget)
+        ticks, wall, cpu, batch, info = train_once(name, system, budget)
         if str(batch) not in out["env"]:  # JSON keys are strings
             bare = benchmark.bench_env(built, batch, min_seconds=seconds)
             out["env"][str(batch)] = bare.ticks_per_s

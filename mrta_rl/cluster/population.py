@@ -172,6 +172,7 @@ class PopulationWorkers:
         self.retries: list[str] = []
         self.traffic = Traffic()
         self.steps = 0
+        self.step_seconds: list[float] = []  # wall time of each step, seen from this process
         self._started_ray = False
         self._team_env: AuctionEnv | None = None
         self._team_key = 0
@@ -234,6 +235,7 @@ class PopulationWorkers:
         """
         import ray  # noqa: PLC0415
 
+        began = time.perf_counter()
         population = self.learner.population()
         copies = population.copies
         if env is not self._team_env:  # the first team, or the next team of a family
@@ -281,6 +283,7 @@ class PopulationWorkers:
                 played.seconds += seconds
                 self.traffic.received += _size((returns, team_returns, seconds))
         self.traffic.steps += 1
+        self.step_seconds.append(time.perf_counter() - began)
         self._maybe_log()
         order = range(len(chunks))
         return (
@@ -336,6 +339,7 @@ class PopulationWorkers:
             "copy_ticks_per_s": [
                 round(w.copy_ticks / w.seconds, 1) if w.seconds else 0.0 for w in self.workers
             ],
+            "step_seconds": [round(seconds, 4) for seconds in self.step_seconds],
             "retries": list(self.retries),
             "bytes": self.traffic.summary(),
         }
