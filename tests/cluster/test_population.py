@@ -20,8 +20,8 @@ from tests.conftest import compose_config
 
 ROOT = Path(__file__).resolve().parents[2]
 TRAIN = ROOT / "scripts" / "train.py"
-# 4 members (2 antithetic pairs) x 2 copies, 4 ES steps of 50 ticks on System-I
-SMALL = ["system=system1", "debug=smoke", "train.episodes=4", "learner.pairs=2",
+# 4 members (2 antithetic pairs) x 2 copies, 4 ES steps of 50 ticks
+SMALL = ["debug=smoke", "train.episodes=4", "learner.pairs=2",
          "train.batch_size=8", "train.checkpoint_every=0"]  # fmt: skip
 
 # a sitecustomize that makes ``ray`` unfindable, as where it is not installed
@@ -72,11 +72,16 @@ def same_run(a: dict, b: dict) -> None:
 
 
 @pytest.mark.slow  # a Ray cluster starts in about 20 s on 2 cores
-@pytest.mark.parametrize("learner", ["net_es", "reserve_es"])
-def test_workers_end_bit_identical(cluster, tmp_path, learner):
-    alone = run(tmp_path, "alone", learner)
-    one = run(tmp_path, "one", learner, "train.workers=1", f"train.ray_address={cluster.address}")
-    two = run(tmp_path, "two", learner, "train.workers=2", f"train.ray_address={cluster.address}")
+@pytest.mark.parametrize(
+    ("learner", "system"),
+    [("net_es", "system1"), ("reserve_es", "system1"), ("net_es", "family")],  # a team per step
+)
+def test_workers_end_bit_identical(cluster, tmp_path, learner, system):
+    team = f"system={system}"
+    alone = run(tmp_path, "alone", learner, team)
+    at = f"train.ray_address={cluster.address}"
+    one = run(tmp_path, "one", learner, team, "train.workers=1", at)
+    two = run(tmp_path, "two", learner, team, "train.workers=2", at)
     same_run(alone, one)
     same_run(alone, two)
     assert "workers" not in alone["metrics"]["train"]
@@ -91,7 +96,7 @@ def test_workers_end_bit_identical(cluster, tmp_path, learner):
 def test_a_killed_worker_is_replaced_and_the_run_ends_the_same(
     cluster, tmp_path, monkeypatch, caplog
 ):
-    alone = run(tmp_path, "alone", "net_es")
+    alone = run(tmp_path, "alone", "net_es", "system=system1")
     pools: list[population.PopulationWorkers] = []
     enter, wait_for = population.PopulationWorkers.__enter__, population.wait_for
 
@@ -110,7 +115,12 @@ def test_a_killed_worker_is_replaced_and_the_run_ends_the_same(
     monkeypatch.setattr(population, "wait_for", kill_in_step_2)
     with caplog.at_level(logging.WARNING, logger=population.__name__):
         killed = run(
-            tmp_path, "killed", "net_es", "train.workers=2", f"train.ray_address={cluster.address}"
+            tmp_path,
+            "killed",
+            "net_es",
+            "system=system1",
+            "train.workers=2",
+            f"train.ray_address={cluster.address}",
         )
     same_run(alone, killed)
     retries = killed["metrics"]["train"]["workers"]["retries"]
@@ -127,7 +137,7 @@ def test_without_ray_workers_are_refused_in_one_line(tmp_path):
     site.mkdir()
     (site / "sitecustomize.py").write_text(HIDE_RAY)
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(site), str(ROOT)])}
-    command = [sys.executable, str(TRAIN), "learner=net_es", *SMALL]
+    command = [sys.executable, str(TRAIN), "learner=net_es", "system=system1", *SMALL]
 
     def train_script(*overrides: str, run_dir: Path) -> subprocess.CompletedProcess:
         return subprocess.run(
@@ -154,3 +164,16 @@ def test_workers_are_refused_for_a_learner_without_a_population(compose_cfg, tmp
     with pytest.raises(ConfigError, match="train.workers: Ray workers play the members"):
         train(cfg, run_dir=tmp_path / "run")
     assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.slow
+def test_the_local_cluster_example_runs(tmp_path):
+    """docs/guide/cluster.md's example: a 2-node cluster on this machine, same weights."""
+    pytest.importorskip("ray")
+    done = subprocess.run(
+        [sys.executable, str(ROOT / "examples" / "local_cluster.py"), "--out", str(tmp_path)],
+        capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert done.stdout.strip().endswith("2 workers and one process: same weights: True")
+    assert (tmp_path / "workers" / "metrics.json").is_file()
