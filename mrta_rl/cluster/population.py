@@ -172,6 +172,7 @@ class PopulationWorkers:
         self.retries: list[str] = []
         self.traffic = Traffic()
         self.steps = 0
+        self.members = 0  # members of the last step
         self.step_seconds: list[float] = []  # wall time of each step, seen from this process
         self._started_ray = False
         self._team_env: AuctionEnv | None = None
@@ -245,7 +246,7 @@ class PopulationWorkers:
             self.traffic.team = _size(recipe)
         start = env.get_state(np.arange(copies))
         start_ref = ray.put(start)
-        members = 2 * population.pairs
+        members = self.members = 2 * population.pairs
         chunks = [(int(c[0]), int(c[-1]) + 1) for c in np.array_split(range(members), self.count)]
         chunks = [chunk for chunk in chunks if chunk[0] < chunk[1]]
         self.steps += 1
@@ -332,6 +333,7 @@ class PopulationWorkers:
             "count": self.count,
             "address": self.address or "local",
             "nodes": len({worker.node for worker in self.workers}),
+            "members": self.members,
             "processes": [
                 {key: getattr(w, key) for key in ("index", "pid", "host", "address", "node")}
                 for w in self.workers
