@@ -164,16 +164,3 @@ def test_workers_are_refused_for_a_learner_without_a_population(compose_cfg, tmp
     with pytest.raises(ConfigError, match="train.workers: Ray workers play the members"):
         train(cfg, run_dir=tmp_path / "run")
     assert not (tmp_path / "run").exists()
-
-
-@pytest.mark.slow
-def test_the_local_cluster_example_runs(tmp_path):
-    """docs/guide/cluster.md's example: a 2-node cluster on this machine, same weights."""
-    pytest.importorskip("ray")
-    done = subprocess.run(
-        [sys.executable, str(ROOT / "examples" / "local_cluster.py"), "--out", str(tmp_path)],
-        capture_output=True, text=True, timeout=600,
-    )  # fmt: skip
-    assert done.returncode == 0, done.stderr[-3000:]
-    assert done.stdout.strip().endswith("2 workers and one process: same weights: True")
-    assert (tmp_path / "workers" / "metrics.json").is_file()
