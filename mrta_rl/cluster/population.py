@@ -24,29 +24,26 @@ learner on a worker stops the run with one line naming the worker.
 from __future__ import annotations
 
 import logging
-import os
-import socket
 import time
-from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from mrta_rl.config import UserError
+from mrta_rl.cluster.workers import (
+    Actor,
+    RayWorkers,
+    WorkerFailure,
+    serialized_size,
+)
 from mrta_rl.envs import AuctionEnv
 from mrta_rl.learners.base import Learner
 
 logger = logging.getLogger(__name__)
 
 ATTEMPTS = 3  # tries of one chunk of members before the run stops
-START_TIMEOUT_S = 300.0  # a worker that has not started by then (no free CPU) fails for good
 
 
-class WorkerFailure(UserError):
-    """A Ray worker failed for good: the run stops with one line; its checkpoints stay."""
-
-
-class EpisodeWorker:
+class EpisodeWorker(Actor):
     """The Ray actor: plays chunks of an ES step's members on its own env copies.
 
     Args:
@@ -58,17 +55,6 @@ class EpisodeWorker:
         self.learner_class, self.settings = learner_class, settings
         self.team_key: int | None = None
         self.envs: dict[int, AuctionEnv] = {}
-
-    def where(self) -> dict[str, Any]:
-        """The worker's process id, host, node address and Ray node id."""
-        import ray  # noqa: PLC0415 - on the worker, where Ray runs it
-
-        return {
-            "pid": os.getpid(),
-            "host": socket.gethostname(),
-            "address": ray.util.get_node_ip_address(),
-            "node": ray.get_runtime_context().get_node_id(),
-        }
 
     def play(
         self, team_key: int, team: tuple, population: Any, start: dict, lo: int, hi: int
@@ -103,57 +89,7 @@ class EpisodeWorker:
         return returns, team_returns, time.perf_counter() - began
 
 
-@dataclass
-class Worker:
-    """One actor of the pool and what is known of it."""
-
-    index: int
-    actor: Any
-    pid: int
-    host: str
-    address: str  # the node's IP address
-    node: str  # Ray's node id (nodes of a local test cluster share an address)
-    copy_ticks: int = 0  # copy-ticks played
-    seconds: float = 0.0  # time spent playing them
-
-    def name(self) -> str:
-        """``worker 1 (pid 4242 on 10.0.0.2, node <id>)``."""
-        return f"worker {self.index} (pid {self.pid} on {self.address}, node {self.node[:8]})"
-
-    def rate(self) -> str:
-        """Copy-ticks per second so far, as ``14.2k copy-ticks/s``."""
-        rate = self.copy_ticks / self.seconds if self.seconds else 0.0
-        return f"{rate / 1000:.1f}k copy-ticks/s"
-
-
-@dataclass
-class Traffic:
-    """Bytes crossing the network per ES step (pickled payloads, Ray's own framing aside)."""
-
-    steps: int = 0
-    sent: int = 0  # population, start state and member range to every worker
-    received: int = 0  # returns back
-    team: int = 0  # the team's recipe, sent once per team and worker
-    per_step: list[int] = field(default_factory=list)
-
-    def summary(self) -> dict[str, int]:
-        """Means per step (bytes) and the team recipe's size."""
-        steps = max(self.steps, 1)
-        return {
-            "sent_per_step": self.sent // steps,
-            "received_per_step": self.received // steps,
-            "team_recipe": self.team,
-        }
-
-
-def _size(value: Any) -> int:
-    """Bytes of ``value`` as Ray serialises it (cloudpickle)."""
-    from ray import cloudpickle  # noqa: PLC0415
-
-    return len(cloudpickle.dumps(value, protocol=5))
-
-
-class PopulationWorkers:
+class PopulationWorkers(RayWorkers):
     """Ray workers that play each ES step's members (module docstring).
 
     Args:
@@ -163,65 +99,16 @@ class PopulationWorkers:
         log_every_s: Seconds between the log lines that name the workers and their throughput.
     """
 
+    actor_class = EpisodeWorker
+
     def __init__(
         self, learner: Learner, workers: int, address: str | None, log_every_s: float
     ) -> None:
-        self.learner, self.count, self.address = learner, workers, address
-        self.log_every_s = log_every_s
-        self.workers: list[Worker] = []
+        super().__init__(learner, workers, address, log_every_s)
         self.retries: list[str] = []
-        self.traffic = Traffic()
-        self.steps = 0
         self.members = 0  # members of the last step
-        self.step_seconds: list[float] = []  # wall time of each step, seen from this process
-        self._started_ray = False
         self._team_env: AuctionEnv | None = None
         self._team_key = 0
-        self._last_log = time.monotonic()
-
-    # ------------------------------------------------------------------ life
-    def __enter__(self) -> PopulationWorkers:
-        import ray  # noqa: PLC0415 - the cluster extra, imported when workers are asked for
-
-        if not ray.is_initialized():
-            options: dict[str, Any] = {"include_dashboard": False, "logging_level": logging.WARNING}
-            if self.address is None:
-                options["num_cpus"] = self.count
-            ray.init(address=self.address, **options)
-            self._started_ray = True
-        self._actor_class = ray.remote(num_cpus=1, max_restarts=0)(EpisodeWorker)
-        self.workers = [self._start(index) for index in range(self.count)]
-        nodes = len({worker.node for worker in self.workers})
-        logger.info(
-            "%d Ray workers on %d node%s: %s",
-            self.count,
-            nodes,
-            "" if nodes == 1 else "s",
-            ", ".join(worker.name() for worker in self.workers),
-        )
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        import ray  # noqa: PLC0415
-
-        for worker in self.workers:
-            ray.kill(worker.actor)
-        if self._started_ray:
-            ray.shutdown()
-
-    def _start(self, index: int) -> Worker:
-        """A new actor in place ``index``, once it answers."""
-        import ray  # noqa: PLC0415
-
-        actor = self._actor_class.remote(type(self.learner), dict(self.learner.hp))
-        try:
-            where = ray.get(actor.where.remote(), timeout=START_TIMEOUT_S)
-        except Exception as err:  # noqa: BLE001 - any failure to start is this worker's
-            raise WorkerFailure(
-                f"worker {index} did not start within {START_TIMEOUT_S:.0f} s "
-                f"({type(err).__name__}): are there free CPUs in the Ray cluster?"
-            ) from None
-        return Worker(index, actor, **where)
 
     # ------------------------------------------------------------------ steps
     def play(self, env: AuctionEnv) -> tuple[np.ndarray, np.ndarray]:
@@ -243,14 +130,14 @@ class PopulationWorkers:
             self._team_env, self._team_key = env, self._team_key + 1
             recipe = (env.system, env.params, env.active_tasks)
             self._team_ref = ray.put(recipe)
-            self.traffic.team = _size(recipe)
+            self.traffic.team = serialized_size(recipe)
         start = env.get_state(np.arange(copies))
         start_ref = ray.put(start)
         members = self.members = 2 * population.pairs
         chunks = [(int(c[0]), int(c[-1]) + 1) for c in np.array_split(range(members), self.count)]
         chunks = [chunk for chunk in chunks if chunk[0] < chunk[1]]
         self.steps += 1
-        population_bytes, start_bytes = _size(population), _size(start)
+        population_bytes, start_bytes = serialized_size(population), serialized_size(start)
         pending: dict[Any, tuple[int, int, int]] = {}  # ref -> chunk, worker, attempt
 
         def submit(chunk: int, worker: int, attempt: int) -> None:
@@ -259,7 +146,7 @@ class PopulationWorkers:
                 self._team_key, self._team_ref, population, start_ref, lo, hi
             )
             pending[ref] = (chunk, worker, attempt)
-            self.traffic.sent += population_bytes + start_bytes + _size((lo, hi))
+            self.traffic.sent += population_bytes + start_bytes + serialized_size((lo, hi))
 
         for chunk in range(len(chunks)):
             submit(chunk, chunk % self.count, 1)
@@ -282,10 +169,10 @@ class PopulationWorkers:
                 played = self.workers[worker]
                 played.copy_ticks += len(returns) * env.params.horizon
                 played.seconds += seconds
-                self.traffic.received += _size((returns, team_returns, seconds))
+                self.traffic.received += serialized_size((returns, team_returns, seconds))
         self.traffic.steps += 1
         self.step_seconds.append(time.perf_counter() - began)
-        self._maybe_log()
+        self.log_progress("ES step")
         order = range(len(chunks))
         return (
             np.concatenate([results[chunk][0] for chunk in order]),
@@ -315,36 +202,9 @@ class PopulationWorkers:
         self.retries.append(message)
         return rerun
 
-    def _maybe_log(self) -> None:
-        """A line naming every worker and its throughput, at most every ``log_every_s``."""
-        now = time.monotonic()
-        if now - self._last_log < self.log_every_s:
-            return
-        self._last_log = now
-        logger.info(
-            "ES step %d on %s",
-            self.steps,
-            "; ".join(f"{w.name()}: {w.rate()}" for w in self.workers),
-        )
-
     def summary(self) -> dict[str, Any]:
-        """What the run records of its workers (metrics.json's ``train.workers``)."""
-        return {
-            "count": self.count,
-            "address": self.address or "local",
-            "nodes": len({worker.node for worker in self.workers}),
-            "members": self.members,
-            "processes": [
-                {key: getattr(w, key) for key in ("index", "pid", "host", "address", "node")}
-                for w in self.workers
-            ],
-            "copy_ticks_per_s": [
-                round(w.copy_ticks / w.seconds, 1) if w.seconds else 0.0 for w in self.workers
-            ],
-            "step_seconds": [round(seconds, 4) for seconds in self.step_seconds],
-            "retries": list(self.retries),
-            "bytes": self.traffic.summary(),
-        }
+        """The base's record, the members of a step and the retries."""
+        return super().summary() | {"members": self.members, "retries": list(self.retries)}
 
 
 def wait_for(refs: list[Any]) -> tuple[list[Any], list[Any]]:

@@ -203,6 +203,9 @@ class Learner(metaclass=LearnerType):
     # strategies): the numpy loop then spreads them over Ray workers (train.workers). Such a
     # learner has population(), play_members() and record_returns() (learners/search/reserve_es.py)
     population_on_workers: ClassVar[bool] = False
+    # True if the torch loop's collection may run on Ray workers (train.workers): a collection
+    # policy that reads only the observations (cluster/collection.py)
+    collection_on_workers: ClassVar[bool] = False
     facts: ClassVar[tuple[str, ...]] = FACTS  # a base class may require more of its subclasses
     hp: dict[str, Any]  # the checked settings (__new__)
 

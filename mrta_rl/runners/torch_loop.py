@@ -39,8 +39,8 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 from tensordict import TensorDictBase
-from torchrl.collectors import Collector
 
+from mrta_rl.cluster.collection import CollectionWorkers
 from mrta_rl.envs import AuctionEnv
 from mrta_rl.learners.neural.tensor_files import read_weights, write_tensors
 from mrta_rl.run_layout import STATE_FILE, RunDirError
@@ -53,7 +53,6 @@ from mrta_rl.runners.train import family_env
 from mrta_rl.splits import split_seed
 
 if TYPE_CHECKING:
-    from mrta_rl.envs.torchrl_env import AuctionTorchRLEnv
     from mrta_rl.learners.neural.torch_learner import TorchLearner
     from mrta_rl.runners.train import RunSetup
 
@@ -65,24 +64,6 @@ TORCH_THREADS = 1
 COUNTERS = ("frames", "replayed")  # this loop's counters in a checkpoint, besides the episode
 # train.keep_best: a checkpoint's loop holds best_episode and best_return, its folder the weights
 BEST_FILE = "best_weights.pt"
-
-
-def _view(learner: TorchLearner, env: AuctionEnv) -> AuctionTorchRLEnv:
-    # the learners play masked actions only: an invalid one is a bug, so it must raise
-    return learner.view(env, invalid_action="raise")
-
-
-def _collector(learner: TorchLearner, env: AuctionTorchRLEnv, per_batch: int, frames: int):
-    return Collector(
-        env,
-        learner.collection_policy,
-        frames_per_batch=per_batch,
-        total_frames=frames,
-        env_device="cpu",
-        policy_device=learner.device,
-        storing_device=learner.device,
-        auto_register_policy_transforms=False,
-    )
 
 
 def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
@@ -134,9 +115,9 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
 
         def layout_of(team: str) -> Any:
             if team == ONE_TEAM:
-                return replay_layout(_view(learner, run.env), learner)
+                return replay_layout(learner.training_view(run.env), learner)
             learner.bind_env(family_env(run, int(team), cfg.seed))
-            return replay_layout(_view(learner, learner.env), learner)
+            return replay_layout(learner.training_view(learner.env), learner)
 
         stored, torch_rng = read_replay(
             ckpt.path / REPLAY_FILE, expected, layout_of, settings.buffer_size
@@ -146,6 +127,19 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         for _ in range(episodes):
             run.env.reset()
     returns = EpisodeReturns(batch, next(iter(learner.group_map)), episodes)
+    # collection on Ray workers: each collects its share of the copies (cluster/collection.py)
+    workers = None
+    if cfg.train.workers and total_frames > frames:
+        workers = CollectionWorkers(
+            learner,
+            run.env,
+            run.partition,
+            int(cfg.seed),
+            frames // settings.frames_per_batch,
+            workers=int(cfg.train.workers),
+            address=cfg.train.ray_address,
+            log_every_s=cfg.train.log_every_s,
+        )
     info: dict[str, float] = {}
     clock = LoopTime(state.get("spent"))  # a resumed run's earlier processes included
     if total_frames == 0:
@@ -155,8 +149,15 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     def collected() -> Iterator[tuple[str, TensorDictBase]]:
         """Collected batches with their team: one collector, or one per team of a family."""
         nonlocal torch_rng
+        if workers is not None:  # one team (checked): the workers' collectors, no collector here
+            if torch_rng is not None:
+                torch.set_rng_state(torch_rng)
+                torch_rng = None
+            for data in workers.batches(settings.frames_per_batch, total_frames - frames):
+                yield ONE_TEAM, data
+            return
         if not family:
-            teams = [(ONE_TEAM, _view(learner, run.env), total_frames - frames)]
+            teams = [(ONE_TEAM, learner.training_view(run.env), total_frames - frames)]
         else:
             teams = (
                 (str(e), None, horizon * batch) for e in range(episodes + 1, episodes_total + 1)
@@ -165,14 +166,14 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
             if view is None:  # a team of its own each episode (systems/family.py)
                 env = family_env(run, int(team), cfg.seed)
                 learner.bind_env(env)
-                view = _view(learner, env)
+                view = learner.training_view(env)
             # building a collector may draw from torch (its policy runs once): the one collector
             # of a team is built before the run's first draw, and a family's next one after the
             # checkpoint, so the checkpoint's generator goes in after, or before, building it
             if torch_rng is not None and family:
                 torch.set_rng_state(torch_rng)
                 torch_rng = None
-            collector = _collector(learner, view, settings.frames_per_batch, team_frames)
+            collector = learner.collector(view, settings.frames_per_batch, team_frames)
             if torch_rng is not None:
                 torch.set_rng_state(torch_rng)
                 torch_rng = None
@@ -193,6 +194,7 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
             episode_units=horizon * batch,
         ) as bar,
         ckpt.catch_interrupt() if ckpt else nullcontext(),
+        workers or nullcontext(),
     ):
         for row in rows:
             curve.log(row)
@@ -266,6 +268,7 @@ def train_loop(run: RunSetup, cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         "fps_overall": round(frames / max(wall, 1e-9), 1),
         **learner.train_info(),
         **best.info(),
+        **({"workers": workers.summary()} if workers is not None else {}),
     }
     logger.info(
         "trained %d episodes (%d frames, %d gradient steps) in %.1f s; fps collection %.0f, "

@@ -483,9 +483,9 @@ def validate_config(cfg: DictConfig) -> CheckedConfig:
         "train.validate_every > 0",
     )
     _check(
-        not train["workers"] or cls.population_on_workers,
-        f"train.workers: Ray workers play the members of an evolution strategies step; "
-        f"{cls.__name__} has none: set train.workers=0",
+        not train["workers"] or cls.population_on_workers or cls.collection_on_workers,
+        f"train.workers: Ray workers play an evolution strategies step's members or collect a "
+        f"torch learner's frames; {cls.__name__} spreads neither: set train.workers=0",
     )
     _check(
         not train["workers"] or ray_installed(),
@@ -516,6 +516,17 @@ def validate_config(cfg: DictConfig) -> CheckedConfig:
             batch_size,
             robot_copies,
             system.n_robots,
+        )
+    if train["workers"] and cls.collection_on_workers:  # each worker collects whole copies
+        _check(
+            family is None,
+            "train.workers: collection on workers plays one team, not system=family: "
+            "set train.workers=0",
+        )
+        _check(
+            batch_size % train["workers"] == 0,
+            f"train.batch_size {batch_size} must be a multiple of train.workers "
+            f"{train['workers']} (each worker collects as many copies)",
         )
 
     try:  # relations between the settings, and to the team and the copies

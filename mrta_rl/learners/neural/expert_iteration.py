@@ -225,6 +225,8 @@ class ExpertIterationLearner(SetNetworkOption, ReplayLearner):
     """
 
     label: ClassVar[str] = "ExIt"
+    # the teacher reads the core env the collector steps: collection stays in the process
+    collection_on_workers: ClassVar[bool] = False
     memory_advice: ClassVar[str] = ADVICE
     replay_loss_keys_only: ClassVar[bool] = True  # process_batch keeps the inputs and the label
     replay_state_bytes: ClassVar[int] = 0  # no global state stored

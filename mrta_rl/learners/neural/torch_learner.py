@@ -42,6 +42,7 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torch import nn
+from torchrl.collectors import Collector
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.objectives import LossModule
 
@@ -140,6 +141,8 @@ class TorchLearner(Learner, abstract=True):
     facts: ClassVar[tuple[str, ...]] = (*FACTS, "on_policy", "network_weights")
     # the optimiser's kernel: fused (one kernel over all parameters) or per tensor
     fused_optimizer: ClassVar[bool] = True
+    # its collection policy reads only the view's observations: Ray workers may collect
+    collection_on_workers: ClassVar[bool] = True
 
     def __init__(
         self,
@@ -361,6 +364,29 @@ class TorchLearner(Learner, abstract=True):
             if not options:
                 self._views[env] = view
         return view
+
+    def training_view(self, env: AuctionEnv) -> AuctionTorchRLEnv:
+        """The view the loop trains on: an invalid action is a bug of the learner, so it raises."""
+        return self.view(env, invalid_action="raise")
+
+    def collector(self, view: AuctionTorchRLEnv, frames_per_batch: int, frames: int) -> Collector:
+        """The TorchRL collector of the loop: :attr:`collection_policy` on ``view``.
+
+        Args:
+            view: A :meth:`training_view`.
+            frames_per_batch: Frames (copy-ticks) per batch: whole ticks of every copy.
+            frames: Frames it collects in all.
+        """
+        return Collector(
+            view,
+            self.collection_policy,
+            frames_per_batch=frames_per_batch,
+            total_frames=frames,
+            env_device="cpu",
+            policy_device=self.device,
+            storing_device=self.device,
+            auto_register_policy_transforms=False,
+        )
 
     def encode(self, env: AuctionEnv) -> TensorDictBase:
         """The observations of the decision point, as the view writes them while training."""
