@@ -4,9 +4,11 @@ killed during a step included; without Ray, train.workers is refused in one line
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -15,8 +17,10 @@ from pathlib import Path
 import pytest
 
 from mrta_rl.cluster import population
+from mrta_rl.cluster.workers import WorkerFailure
 from mrta_rl.runners.train import train
 from tests.conftest import compose_config
+from tests.runners.test_checkpoint import resumed_run, save_hydra_files, script
 
 ROOT = Path(__file__).resolve().parents[2]
 TRAIN = ROOT / "scripts" / "train.py"
@@ -150,3 +154,47 @@ def test_workers_are_refused_for_a_learner_without_a_population(compose_cfg, tmp
     with pytest.raises(ConfigError, match="train.workers: .* GreedyLearner spreads neither"):
         train(cfg, run_dir=tmp_path / "run")
     assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.slow
+def test_a_worker_that_fails_for_good_stops_the_run_and_its_checkpoint_resumes(
+    cluster, tmp_path, monkeypatch
+):
+    """Every worker is killed whenever step 2 waits: the chunk fails 3 times, the run stops with
+    one line naming a worker, and the checkpoint of step 1 resumes to the run's own end."""
+    alone = run(tmp_path, "alone", "net_es", "system=system1")
+    pools: list[population.PopulationWorkers] = []
+    enter, wait_for = population.PopulationWorkers.__enter__, population.wait_for
+
+    def keep(self):
+        pools.append(self)
+        return enter(self)
+
+    def kill_all_in_step_2(refs):
+        pool = pools[-1]
+        if pool.steps == 2:
+            for worker in pool.workers:
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(worker.pid, signal.SIGKILL)
+        return wait_for(refs)
+
+    monkeypatch.setattr(population.PopulationWorkers, "__enter__", keep)
+    monkeypatch.setattr(population, "wait_for", kill_all_in_step_2)
+    at = f"train.ray_address={cluster.address}"
+    every = [a for a in SMALL if not a.startswith("train.checkpoint_every")]
+    args = ["learner=net_es", "system=system1", *every, "train.checkpoint_every=1"]
+    cfg = compose_config([*args, "train.workers=2", at])
+    save_hydra_files(cfg, tmp_path / "cut", "net_es", "system1")  # a run dir to resume
+    with pytest.raises(WorkerFailure) as failure:
+        train(cfg, run_dir=tmp_path / "cut")
+    message = str(failure.value)
+    assert "\n" not in message
+    assert re.fullmatch(
+        r"worker \d \(pid \d+ on .*\): members \d-\d of ES step 2 failed 3 times .*", message
+    )
+    monkeypatch.undo()
+    resumed = script("scripts/train.py", f"resume={tmp_path / 'cut'}")
+    assert resumed_run(resumed, tmp_path / "cut") == 1
+    metrics = json.loads((tmp_path / "cut" / "metrics.json").read_text())
+    assert metrics["eval"] == alone["metrics"]["eval"]
+    assert (tmp_path / "cut" / "learner" / "net_es.npz").read_bytes() == alone["weights"]
