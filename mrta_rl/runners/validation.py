@@ -109,8 +109,8 @@ class TrainSettings:
     validate_episodes: Annotated[int, Range(1)]  # validation copy-episodes of each evaluation
     # the run ends with the weights of its best validation return (needs validate_every)
     keep_best: bool
-    # Ray worker processes that play an ES step's members (learners with population_on_workers);
-    # 0 = none, everything in this process
+    # Ray worker processes: an ES step's members (population_on_workers) or a torch learner's
+    # collection (collection_on_workers); 0 = none, everything in this process
     workers: Annotated[int, Range(0)]
     # with workers: the Ray cluster to join; None = a local Ray instance of ``workers`` CPUs
     ray_address: str | None
