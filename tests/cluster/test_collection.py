@@ -4,7 +4,6 @@ the run checkpoints, is killed, resumes in a new process and ends as the uninter
 from __future__ import annotations
 
 import json
-import signal
 
 import pytest
 
@@ -12,9 +11,9 @@ from mrta_rl.runners.train import train
 from tests.conftest import compose_config
 from tests.runners.test_checkpoint import (
     assert_same_learner_state,
+    killed_at_checkpoint,
     resumed_run,
     script,
-    wait_for_checkpoint,
     without_timings,
 )
 
@@ -26,10 +25,7 @@ RUN = ["learner=vdn", "system=system1", "debug=smoke", "train.episodes=8",
 def test_collection_on_workers_checkpoints_and_resumes_in_a_new_process(cluster, tmp_path):
     args = [*RUN, f"train.ray_address={cluster.address}"]
     cut_dir, full_dir = tmp_path / "cut", tmp_path / "full"
-    cut = script("scripts/train.py", *args, f"hydra.run.dir={cut_dir}")
-    killed_after = wait_for_checkpoint(cut, cut_dir / "train.log", 3)
-    cut.send_signal(signal.SIGKILL)
-    cut.wait()
+    killed_after = killed_at_checkpoint(args, cut_dir, 3)
     resumed = script("scripts/train.py", f"resume={cut_dir}")
     assert killed_after <= resumed_run(resumed, cut_dir) < 8
     train(compose_config(args), run_dir=full_dir)

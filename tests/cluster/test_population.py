@@ -43,6 +43,28 @@ sys.meta_path = [NoRay if f is importlib.machinery.PathFinder else f for f in sy
 """
 
 
+@pytest.fixture
+def while_waiting(monkeypatch):
+    """``while_waiting(act)``: ``act(pool)`` runs each time the ES pool waits for its workers
+    (just after a step's chunks are submitted): the seam to kill workers during a step."""
+    pools: list[population.PopulationWorkers] = []
+    enter, wait_for = population.PopulationWorkers.__enter__, population.wait_for
+
+    def keep(self):
+        pools.append(self)
+        return enter(self)
+
+    def install(act):
+        def waiting(refs):
+            act(pools[-1])
+            return wait_for(refs)
+
+        monkeypatch.setattr(population.PopulationWorkers, "__enter__", keep)
+        monkeypatch.setattr(population, "wait_for", waiting)
+
+    return install
+
+
 def run(tmp_path: Path, name: str, learner: str, *overrides: str) -> dict:
     """Train in this process; metrics.json, the weights and curve.csv of the run."""
     cfg = compose_config([f"learner={learner}", *SMALL, *overrides])
@@ -84,25 +106,17 @@ def test_workers_end_bit_identical(cluster, tmp_path, learner, system):
 
 @pytest.mark.slow
 def test_a_killed_worker_is_replaced_and_the_run_ends_the_same(
-    cluster, tmp_path, monkeypatch, caplog
+    cluster, tmp_path, while_waiting, caplog
 ):
     alone = run(tmp_path, "alone", "net_es", "system=system1")
-    pools: list[population.PopulationWorkers] = []
-    enter, wait_for = population.PopulationWorkers.__enter__, population.wait_for
+    killed = []
 
-    def keep(self):
-        pools.append(self)
-        return enter(self)
-
-    def kill_in_step_2(refs):
-        pool = pools[-1]
-        if pool.steps == 2 and not pool.retries and not getattr(pool, "killed", False):
-            pool.killed = True
+    def kill_in_step_2(pool):
+        if pool.steps == 2 and not killed:
+            killed.append(pool.workers[1].pid)
             os.kill(pool.workers[1].pid, signal.SIGKILL)  # its chunk was just submitted
-        return wait_for(refs)
 
-    monkeypatch.setattr(population.PopulationWorkers, "__enter__", keep)
-    monkeypatch.setattr(population, "wait_for", kill_in_step_2)
+    while_waiting(kill_in_step_2)
     with caplog.at_level(logging.WARNING, logger=population.__name__):
         killed = run(
             tmp_path,
@@ -158,28 +172,19 @@ def test_workers_are_refused_for_a_learner_without_a_population(compose_cfg, tmp
 
 @pytest.mark.slow
 def test_a_worker_that_fails_for_good_stops_the_run_and_its_checkpoint_resumes(
-    cluster, tmp_path, monkeypatch
+    cluster, tmp_path, monkeypatch, while_waiting
 ):
     """Every worker is killed whenever step 2 waits: the chunk fails 3 times, the run stops with
     one line naming a worker, and the checkpoint of step 1 resumes to the run's own end."""
     alone = run(tmp_path, "alone", "net_es", "system=system1")
-    pools: list[population.PopulationWorkers] = []
-    enter, wait_for = population.PopulationWorkers.__enter__, population.wait_for
 
-    def keep(self):
-        pools.append(self)
-        return enter(self)
-
-    def kill_all_in_step_2(refs):
-        pool = pools[-1]
+    def kill_all_in_step_2(pool):
         if pool.steps == 2:
             for worker in pool.workers:
                 with contextlib.suppress(ProcessLookupError):
                     os.kill(worker.pid, signal.SIGKILL)
-        return wait_for(refs)
 
-    monkeypatch.setattr(population.PopulationWorkers, "__enter__", keep)
-    monkeypatch.setattr(population, "wait_for", kill_all_in_step_2)
+    while_waiting(kill_all_in_step_2)
     at = f"train.ray_address={cluster.address}"
     every = [a for a in SMALL if not a.startswith("train.checkpoint_every")]
     args = ["learner=net_es", "system=system1", *every, "train.checkpoint_every=1"]

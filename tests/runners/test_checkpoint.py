@@ -338,6 +338,16 @@ def wait_for_checkpoint(run: subprocess.Popen, log: Path, episode: int) -> int:
         time.sleep(0.005)
 
 
+def killed_at_checkpoint(args: list[str], cut_dir: Path, episode: int) -> int:
+    """Start ``train.py args`` in ``cut_dir``, SIGKILL it once the checkpoint of ``episode`` (or
+    later) is complete; the episode of the last complete checkpoint."""
+    cut = script("scripts/train.py", *args, f"hydra.run.dir={cut_dir}")
+    killed_after = wait_for_checkpoint(cut, cut_dir / "train.log", episode)
+    cut.send_signal(signal.SIGKILL)
+    cut.wait()
+    return killed_after
+
+
 def assert_same_learner_state(a: Path, b: Path) -> None:
     """The learner/ dirs of two runs hold the same tables or weights, bit for bit."""
     names = sorted(p.name for p in (a / "learner").iterdir())
@@ -412,10 +422,7 @@ def test_sigkill_after_a_random_checkpoint_then_resume_ends_like_an_uninterrupte
     # the checkpoint to kill after, at random, seeded by the case: one in the first two thirds
     target = random.Random(learner).randrange(every, 2 * episodes // 3, every)
     full_dir, cut_dir = tmp_path / "full", tmp_path / "cut"
-    cut = script("scripts/train.py", *args, f"hydra.run.dir={cut_dir}")
-    killed_after = wait_for_checkpoint(cut, cut_dir / "train.log", target)
-    cut.send_signal(signal.SIGKILL)
-    cut.wait()
+    killed_after = killed_at_checkpoint(args, cut_dir, target)
     assert not (cut_dir / "metrics.json").exists()
     spent = spent_before(cut_dir)  # the killed process's share, recorded in the checkpoint
     resumed = script("scripts/train.py", f"resume={cut_dir}")
@@ -432,10 +439,7 @@ def test_a_run_killed_with_a_full_replay_buffer_resumes_to_the_same_end(compose_
     args = ["learner=qmix", "system=system1", "debug=smoke", *BUDGETS["neural"]]
     args.append("learner.buffer_size=300")  # 200 frames per smoke episode
     full_dir, cut_dir = tmp_path / "full", tmp_path / "cut"
-    cut = script("scripts/train.py", *args, f"hydra.run.dir={cut_dir}")
-    wait_for_checkpoint(cut, cut_dir / "train.log", 3)
-    cut.send_signal(signal.SIGKILL)
-    cut.wait()
+    killed_at_checkpoint(args, cut_dir, 3)
     replay = torch.load(latest_checkpoint(cut_dir) / "replay.pt", weights_only=True)
     assert {leaf.shape[0] for leaf in tensor_values(replay["transitions"])} == {300}
     resumed = script("scripts/train.py", f"resume={cut_dir}")
@@ -587,10 +591,7 @@ def killed_qmix(tmp_path_factory) -> tuple[Path, dict]:
 
     args = ["learner=qmix", "system=system1", "debug=smoke", *BUDGETS["neural"]]
     cut_dir = tmp_path_factory.mktemp("qmix") / "cut"
-    cut = script("scripts/train.py", *args, f"hydra.run.dir={cut_dir}")
-    wait_for_checkpoint(cut, cut_dir / "train.log", 2)
-    cut.send_signal(signal.SIGKILL)
-    cut.wait()
+    killed_at_checkpoint(args, cut_dir, 2)
     # the filled rows only (a few hundred transitions of ~4 kB), not the capacity's 50,000
     assert (latest_checkpoint(cut_dir) / "replay.pt").stat().st_size < 20 * 2**20
     full = train(compose_config(args), run_dir=tmp_path_factory.mktemp("qmix") / "full")

@@ -5,7 +5,6 @@ from __future__ import annotations
 import collections
 import json
 import math
-import signal
 from pathlib import Path
 
 import numpy as np
@@ -22,10 +21,10 @@ from mrta_rl.systems import MAX_PAIRS, SystemConfigError, build_system, system_s
 from mrta_rl.systems.family import EVAL_TEAM, build_family
 from tests.runners.test_checkpoint import (
     assert_same_run,
+    killed_at_checkpoint,
     resumed_run,
     save_hydra_files,
     script,
-    wait_for_checkpoint,
 )
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -156,10 +155,7 @@ def test_init_refuses_a_run_of_another_learner(compose_cfg, tmp_path):
 def test_a_family_run_killed_and_resumed_ends_like_an_uninterrupted_run(compose_cfg, tmp_path):
     args = [*SMOKE, "train.episodes=40", "train.checkpoint_every=5"]
     full_dir, cut_dir = tmp_path / "full", tmp_path / "cut"
-    cut = script("scripts/train.py", *args, f"hydra.run.dir={cut_dir}")
-    killed_after = wait_for_checkpoint(cut, cut_dir / "train.log", 15)
-    cut.send_signal(signal.SIGKILL)
-    cut.wait()
+    killed_after = killed_at_checkpoint(args, cut_dir, 15)
     resumed = script("scripts/train.py", f"resume={cut_dir}")
     train(compose_cfg(args), run_dir=full_dir)
     assert killed_after <= resumed_run(resumed, cut_dir) < 40

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import signal
-
 import numpy as np
 import pytest
 import torch
@@ -262,10 +260,7 @@ def test_a_killed_set_network_run_resumes_to_the_same_end(compose_cfg, tmp_path)
         *ckpt.BUDGETS["neural"],
     ]
     full_dir, cut_dir = tmp_path / "full", tmp_path / "cut"
-    cut = ckpt.script("scripts/train.py", *args, f"hydra.run.dir={cut_dir}")
-    killed_after = ckpt.wait_for_checkpoint(cut, cut_dir / "train.log", 2)
-    cut.send_signal(signal.SIGKILL)
-    cut.wait()
+    killed_after = ckpt.killed_at_checkpoint(args, cut_dir, 2)
     assert not (cut_dir / "metrics.json").exists()
     resumed = ckpt.script("scripts/train.py", f"resume={cut_dir}")
     ckpt.train(compose_cfg(args), run_dir=full_dir)
