@@ -97,13 +97,15 @@ SUMMARY = {
     "decision_time?": {"*": NUMBER},
 }
 LEARNER = {"name": STR, "label": STR, "kind": STR}  # runners/train.py learner_record
+# the Ray workers of a run (cluster/workers.py RayWorkers.summary): a record, not read as numbers
+WORKERS = {"count": INT, "address": STR, "nodes": INT, "*": ANY}
 METRICS = {
     "learner": LEARNER,
     "system": STR,
     "seed": INT,
     "eval": SUMMARY,
     "baseline_greedy": SUMMARY,
-    "train?": {"*": NUMBER},
+    "train?": {"workers?": WORKERS, "*": NUMBER},
     "learning_space?": {"*": INT},
     # metrics/usage.py RunResources.to_json: wall_s, cpu_s, peak_rss_mb and peak_rss_scope
     "resources?": {"peak_rss_scope?": STR, "*": NUMBER},

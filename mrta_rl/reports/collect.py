@@ -37,7 +37,11 @@ MULTIRUN_FILE = "multirun.yaml"  # what Hydra writes in a sweep dir
 FAILED = "failed or unfinished: no metrics.json (see train.log, sweep output)"
 BASIC_SWEEPER = "hydra._internal.core_plugins.basic_sweeper.BasicSweeper"
 # settings that do not change what a run computes: never part of a configuration's name
-NOT_CONFIGURATION = ("seed", "resume", "train.progress_bar", "train.checkpoint_every")
+# how a run was carried out, not what it computes (workers change where it runs, not the run)
+NOT_CONFIGURATION = (
+    *("seed", "resume", "train.progress_bar", "train.checkpoint_every"),
+    *("train.workers", "train.ray_address"),
+)
 POLICY_KEY = "report"  # a run config's block of what a report makes of it (reports/study.py)
 
 

@@ -18,6 +18,7 @@ import pytest
 
 from mrta_rl.cluster import population
 from mrta_rl.cluster.workers import WorkerFailure
+from mrta_rl.reports import collect_runs
 from mrta_rl.runners.train import train
 from tests.conftest import compose_config
 from tests.runners.test_checkpoint import resumed_run, save_hydra_files, script
@@ -98,6 +99,11 @@ def test_workers_end_bit_identical(cluster, tmp_path, learner, system):
     same_run(alone, two)
     assert "workers" not in alone["metrics"]["train"]
     record = two["metrics"]["train"]["workers"]
+    # a report reads them as one run (workers change where it runs, not what), the others kept
+    # as its duplicates
+    collection = collect_runs([tmp_path])
+    assert [run.run_dir.name for run in collection.runs] == ["alone"]
+    assert sorted(run.run_dir.name for run in collection.duplicates) == ["one", "two"]
     assert record["count"] == 2 and record["nodes"] == 2  # one worker on each node
     assert record["retries"] == []
     # every step sends the population and the streams' start state, and gets returns back
