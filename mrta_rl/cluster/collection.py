@@ -27,7 +27,13 @@ import numpy as np
 import torch
 from tensordict import TensorDictBase
 
-from mrta_rl.cluster.workers import Actor, RayWorkers, WorkerFailure, serialized_size
+from mrta_rl.cluster.workers import (
+    Actor,
+    RayWorkers,
+    WorkerFailure,
+    peak_rss_mb,
+    serialized_size,
+)
 from mrta_rl.envs import AuctionEnv
 from mrta_rl.learners.base import Learner
 from mrta_rl.partition import Partition
@@ -72,7 +78,7 @@ class CollectWorker(Actor):
 
     def collect(
         self, state: dict[str, torch.Tensor], batch: int, frames_per_batch: int, frames: int
-    ) -> tuple[TensorDictBase, float]:
+    ) -> tuple[TensorDictBase, float, float]:
         """One batch of this worker's copies with the collection policy's ``state``.
 
         Args:
@@ -82,7 +88,7 @@ class CollectWorker(Actor):
             frames: This worker's frames still to collect in the run (its collector's total).
 
         Returns:
-            ``([copies, T] batch, seconds)``.
+            ``([copies, T] batch, seconds, the process's peak memory in MiB)``.
         """
         began = time.perf_counter()
         self.learner.collection_policy.load_state_dict(state)
@@ -93,7 +99,7 @@ class CollectWorker(Actor):
         # draws do not depend on whether this process collected the batches before it
         torch.manual_seed(batch_seed(self.seed, self.index, batch))
         data = next(self.batches)
-        return data, time.perf_counter() - began
+        return data, time.perf_counter() - began, peak_rss_mb()
 
 
 class CollectionWorkers(RayWorkers):
@@ -158,15 +164,14 @@ class CollectionWorkers(RayWorkers):
             pieces = []
             for worker, ref in zip(self.workers, refs, strict=True):
                 try:
-                    data, seconds = ray.get(ref)
+                    data, seconds, peak = ray.get(ref)
                 except ray.exceptions.RayError as err:
                     raise WorkerFailure(
                         f"{worker.name()} failed in batch {self.batch + 1} "
                         f"({type(err).__name__}): resume=<run dir> continues from the last "
                         "checkpoint"
                     ) from None
-                worker.copy_ticks += data.numel()
-                worker.seconds += seconds
+                worker.record(data.numel(), seconds, peak)
                 pieces.append(data)
             self.traffic.sent += self.count * serialized_size(state)
             self.traffic.received += sum(serialized_size(piece) for piece in pieces)

@@ -33,6 +33,7 @@ from mrta_rl.cluster.workers import (
     Actor,
     RayWorkers,
     WorkerFailure,
+    peak_rss_mb,
     serialized_size,
 )
 from mrta_rl.envs import AuctionEnv
@@ -58,7 +59,7 @@ class EpisodeWorker(Actor):
 
     def play(
         self, team_key: int, team: tuple, population: Any, start: dict, lo: int, hi: int
-    ) -> tuple[np.ndarray, np.ndarray, float]:
+    ) -> tuple[np.ndarray, np.ndarray, float, float]:
         """Members ``lo:hi`` of the population play one episode from ``start``.
 
         Args:
@@ -70,7 +71,8 @@ class EpisodeWorker(Actor):
             hi: One past the last.
 
         Returns:
-            ``(returns, team_returns, seconds)``: per copy, member-major, and the time played.
+            ``(returns, team_returns, seconds, peak MiB)``: per copy, member-major, the time
+            played and the process's peak memory.
         """
         system, params, active = team
         copies = population.copies
@@ -86,7 +88,7 @@ class EpisodeWorker(Actor):
         env.set_state({name: array[np.arange(batch) % copies] for name, array in start.items()})
         began = time.perf_counter()
         returns, team_returns = self.learner.play_members(env, population.members()[lo:hi], copies)
-        return returns, team_returns, time.perf_counter() - began
+        return returns, team_returns, time.perf_counter() - began, peak_rss_mb()
 
 
 class PopulationWorkers(RayWorkers):
@@ -156,7 +158,7 @@ class PopulationWorkers(RayWorkers):
             for ref in ready:
                 chunk, worker, attempt = pending.pop(ref)
                 try:
-                    returns, team_returns, seconds = ray.get(ref)
+                    returns, team_returns, seconds, peak = ray.get(ref)
                 except ray.exceptions.RayTaskError as err:  # the learner raised: a bug or bad state
                     cause = str(err.cause if err.cause is not None else err).splitlines()[0]
                     raise WorkerFailure(
@@ -166,10 +168,8 @@ class PopulationWorkers(RayWorkers):
                     submit(chunk, self._replace(worker, chunk, chunks, attempt, err), attempt + 1)
                     continue
                 results[chunk] = returns, team_returns
-                played = self.workers[worker]
-                played.copy_ticks += len(returns) * env.params.horizon
-                played.seconds += seconds
-                self.traffic.received += serialized_size((returns, team_returns, seconds))
+                self.workers[worker].record(len(returns) * env.params.horizon, seconds, peak)
+                self.traffic.received += serialized_size((returns, team_returns, seconds, peak))
         self.traffic.steps += 1
         self.step_seconds.append(time.perf_counter() - began)
         self.log_progress("ES step")

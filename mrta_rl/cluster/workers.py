@@ -12,7 +12,9 @@ from __future__ import annotations
 
 import logging
 import os
+import resource
 import socket
+import sys
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -27,6 +29,12 @@ START_TIMEOUT_S = 300.0  # a worker that has not started by then (no free CPU) f
 
 class WorkerFailure(UserError):
     """A Ray worker failed for good: the run stops with one line; its checkpoints stay."""
+
+
+def peak_rss_mb() -> float:
+    """This process's peak resident memory so far, in MiB (a worker reports its own)."""
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return peak / 2**20 if sys.platform == "darwin" else peak / 2**10  # bytes on macOS, else KiB
 
 
 class Actor:
@@ -56,6 +64,13 @@ class Worker:
     node: str  # Ray's node id (nodes of a local test cluster share an address)
     copy_ticks: int = 0  # copy-ticks played (or collected)
     seconds: float = 0.0  # time spent on them
+    peak_rss_mb: float = 0.0  # the worker process's peak memory, as it last reported
+
+    def record(self, copy_ticks: int, seconds: float, peak_mb: float) -> None:
+        """Count a piece of work the worker reports: its size, time and the process's peak."""
+        self.copy_ticks += copy_ticks
+        self.seconds += seconds
+        self.peak_rss_mb = max(self.peak_rss_mb, peak_mb)
 
     def name(self) -> str:
         """``worker 1 (pid 4242 on 10.0.0.2, node <id>)``."""
@@ -190,6 +205,7 @@ class RayWorkers:
             f"{self.unit.replace('-', '_')}_per_s": [
                 round(w.copy_ticks / w.seconds, 1) if w.seconds else 0.0 for w in self.workers
             ],
+            "peak_rss_mb": [round(w.peak_rss_mb, 1) for w in self.workers],
             "step_seconds": [round(seconds, 4) for seconds in self.step_seconds],
             "bytes": self.traffic.summary(),
         }

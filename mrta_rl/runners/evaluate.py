@@ -205,6 +205,15 @@ def format_summary(metrics: dict[str, Any]) -> str:
             f"training: {info['episodes']} episodes, {info['env_ticks']:,} env ticks, "
             f"{info['wall_s']:.1f} s"
         )
+        if "workers" in info:  # where it ran: the Ray workers' record (cluster/workers.py)
+            workers = info["workers"]
+            retries = len(workers.get("retries", ()))
+            lines.append(
+                f"on {workers['count']} Ray workers ({workers['nodes']} node"
+                f"{'' if workers['nodes'] == 1 else 's'}), peak "
+                f"{max(workers['peak_rss_mb'], default=0):,.0f} MiB a worker"
+                + (f", {retries} retr{'y' if retries == 1 else 'ies'}" if retries else "")
+            )
     return "\n".join(lines)
 
 
