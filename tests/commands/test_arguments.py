@@ -211,7 +211,7 @@ def test_evaluate_with_its_arguments_is_not_refused(finished_run, tmp_path):  # 
 @pytest.mark.parametrize(
     ("override", "named"),
     [
-        ("train.workers=2", "error: train.workers: unknown key (known: episodes, batch_size"),
+        ("train.nope=2", "error: train.nope: unknown key (known: episodes, batch_size"),
         ("learner.nope=3", "error: learner.nope: unknown key (known: alpha"),
         ("learner=nope", "error: learner=nope: no such option (available: cql, dql"),
         ("hydra/launcher=nope", "error: hydra/launcher=nope: no such option (available: basic"),
