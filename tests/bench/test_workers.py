@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 
@@ -44,3 +45,13 @@ def test_a_saved_measurement_prints_its_tables(tmp_path):
     (tmp_path / "bad.json").write_text("{}")
     with pytest.raises(ValueError, match="bad.json: not a bench_workers measurement"):
         read_result(tmp_path / "bad.json")
+
+
+def test_the_measurement_the_cluster_page_reports_reads():
+    """docs/guide/cluster.md's tables come from this file (``--from``)."""
+    docs = Path(__file__).resolve().parents[2] / "docs"
+    path = docs / "results" / "cluster" / "bench_workers.json"
+    result = read_result(path)
+    assert result["members"] == 24 and result["copies"] == 24 and result["horizon"] == 1000
+    assert min(result["ratios"][2]) >= 1.6  # the issue's bar, measured alone on 2 cores
+    assert "1.81x" in format_model(result, (1, 2))
