@@ -31,11 +31,11 @@ from mrta_rl.cluster.workers import (
     Actor,
     RayWorkers,
     WorkerFailure,
-    peak_rss_mb,
     serialized_size,
 )
 from mrta_rl.envs import AuctionEnv
 from mrta_rl.learners.base import Learner
+from mrta_rl.metrics.usage import process_peak_mib
 from mrta_rl.partition import Partition
 
 
@@ -99,7 +99,7 @@ class CollectWorker(Actor):
         # draws do not depend on whether this process collected the batches before it
         torch.manual_seed(batch_seed(self.seed, self.index, batch))
         data = next(self.batches)
-        return data, time.perf_counter() - began, peak_rss_mb()
+        return data, time.perf_counter() - began, process_peak_mib()
 
 
 class CollectionWorkers(RayWorkers):
@@ -131,7 +131,6 @@ class CollectionWorkers(RayWorkers):
         self.start = env.get_state()
         self.team = (env.system, env.params, env.active_tasks, partition)
         self.seed, self.batch = seed, first_batch
-        self.traffic.team = 0
 
     def actor_arguments(self, index: int) -> tuple:
         """Class, settings, team, the start state of the worker's copies, seed and place."""
@@ -175,7 +174,6 @@ class CollectionWorkers(RayWorkers):
                 pieces.append(data)
             self.traffic.sent += self.count * serialized_size(state)
             self.traffic.received += sum(serialized_size(piece) for piece in pieces)
-            self.traffic.steps += 1
             self.steps += 1
             self.batch += 1
             frames -= frames_per_batch

@@ -33,11 +33,11 @@ from mrta_rl.cluster.workers import (
     Actor,
     RayWorkers,
     WorkerFailure,
-    peak_rss_mb,
     serialized_size,
 )
 from mrta_rl.envs import AuctionEnv
 from mrta_rl.learners.base import Learner
+from mrta_rl.metrics.usage import process_peak_mib
 
 logger = logging.getLogger(__name__)
 
@@ -88,7 +88,7 @@ class EpisodeWorker(Actor):
         env.set_state({name: array[np.arange(batch) % copies] for name, array in start.items()})
         began = time.perf_counter()
         returns, team_returns = self.learner.play_members(env, population.members()[lo:hi], copies)
-        return returns, team_returns, time.perf_counter() - began, peak_rss_mb()
+        return returns, team_returns, time.perf_counter() - began, process_peak_mib()
 
 
 class PopulationWorkers(RayWorkers):
@@ -170,7 +170,6 @@ class PopulationWorkers(RayWorkers):
                 results[chunk] = returns, team_returns
                 self.workers[worker].record(len(returns) * env.params.horizon, seconds, peak)
                 self.traffic.received += serialized_size((returns, team_returns, seconds, peak))
-        self.traffic.steps += 1
         self.step_seconds.append(time.perf_counter() - began)
         self.log_progress("ES step")
         order = range(len(chunks))

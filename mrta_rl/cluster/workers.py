@@ -12,11 +12,9 @@ from __future__ import annotations
 
 import logging
 import os
-import resource
 import socket
-import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 from mrta_rl.config import UserError
@@ -29,12 +27,6 @@ START_TIMEOUT_S = 300.0  # a worker that has not started by then (no free CPU) f
 
 class WorkerFailure(UserError):
     """A Ray worker failed for good: the run stops with one line; its checkpoints stay."""
-
-
-def peak_rss_mb() -> float:
-    """This process's peak resident memory so far, in MiB (a worker reports its own)."""
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    return peak / 2**20 if sys.platform == "darwin" else peak / 2**10  # bytes on macOS, else KiB
 
 
 class Actor:
@@ -86,15 +78,13 @@ class Worker:
 class Traffic:
     """Bytes crossing the network per ES step (pickled payloads, Ray's own framing aside)."""
 
-    steps: int = 0
     sent: int = 0  # to every worker
     received: int = 0  # back
     team: int = 0  # the team's recipe, sent once per team and worker
-    per_step: list[int] = field(default_factory=list)
 
-    def summary(self) -> dict[str, int]:
-        """Means per step (bytes) and the team recipe's size."""
-        steps = max(self.steps, 1)
+    def summary(self, steps: int) -> dict[str, int]:
+        """Means over ``steps`` steps (bytes) and the team recipe's size."""
+        steps = max(steps, 1)
         return {
             "sent_per_step": self.sent // steps,
             "received_per_step": self.received // steps,
@@ -207,5 +197,5 @@ class RayWorkers:
             ],
             "peak_rss_mb": [round(w.peak_rss_mb, 1) for w in self.workers],
             "step_seconds": [round(seconds, 4) for seconds in self.step_seconds],
-            "bytes": self.traffic.summary(),
+            "bytes": self.traffic.summary(len(self.step_seconds)),
         }

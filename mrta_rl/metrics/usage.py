@@ -26,6 +26,12 @@ STATUS = Path("/proc/self/status")
 MIB = 2**20
 
 
+def process_peak_mib() -> float:
+    """This process's peak resident memory since it started, in MiB (``getrusage``)."""
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return rss / MIB if sys.platform == "darwin" else rss * 1024 / MIB  # bytes on macOS, else KiB
+
+
 def _vm_hwm_mib() -> float | None:
     """``VmHWM`` of /proc/self/status in MiB, None if unavailable."""
     try:
@@ -76,8 +82,7 @@ class RunResources:
     def _peak_mib(self) -> float:
         peak = _vm_hwm_mib() if self._scope == "run" else None
         if peak is None:
-            rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-            peak = rss / MIB if sys.platform == "darwin" else rss * 1024 / MIB  # bytes on macOS
+            peak = process_peak_mib()
         return peak
 
     def result(self) -> dict[str, Any]:

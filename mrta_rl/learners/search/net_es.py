@@ -407,15 +407,6 @@ class NetESLearner(ReserveESLearner):
             "slot_high": env.slot_high.copy(),
         }
 
-    def act(self, view: dict[str, np.ndarray], mask: np.ndarray, *, explore: bool) -> np.ndarray:
-        """Bid per the rule of the module docstring, with the member's weights when exploring."""
-        batch = mask.shape[0]
-        if explore:
-            if batch != len(self.copy_theta):
-                raise ValueError(f"explore=True needs the training batch {len(self.copy_theta)}")
-            return self._bids(view, mask, self.copy_theta[:: self.copies], self.copies)
-        return self._bids(view, mask, self.theta[None], batch)
-
     def _bids(
         self, view: dict[str, np.ndarray], mask: np.ndarray, theta: np.ndarray, group: int
     ) -> np.ndarray:

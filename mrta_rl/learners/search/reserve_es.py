@@ -364,7 +364,7 @@ class ReserveESLearner(Learner):
         if explore:
             if batch != len(self.copy_theta):
                 raise ValueError(f"explore=True needs the training batch {len(self.copy_theta)}")
-            return self._bids(view, mask, self.copy_theta, 1)
+            return self._bids(view, mask, self.copy_theta[:: self.copies], self.copies)
         return self._bids(view, mask, self.theta[None], batch)
 
     def _bids(

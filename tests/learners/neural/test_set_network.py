@@ -21,14 +21,6 @@ from tests.conftest import paper_system
 from tests.learners.neural.test_neural import collect, make
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 def played_env(system, batch: int = 3, ticks: int = 8, seed: int = 0) -> AuctionEnv:
     """An env some greedy ticks in: busy robots, queued tasks, some empty slots."""
     env = AuctionEnv(system, AuctionParams(horizon=50), batch_size=batch, seed=seed)
