@@ -136,7 +136,8 @@ class RayWorkers:
             options: dict[str, Any] = {"include_dashboard": False, "logging_level": logging.WARNING}
             if self.address is None:
                 options["num_cpus"] = self.count
-            ray.init(address=self.address, **options)
+            # "local" starts an instance of its own even when another one runs on this machine
+            ray.init(address=self.address or "local", **options)
             self._started_ray = True
         self._remote = ray.remote(num_cpus=1, max_restarts=0)(self.actor_class)
         self.workers = [self._start(index) for index in range(self.count)]

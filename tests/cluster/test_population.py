@@ -111,6 +111,18 @@ def test_workers_end_bit_identical(cluster, tmp_path, learner, system):
 
 
 @pytest.mark.slow
+def test_without_an_address_workers_start_a_ray_of_their_own_beside_a_running_one(
+    cluster, tmp_path
+):
+    assert cluster.address  # a Ray instance runs on this machine, which ray.init would join
+    alone = run(tmp_path, "alone", "net_es", "system=system1")
+    local = run(tmp_path, "local", "net_es", "system=system1", "train.workers=2")
+    same_run(alone, local)
+    record = local["metrics"]["train"]["workers"]
+    assert record["address"] == "local" and record["count"] == 2 and record["nodes"] == 1
+
+
+@pytest.mark.slow
 def test_a_killed_worker_is_replaced_and_the_run_ends_the_same(
     cluster, tmp_path, while_waiting, caplog
 ):

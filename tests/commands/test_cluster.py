@@ -57,7 +57,7 @@ def test_ray_local_sweep(tmp_path):
     output = sweep_and_report(
         tmp_path / "sweep",
         "hydra/launcher=ray_cluster",
-        "hydra.launcher.ray.init.address=null",  # a local Ray instance, started and stopped here
+        "hydra.launcher.ray.init.address=local",  # an instance of its own, beside any running one
         "+hydra.launcher.ray.init.num_cpus=2",
         "+hydra.launcher.ray.init.include_dashboard=false",
     )
