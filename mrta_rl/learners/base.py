@@ -459,6 +459,13 @@ class Learner(metaclass=LearnerType):
         """
         raise NotImplementedError(f"{type(self).__name__} is trained on one team only")
 
+    def play_on(self, env: AuctionEnv) -> None:
+        """Act on the team of ``env`` from now on, without training on it (a planner's base).
+
+        Default: :meth:`bind_env`, for a learner that holds the team it acts on.
+        """
+        self.bind_env(env)
+
     def end_episode(self) -> None:  # noqa: B027 - optional hook, deliberately a no-op
         """Advance per-episode schedules (epsilon, learning-rate decay); default: nothing."""
 

@@ -55,6 +55,22 @@ def test_a_torch_learner_that_fits_any_team_trains_on_a_family_playing_other_tea
     assert metrics["system"] == "family"  # evaluated on the family's evaluation team
 
 
+def test_a_student_of_a_family_plans_on_a_trained_family_base(compose_cfg, tmp_path, teams_played):
+    """The teacher's base, a net_es run of the family, plays each new team without being trained
+    on it: its training batch (2 * pairs copies) is not the student's, and the student's copies
+    stay the student's."""
+    base_args = ["learner=net_es", "system=family", "debug=smoke", "train.episodes=1"]
+    base_cfg = compose_cfg([*base_args, "learner.pairs=3", "train.batch_size=6"])
+    train(base_cfg, run_dir=tmp_path / "base")
+    save_hydra_files(base_cfg, tmp_path / "base", "net_es", "family")
+    teams_played.clear()
+    student = [*ANY_TEAM[3], f"learner.base={tmp_path / 'base'}", "system=family"]
+    args = [*student, "debug=smoke", "train.episodes=2", "train.batch_size=4"]  # not 6's multiple
+    metrics = train(compose_cfg(args), tmp_path / "run")
+    assert [episode for episode, *_ in teams_played] == [1, 2]
+    assert metrics["train"]["episodes"] == 2 and metrics["train"]["gradient_steps"] > 0
+
+
 @pytest.mark.parametrize("learner", ["qmix", "mappo", "subg_dqn"])
 def test_a_torch_learner_tied_to_one_team_is_refused_on_a_family(compose_cfg, tmp_path, learner):
     with pytest.raises(ConfigError, match=r"tied to one team's robots.*learners that can:.*ippo"):

@@ -372,9 +372,9 @@ class ExpertIterationLearner(SetNetworkOption, ReplayLearner):
         self.student = StudentPolicy(self.scores, hp["decode"])
 
     def _rebind(self) -> None:
-        """A new team: the teacher plans on it (its trained base rebound)."""
+        """A new team: the teacher plans on it, its trained base playing it (not trained on it)."""
         if self.base_policy is not None:
-            self.base_policy.bind_env(self.env)
+            self.base_policy.play_on(self.env)
         self.teacher = self._teacher()
 
     # -------------------------------------------------------------- the loop's protocol

@@ -258,6 +258,14 @@ class ReserveESLearner(Learner):
         # count included), so every member plays the same task streams, episode after episode
         env.set_state(env.get_state(np.arange(batch) % self.copies))
 
+    def play_on(self, env: AuctionEnv) -> None:
+        """Act on ``env``'s team (a planner's base): nothing to bind.
+
+        :meth:`encode` reads the team of the env it is given, and a play without exploration reads
+        no member's copies, so ``env`` keeps its own copies (training would clone them,
+        :meth:`bind_env`).
+        """
+
     def _team(self, env: AuctionEnv) -> dict[str, np.ndarray]:
         """What the policy reads of the team of ``env`` (computed once per env).
 

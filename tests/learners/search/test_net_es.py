@@ -111,6 +111,26 @@ def test_members_play_their_own_weights():
     assert (np.delete(low_bids, [2, 3]) > 0).all()
 
 
+def test_a_base_plays_another_team_and_leaves_its_copies_as_they_are():
+    """As a planner's base (play_on), the policy acts on another team's env of any batch, with
+    that env's copies untouched; training on it (bind_env) would clone them per member."""
+    _, learner = make("system1", batch=8, pairs=2)
+    other = AuctionEnv(paper_system("system2"), AuctionParams(horizon=50), batch_size=5, seed=11)
+    before = other.get_state()
+    learner.play_on(other)
+    after = other.get_state()
+    for name, value in before.items():
+        np.testing.assert_array_equal(np.asarray(after[name]), np.asarray(value), err_msg=name)
+    rule = TeamReserveLearner(
+        env=other, rng=np.random.default_rng(0), reserve=0, hold_level=1, hold_scope="robot"
+    )
+    mask = other.action_mask
+    actions = learner.act(learner.encode(other), mask, explore=False)  # untrained: the rule
+    np.testing.assert_array_equal(actions, rule.act(rule.encode(other), mask, explore=False))
+    with pytest.raises(Exception, match="multiple of 2 \\* pairs"):
+        learner.bind_env(other)  # 5 copies: not a training batch of 2 pairs
+
+
 def test_save_and_load_round_trip(tmp_path):
     _, learner = make("system1")
     learner.theta = np.arange(learner.theta.size, dtype=float)
