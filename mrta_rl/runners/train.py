@@ -53,7 +53,6 @@ from mrta_rl.runners.validation import (
     validate_config,
 )
 from mrta_rl.splits import FAMILY_SEEDS
-from mrta_rl.systems import RobotSystem
 
 logger = logging.getLogger(__name__)
 
@@ -85,7 +84,7 @@ def build_run(cfg: DictConfig, name: str | None = None) -> RunSetup:
     # a trained learner a setting names by its run dir (learner.base): the runner loads it
     runner_supplied = {}
     if checked.base is not None:
-        runner_supplied["base_policy"] = load_base(checked.base, checked.system)
+        runner_supplied["base_policy"] = load_base(checked.base, env)
     try:  # the settings are checked plain values: the class is called, nothing else is built
         learner = cls(
             env=env,
@@ -345,17 +344,19 @@ def load_run(run_dir: Path | str, cfg: DictConfig | None = None) -> RunSetup:
     return run
 
 
-def load_base(run_dir: Path, system: RobotSystem) -> Learner:
+def load_base(run_dir: Path, env: AuctionEnv) -> Learner:
     """The trained learner of the run dir a learner plays as its base (``learner.base``).
 
     The run is rebuilt as re-evaluation rebuilds it (:func:`load_run`), so its learner plays
-    as it was trained; its team must be ``system``, the run's (tables and weights are indexed
-    by robot and task type). :func:`~mrta_rl.runners.validation.check_base` has checked the
-    run dir and its chain of bases.
+    as it was trained. A learner that holds nothing of one team (a family's policy) plays the
+    team of ``env`` (:meth:`~mrta_rl.learners.base.Learner.play_on`), as ``init=`` plays it
+    zero-shot; any other must have been trained on that team (tables and weights are indexed by
+    robot and task type). :func:`~mrta_rl.runners.validation.check_base` has checked the run
+    dir and its chain of bases.
 
     Args:
         run_dir: The base's run dir of ``scripts/train.py``.
-        system: The team of the run that plays the base.
+        env: The env of the run that plays the base.
 
     Returns:
         The base's learner, trained as saved.
@@ -369,6 +370,10 @@ def load_base(run_dir: Path, system: RobotSystem) -> Learner:
         learner = load_run(run_dir).learner
     except UserError as err:
         raise ConfigError(f"{key}: {err}") from None
+    if type(learner).fits_any_team(learner.hp):
+        learner.play_on(env)
+        return learner
+    system = env.system
     theirs, ours = team_record(learner.env.system), team_record(system)
     for part in ("robots", "task_types", "willingness"):
         if theirs[part] != ours[part]:

@@ -66,9 +66,16 @@ def test_a_student_of_a_family_plans_on_a_trained_family_base(compose_cfg, tmp_p
     teams_played.clear()
     student = [*ANY_TEAM[3], f"learner.base={tmp_path / 'base'}", "system=family"]
     args = [*student, "debug=smoke", "train.episodes=2", "train.batch_size=4"]  # not 6's multiple
-    metrics = train(compose_cfg(args), tmp_path / "run")
+    student_cfg = compose_cfg(args)
+    metrics = train(student_cfg, tmp_path / "run")
     assert [episode for episode, *_ in teams_played] == [1, 2]
     assert metrics["train"]["episodes"] == 2 and metrics["train"]["gradient_steps"] > 0
+    # zero-shot on System-I: the student and its family base both play a team neither trained on
+    save_hydra_files(student_cfg, tmp_path / "run", "expert_iteration", "family")
+    zero_shot = [*ANY_TEAM[3], f"learner.base={tmp_path / 'base'}", "system=system1"]
+    zero_shot += ["debug=smoke", "train.episodes=0", f"init={tmp_path / 'run'}"]
+    played = train(compose_cfg(zero_shot), tmp_path / "zero_shot")
+    assert played["system"] == "system1" and played["eval"]["team_return"]["mean"] > 0
 
 
 @pytest.mark.parametrize("learner", ["qmix", "mappo", "subg_dqn"])

@@ -8,7 +8,8 @@ rollout return is played (ties to the base policy). Every candidate is scored on
 futures (common random numbers), so their differences are not drowned by arrival noise.
 
 The base policy is a rule of :data:`CANDIDATES` (``base=hold_group``) or a trained run
-(``base=<run dir>``: a path, a run dir of ``scripts/train.py`` on the same team). The planner
+(``base=<run dir>``: a path, a run dir of ``scripts/train.py`` on the same team, or of a policy
+that fits any team, such as a family's, which plays this team as ``init=`` plays it). The planner
 loads no run: :meth:`RolloutPlanner.base_run` tells the runner which value is a run dir, and the
 runner rebuilds that run from its own config, read as data, with its saved learner state, as
 re-evaluation does, and hands its trained learner to the planner (``base_policy``, a runner
@@ -137,8 +138,8 @@ class RolloutPlanner(FixedLearner):
         horizon: Ticks rolled forward per rollout (the candidate's tick included); 0 = no planning.
         candidates: Names of candidate rules (:data:`CANDIDATES`); the base policy is always one.
         base: The policy that plays after the first tick of a rollout, and on ties: the name of
-            a rule of :data:`CANDIDATES`, or a run dir of ``scripts/train.py`` on the same team
-            (module docstring).
+            a rule of :data:`CANDIDATES`, or a run dir of ``scripts/train.py`` on the same team or
+            of a policy that fits any team (module docstring).
         base_policy: The trained learner of the run dir ``base`` names, supplied by the runner
             (:meth:`base_run`); None for a rule.
         gamma: Discount per tick of the rollout return (1 = plain sum).

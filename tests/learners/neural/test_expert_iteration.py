@@ -216,10 +216,11 @@ def script(*args: str) -> subprocess.CompletedProcess:
 
 @pytest.fixture(scope="module")
 def system2_run(tmp_path_factory):
-    """A trained run of another team (System-II): a teacher's base System-I cannot use."""
+    """A trained run of another team (System-II) whose table is that team's: a teacher's base
+    System-I cannot use (a policy that fits any team plays System-I, as with ``init=``)."""
     run_dir = tmp_path_factory.mktemp("system2") / "run"
     done = script(
-        "learner=reserve_es",
+        "learner=cql",
         "system=system2",
         "debug=smoke",
         "train.episodes=1",

@@ -45,7 +45,7 @@ def base_run(tmp_path_factory) -> Path:
 def planner_on(run_dir: Path | str, seed: int = 3, **hp) -> tuple[RolloutPlanner, AuctionEnv]:
     """The planner on ``run_dir``'s trained learner, which the runner loads (``load_base``)."""
     env = AuctionEnv(paper_system("system1"), AuctionParams(horizon=60), 3, seed=seed)
-    base = load_base(Path(run_dir), paper_system("system1"))
+    base = load_base(Path(run_dir), env)
     planner = RolloutPlanner(
         env=env, rng=np.random.default_rng(0), base=str(run_dir), base_policy=base, **hp
     )
