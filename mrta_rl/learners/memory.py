@@ -227,6 +227,7 @@ def neural_estimate(
     copies: int,
     advice: str,
     *,
+    decisions: int,
     loss_keys_only: bool = False,
     state_bytes: int = 4,
 ) -> ResourceEstimate:
@@ -241,6 +242,8 @@ def neural_estimate(
         weights: Its trainable weights (the class counts them).
         copies: Training copies (``train.batch_size``).
         advice: What to change when it does not fit.
+        decisions: Copy-ticks of training: the most transitions the buffer and a batch hold
+            (a run that only plays, ``train.episodes=0``, fills neither).
         loss_keys_only: The replay buffer keeps only what the loss reads (the mixed learners'
             ``transitions``), not every leaf of the collected batch.
         state_bytes: Bytes per global feature of a stored state (float32: 4, bool: 1, not
@@ -267,8 +270,8 @@ def neural_estimate(
         stored = 2 * (observation + S * state_bytes) + m * 8 + 16
     parts = {
         "networks": weights * BYTES_PER_WEIGHT,
-        "replay buffer": int(settings["buffer_size"]) * stored,
-        "collector batch": int(settings["collect_ticks"]) * copies * collected,
+        "replay buffer": min(int(settings["buffer_size"]), decisions) * stored,
+        "collector batch": min(int(settings["collect_ticks"]) * copies, decisions) * collected,
     }
     total = sum(parts.values())
     return ResourceEstimate(name, total, total, parts, advice=advice)
