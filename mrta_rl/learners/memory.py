@@ -176,7 +176,8 @@ def estimate_resources(
     env = probe_env(system, params, active)
     decisions = max(1, episodes * batch_size * env.params.horizon)
     try:
-        estimate = cls.estimate_memory(MemoryQuery(env, partition, hp, decisions, batch_size))
+        training = batch_size if episodes > 0 else 0  # copies that train (none: it only plays)
+        estimate = cls.estimate_memory(MemoryQuery(env, partition, hp, decisions, training))
     except Unfit as unfit:
         estimate = ResourceEstimate(cls.__name__, reason=unfit.reason, advice=unfit.advice)
     copies = (batch_size + eval_batch_size) * env_copy_bytes(env, params.queue_capacity)
@@ -227,7 +228,6 @@ def neural_estimate(
     copies: int,
     advice: str,
     *,
-    decisions: int,
     loss_keys_only: bool = False,
     state_bytes: int = 4,
 ) -> ResourceEstimate:
@@ -240,10 +240,9 @@ def neural_estimate(
             ``collect_ticks``, ``features``, ``network``: ``set`` stores the set inputs instead
             of the local features).
         weights: Its trainable weights (the class counts them).
-        copies: Training copies (``train.batch_size``).
+        copies: Training copies (``train.batch_size``); 0 for a run that only plays
+            (``train.episodes=0``), which fills no buffer and collects no batch.
         advice: What to change when it does not fit.
-        decisions: Copy-ticks of training: the most transitions the buffer and a batch hold
-            (a run that only plays, ``train.episodes=0``, fills neither).
         loss_keys_only: The replay buffer keeps only what the loss reads (the mixed learners'
             ``transitions``), not every leaf of the collected batch.
         state_bytes: Bytes per global feature of a stored state (float32: 4, bool: 1, not
@@ -270,8 +269,8 @@ def neural_estimate(
         stored = 2 * (observation + S * state_bytes) + m * 8 + 16
     parts = {
         "networks": weights * BYTES_PER_WEIGHT,
-        "replay buffer": min(int(settings["buffer_size"]), decisions) * stored,
-        "collector batch": min(int(settings["collect_ticks"]) * copies, decisions) * collected,
+        "replay buffer": int(settings["buffer_size"]) * stored if copies else 0,
+        "collector batch": int(settings["collect_ticks"]) * copies * collected,
     }
     total = sum(parts.values())
     return ResourceEstimate(name, total, total, parts, advice=advice)

@@ -22,7 +22,7 @@ class MemoryQuery(NamedTuple):
     partition: Partition | None  # the subG partition, for learners that need one
     settings: dict[str, Any]  # the learner's hyperparameters from the run config
     decisions: int  # copy-ticks of training: the most states a table can meet
-    copies: int  # training copies (collector batch of the neural learners)
+    copies: int  # training copies (collector batch of the neural learners); 0: it only plays
 
 
 @dataclass(frozen=True)

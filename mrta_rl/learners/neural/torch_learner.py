@@ -587,7 +587,7 @@ class ReplayLearner(TorchLearner, abstract=True):
         Raises:
             Unfit: if the networks cannot be built on the system (``network_weights``).
         """
-        env, partition, settings, decisions, copies = query
+        env, partition, settings, _, copies = query
         weights = cls.network_weights(env, partition, settings)
         return neural_estimate(
             cls.__name__,
@@ -596,7 +596,6 @@ class ReplayLearner(TorchLearner, abstract=True):
             weights,
             copies,
             cls.memory_advice,
-            decisions=decisions,
             loss_keys_only=cls.replay_loss_keys_only,
             state_bytes=cls.replay_state_bytes,
         )
