@@ -114,9 +114,23 @@ def test_workers_end_bit_identical(cluster, tmp_path, learner, system):
 def test_without_an_address_workers_start_a_ray_of_their_own_beside_a_running_one(
     cluster, tmp_path
 ):
+    """The run is a new process (as a user's), on a machine where the test cluster runs: its
+    own local instance, not the cluster it would have joined, and the run of no Ray."""
     assert cluster.address  # a Ray instance runs on this machine, which ray.init would join
     alone = run(tmp_path, "alone", "net_es", "system=system1")
-    local = run(tmp_path, "local", "net_es", "system=system1", "train.workers=2")
+    local_dir = tmp_path / "local"
+    done = subprocess.run(
+        [sys.executable, str(TRAIN), "learner=net_es", "system=system1", *SMALL,
+         "train.workers=2", f"hydra.run.dir={local_dir}"],
+        capture_output=True, text=True, timeout=600, cwd=tmp_path,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
+    local = {
+        "metrics": json.loads((local_dir / "metrics.json").read_text()),
+        "weights": next((local_dir / "learner").glob("*.npz")).read_bytes(),
+        "curve": (local_dir / "curve.csv").read_text(),
+    }
     same_run(alone, local)
     record = local["metrics"]["train"]["workers"]
     assert record["address"] == "local" and record["count"] == 2 and record["nodes"] == 1
