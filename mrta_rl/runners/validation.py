@@ -29,7 +29,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from mrta_rl.cluster import EXTRA, ray_installed
+from mrta_rl.cluster import EXTRA, ray_installed, unreachable
 from mrta_rl.config import (
     Choices,
     ConfigError,
@@ -492,6 +492,9 @@ def validate_config(cfg: DictConfig) -> CheckedConfig:
         f"train.workers={train['workers']} needs Ray, which is not installed: "
         f"pip install 'mrta_rl[{EXTRA}]'",
     )
+    if train["workers"] and train["ray_address"] is not None:
+        why = unreachable(train["ray_address"])
+        _check(why is None, f"train.ray_address={train['ray_address']}: {why}")
     hyperparameters = check_keywords(cls, _plain(cfg, "learner"), "learner")
     _check_logger(_plain(cfg, "logger"))
 
