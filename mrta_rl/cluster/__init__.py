@@ -31,8 +31,12 @@ def unreachable(address: str, timeout_s: float = PROBE_S) -> str | None:
     """
     target = address.removeprefix("ray://")
     if target == "auto":
-        from ray._private.services import canonicalize_bootstrap_address_or_die  # noqa: PLC0415
-
+        try:  # Ray's own lookup, a private function: without it, ray.init finds the address
+            from ray._private.services import (  # noqa: PLC0415
+                canonicalize_bootstrap_address_or_die,
+            )
+        except ImportError:
+            return None
         try:
             target = canonicalize_bootstrap_address_or_die("auto")
         except ConnectionError:

@@ -47,6 +47,7 @@ from mrta_rl.runners.run_setup import RunSetup
 from mrta_rl.runners.validation import (
     SEED_STRIDE,
     ResourceRefusal,
+    check_workers_available,
     hydra_choice,
     team_params,
     training_loop,
@@ -222,6 +223,7 @@ def train(cfg: DictConfig, run_dir: Path | str | None = None) -> dict[str, Any]:
             cfg.resume = str(run_dir)
             cfg.train.progress_bar = progress
         run = build_saved_run(cfg, run_dir, name=choices.get("learner"))
+        check_workers_available(cfg)
         system_name = choices.get("system", run.system.name)
     else:
         run_dir = Path(run_dir if run_dir is not None else HydraConfig.get().runtime.output_dir)
@@ -233,6 +235,7 @@ def train(cfg: DictConfig, run_dir: Path | str | None = None) -> dict[str, Any]:
             if HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN:
                 _write_refusal(run_dir, cfg, str(refusal))
             raise
+        check_workers_available(cfg)
         system_name = hydra_choice("system", run.system.name)
         claim_run_dir(run_dir, resume=False)  # made and locked (runners/run_dir.py)
     # checked by validate_config; absent in runs written before checkpoints existed: none

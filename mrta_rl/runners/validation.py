@@ -441,6 +441,31 @@ def check_team_size(
         )
 
 
+def check_workers_available(cfg: DictConfig) -> None:
+    """Refuse workers this machine cannot give a run that is about to train.
+
+    Ray must be installed and the cluster of ``train.ray_address`` must answer. These are facts
+    of the machine, not of the config, so they are checked where training starts, not in
+    :func:`validate_config`: a finished run trained on a cluster is re-evaluated, or serves as a
+    base or a start, anywhere.
+
+    Raises:
+        ConfigError: naming ``train.workers`` (the missing extra) or ``train.ray_address``.
+    """
+    # a run written before train.workers existed has neither key: it trains in one process
+    workers, address = int(cfg.train.get("workers", 0)), cfg.train.get("ray_address")
+    if not workers:
+        return
+    _check(
+        ray_installed(),
+        f"train.workers={workers} needs Ray, which is not installed: "
+        f"pip install 'mrta_rl[{EXTRA}]'",
+    )
+    if address is not None:
+        why = unreachable(str(address))
+        _check(why is None, f"train.ray_address={address}: {why}")
+
+
 def validate_config(cfg: DictConfig) -> CheckedConfig:
     """Check a composed run config, build system, params and partition, estimate the memory.
 
@@ -487,14 +512,6 @@ def validate_config(cfg: DictConfig) -> CheckedConfig:
         f"train.workers: Ray workers play an evolution strategies step's members or collect a "
         f"torch learner's frames; {cls.__name__} spreads neither: set train.workers=0",
     )
-    _check(
-        not train["workers"] or ray_installed(),
-        f"train.workers={train['workers']} needs Ray, which is not installed: "
-        f"pip install 'mrta_rl[{EXTRA}]'",
-    )
-    if train["workers"] and train["ray_address"] is not None:
-        why = unreachable(train["ray_address"])
-        _check(why is None, f"train.ray_address={train['ray_address']}: {why}")
     hyperparameters = check_keywords(cls, _plain(cfg, "learner"), "learner")
     _check_logger(_plain(cfg, "logger"))
 

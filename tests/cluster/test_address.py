@@ -35,15 +35,45 @@ def test_the_script_refuses_it_in_one_line_and_leaves_no_run_dir(tmp_path):
     with socket.create_server(("127.0.0.1", 0)) as server:
         port = server.getsockname()[1]
     run_dir = tmp_path / "run"
-    done = subprocess.run(
-        [sys.executable, str(ROOT / "scripts" / "train.py"), "learner=net_es", "system=system1",
-         "debug=smoke", "train.workers=2", f"train.ray_address=127.0.0.1:{port}",
-         f"hydra.run.dir={run_dir}"],
-        capture_output=True, text=True, timeout=120, cwd=tmp_path,
-    )  # fmt: skip
+    done = train_script(
+        "learner=net_es",
+        "system=system1",
+        "debug=smoke",
+        "train.workers=2",
+        f"train.ray_address=127.0.0.1:{port}",
+        run_dir=run_dir,
+    )
     assert done.returncode == 2
     lines = done.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith(
         f"error: train.ray_address=127.0.0.1:{port}: nothing answers at 127.0.0.1:{port} ("
     ), done.stderr[-2000:]
     assert not run_dir.exists()
+
+
+def test_a_finished_run_of_a_cluster_that_is_gone_is_still_evaluated(tmp_path):
+    """Whether workers can be had is asked of a run about to train, not of a saved config: a
+    run trained on a cluster is re-evaluated (and serves as a base or a start) without it."""
+    with socket.create_server(("127.0.0.1", 0)) as server:
+        port = server.getsockname()[1]
+    run_dir = tmp_path / "run"
+    done = train_script("learner=net_es", "system=system1", "debug=smoke", run_dir=run_dir)
+    assert done.returncode == 0, done.stderr[-2000:]
+    config = run_dir / ".hydra" / "config.yaml"  # as the cluster's run wrote it
+    text = config.read_text()
+    assert "  workers: 0\n" in text and "  ray_address: null\n" in text
+    text = text.replace("  workers: 0\n", "  workers: 2\n")
+    config.write_text(text.replace("  ray_address: null\n", f"  ray_address: 127.0.0.1:{port}\n"))
+    evaluated = subprocess.run(
+        [sys.executable, str(ROOT / "scripts" / "evaluate.py"), f"checkpoint={run_dir}"],
+        capture_output=True, text=True, timeout=300, cwd=tmp_path,
+    )  # fmt: skip
+    assert evaluated.returncode == 0, evaluated.stderr[-2000:]
+    assert (run_dir / "eval_metrics.json").is_file()
+
+
+def train_script(*args: str, run_dir: Path) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, str(ROOT / "scripts" / "train.py"), *args, f"hydra.run.dir={run_dir}"],
+        capture_output=True, text=True, timeout=300, cwd=run_dir.parent,
+    )  # fmt: skip

@@ -41,7 +41,7 @@ def test_collection_on_workers_checkpoints_and_resumes_in_a_new_process(cluster,
 
 
 def test_collection_on_workers_refuses_a_family_and_uneven_copies(compose_cfg, tmp_path):
-    pytest.importorskip("ray")  # without it, the missing extra is the refusal
+    """Refused from the config alone, before the machine is asked for Ray (with or without it)."""
     from mrta_rl.config import ConfigError
 
     for overrides, match in [
