@@ -37,6 +37,8 @@ logger = logging.getLogger(__name__)
 NEURAL_RATES = ("fps_collection", "fps_training", "labels_per_s", "gradient_steps")
 RATES = NEURAL_RATES[:3]  # the rates of the table, min and median
 WARMUP_OVERRIDES = ("env.horizon=20", "train.episodes=1")  # loads compiled code, fills caches
+# the budgets' validation evaluations (conf/budget/) are not training: the benchmark times training
+TRAINING_ONLY = ("train.validate_every=0", "train.keep_best=false")
 TEAM_KEYS = ("system.", "env.")  # overrides that also set the yardsticks' team and dynamics
 
 
@@ -153,7 +155,7 @@ def measure(
     for name in learners:
         warm_start = time.perf_counter()
         pinned = [f"experiment={experiment}"] if experiment else []
-        pinned += [*search_path(config_dirs), *overrides]
+        pinned += [*search_path(config_dirs), *TRAINING_ONLY, *overrides]
         train_once(name, system, [*pinned, *WARMUP_OVERRIDES])
         warmup = time.perf_counter() - warm_start
         budget = [*pinned, f"train.episodes={episodes}"]
