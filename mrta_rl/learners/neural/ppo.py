@@ -20,7 +20,9 @@ and parameter sharing:
   ``("agents", "reward")`` (spec step 8, the same for every robot) with the root ``done`` and
   ``terminated`` flags broadcast over the robots; the horizon is a truncation (``terminated`` is
   always False), so the last tick of an episode bootstraps from the value of its final state;
-* the update is ``MAPPOLoss`` / ``IPPOLoss`` (clipped ratio, entropy bonus, critic loss), several
+* the update is ``MAPPOLoss`` / ``IPPOLoss`` (clipped ratio, entropy bonus, critic loss; the
+  advantages normalised, and with ``value_norm`` the critic loss on value targets scaled by
+  their running statistics, ``PopArtValueNorm``), several
   epochs of minibatches per collected batch, sampled without replacement by the torch loop
   (``mrta_rl/runners/torch_loop.py``); on-policy, each batch is consumed, then dropped. IPPO
   with ``network=set`` holds nothing of one team (no state, no robot id) and trains on a family
@@ -42,7 +44,7 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictModuleBase
 from torch import nn
-from torchrl.modules import MLP, MaskedCategorical, ProbabilisticActor
+from torchrl.modules import MLP, MaskedCategorical, PopArtValueNorm, ProbabilisticActor
 from torchrl.objectives import ValueEstimators
 from torchrl.objectives.multiagent import MAPPOLoss
 
@@ -53,6 +55,7 @@ from mrta_rl.learners.base import MemoryQuery, TrainingTeam
 from mrta_rl.learners.memory import BYTES_PER_WEIGHT, ResourceEstimate, feature_sizes, mlp_weights
 from mrta_rl.learners.neural.networks import PerRobotQ
 from mrta_rl.learners.neural.set_network import SetNetworkOption
+from mrta_rl.learners.neural.tensor_files import check_state_dict
 from mrta_rl.learners.neural.torch_learner import LoopSettings, TorchLearner
 from mrta_rl.partition import Partition
 from mrta_rl.priors import GreedyPrior
@@ -210,6 +213,7 @@ class PPOLearner(SetNetworkOption, TorchLearner, abstract=True):
         frames_per_batch: Annotated[int, Range(1)],
         epochs: Annotated[int, Range(1)],
         minibatch_size: Annotated[int, Range(1)],
+        value_norm: bool,
         **settings: Any,
     ) -> None:
         """Build actor, critic, loss (with ``MultiAgentGAE``) and optimiser.
@@ -223,6 +227,9 @@ class PPOLearner(SetNetworkOption, TorchLearner, abstract=True):
                 training copies (``train.batch_size``).
             epochs: Passes over each collected batch.
             minibatch_size: Frames per gradient step; at most ``frames_per_batch``.
+            value_norm: Scale the critic's loss by running statistics of the value targets
+                (``PopArtValueNorm``, MAPPO's value normalisation); its statistics are part of
+                the training state, so a resumed run continues them.
             **settings: Env, generator, partition, the set network's and
                 :class:`~mrta_rl.learners.neural.torch_learner.TorchLearner`'s settings
                 (``hidden`` and ``depth`` are the MLPs': the ``mlp`` actor, the critic heads;
@@ -233,6 +240,7 @@ class PPOLearner(SetNetworkOption, TorchLearner, abstract=True):
                 minibatch, the set network does not fit the team, or the device is unavailable.
         """
         self.rule = GreedyPrior()  # the view writes its action as ("agents", "prior_action")
+        self.value_norm: PopArtValueNorm | None = None
         super().__init__(**settings)
 
     def _build(self) -> None:
@@ -282,6 +290,8 @@ class PPOLearner(SetNetworkOption, TorchLearner, abstract=True):
             log_prob_key=LOG_PROB,
         )
         self.critic = TensorDictModule(value, in_keys=critic_keys, out_keys=[VALUE])
+        if hp["value_norm"]:
+            self.value_norm = PopArtValueNorm(shape=1, device=self.device)
         loss = self.loss_class(
             self.actor,
             self.critic,
@@ -289,6 +299,7 @@ class PPOLearner(SetNetworkOption, TorchLearner, abstract=True):
             entropy_coeff=hp["entropy_coeff"],
             critic_coeff=hp["critic_coeff"],
             loss_critic_type="smooth_l1",
+            value_norm=self.value_norm,
         )
         loss.set_keys(
             action=ACTION,
@@ -306,6 +317,27 @@ class PPOLearner(SetNetworkOption, TorchLearner, abstract=True):
             ValueEstimators.MAGAE, gamma=hp["gamma"], lmbda=hp["lmbda"], deactivate_vmap=True
         )
         self.losses[GROUP] = loss
+
+    def training_state(self) -> dict[str, Any]:
+        """The optimiser's state and, with ``value_norm``, the value targets' statistics."""
+        state = super().training_state()
+        if self.value_norm is not None:
+            state["value_norm"] = self.value_norm.state_dict()
+        return state
+
+    def restore_training_state(self, saved: dict[str, Any], path) -> None:
+        """Check and restore :meth:`training_state`.
+
+        Raises:
+            RunDirError: naming the file and the key.
+        """
+        if self.value_norm is not None:
+            check_state_dict(
+                saved["value_norm"], self.value_norm.state_dict(), f"{path}: value_norm"
+            )
+        super().restore_training_state(saved, path)
+        if self.value_norm is not None:
+            self.value_norm.load_state_dict(saved["value_norm"])
 
     # -------------------------------------------------------------- the loop's protocol
     @property

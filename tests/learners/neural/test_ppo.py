@@ -184,3 +184,21 @@ def test_the_script_prints_one_error_line_naming_the_key(tmp_path):
     lines = [line for line in run.stderr.splitlines() if line.startswith("error:")]
     assert len(lines) == 1 and "learner.minibatch_size=1000" in lines[0], run.stderr
     assert not (tmp_path / "run").exists()
+
+
+# ---------------------------------------------------------------------- value normalisation
+def test_value_normalisation_statistics_are_training_state_checked_on_resume(tmp_path):
+    """``value_norm``: the running statistics of the value targets go into the training state,
+    come back into a fresh learner, and a saved NaN is refused naming them."""
+    learner, _ = make(MAPPOLearner, value_norm=True)
+    learner.value_norm.update(torch.tensor([[2.0], [4.0]]))  # mean 3, mean of squares 10
+    state = learner.training_state()
+    assert set(state) == {"optimizer", "value_norm"}
+    fresh, _ = make(MAPPOLearner, value_norm=True)
+    fresh.restore_training_state(state, tmp_path / "training.pt")
+    assert fresh.value_norm.normalize(torch.tensor([3.0])).item() == pytest.approx(0.0, abs=1e-4)
+    assert fresh.value_norm.scale().item() == pytest.approx(1.0, rel=1e-3)  # var = 10 - 9
+    state["value_norm"]["running_mean"] = torch.tensor([math.nan])
+    with pytest.raises(ValueError, match="value_norm.*NaN"):
+        fresh.restore_training_state(state, tmp_path / "training.pt")
+    assert set(make(MAPPOLearner, value_norm=False)[0].training_state()) == {"optimizer"}
