@@ -55,6 +55,7 @@ from typing import Annotated, Any, ClassVar
 
 import numpy as np
 import torch
+from numba import njit
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictModuleBase
 from torch import nn
@@ -88,10 +89,11 @@ def match_bids(logits: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
 
     Bids are taken in decreasing order of their margin over the robot's wait score: the best
     (robot, slot) pair of a copy is kept, its robot and slot are struck out, and so on while a
-    margin is positive. A robot whose bids were all struck out, or whose bids all score below
-    its wait, waits. Without competing bids this is each robot's argmax; with them, the robot
-    that loses a slot bids for its next best instead of bidding in vain (spec step 5: one
-    winner per slot, and a losing bid costs the robot its tick, step 7).
+    margin is positive (equal margins: the lower robot, then the lower slot, first). A robot
+    whose bids were all struck out, or whose bids all score below its wait, waits. Without
+    competing bids this is each robot's argmax; with them, the robot that loses a slot bids for
+    its next best instead of bidding in vain (spec step 5: one winner per slot, and a losing bid
+    costs the robot its tick, step 7).
 
     Args:
         logits: ``[*, m, K + 1]`` scores (column 0: wait).
@@ -103,19 +105,36 @@ def match_bids(logits: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     *lead, m, width = logits.shape
     K = width - 1
     margin = (logits[..., 1:] - logits[..., :1]).masked_fill(~mask[..., 1:], -torch.inf)
-    flat = margin.reshape(-1, m * K).clone()  # [N, m * K]
-    actions = torch.zeros(flat.shape[0], m, dtype=torch.int64, device=logits.device)
-    pairs = flat.view(-1, m, K)
-    for _ in range(min(m, K)):
-        best, index = flat.max(-1)
-        rows = (best > 0).nonzero().squeeze(-1)
-        if rows.numel() == 0:
-            break
-        robot, slot = index[rows] // K, index[rows] % K
-        actions[rows, robot] = slot + 1
-        pairs[rows, robot, :] = -torch.inf
-        pairs[rows, :, slot] = -torch.inf
-    return actions.reshape(*lead, m)
+    flat = margin.detach().reshape(-1, m * K).to("cpu", torch.float64).numpy()
+    actions = np.zeros((flat.shape[0], m), np.int64)
+    _match_in_order(flat, K, actions)
+    return torch.from_numpy(actions).to(logits.device).reshape(*lead, m)
+
+
+@njit(cache=True)
+def _match_in_order(margin: np.ndarray, n_slots: int, actions: np.ndarray) -> None:
+    """:func:`match_bids` per copy: ``margin`` ``[N, m * K]`` robot-major, into ``actions``.
+
+    One stable sort of a copy's positive margins replaces a round per bid: the scan meets the
+    pairs in the order the rounds would take them, and skips those whose robot or slot is gone.
+    """
+    n_robots = actions.shape[1]
+    for copy in range(margin.shape[0]):
+        row = margin[copy]
+        positive = np.flatnonzero(row > 0)
+        order = positive[np.argsort(-row[positive], kind="mergesort")]  # ties: lower index
+        robot_taken = np.zeros(n_robots, np.bool_)
+        slot_taken = np.zeros(n_slots, np.bool_)
+        left = min(n_robots, n_slots)
+        for pair in order:
+            robot, slot = pair // n_slots, pair % n_slots
+            if robot_taken[robot] or slot_taken[slot]:
+                continue
+            actions[copy, robot] = slot + 1
+            robot_taken[robot] = slot_taken[slot] = True
+            left -= 1
+            if left == 0:
+                break
 
 
 PRIORS = ("greedy", "base")  # the action of the logit bonus: the plain auction's, or the base's

@@ -77,6 +77,38 @@ def test_matched_bids_by_hand():
     assert batched.shape == (4, 2, 3) and (batched == match_bids(logits, mask)).all()
 
 
+def rounds_of_best_bids(logits: torch.Tensor, mask: torch.Tensor) -> list[list[int]]:
+    """The matching as the docstring tells it, one round per bid: per copy, the best remaining
+    (robot, slot) margin (equal margins: the first robot, then the first slot) while positive."""
+    out = []
+    for scores, valid in zip(logits.tolist(), mask.tolist(), strict=True):
+        actions = [0] * len(scores)
+        pairs = {
+            (r, k): row[k + 1] - row[0]
+            for r, row in enumerate(scores)
+            for k in range(len(row) - 1)
+            if valid[r][k + 1]
+        }
+        while pairs:
+            (robot, slot), best = max(pairs.items(), key=lambda p: (p[1], -p[0][0], -p[0][1]))
+            if best <= 0:
+                break
+            actions[robot] = slot + 1
+            pairs = {(r, k): v for (r, k), v in pairs.items() if r != robot and k != slot}
+        out.append(actions)
+    return out
+
+
+@pytest.mark.parametrize(("m", "K"), [(1, 1), (3, 5), (6, 2), (7, 7)])
+def test_matched_bids_take_the_best_margin_first_on_random_scores_with_ties(m, K):
+    """Scores on a coarse grid (many equal margins), a random mask: as the rounds of best bids."""
+    generator = torch.Generator().manual_seed(m * 100 + K)
+    logits = torch.randint(-3, 4, (64, m, K + 1), generator=generator).float() / 2
+    mask = torch.rand(64, m, K + 1, generator=generator) < 0.7
+    mask[..., 0] = True
+    assert match_bids(logits, mask).tolist() == rounds_of_best_bids(logits, mask)
+
+
 def test_the_labels_are_the_teachers_actions_on_the_states_given():
     """On states reached by the greedy rule, the labels are the planner's own decisions.
 
