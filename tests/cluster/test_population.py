@@ -67,15 +67,30 @@ def while_waiting(monkeypatch):
 
 
 def run(tmp_path: Path, name: str, learner: str, *overrides: str) -> dict:
-    """Train in this process; metrics.json, the weights and curve.csv of the run."""
+    """Train in this process; :func:`outputs` of the run."""
     cfg = compose_config([f"learner={learner}", *SMALL, *overrides])
     run_dir = tmp_path / name
-    metrics = train(cfg, run_dir=run_dir)
+    train(cfg, run_dir=run_dir)
+    return outputs(run_dir)
+
+
+def outputs(run_dir: Path) -> dict:
+    """metrics.json, the weights and curve.csv of a finished run."""
     return {
-        "metrics": metrics,
+        "metrics": json.loads((run_dir / "metrics.json").read_text()),
         "weights": next((run_dir / "learner").glob("*.npz")).read_bytes(),
         "curve": (run_dir / "curve.csv").read_text(),
     }
+
+
+def train_script(*overrides: str, run_dir: Path, env: dict | None = None):
+    """``scripts/train.py`` on a small net_es run of System-I in a new process."""
+    return subprocess.run(
+        [sys.executable, str(TRAIN), "learner=net_es", "system=system1", *SMALL, *overrides,
+         f"hydra.run.dir={run_dir}"],
+        capture_output=True, text=True, timeout=600, cwd=run_dir.parent,
+        env=env or {**os.environ, "PYTHONPATH": str(ROOT)},
+    )  # fmt: skip
 
 
 def same_run(a: dict, b: dict) -> None:
@@ -118,19 +133,9 @@ def test_without_an_address_workers_start_a_ray_of_their_own_beside_a_running_on
     own local instance, not the cluster it would have joined, and the run of no Ray."""
     assert cluster.address  # a Ray instance runs on this machine, which ray.init would join
     alone = run(tmp_path, "alone", "net_es", "system=system1")
-    local_dir = tmp_path / "local"
-    done = subprocess.run(
-        [sys.executable, str(TRAIN), "learner=net_es", "system=system1", *SMALL,
-         "train.workers=2", f"hydra.run.dir={local_dir}"],
-        capture_output=True, text=True, timeout=600, cwd=tmp_path,
-        env={**os.environ, "PYTHONPATH": str(ROOT)},
-    )  # fmt: skip
+    done = train_script("train.workers=2", run_dir=tmp_path / "local")
     assert done.returncode == 0, done.stderr[-2000:]
-    local = {
-        "metrics": json.loads((local_dir / "metrics.json").read_text()),
-        "weights": next((local_dir / "learner").glob("*.npz")).read_bytes(),
-        "curve": (local_dir / "curve.csv").read_text(),
-    }
+    local = outputs(tmp_path / "local")
     same_run(alone, local)
     record = local["metrics"]["train"]["workers"]
     assert record["address"] == "local" and record["count"] == 2 and record["nodes"] == 1
@@ -173,22 +178,14 @@ def test_without_ray_workers_are_refused_in_one_line(tmp_path):
     site.mkdir()
     (site / "sitecustomize.py").write_text(HIDE_RAY)
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(site), str(ROOT)])}
-    command = [sys.executable, str(TRAIN), "learner=net_es", "system=system1", *SMALL]
-
-    def train_script(*overrides: str, run_dir: Path) -> subprocess.CompletedProcess:
-        return subprocess.run(
-            [*command, *overrides, f"hydra.run.dir={run_dir}"],
-            capture_output=True, text=True, timeout=300, env=env, cwd=tmp_path,
-        )  # fmt: skip
-
-    refused = train_script("train.workers=2", run_dir=tmp_path / "refused")
+    refused = train_script("train.workers=2", run_dir=tmp_path / "refused", env=env)
     assert refused.returncode != 0
     lines = refused.stderr.strip().splitlines()
     assert lines == [
         "error: train.workers=2 needs Ray, which is not installed: pip install 'mrta_rl[cluster]'"
     ]
     assert not (tmp_path / "refused").exists()
-    alone = train_script(run_dir=tmp_path / "alone")
+    alone = train_script(run_dir=tmp_path / "alone", env=env)
     assert alone.returncode == 0, alone.stderr[-2000:]
     assert json.loads((tmp_path / "alone" / "metrics.json").read_text())["train"]["episodes"] == 4
 
